@@ -1,0 +1,1 @@
+"""Demo robots: CAN nodes and TCP hosts talking through UPS."""
