@@ -1,1 +1,35 @@
-"""UPS: the Ulm Publisher/Subscriber protocol, one API across CAN buses and TCP/IP."""
+"""UPS: the Ulm Publisher/Subscriber protocol, one API across CAN buses and TCP/IP.
+
+The whole public API is here; modules whose names start with ``_`` are internals.
+"""
+
+from ._channel import Channel, ChannelLike, name_to_uid, parse_channel
+from ._errors import (
+    BrokerUnavailable,
+    Closed,
+    ConfigError,
+    DecodeError,
+    Exhausted,
+    PayloadTooLarge,
+    UpsError,
+)
+from ._message import Message
+from ._node import Node, Overflow, Subscription
+
+__all__ = [
+    "BrokerUnavailable",
+    "Channel",
+    "ChannelLike",
+    "Closed",
+    "ConfigError",
+    "DecodeError",
+    "Exhausted",
+    "Message",
+    "Node",
+    "Overflow",
+    "PayloadTooLarge",
+    "Subscription",
+    "UpsError",
+    "name_to_uid",
+    "parse_channel",
+]

@@ -1,0 +1,277 @@
+"""The CAN Event Channel Broker: gives TxNodes to joining nodes and binds channel UIDs to etags.
+
+Exactly one CAN-ECB serves a bus, standalone (``ups can-broker``) or hosted by the gateway. Its
+tables (node id -> TxNode, UID -> etag) live in an SQLite file, so a restarted CAN-ECB gives every
+node and channel the same identifiers as before. Who publishes and subscribes what is soft
+state: after a start the CAN-ECB says Hello and every node announces itself again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sqlite3
+from collections import defaultdict
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+
+from ups import _canproto as p
+from ups._canlink import CanLink
+from ups._errors import DecodeError
+
+log = logging.getLogger("ups.can_ecb")
+
+RACE_TIMEOUT = 1.0  # a race whose leader fell silent this long starts again
+
+
+class _Store:
+    """The persistent tables, mirrored in dicts; every change is committed at once."""
+
+    def __init__(self, path: str | Path) -> None:
+        self._db = sqlite3.connect(str(path))
+        self._db.executescript(
+            """
+            CREATE TABLE IF NOT EXISTS txnodes (node_id TEXT PRIMARY KEY,
+                                                txnode INTEGER UNIQUE NOT NULL);
+            CREATE TABLE IF NOT EXISTS etags (uid TEXT PRIMARY KEY, etag INTEGER UNIQUE NOT NULL);
+            """
+        )
+        self.txnodes: dict[int, int] = {
+            int(k, 16): v for k, v in self._db.execute("SELECT * FROM txnodes")
+        }
+        self.etags: dict[int, int] = {
+            int(k, 16): v for k, v in self._db.execute("SELECT * FROM etags")
+        }
+
+    def add_txnode(self, node_id: int, txnode: int) -> None:
+        with self._db:
+            self._db.execute("INSERT INTO txnodes VALUES (?, ?)", (f"{node_id:016x}", txnode))
+        self.txnodes[node_id] = txnode
+
+    def add_etag(self, uid: int, etag: int) -> None:
+        with self._db:
+            self._db.execute("INSERT INTO etags VALUES (?, ?)", (f"{uid:016x}", etag))
+        self.etags[uid] = etag
+
+    def close(self) -> None:
+        self._db.close()
+
+
+class CanEcb:
+    """The CAN-ECB of one bus. ``on_change(uid)`` is called when a channel's subscribers change."""
+
+    def __init__(self, link: CanLink, db_path: str | Path = "ups-can-ecb.db") -> None:
+        self.link = link
+        self._handler = self._on_frame  # one bound method, so the link can tell it apart
+        self._store = _Store(db_path)
+        self._epoch = 0
+        self._prefix: list[int] = []
+        self._race_timer: asyncio.TimerHandle | None = None
+        self._free_etag = p.FIRST_ETAG
+        self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
+        self.publishers: defaultdict[int, set[int]] = defaultdict(set)
+        self.on_change: Callable[[int], None] | None = None
+        self.counters = dict.fromkeys(
+            ("joined", "bound", "requests", "malformed", "foreign", "refused"), 0
+        )
+
+    @property
+    def txnodes(self) -> dict[int, int]:
+        """node id -> TxNode, every assignment ever made on this bus."""
+        return dict(self._store.txnodes)
+
+    @property
+    def etags(self) -> dict[int, int]:
+        """channel UID -> etag, every binding ever made on this bus."""
+        return dict(self._store.etags)
+
+    def stats(self) -> dict[str, int]:
+        return {
+            **self.counters,
+            "txnodes": len(self._store.txnodes),
+            "etags": len(self._store.etags),
+        }
+
+    async def start(self) -> None:
+        """Listen on the bus and say Hello, so that nodes already running announce themselves."""
+        self.link.add_handler(self._handler, None)
+        self.link.start()
+        self._send(p.Hello(self._epoch))
+        log.info(
+            "CAN-ECB on %s: %d TxNodes, %d etags bound",
+            self.link.channel_info,
+            len(self._store.txnodes),
+            len(self._store.etags),
+        )
+
+    def close(self) -> None:
+        if self._race_timer is not None:
+            self._race_timer.cancel()
+        self.link.remove_handler(self._handler)
+        self._store.close()
+
+    # --- frames ----------------------------------------------------------------------------
+
+    def _on_frame(self, frame: can.Message) -> None:
+        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
+            self.counters["foreign"] += 1
+            return
+        can_id = frame.arbitration_id
+        if not p.is_management(can_id):
+            return
+        try:
+            msg = p.decode(can_id, bytes(frame.data))
+        except DecodeError as exc:
+            self.counters["malformed"] += 1
+            log.debug("skipped malformed management frame: %s", exc)
+            return
+        if isinstance(msg, p.Stage):
+            self._on_stage(msg)
+        elif isinstance(msg, p.Request):
+            self.counters["requests"] += 1
+            self._on_request(msg)
+
+    # --- the TxNode race -------------------------------------------------------------------
+
+    def _on_stage(self, msg: p.Stage) -> None:
+        prefix = self._prefix
+        if msg.epoch != self._epoch or msg.stage > len(prefix):
+            self._announce_state()  # stale: tell the sender where the race stands
+            return
+        if msg.stage == len(prefix):
+            prefix.append(msg.nibble)
+        elif msg.nibble < prefix[msg.stage]:
+            del prefix[msg.stage :]
+            prefix.append(msg.nibble)
+        else:  # a repeat, or a higher id than the leader's
+            self._announce_state()
+            return
+        self._epoch = (self._epoch + 1) % p.EPOCHS
+        if len(prefix) < p.NIBBLES:
+            self._send(p.Ack(self._epoch, tuple(prefix)))
+            self._arm_race_timer()
+            return
+        node_id = 0
+        for nib in prefix:
+            node_id = (node_id << 4) | nib
+        self._assign(node_id)
+        self._restart_race()
+
+    def _assign(self, node_id: int) -> None:
+        txnode = self._store.txnodes.get(node_id)
+        if txnode is None:
+            taken = set(self._store.txnodes.values())
+            txnode = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
+            if txnode is None:
+                self.counters["refused"] += 1
+                log.warning("no TxNode left for node %016x", node_id)
+                self._send(p.TxNodesFull(node_id))
+                return
+            self._store.add_txnode(node_id, txnode)
+        self.counters["joined"] += 1
+        self._forget_node(txnode)  # a (re)joining node starts with no subscriptions
+        log.info("node %016x has TxNode %d", node_id, txnode)
+        self._send(p.Assign(txnode, node_id))
+
+    def _restart_race(self) -> None:
+        self._prefix = []
+        self._epoch = (self._epoch + 1) % p.EPOCHS
+        if self._race_timer is not None:
+            self._race_timer.cancel()
+            self._race_timer = None
+        self._send(p.Reset(self._epoch))
+
+    def _arm_race_timer(self) -> None:
+        if self._race_timer is not None:
+            self._race_timer.cancel()
+        loop = asyncio.get_running_loop()
+        self._race_timer = loop.call_later(RACE_TIMEOUT, self._restart_race)
+
+    def _announce_state(self) -> None:
+        if self._prefix:
+            self._send(p.Ack(self._epoch, tuple(self._prefix)))
+        else:
+            self._send(p.Reset(self._epoch))
+
+    # --- binding and subscriptions ---------------------------------------------------------
+
+    def _on_request(self, msg: p.Request) -> None:
+        if msg.kind == p.CLAIM:
+            self._on_claim(msg.txnode, msg.value)
+            return
+        uid = msg.value
+        if msg.kind == p.UNSUB:
+            self._update(self.subscribers, uid, msg.txnode, add=False)
+            return
+        etag = self._etag_for(uid)
+        if etag is None:
+            self.counters["refused"] += 1
+            self._send(p.EtagsFull(uid))
+            return
+        self._send(p.Bind(etag, uid))
+        table = self.subscribers if msg.kind == p.SUB_BIND else self.publishers
+        self._update(table, uid, msg.txnode, add=True)
+
+    def _etag_for(self, uid: int) -> int | None:
+        etag = self._store.etags.get(uid)
+        if etag is not None:
+            return etag
+        taken = set(self._store.etags.values())
+        while self._free_etag in taken:
+            self._free_etag += 1
+        if self._free_etag > p.LAST_ETAG:
+            log.warning("no etag left for channel %016x", uid)
+            return None
+        self._store.add_etag(uid, self._free_etag)
+        self.counters["bound"] += 1
+        return self._free_etag
+
+    def _on_claim(self, txnode: int, node_id: int) -> None:
+        known = self._store.txnodes.get(node_id)
+        if known == txnode:
+            return
+        if known is None and txnode not in self._store.txnodes.values():
+            log.info("adopting TxNode %d of node %016x", txnode, node_id)
+            self._store.add_txnode(node_id, txnode)
+            return
+        log.warning(
+            "node %016x claims TxNode %d held by another node: reassigning", node_id, txnode
+        )
+        self._forget_node(txnode)
+        self._assign(node_id)
+
+    def _update(self, table: defaultdict[int, set[int]], uid: int, txnode: int, add: bool) -> None:
+        before = len(table[uid])
+        if add:
+            table[uid].add(txnode)
+        else:
+            table[uid].discard(txnode)
+        if table is self.subscribers and (before == 0) != (len(table[uid]) == 0):
+            self._changed(uid)
+
+    def _forget_node(self, txnode: int) -> None:
+        for table in (self.subscribers, self.publishers):
+            for uid in [u for u, nodes in table.items() if txnode in nodes]:
+                self._update(table, uid, txnode, add=False)
+
+    def _changed(self, uid: int) -> None:
+        if self.on_change is not None:
+            self.on_change(uid)
+
+    def _send(self, msg: p.Management) -> None:
+        can_id, data = p.encode(msg)
+        self.link.send(can_id, data, self._handler)
+
+
+async def serve(bus: str, db_path: str | Path) -> None:
+    """Run a standalone CAN-ECB on ``bus`` until cancelled."""
+    link = CanLink.open(bus)
+    ecb = CanEcb(link, db_path)
+    try:
+        await ecb.start()
+        await asyncio.Event().wait()
+    finally:
+        ecb.close()
+        link.close()

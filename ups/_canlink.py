@@ -1,0 +1,251 @@
+"""One python-can bus feeding one asyncio loop, shared by every handler of a process.
+
+A node's CAN face and a CAN-ECB hosted in the same process (the gateway) share one link: a
+frame sent by one handler is handed to the others at once, as if they were separate nodes on
+the bus, and the echo that some interfaces return for our own frames is dropped here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from ._errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: Interfaces that hand every sent frame back to the sender.
+_ECHOING_INTERFACES = frozenset({"udp_multicast"})
+_RX_BATCH = 256  # frames read per wake-up before yielding to the loop
+_ECHO_WINDOW = 4096  # sent frames remembered while their echo is awaited
+_ECHO_LOOKAHEAD = 8  # echoes may be this many places out of order (or lost)
+_UDP_RCVBUF = 4 << 20
+
+Frame = can.Message
+Handler = Callable[[can.Message], None]
+
+
+def parse_bus_spec(spec: str) -> dict[str, Any]:
+    """Parse ``INTERFACE:CHANNEL[,key=value...]`` into python-can ``Bus`` keyword arguments.
+
+    Values that read as integers (``500000``, ``0x10``), floats or ``true``/``false`` are
+    converted; everything else stays a string.
+    """
+    head, *pairs = spec.split(",")
+    interface, sep, channel = head.partition(":")
+    if not sep or not interface or not channel:
+        raise ConfigError(f"bad CAN bus {spec!r}: expected INTERFACE:CHANNEL[,key=value...]")
+    kwargs: dict[str, Any] = {"interface": interface, "channel": channel}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"bad CAN bus option {pair!r} in {spec!r}: expected key=value")
+        kwargs[key.strip()] = _option_value(value.strip())
+    return kwargs
+
+
+def _option_value(text: str) -> Any:
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    for convert in (lambda t: int(t, 0), float):
+        try:
+            return convert(text)
+        except ValueError:
+            pass
+    return text
+
+
+def open_bus(spec: str) -> can.BusABC:
+    """Open the python-can bus named by ``spec`` (see ``parse_bus_spec``)."""
+    kwargs = parse_bus_spec(spec)
+    try:
+        bus = can.Bus(**kwargs)
+    except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+        raise ConfigError(f"cannot open CAN bus {spec!r}: {exc}") from exc
+    _widen_udp_buffer(bus)
+    return bus
+
+
+def _widen_udp_buffer(bus: can.BusABC) -> None:
+    """udp_multicast's default 212 KB receive buffer overflows on bursts of a few hundred frames."""
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    if isinstance(sock, socket.socket):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _UDP_RCVBUF)
+
+
+class CanLink:
+    """A bus, the loop that reads it, and the handlers each received frame is given to."""
+
+    def __init__(self, bus: can.BusABC, *, owns_bus: bool = True) -> None:
+        self.bus = bus
+        self._owns_bus = owns_bus
+        self._handlers: list[Handler] = []
+        self._filters: dict[Handler, list[dict[str, Any]] | None] = {}
+        self._echoes = _interface_name(bus) in _ECHOING_INTERFACES
+        self._awaiting_echo: deque[tuple[int, bytes]] = deque()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._reader_fd = -1
+        self._thread: threading.Thread | None = None
+        self._stopping = threading.Event()
+        self._closed = False
+        self.rx_frames = 0
+        self.tx_frames = 0
+        self.tx_failed = 0
+        self.rx_errors = 0
+
+    @classmethod
+    def open(cls, spec: str) -> CanLink:
+        return cls(open_bus(spec), owns_bus=True)
+
+    @property
+    def channel_info(self) -> str:
+        return str(getattr(self.bus, "channel_info", "?"))
+
+    def add_handler(self, handler: Handler, filters: list[dict[str, Any]] | None = None) -> None:
+        """Give every received frame to ``handler``; ``filters`` says which frames it needs."""
+        self._handlers.append(handler)
+        self.set_filters(handler, filters)
+
+    def remove_handler(self, handler: Handler) -> None:
+        with contextlib.suppress(ValueError):
+            self._handlers.remove(handler)
+        self._filters.pop(handler, None)
+
+    def set_filters(self, handler: Handler, filters: list[dict[str, Any]] | None) -> None:
+        """Declare the frames ``handler`` needs, as python-can ``can_filters`` (None: all).
+
+        The bus gets the union of every handler's filters: applied in the kernel on SocketCAN,
+        in python-can for other interfaces. A handler may still see frames it did not ask for.
+        """
+        self._filters[handler] = filters
+        union: list[dict[str, Any]] | None = []
+        for wanted in self._filters.values():
+            if wanted is None:
+                union = None
+                break
+            assert union is not None
+            union.extend(wanted)
+        self.bus.set_filters(union)  # type: ignore[arg-type]
+
+    def start(self) -> None:
+        """Start reading the bus into the running loop."""
+        if self._loop is not None:
+            return
+        self._loop = asyncio.get_running_loop()
+        try:
+            fd = self.bus.fileno()
+        except (NotImplementedError, OSError):
+            fd = -1
+        if fd >= 0:
+            self._reader_fd = fd
+            self._loop.add_reader(fd, self._on_readable)
+        else:
+            self._thread = threading.Thread(target=self._rx_thread, name="ups-can-rx", daemon=True)
+            self._thread.start()
+
+    def send(self, can_id: int, data: bytes, origin: Handler | None = None) -> bool:
+        """Send an extended frame now; hand it to the local handlers other than ``origin``.
+
+        Never blocks: when the interface cannot take the frame (its transmit queue is full or
+        the bus is off), the frame is dropped, counted in ``tx_failed`` and False is returned.
+        """
+        frame = can.Message(arbitration_id=can_id, data=data, is_extended_id=True)
+        try:
+            self.bus.send(frame, timeout=0)
+        except (can.CanError, OSError) as exc:
+            self.tx_failed += 1
+            if self.tx_failed in (1, 10, 100) or self.tx_failed % 1000 == 0:
+                log.warning("CAN send failed (%d so far): %s", self.tx_failed, exc)
+            return False
+        self.tx_frames += 1
+        if self._echoes:
+            self._awaiting_echo.append((can_id, bytes(frame.data)))
+            if len(self._awaiting_echo) > _ECHO_WINDOW:
+                self._awaiting_echo.popleft()
+        frame.timestamp = time.time()
+        for handler in self._handlers:
+            if handler is not origin:
+                handler(frame)
+        return True
+
+    def _dispatch(self, frame: can.Message) -> None:
+        self.rx_frames += 1
+        if self._awaiting_echo and frame.is_extended_id and self._is_echo(frame):
+            return
+        for handler in self._handlers:
+            handler(frame)
+
+    def _is_echo(self, frame: can.Message) -> bool:
+        key = (frame.arbitration_id, bytes(frame.data))
+        waiting = self._awaiting_echo
+        for i in range(min(_ECHO_LOOKAHEAD, len(waiting))):
+            if waiting[i] == key:
+                for _ in range(i + 1):  # echoes before it were lost: forget them
+                    waiting.popleft()
+                return True
+        return False
+
+    def _on_readable(self) -> None:
+        recv = self.bus.recv
+        for _ in range(_RX_BATCH):
+            try:
+                frame = recv(0)
+            except (can.CanError, OSError) as exc:
+                self._rx_error(exc)
+                return
+            if frame is None:
+                return
+            self._dispatch(frame)
+
+    def _rx_thread(self) -> None:
+        loop = self._loop
+        assert loop is not None
+        while not self._stopping.is_set():
+            try:
+                frame = self.bus.recv(0.05)
+            except (can.CanError, OSError) as exc:
+                if self._stopping.is_set():
+                    return
+                loop.call_soon_threadsafe(self._rx_error, exc)
+                self._stopping.wait(0.1)
+                continue
+            if frame is not None:
+                try:
+                    loop.call_soon_threadsafe(self._dispatch, frame)
+                except RuntimeError:  # the loop closed under us
+                    return
+
+    def _rx_error(self, exc: BaseException) -> None:
+        self.rx_errors += 1
+        if self.rx_errors in (1, 10, 100) or self.rx_errors % 1000 == 0:
+            log.warning("CAN receive error (%d so far): %s", self.rx_errors, exc)
+
+    def close(self) -> None:
+        """Stop reading and, if this link opened the bus, shut it down. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stopping.set()
+        if self._reader_fd >= 0 and self._loop is not None and not self._loop.is_closed():
+            self._loop.remove_reader(self._reader_fd)
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+        self._handlers.clear()
+        if self._owns_bus:
+            self.bus.shutdown()
+
+
+def _interface_name(bus: can.BusABC) -> str:
+    module = type(bus).__module__  # e.g. can.interfaces.udp_multicast.bus
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 and parts[:2] == ["can", "interfaces"] else module

@@ -1,0 +1,232 @@
+"""UPS on CAN: the 29-bit identifier layout and the management frames, as pure codecs.
+
+No I/O here. ``docs/protocol.md`` describes the same layout byte by byte; keep them in step.
+
+An identifier is ``priority (8) | TxNode (7) | etag (14)``, priority most significant so that
+CAN arbitration follows it. A frame is *management* when its TxNode is ``MGMT_TXNODE`` (the
+CAN-ECB and nodes still without a TxNode) or its etag is below ``FIRST_ETAG``; every other
+29-bit frame is an *event* on the channel bound to its etag.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ._errors import DecodeError
+
+PRIORITY_SHIFT = 21
+TXNODE_SHIFT = 14
+ETAG_MASK = 0x3FFF
+TXNODE_MASK = 0x7F
+PRIORITY_MASK = 0xFF
+
+MGMT_TXNODE = 0x7F  #: the CAN-ECB's frames and those of nodes still joining
+TXNODE_COUNT = 127  #: TxNodes 0x00..0x7E are given to nodes
+FIRST_ETAG = 0x0010  #: etags 0x0000..0x000F are reserved for management
+LAST_ETAG = 0x3FFF
+CONFIG_PRIORITY = 0x00  #: configuration frames and node requests
+BIND_PRIORITY = 0x01  #: binding announcements from the CAN-ECB
+DEFAULT_PRIORITY = 0x80  #: events, unless the channel's priority was set
+NIBBLES = 16  #: a 64-bit node id is raced nibble by nibble, most significant first
+EPOCHS = 16
+CLASSIC_MAX_DATA = 8
+
+
+def make_id(priority: int, txnode: int, etag: int) -> int:
+    """Pack the three fields into a 29-bit identifier."""
+    return (priority << PRIORITY_SHIFT) | (txnode << TXNODE_SHIFT) | etag
+
+
+def split_id(can_id: int) -> tuple[int, int, int]:
+    """Unpack a 29-bit identifier into ``(priority, txnode, etag)``."""
+    return (
+        (can_id >> PRIORITY_SHIFT) & PRIORITY_MASK,
+        (can_id >> TXNODE_SHIFT) & TXNODE_MASK,
+        can_id & ETAG_MASK,
+    )
+
+
+def is_management(can_id: int) -> bool:
+    return ((can_id >> TXNODE_SHIFT) & TXNODE_MASK) == MGMT_TXNODE or (
+        can_id & ETAG_MASK
+    ) < FIRST_ETAG
+
+
+def nibbles_of(node_id: int) -> tuple[int, ...]:
+    """The 16 nibbles of a 64-bit node id, most significant first."""
+    return tuple((node_id >> (4 * (NIBBLES - 1 - i))) & 0xF for i in range(NIBBLES))
+
+
+# --- configuration: the TxNode race (priority 0x00, TxNode 0x7F, etag field = op | arg) ------
+
+_OP_STAGE, _OP_ACK, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
+_ST_RESET, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO = 0, 1, 2, 3
+
+
+@dataclass(frozen=True, slots=True)
+class Stage:
+    """A joining node offers the nibble of its node id at ``stage``, given the ECB's ``epoch``."""
+
+    epoch: int
+    stage: int
+    nibble: int
+
+
+@dataclass(frozen=True, slots=True)
+class Ack:
+    """The CAN-ECB's race state: the winning prefix so far, and the epoch it is valid in."""
+
+    epoch: int
+    prefix: tuple[int, ...]  # 1..16 nibbles
+
+
+@dataclass(frozen=True, slots=True)
+class Assign:
+    """The CAN-ECB gives ``txnode`` to the node whose 64-bit id is ``node_id``."""
+
+    txnode: int
+    node_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class Reset:
+    """The CAN-ECB starts a race with an empty prefix in ``epoch`` (also sent when it starts)."""
+
+    epoch: int
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """The CAN-ECB has just started; configured nodes announce their TxNode and channels again."""
+
+    epoch: int
+
+
+@dataclass(frozen=True, slots=True)
+class TxNodesFull:
+    """No TxNode is left for ``node_id``."""
+
+    node_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class EtagsFull:
+    """No etag is left for channel ``uid``."""
+
+    uid: int
+
+
+# --- binding (priority 0x01, TxNode 0x7F, etag field = the bound etag) ----------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Bind:
+    """The CAN-ECB announces that channel ``uid`` uses ``etag`` on this bus."""
+
+    etag: int
+    uid: int
+
+
+# --- node requests (priority 0x00, the node's TxNode, a reserved etag) ---------------------
+
+PUB_BIND = 0x0001  #: bind a channel to publish on it
+SUB_BIND = 0x0002  #: bind a channel and subscribe to it
+UNSUB = 0x0003  #: the node's last subscriber of the channel left
+CLAIM = 0x0004  #: "I hold this TxNode": sent after a CAN-ECB (re)start
+_REQUEST_KINDS = (PUB_BIND, SUB_BIND, UNSUB, CLAIM)
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """A configured node's request; ``value`` is a channel UID, or the node id for CLAIM."""
+
+    kind: int
+    txnode: int
+    value: int
+
+
+Management = Stage | Ack | Assign | Reset | Hello | TxNodesFull | EtagsFull | Bind | Request
+
+
+def encode(msg: Management) -> tuple[int, bytes]:
+    """The ``(arbitration_id, data)`` of a management frame."""
+    if isinstance(msg, Stage):
+        arg = (msg.epoch << 8) | (msg.stage << 4) | msg.nibble
+        return _config_id(_OP_STAGE, arg), b""
+    if isinstance(msg, Ack):
+        n = len(msg.prefix)
+        value = 0
+        for nib in msg.prefix:
+            value = (value << 4) | nib
+        value <<= 4 * (NIBBLES - n)
+        arg = (msg.epoch << 8) | ((n - 1) << 4) | msg.prefix[-1]
+        return _config_id(_OP_ACK, arg), value.to_bytes(8, "big")
+    if isinstance(msg, Assign):
+        return _config_id(_OP_ASSIGN, msg.txnode), msg.node_id.to_bytes(8, "big")
+    if isinstance(msg, Reset):
+        return _config_id(_OP_STATUS, (_ST_RESET << 8) | msg.epoch), b""
+    if isinstance(msg, Hello):
+        return _config_id(_OP_STATUS, (_ST_HELLO << 8) | msg.epoch), b""
+    if isinstance(msg, TxNodesFull):
+        return _config_id(_OP_STATUS, _ST_TXNODES_FULL << 8), msg.node_id.to_bytes(8, "big")
+    if isinstance(msg, EtagsFull):
+        return _config_id(_OP_STATUS, _ST_ETAGS_FULL << 8), msg.uid.to_bytes(8, "big")
+    if isinstance(msg, Bind):
+        return make_id(BIND_PRIORITY, MGMT_TXNODE, msg.etag), msg.uid.to_bytes(8, "big")
+    return make_id(CONFIG_PRIORITY, msg.txnode, msg.kind), msg.value.to_bytes(8, "big")
+
+
+def _config_id(op: int, arg: int) -> int:
+    return make_id(CONFIG_PRIORITY, MGMT_TXNODE, (op << 12) | arg)
+
+
+def decode(can_id: int, data: bytes) -> Management:
+    """Decode a management frame (``is_management(can_id)`` must hold).
+
+    Raises ``DecodeError`` when the frame is in the management space but malformed.
+    """
+    priority, txnode, etag = split_id(can_id)
+    if txnode != MGMT_TXNODE:
+        if priority != CONFIG_PRIORITY or etag not in _REQUEST_KINDS:
+            raise DecodeError(f"unknown node request {can_id:#010x}")
+        return Request(etag, txnode, _u64(data, can_id))
+    if priority == BIND_PRIORITY:
+        if etag < FIRST_ETAG:
+            raise DecodeError(f"binding announcement for reserved etag {etag:#x}")
+        return Bind(etag, _u64(data, can_id))
+    if priority != CONFIG_PRIORITY:
+        raise DecodeError(f"management frame with unknown priority {priority:#x}")
+    op, arg = etag >> 12, etag & 0xFFF
+    epoch, stage, nibble = arg >> 8, (arg >> 4) & 0xF, arg & 0xF
+    if op == _OP_STAGE:
+        _expect_len(data, 0, can_id)
+        return Stage(epoch, stage, nibble)
+    if op == _OP_ACK:
+        value = _u64(data, can_id)
+        prefix = nibbles_of(value)[: stage + 1]
+        if prefix[-1] != nibble or value & ((1 << (4 * (NIBBLES - stage - 1))) - 1):
+            raise DecodeError(f"inconsistent race state {can_id:#010x} {data.hex()}")
+        return Ack(epoch, prefix)
+    if op == _OP_ASSIGN:
+        if arg >= TXNODE_COUNT:
+            raise DecodeError(f"assignment of reserved TxNode {arg:#x}")
+        return Assign(arg, _u64(data, can_id))
+    status = arg >> 8
+    if status in (_ST_RESET, _ST_HELLO) and arg & 0xF0 == 0:
+        _expect_len(data, 0, can_id)
+        return Reset(arg & 0xF) if status == _ST_RESET else Hello(arg & 0xF)
+    if status == _ST_TXNODES_FULL and arg & 0xFF == 0:
+        return TxNodesFull(_u64(data, can_id))
+    if status == _ST_ETAGS_FULL and arg & 0xFF == 0:
+        return EtagsFull(_u64(data, can_id))
+    raise DecodeError(f"unknown status frame {can_id:#010x}")
+
+
+def _expect_len(data: bytes, n: int, can_id: int) -> None:
+    if len(data) != n:
+        raise DecodeError(f"frame {can_id:#010x} must carry {n} bytes, got {len(data)}")
+
+
+def _u64(data: bytes, can_id: int) -> int:
+    _expect_len(data, 8, can_id)
+    return int.from_bytes(data, "big")

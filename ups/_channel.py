@@ -1,0 +1,64 @@
+"""Channels: 64-bit UIDs, given as an int or as a name mapped by a stable hash."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+from ._errors import ConfigError
+
+UID_MAX = (1 << 64) - 1
+NAME_MAX_BYTES = 255
+
+
+@dataclass(frozen=True, slots=True)
+class Channel:
+    """An event channel: its 64-bit UID and, when it was given by name, that name."""
+
+    uid: int
+    name: str | None = None
+
+    def __str__(self) -> str:
+        return self.name if self.name is not None else f"0x{self.uid:016x}"
+
+
+def name_to_uid(name: str) -> int:
+    """The UID of a channel name: the first 8 bytes of SHA-256(UTF-8 name), big-endian.
+
+    Stable across runs, machines and Python versions, so every node maps a name alike.
+    """
+    raw = name.encode("utf-8")
+    if not raw or len(raw) > NAME_MAX_BYTES:
+        raise ConfigError(f"channel name must be 1..{NAME_MAX_BYTES} UTF-8 bytes, got {name!r}")
+    if any(ch < " " for ch in name):
+        raise ConfigError(f"channel name must not contain control characters: {name!r}")
+    return int.from_bytes(hashlib.sha256(raw).digest()[:8], "big")
+
+
+ChannelLike = int | str | Channel
+
+
+def as_channel(channel: ChannelLike) -> Channel:
+    """Normalise an int UID, a name or a Channel into a Channel."""
+    if isinstance(channel, Channel):
+        return channel
+    if isinstance(channel, bool):
+        raise ConfigError(f"a channel is an int UID or a name, not {channel!r}")
+    if isinstance(channel, int):
+        if not 0 <= channel <= UID_MAX:
+            raise ConfigError(f"channel UID must fit in 64 bits, got {channel:#x}")
+        return Channel(channel)
+    if isinstance(channel, str):
+        return Channel(name_to_uid(channel), channel)
+    raise ConfigError(f"a channel is an int UID or a name, not {type(channel).__name__}")
+
+
+def parse_channel(text: str) -> Channel:
+    """Parse a channel as written on the command line: ``0x`` + hex digits is a UID, else a name."""
+    if text[:2].lower() == "0x":
+        try:
+            return as_channel(int(text, 16))
+        except ValueError:
+            msg = f"bad channel UID {text!r}: expected 0x followed by hex digits"
+            raise ConfigError(msg) from None
+    return as_channel(text)

@@ -1,0 +1,40 @@
+"""The exceptions UPS raises. One root, a few subclasses named by what went wrong::
+
+UpsError
+ ├── ConfigError          bad argument: channel, bus spec, priority, node id (ValueError)
+ ├── PayloadTooLarge      more data than one frame of the network carries (ValueError)
+ ├── BrokerUnavailable    no Event Channel Broker answered in time (TimeoutError)
+ ├── Exhausted            the broker has no TxNode / etag left to give
+ ├── DecodeError          bytes on a link are not a valid UPS frame
+ └── Closed               the node or subscription was closed
+"""
+
+from __future__ import annotations
+
+
+class UpsError(Exception):
+    """Root of every error raised by UPS."""
+
+
+class ConfigError(UpsError, ValueError):
+    """An argument is invalid: a channel name, a bus spec, a priority, a node id."""
+
+
+class PayloadTooLarge(UpsError, ValueError):
+    """A publish carries more data than the channel's network can carry in one frame."""
+
+
+class BrokerUnavailable(UpsError, TimeoutError):
+    """No Event Channel Broker answered within the time allowed."""
+
+
+class Exhausted(UpsError):
+    """The broker has no identifier left to give (all 127 TxNodes or all etags are bound)."""
+
+
+class DecodeError(UpsError):
+    """Bytes received from a link are not a valid UPS frame."""
+
+
+class Closed(UpsError):
+    """The node or subscription was closed."""

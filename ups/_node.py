@@ -1,0 +1,400 @@
+"""The Event Channel Handler (ECH): the node object applications use.
+
+A node keeps a table of the channels its applications use, delivers each event to the local
+subscriptions of its channel, and hands publications to its *face*: the part that talks to one
+network (CAN or TCP/IP). Faces implement the small ``Face`` protocol below; everything network
+specific lives there.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator
+from typing import IO, Any, Literal, Protocol
+
+from ._channel import Channel, ChannelLike, as_channel
+from ._errors import Closed, ConfigError, PayloadTooLarge
+from ._message import Message
+
+log = logging.getLogger("ups")
+
+Overflow = Literal["drop_oldest", "drop_newest"]
+_OVERFLOWS = ("drop_oldest", "drop_newest")
+DEFAULT_QUEUE = 1024
+
+
+class ChannelState:
+    """What a node knows of one channel: its local subscriptions, priority and publishing."""
+
+    __slots__ = ("channel", "priority", "published", "subs")
+
+    def __init__(self, channel: Channel, priority: int) -> None:
+        self.channel = channel
+        self.priority = priority
+        self.subs: list[Subscription] = []
+        self.published = False
+
+
+class Face(Protocol):
+    """One network as seen by a node. A face calls ``Node._deliver`` for each event it receives."""
+
+    max_payload: int
+
+    async def start(self) -> None: ...
+    async def close(self) -> None: ...
+    async def bind(self, state: ChannelState, subscribe: bool) -> None:
+        """Make ``state``'s channel usable: to publish on it, or (``subscribe``) to receive it."""
+
+    async def unsubscribe(self, state: ChannelState) -> None:
+        """The node's last local subscriber of the channel left."""
+
+    def send(self, state: ChannelState, data: bytes) -> None:
+        """Publish ``data`` on the network; never blocks, counts what it must drop."""
+
+    def stats(self) -> dict[str, int]: ...
+
+
+class Subscription:
+    """The events of one or more channels, queued for one consumer.
+
+    The queue holds at most ``maxlen`` events. When it is full, ``overflow`` decides:
+    ``"drop_oldest"`` (the default: the freshest data wins, as a control loop wants) discards the
+    oldest queued event, ``"drop_newest"`` discards the arriving one. Either way ``dropped``
+    counts it. Iterate with ``async for``; iteration ends when the subscription or node closes.
+    """
+
+    def __init__(
+        self, node: Node, channels: tuple[Channel, ...], maxlen: int, overflow: Overflow
+    ) -> None:
+        self.channels = channels
+        self.maxlen = maxlen
+        self.overflow: Overflow = overflow
+        self.dropped = 0
+        self._node = node
+        self._queue: collections.deque[Message] = collections.deque()
+        self._waiter: asyncio.Future[None] | None = None
+        self._closed = False
+
+    def __repr__(self) -> str:
+        names = ", ".join(str(c) for c in self.channels)
+        return f"<Subscription [{names}] queued={len(self._queue)} dropped={self.dropped}>"
+
+    @property
+    def pending(self) -> int:
+        """Events queued and not yet taken."""
+        return len(self._queue)
+
+    def _push(self, msg: Message) -> None:
+        queue = self._queue
+        if len(queue) >= self.maxlen:
+            self.dropped += 1
+            if self.overflow == "drop_newest":
+                return
+            queue.popleft()
+        queue.append(msg)
+        waiter = self._waiter
+        if waiter is not None:
+            self._waiter = None
+            if not waiter.done():
+                waiter.set_result(None)
+
+    async def get_msg(self, timeout: float | None = None) -> Message:
+        """The next event; raises ``TimeoutError`` after ``timeout`` s, ``Closed`` once closed."""
+        while not self._queue:
+            if self._closed:
+                raise Closed("subscription closed")
+            waiter = asyncio.get_running_loop().create_future()
+            self._waiter = waiter
+            try:
+                await asyncio.wait_for(waiter, timeout)
+            finally:
+                self._waiter = None
+        return self._queue.popleft()
+
+    def __aiter__(self) -> AsyncIterator[Message]:
+        return self
+
+    async def __anext__(self) -> Message:
+        try:
+            return await self.get_msg()
+        except Closed:
+            raise StopAsyncIteration from None
+
+    async def close(self) -> None:
+        """Unsubscribe. Events already queued can still be taken."""
+        await self._node.unsubscribe(self)
+
+    def _close(self) -> None:
+        self._closed = True
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+
+class Node:
+    """An Event Channel Handler on one network: ``can="INTERFACE:CHANNEL"`` or (later) a broker.
+
+    Use it as an async context manager::
+
+        async with Node(can="virtual:demo") as node:
+            sub = await node.subscribe("robot/speed")
+            await node.publish("robot/speed", b"\\x10")
+            msg = await sub.get_msg(timeout=1.0)
+
+    ``node_id`` is the node's 64-bit identity (its TxNode on CAN is keyed by it); by default it
+    is derived from this machine, ``name`` and a per-machine slot, so it is stable across
+    restarts and distinct between copies running at once. ``join_timeout`` bounds the wait for
+    the network's broker (None: wait forever, retrying). ``filter_limit``: a CAN node subscribed
+    to at most this many channels installs one acceptance filter per etag (in the kernel on
+    SocketCAN); beyond it, it receives every frame and filters in software.
+    """
+
+    def __init__(
+        self,
+        *,
+        can: Any = None,
+        node_id: int | None = None,
+        name: str | None = None,
+        join_timeout: float | None = 30.0,
+        filter_limit: int = 16,
+    ) -> None:
+        if can is None:
+            raise ConfigError("a node needs a network: Node(can='INTERFACE:CHANNEL')")
+        if node_id is not None and not 0 <= node_id < 1 << 64:
+            raise ConfigError(f"node_id must fit in 64 bits, got {node_id!r}")
+        self.name = name or _program_name()
+        self._node_id = node_id
+        self._id_lock: IO[bytes] | None = None
+        self._can = can
+        self._join_timeout = join_timeout
+        self._filter_limit = filter_limit
+        self._face: Face | None = None
+        self._states: dict[int, ChannelState] = {}
+        self._priorities: dict[int, int] = {}
+        self._subs: list[Subscription] = []
+        self._any_waiter: asyncio.Future[None] | None = None
+        self._closed = False
+        self.published = 0
+        self.delivered = 0
+
+    # --- life cycle ------------------------------------------------------------------------
+
+    async def __aenter__(self) -> Node:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    @property
+    def node_id(self) -> int:
+        if self._node_id is None:
+            raise ConfigError("the node id is chosen when the node starts")
+        return self._node_id
+
+    @property
+    def face(self) -> Face:
+        if self._face is None:
+            raise Closed("node not started")
+        return self._face
+
+    async def start(self) -> None:
+        """Open the network and join it (on CAN: obtain a TxNode from the CAN-ECB)."""
+        if self._face is not None:
+            return
+        if self._node_id is None:
+            from ._nodeid import claim_node_id
+
+            self._node_id, self._id_lock = claim_node_id(self.name)
+        from ._canface import CanFace
+
+        face = CanFace(self, self._can, self._node_id, self._join_timeout, self._filter_limit)
+        try:
+            await face.start()
+        except BaseException:
+            await face.close()
+            self._release_id()
+            raise
+        self._face = face
+
+    async def close(self) -> None:
+        """Close every subscription and the network. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        for sub in self._subs:
+            sub._close()
+        self._subs.clear()
+        self._wake_any()
+        if self._face is not None:
+            await self._face.close()
+        self._release_id()
+
+    def _release_id(self) -> None:
+        if self._id_lock is not None:
+            self._id_lock.close()
+            self._id_lock = None
+
+    # --- the four primitives -------------------------------------------------------------
+
+    async def publish(self, channel: ChannelLike, data: bytes | bytearray | memoryview) -> None:
+        """Publish ``data`` on ``channel``: to local subscribers at once, and on the network.
+
+        Raises ``PayloadTooLarge`` when ``data`` does not fit one frame of the network.
+        """
+        state = self._states.get(channel) if type(channel) is int else None
+        if state is None or not state.published:
+            state = await self._publishing_state(channel)
+        payload = bytes(data)
+        face = self._face
+        assert face is not None
+        if len(payload) > face.max_payload:
+            raise PayloadTooLarge(
+                f"{len(payload)} bytes do not fit one frame on {state.channel} "
+                f"(at most {face.max_payload}); split the data or use a TCP/IP channel"
+            )
+        self.published += 1
+        if state.subs:
+            self._deliver(state, payload, state.priority, None, time.time())
+        face.send(state, payload)
+
+    async def subscribe(
+        self,
+        *channels: ChannelLike,
+        maxlen: int = DEFAULT_QUEUE,
+        overflow: Overflow = "drop_oldest",
+    ) -> Subscription:
+        """Subscribe to one or more channels; events arrive in the returned Subscription."""
+        self._check_open()
+        if not channels:
+            raise ConfigError("subscribe needs at least one channel")
+        if maxlen < 1:
+            raise ConfigError(f"maxlen must be at least 1, got {maxlen}")
+        if overflow not in _OVERFLOWS:
+            raise ConfigError(f"overflow must be one of {_OVERFLOWS}, got {overflow!r}")
+        chans = tuple(dict.fromkeys(as_channel(c) for c in channels))
+        sub = Subscription(self, chans, maxlen, overflow)
+        for chan in chans:
+            state = self._state(chan)
+            if not state.subs:
+                await self.face.bind(state, subscribe=True)
+            state.subs.append(sub)
+        self._subs.append(sub)
+        return sub
+
+    async def unsubscribe(self, target: Subscription | ChannelLike) -> None:
+        """End a subscription, or every subscription of this node to a channel."""
+        if isinstance(target, Subscription):
+            subs = [target]
+        else:
+            state = self._states.get(as_channel(target).uid)
+            subs = list(state.subs) if state else []
+        for sub in subs:
+            if sub._closed:
+                continue
+            sub._close()
+            with contextlib.suppress(ValueError):
+                self._subs.remove(sub)
+            for chan in sub.channels:
+                state = self._states[chan.uid]
+                state.subs.remove(sub)
+                if not state.subs and self._face is not None and not self._closed:
+                    await self._face.unsubscribe(state)
+
+    async def get_msg(self, timeout: float | None = None) -> Message:
+        """The next event from any of this node's subscriptions, oldest first.
+
+        Raises ``TimeoutError`` after ``timeout`` seconds and ``Closed`` once the node closed.
+        """
+        while True:
+            oldest: Subscription | None = None
+            for sub in self._subs:
+                if sub._queue and (
+                    oldest is None or sub._queue[0].timestamp < oldest._queue[0].timestamp
+                ):
+                    oldest = sub
+            if oldest is not None:
+                return oldest._queue.popleft()
+            self._check_open()
+            waiter = asyncio.get_running_loop().create_future()
+            self._any_waiter = waiter
+            try:
+                await asyncio.wait_for(waiter, timeout)
+            finally:
+                self._any_waiter = None
+
+    # --- settings and statistics ----------------------------------------------------------
+
+    def set_priority(self, channel: ChannelLike, priority: int) -> None:
+        """Set the priority this node publishes ``channel`` with (0 highest .. 255 lowest)."""
+        if not 0 <= priority <= 0xFF:
+            raise ConfigError(f"priority must be 0..255, got {priority}")
+        uid = as_channel(channel).uid
+        self._priorities[uid] = priority
+        if uid in self._states:
+            self._states[uid].priority = priority
+
+    def stats(self) -> dict[str, int]:
+        """Counters: events published, delivered, dropped in full queues, and the face's own."""
+        counters = {
+            "published": self.published,
+            "delivered": self.delivered,
+            "dropped": sum(sub.dropped for sub in self._subs),
+        }
+        if self._face is not None:
+            counters.update(self._face.stats())
+        return counters
+
+    # --- internals ------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise Closed("node closed")
+        if self._face is None:
+            raise Closed("node not started: use 'async with Node(...)' or 'await node.start()'")
+
+    def _state(self, chan: Channel) -> ChannelState:
+        state = self._states.get(chan.uid)
+        if state is None:
+            from ._canproto import DEFAULT_PRIORITY
+
+            priority = self._priorities.get(chan.uid, DEFAULT_PRIORITY)
+            state = self._states[chan.uid] = ChannelState(chan, priority)
+        return state
+
+    async def _publishing_state(self, channel: ChannelLike) -> ChannelState:
+        self._check_open()
+        state = self._state(as_channel(channel))
+        if not state.published:
+            await self.face.bind(state, subscribe=False)
+            state.published = True
+        return state
+
+    def _deliver(
+        self, state: ChannelState, data: bytes, priority: int, source: int | None, ts: float
+    ) -> None:
+        """Hand one event to every local subscription of its channel (the face calls this)."""
+        msg = Message(state.channel, data, ts, priority, source)
+        for sub in state.subs:
+            sub._push(msg)
+        self.delivered += 1
+        if self._any_waiter is not None:
+            self._wake_any()
+
+    def _wake_any(self) -> None:
+        waiter = self._any_waiter
+        if waiter is not None:
+            self._any_waiter = None
+            if not waiter.done():
+                waiter.set_result(None)
+
+
+def _program_name() -> str:
+    import sys
+    from pathlib import Path
+
+    return Path(sys.argv[0]).name or "python"
