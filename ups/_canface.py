@@ -99,7 +99,12 @@ class CanFace:
             self.link.close()
 
     def stats(self) -> dict[str, int]:
-        return {**self.counters, "tx_failed": self.link.tx_failed, "bindings": len(self._etag_of)}
+        return {
+            **self.counters,
+            "tx_failed": self.link.tx_failed,
+            "bindings": len(self._etag_of),
+            "txnode": -1 if self.txnode is None else self.txnode,
+        }
 
     # --- the Face protocol -----------------------------------------------------------------
 

@@ -1,0 +1,225 @@
+"""The ``ups`` command: daemons, publishing and subscribing from a shell, the demo.
+
+This module sits above every package of the project: it is the one place in ``ups`` that
+imports ``broker``, ``gateway`` and ``examples`` (lazily, per subcommand).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+import sys
+from collections.abc import Coroutine
+from typing import Any
+
+from ._channel import Channel, parse_channel
+from ._errors import UpsError
+from ._node import Node
+
+EXIT_TIMEOUT = 1
+EXIT_USAGE = 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        result: int = args.run(args)
+        return result
+    except UpsError as exc:
+        print(f"ups {args.command}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return 130
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ups", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    cmd = commands.add_parser("can-broker", help="run the CAN-ECB of one bus")
+    _add_can(cmd)
+    cmd.add_argument("--db", default="ups-can-ecb.db", help="SQLite file of TxNodes and etags")
+    cmd.set_defaults(run=_run_can_broker)
+
+    cmd = commands.add_parser("pub", help="publish events on a channel")
+    cmd.add_argument("channel", type=_channel_arg, help="channel name, or UID as 0x + hex")
+    cmd.add_argument("data", type=_hex_arg, help="payload as hex digits ('' for none)")
+    _add_node_options(cmd)
+    cmd.add_argument("--count", type=_positive_int, default=1, help="events to publish")
+    cmd.add_argument("--rate", type=float, default=10.0, help="events per second")
+    cmd.add_argument("--priority", type=_priority_arg, default=None, help="0 (highest)..255")
+    cmd.set_defaults(run=_run_pub)
+
+    cmd = commands.add_parser("sub", help="print the events of channels")
+    cmd.add_argument("channels", nargs="+", type=_channel_arg, metavar="CHANNEL")
+    _add_node_options(cmd)
+    cmd.add_argument("--count", type=_positive_int, default=None, help="exit 0 after N events")
+    cmd.add_argument("--timeout", type=float, default=None, help="exit 1 if this many s pass")
+    cmd.add_argument("--json", action="store_true", help="one JSON object per line")
+    cmd.set_defaults(run=_run_sub)
+
+    cmd = commands.add_parser("demo", help="run the demo robots on an in-process virtual CAN bus")
+    cmd.add_argument("--duration", type=float, default=3.0, help="seconds to run")
+    cmd.set_defaults(run=_run_demo)
+    return parser
+
+
+def _add_can(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument(
+        "--can",
+        required=True,
+        metavar="INTERFACE:CHANNEL[,key=value...]",
+        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114",
+    )
+
+
+def _add_node_options(cmd: argparse.ArgumentParser) -> None:
+    _add_can(cmd)
+    cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    cmd.add_argument(
+        "--join-timeout", type=float, default=30.0, help="seconds to wait for the broker"
+    )
+
+
+def _channel_arg(text: str) -> Channel:
+    try:
+        return parse_channel(text)
+    except UpsError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _hex_arg(text: str) -> bytes:
+    try:
+        return bytes.fromhex(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not hex digits: {text!r}") from None
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _priority_arg(text: str) -> int:
+    value = int(text, 0)
+    if not 0 <= value <= 255:
+        raise argparse.ArgumentTypeError(f"priority must be 0..255, got {value}")
+    return value
+
+
+def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
+    """Run ``coro``; SIGTERM and SIGINT cancel it, so every resource closes before exit."""
+
+    async def wrapper() -> int:
+        task = asyncio.current_task()
+        assert task is not None
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, task.cancel)
+        try:
+            return await coro
+        except asyncio.CancelledError:
+            return 0
+
+    return asyncio.run(wrapper())
+
+
+def _node(args: argparse.Namespace) -> Node:
+    return Node(
+        can=args.can,
+        node_id=args.node_id,
+        name=f"ups-{args.command}",
+        join_timeout=args.join_timeout,
+    )
+
+
+def _run_can_broker(args: argparse.Namespace) -> int:
+    from broker.can_ecb import serve
+
+    async def run() -> int:
+        await serve(args.can, args.db)
+        return 0
+
+    return _run_until_signal(run())
+
+
+def _run_pub(args: argparse.Namespace) -> int:
+    async def run() -> int:
+        async with _node(args) as node:
+            if args.priority is not None:
+                node.set_priority(args.channel, args.priority)
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            for i in range(args.count):
+                if i and args.rate > 0:
+                    await asyncio.sleep(max(0.0, start + i / args.rate - loop.time()))
+                await node.publish(args.channel, args.data)
+            stats = node.stats()
+        if stats["tx_failed"]:
+            print(f"ups pub: {stats['tx_failed']} frames could not be sent", file=sys.stderr)
+            return 1
+        return 0
+
+    return _run_until_signal(run())
+
+
+def _run_sub(args: argparse.Namespace) -> int:
+    async def run() -> int:
+        got = 0
+        async with _node(args) as node:
+            sub = await node.subscribe(*args.channels)
+            names = ", ".join(str(c) for c in args.channels)
+            logging.getLogger("ups").info("subscribed to %s", names)
+            loop = asyncio.get_running_loop()
+            deadline = None if args.timeout is None else loop.time() + args.timeout
+            while args.count is None or got < args.count:
+                left = None if deadline is None else max(0.0, deadline - loop.time())
+                try:
+                    msg = await sub.get_msg(timeout=left)
+                except TimeoutError:
+                    print(f"ups sub: timeout after {got} events", file=sys.stderr)
+                    return EXIT_TIMEOUT
+                got += 1
+                if args.json:
+                    line = json.dumps(
+                        {
+                            "uid": f"0x{msg.uid:016x}",
+                            "channel": msg.channel.name,
+                            "data": msg.data.hex(),
+                            "timestamp": msg.timestamp,
+                            "priority": msg.priority,
+                            "source": msg.source,
+                        }
+                    )
+                else:
+                    line = f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}"
+                print(line, flush=True)
+        return 0
+
+    return _run_until_signal(run())
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from examples.robots import run_demo
+
+    if not args.verbose:  # the demo prints what matters; keep the join/bind log for -v
+        logging.getLogger().setLevel(logging.WARNING)
+    return _run_until_signal(run_demo(args.duration))
+
+
+if __name__ == "__main__":
+    with contextlib.suppress(BrokenPipeError):
+        sys.exit(main())
