@@ -24,6 +24,10 @@ from ups._errors import DecodeError
 log = logging.getLogger("ups.can_ecb")
 
 RACE_TIMEOUT = 1.0  # a race whose leader fell silent this long starts again
+#: A complete id is held this long before it wins, so that a lower id can still object. On a
+#: real bus arbitration already lets the lowest id through first; buses emulated over IP or in
+#: memory deliver simultaneous offers in any order.
+SETTLE = 0.05
 
 
 class _Store:
@@ -44,6 +48,7 @@ class _Store:
         self.etags: dict[int, int] = {
             int(k, 16): v for k, v in self._db.execute("SELECT * FROM etags")
         }
+        self.taken_etags = set(self.etags.values())
 
     def add_txnode(self, node_id: int, txnode: int) -> None:
         with self._db:
@@ -54,6 +59,7 @@ class _Store:
         with self._db:
             self._db.execute("INSERT INTO etags VALUES (?, ?)", (f"{uid:016x}", etag))
         self.etags[uid] = etag
+        self.taken_etags.add(etag)
 
     def close(self) -> None:
         self._db.close()
@@ -62,13 +68,16 @@ class _Store:
 class CanEcb:
     """The CAN-ECB of one bus. ``on_change(uid)`` is called when a channel's subscribers change."""
 
-    def __init__(self, link: CanLink, db_path: str | Path = "ups-can-ecb.db") -> None:
+    def __init__(
+        self, link: CanLink, db_path: str | Path = "ups-can-ecb.db", settle: float = SETTLE
+    ) -> None:
         self.link = link
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
         self._store = _Store(db_path)
         self._epoch = 0
         self._prefix: list[int] = []
         self._race_timer: asyncio.TimerHandle | None = None
+        self._settle = settle
         self._free_etag = p.FIRST_ETAG
         self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
         self.publishers: defaultdict[int, set[int]] = defaultdict(set)
@@ -149,12 +158,15 @@ class CanEcb:
             self._announce_state()
             return
         self._epoch = (self._epoch + 1) % p.EPOCHS
+        self._send(p.Ack(self._epoch, tuple(prefix)))
         if len(prefix) < p.NIBBLES:
-            self._send(p.Ack(self._epoch, tuple(prefix)))
-            self._arm_race_timer()
-            return
+            self._arm_race_timer(RACE_TIMEOUT, self._restart_race)
+        else:
+            self._arm_race_timer(self._settle, self._complete_race)
+
+    def _complete_race(self) -> None:
         node_id = 0
-        for nib in prefix:
+        for nib in self._prefix:
             node_id = (node_id << 4) | nib
         self._assign(node_id)
         self._restart_race()
@@ -183,11 +195,10 @@ class CanEcb:
             self._race_timer = None
         self._send(p.Reset(self._epoch))
 
-    def _arm_race_timer(self) -> None:
+    def _arm_race_timer(self, delay: float, then: Callable[[], None]) -> None:
         if self._race_timer is not None:
             self._race_timer.cancel()
-        loop = asyncio.get_running_loop()
-        self._race_timer = loop.call_later(RACE_TIMEOUT, self._restart_race)
+        self._race_timer = asyncio.get_running_loop().call_later(delay, then)
 
     def _announce_state(self) -> None:
         if self._prefix:
@@ -218,7 +229,7 @@ class CanEcb:
         etag = self._store.etags.get(uid)
         if etag is not None:
             return etag
-        taken = set(self._store.etags.values())
+        taken = self._store.taken_etags
         while self._free_etag in taken:
             self._free_etag += 1
         if self._free_etag > p.LAST_ETAG:

@@ -102,6 +102,7 @@ class CanLink:
         self.tx_frames = 0
         self.tx_failed = 0
         self.rx_errors = 0
+        self.handler_errors = 0
 
     @classmethod
     def open(cls, spec: str) -> CanLink:
@@ -183,7 +184,11 @@ class CanLink:
         if self._awaiting_echo and frame.is_extended_id and self._is_echo(frame):
             return
         for handler in self._handlers:
-            handler(frame)
+            try:
+                handler(frame)
+            except Exception:  # a bug in one handler must not starve the others
+                self.handler_errors += 1
+                log.exception("CAN frame handler failed on %s", frame)
 
     def _is_echo(self, frame: can.Message) -> bool:
         key = (frame.arbitration_id, bytes(frame.data))

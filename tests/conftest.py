@@ -1,0 +1,65 @@
+"""Shared fixtures: unique virtual buses, a CAN-ECB per test, and a check for leaked threads."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import os
+import threading
+from collections.abc import AsyncIterator, Callable, Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from broker.can_ecb import CanEcb
+from ups._canlink import CanLink
+
+_bus_numbers = itertools.count()
+
+
+@pytest.fixture
+def bus(request: pytest.FixtureRequest) -> str:
+    """A python-can virtual bus of this test's own, so tests cannot hear each other."""
+    return f"virtual:{request.node.name}-{os.getpid()}-{next(_bus_numbers)}"
+
+
+@pytest.fixture
+def raw_bus(bus: str) -> Iterator[can.BusABC]:
+    """A plain python-can bus on the test's bus: to inject frames or watch the wire."""
+    raw = can.Bus(interface="virtual", channel=bus.partition(":")[2])
+    yield raw
+    raw.shutdown()
+
+
+@pytest.fixture
+async def ecb(bus: str, tmp_path: Path) -> AsyncIterator[CanEcb]:
+    """A CAN-ECB serving the test's bus, its tables in a fresh SQLite file."""
+    link = CanLink.open(bus)
+    broker = CanEcb(link, tmp_path / "ecb.db")
+    await broker.start()
+    yield broker
+    broker.close()
+    link.close()
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_threads() -> Iterator[None]:
+    before = {t.ident for t in threading.enumerate()}
+    yield
+    leaked = [
+        t.name
+        for t in threading.enumerate()
+        if t.ident not in before and t.name.startswith("ups-") and t.is_alive()
+    ]
+    assert not leaked, f"threads left running: {leaked}"
+
+
+async def eventually(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+    """Wait until ``predicate()`` holds (checked every loop tick), or fail after ``timeout``."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not predicate():
+        if loop.time() > deadline:
+            raise AssertionError(f"condition not met within {timeout} s")
+        await asyncio.sleep(0.001)
