@@ -3,6 +3,7 @@
 The whole public API is here; modules whose names start with ``_`` are internals.
 """
 
+from ._blocking import BlockingNode, BlockingSubscription
 from ._channel import Channel, ChannelLike, name_to_uid, parse_channel
 from ._errors import (
     BrokerUnavailable,
@@ -17,6 +18,8 @@ from ._message import Message
 from ._node import Node, Overflow, Subscription
 
 __all__ = [
+    "BlockingNode",
+    "BlockingSubscription",
     "BrokerUnavailable",
     "Channel",
     "ChannelLike",
