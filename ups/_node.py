@@ -225,13 +225,20 @@ class Node:
         """Close every subscription and the network. Safe to call twice."""
         if self._closed:
             return
+        face = self._face
+        if face is not None:  # withdraw our subscriptions, so nobody forwards to us in vain
+            for state in self._states.values():
+                if state.subs:
+                    state.subs.clear()
+                    with contextlib.suppress(Exception):
+                        await face.unsubscribe(state)
         self._closed = True
         for sub in self._subs:
             sub._close()
         self._subs.clear()
         self._wake_any()
-        if self._face is not None:
-            await self._face.close()
+        if face is not None:
+            await face.close()
         self._release_id()
 
     def _release_id(self) -> None:

@@ -1,0 +1,124 @@
+"""Run ``ups`` commands as real processes: wait for their log lines, never leak them."""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from types import TracebackType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class Proc:
+    """A child process whose stderr lines are collected as they come."""
+
+    def __init__(self, *args: str) -> None:
+        self.args = args
+        self.popen = subprocess.Popen(
+            [sys.executable, "-m", "ups.cli", *args],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
+        self.stderr_lines: list[str] = []
+        self.stdout_lines: list[str] = []
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        self._readers = [
+            threading.Thread(target=self._read, daemon=True),
+            threading.Thread(target=self._read_stdout, daemon=True),
+        ]
+        for reader in self._readers:
+            reader.start()
+
+    def _read_stdout(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            self.stdout_lines.append(line)
+
+    def _read(self) -> None:
+        assert self.popen.stderr is not None
+        for line in self.popen.stderr:
+            self.stderr_lines.append(line)
+            self._lines.put(line)
+        self._lines.put(None)
+
+    def wait_for_line(self, pattern: str, timeout: float = 20.0) -> str:
+        """Block until a stderr line matches ``pattern``; fail if the process ends first."""
+        regex = re.compile(pattern)
+        while True:
+            try:
+                line = self._lines.get(timeout=timeout)
+            except queue.Empty:
+                raise AssertionError(f"{self.args[0]}: no line matching {pattern!r}") from None
+            if line is None:
+                raise AssertionError(
+                    f"{self.args[0]} ended before {pattern!r}:\n{''.join(self.stderr_lines)}"
+                )
+            if regex.search(line):
+                return line
+
+    def finish(self, timeout: float = 20.0) -> tuple[int, str]:
+        """Wait for the process to exit by itself; return its exit code and stdout."""
+        try:
+            self.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.stop()
+            raise AssertionError(f"{self.args[0]} did not exit within {timeout} s") from None
+        for reader in self._readers:
+            reader.join(timeout=5)
+        return self.popen.returncode, "".join(self.stdout_lines)
+
+    def stop(self) -> int:
+        """SIGTERM, then SIGKILL if it does not exit within 10 s; returns the exit code."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait()
+        for reader in self._readers:
+            reader.join(timeout=5)
+        return self.popen.returncode
+
+    def __enter__(self) -> Proc:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+
+def private_multicast_bus() -> str:
+    """A udp_multicast bus spec on a free port, only inside a namespace with no way out.
+
+    Multicast must never leave the machine: refuse (skip, or fail under UPS_REQUIRE_NETNS=1)
+    unless there is no default route, i.e. only loopback exists.
+    """
+    routes = subprocess.run(
+        ["ip", "route", "show", "default"], capture_output=True, text=True, check=False
+    )
+    if routes.returncode != 0 or routes.stdout.strip() or os.environ.get("UPS_IN_NETNS") != "1":
+        reason = "needs a private network namespace: run through scripts/netns-run"
+        if os.environ.get("UPS_REQUIRE_NETNS") == "1":
+            pytest.fail(reason)
+        pytest.skip(reason)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return f"udp_multicast:239.74.163.2,port={port}"
