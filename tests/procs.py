@@ -122,3 +122,13 @@ def private_multicast_bus() -> str:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     return f"udp_multicast:239.74.163.2,port={port}"
+
+
+def vcan_bus() -> str:
+    """SocketCAN vcan0, which exists inside scripts/uml-run (skip, or fail there, without it)."""
+    if not Path("/sys/class/net/vcan0").exists():
+        reason = "no SocketCAN vcan0 here (run through scripts/uml-run)"
+        if os.environ.get("UPS_REQUIRE_SOCKETCAN") == "1":
+            pytest.fail(reason)
+        pytest.skip(reason)
+    return "socketcan:vcan0"

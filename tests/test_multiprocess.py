@@ -1,7 +1,8 @@
-"""can-broker, sub and pub as separate processes on one CAN bus (udp_multicast in a namespace).
+"""can-broker, sub and pub as separate processes on one CAN bus.
 
-The frames are read off the bus by a plain python-can listener and checked against the layout
-in docs/protocol.md.
+Each test runs twice: over udp_multicast inside a private network namespace, and over a real
+SocketCAN vcan0 (inside User-Mode Linux, see scripts/uml-run). The frames are read off the bus
+by a plain python-can listener and checked against the layout in docs/protocol.md.
 """
 
 from __future__ import annotations
@@ -17,14 +18,17 @@ from ups import _canproto as p
 from ups import name_to_uid
 from ups._canlink import open_bus
 
-from .procs import Proc, private_multicast_bus
-
-pytestmark = pytest.mark.netns
+from .procs import Proc, private_multicast_bus, vcan_bus
 
 
-@pytest.fixture
-def mbus() -> str:
-    return private_multicast_bus()
+@pytest.fixture(
+    params=[
+        pytest.param("udp_multicast", marks=pytest.mark.netns),
+        pytest.param("socketcan", marks=pytest.mark.socketcan),
+    ]
+)
+def mbus(request: pytest.FixtureRequest) -> str:
+    return private_multicast_bus() if request.param == "udp_multicast" else vcan_bus()
 
 
 @pytest.fixture
