@@ -1,0 +1,45 @@
+"""docs/protocol.md must stay true: every example frame in it is checked against the codec."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from ups import _canproto as p
+from ups import name_to_uid
+
+DOC = (Path(__file__).resolve().parent.parent / "docs" / "protocol.md").read_text()
+ROW = re.compile(r"^\| `([0-9A-F]{8})` \| (?:`([0-9a-f ]+)`|-) \| (.+?) \|$", re.M)
+EVENT = re.compile(r"event: priority (0x[0-9A-F]+), TxNode (\d+), etag (0x[0-9A-F]+)")
+EXAMPLES = ROW.findall(DOC.split("### Worked example", 1)[1])
+
+
+def test_the_example_table_is_found() -> None:
+    assert len(EXAMPLES) >= 15
+
+
+@pytest.mark.parametrize(("ident", "data", "frame"), EXAMPLES)
+def test_example_frame(ident: str, data: str, frame: str) -> None:
+    can_id, payload = int(ident, 16), bytes.fromhex(data)
+    event = EVENT.fullmatch(frame)
+    if event:
+        priority, txnode, etag = (int(x, 0) for x in event.groups())
+        assert not p.is_management(can_id)
+        assert can_id == p.make_id(priority, txnode, etag)
+        return
+    expected = eval(frame.strip("`"), {"__builtins__": {}}, vars(p))  # our own doc, our names
+    assert p.encode(expected) == (can_id, payload)
+    assert p.decode(can_id, payload) == expected
+
+
+def test_documented_uids() -> None:
+    for name, uid in re.findall(r"`([a-z/]+)` →\s+`(0x[0-9a-f]{16})`", DOC):
+        assert name_to_uid(name) == int(uid, 16)
+
+
+def test_documented_constants() -> None:
+    assert "0x00\u20130x7E (127 nodes)" in DOC and p.TXNODE_COUNT == 127 and p.MGMT_TXNODE == 0x7F
+    assert "0x0010\u20130x3FFF" in DOC and (p.FIRST_ETAG, p.LAST_ETAG) == (0x10, 0x3FFF)
+    assert "0x80 by default" in DOC and p.DEFAULT_PRIORITY == 0x80
