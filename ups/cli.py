@@ -19,6 +19,7 @@ from typing import Any
 from ._channel import Channel, parse_channel
 from ._errors import UpsError
 from ._node import Node
+from .rt import cli as rt_cli
 
 EXIT_TIMEOUT = 1
 EXIT_USAGE = 2
@@ -68,6 +69,10 @@ def _parser() -> argparse.ArgumentParser:
     cmd.add_argument("--timeout", type=float, default=None, help="exit 1 if this many s pass")
     cmd.add_argument("--json", action="store_true", help="one JSON object per line")
     cmd.set_defaults(run=_run_sub)
+
+    cmd = commands.add_parser("analyze", help="CAN response-time analysis of a message set")
+    rt_cli.add_arguments(cmd)
+    cmd.set_defaults(run=rt_cli.run)
 
     cmd = commands.add_parser("demo", help="run the demo robots on an in-process virtual CAN bus")
     cmd.add_argument("--duration", type=float, default=3.0, help="seconds to run")

@@ -180,7 +180,7 @@ def load_csv(path: str | Path) -> list[MessageSpec]:
     name and line number for anything malformed.
     """
     source = Path(path)
-    with source.open(newline="", encoding="utf-8") as handle:
+    with source.open(newline="", encoding="utf-8-sig") as handle:
         lines = [
             (number, line)
             for number, line in enumerate(handle, start=1)

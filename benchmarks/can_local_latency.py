@@ -1,0 +1,125 @@
+"""Local notification latency on CAN, as in Table 3 of the paper.
+
+From the moment a frame reaches the node (the kernel's receive timestamp) until every one of
+N local subscribers (N = 1..4, each an asyncio task awaiting ``get_msg``) holds the event.
+Beside it, in the same run, the floor: a plain python-can bus in a blocking ``recv`` loop (the
+same interface and kernel timestamp, no middleware).
+
+The frames come from a separate ``ups pub`` process, 1-byte payloads (as in the paper), paced so
+that the receiver is idle when each one arrives. Runs on udp_multicast, so it must run inside a
+private network namespace; or on SocketCAN vcan0 (inside scripts/uml-run):
+
+    scripts/netns-run .venv/bin/python -m benchmarks.can_local_latency
+    scripts/uml-run .venv/bin/python -m benchmarks.can_local_latency --can socketcan:vcan0
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import can
+
+from broker.can_ecb import CanEcb
+from ups import Node
+from ups._canlink import CanLink, open_bus
+
+PAPER_RTLINUX_AVG_US = {1: 17.5, 2: 22.6, 3: 27.9, 4: 34.3}  # Table 3
+
+
+def publisher(bus: str, count: int, rate: float) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "ups.cli", "pub", "bench/latency", "01", "--can", bus,
+         "--count", str(count), "--rate", str(rate), "--node-id", "0xBE7C4"],
+        stdin=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+
+
+async def ups_latency(bus: str, subscribers: int, count: int, rate: float) -> list[float]:
+    """Per event: time from kernel arrival until the last of ``subscribers`` tasks has it."""
+    async with Node(can=bus, node_id=0x1A7E + subscribers) as node:
+        subs = [await node.subscribe("bench/latency") for _ in range(subscribers)]
+        done: list[float] = []
+
+        async def consume(sub_index: int) -> None:
+            for _ in range(count):
+                msg = await subs[sub_index].get_msg(timeout=30)
+                if sub_index == subscribers - 1:  # tasks run in order: the last one is last
+                    done.append(time.time() - msg.timestamp)
+
+        tasks = [asyncio.create_task(consume(i)) for i in range(subscribers)]
+        proc = publisher(bus, count, rate)
+        await asyncio.gather(*tasks)
+        await asyncio.to_thread(proc.wait)
+        assert node.stats()["dropped"] == 0
+        return done
+
+
+def raw_latency(bus: str, count: int, rate: float) -> list[float]:
+    """The floor: python-can's own blocking recv on the same interface."""
+    listener = open_bus(bus)
+    proc = publisher(bus, count, rate)
+    lat: list[float] = []
+    try:
+        while len(lat) < count:
+            frame = listener.recv(30)
+            if frame is None:
+                break
+            now = time.time()
+            if frame.is_extended_id and (frame.arbitration_id & 0x3FFF) >= 0x10:
+                lat.append(now - frame.timestamp)
+    finally:
+        proc.wait()
+        listener.shutdown()
+    return lat
+
+
+def summary(values: list[float]) -> tuple[float, float, float, float, float]:
+    us = sorted(v * 1e6 for v in values)
+    p99 = us[min(len(us) - 1, int(len(us) * 0.99))]
+    return us[0], statistics.fmean(us), statistics.median(us), p99, us[-1]
+
+
+async def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--can", default="udp_multicast:239.74.163.2,port=43190")
+    parser.add_argument("--count", type=int, default=500, help="events per configuration")
+    parser.add_argument("--rate", type=float, default=500.0, help="events per second")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        link = CanLink.open(args.can)
+        ecb = CanEcb(link, Path(tmp) / "ecb.db")
+        await ecb.start()
+        try:
+            raw = await asyncio.to_thread(raw_latency, args.can, args.count, args.rate)
+            rows = [("python-can recv (floor)", summary(raw), None)]
+            for n in range(1, 5):
+                lat = await ups_latency(args.can, n, args.count, args.rate)
+                rows.append((f"UPS, {n} local subscriber(s)", summary(lat), n))
+        finally:
+            ecb.close()
+            link.close()
+    print(f"local notification latency on {args.can}, {args.count} events of 1 byte each")
+    print(f"{'':28} {'min':>7} {'avg':>7} {'p50':>7} {'p99':>7} {'max':>7}  paper avg (RTLinux)")
+    floor_p50 = rows[0][1][2]
+    for label, (lo, avg, p50, p99, hi), n in rows:
+        paper = f"{PAPER_RTLINUX_AVG_US[n]:>6.1f} µs" if n else ""
+        print(f"{label:28} {lo:7.1f} {avg:7.1f} {p50:7.1f} {p99:7.1f} {hi:7.1f}  {paper}")
+    print(f"(µs; p50 of UPS with 1 subscriber = {rows[1][1][2] / floor_p50:.2f}x the floor)")
+
+
+if __name__ == "__main__":
+    can.util.set_logging_level("warning")
+    if "--uvloop" in sys.argv:
+        import uvloop
+
+        sys.argv.remove("--uvloop")
+        uvloop.run(main())
+    else:
+        asyncio.run(main())

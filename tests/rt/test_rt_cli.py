@@ -1,0 +1,158 @@
+"""The ``ups analyze`` command line (``ups.rt.cli``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ups.rt import cli
+
+from .conftest import SAE_CSV
+
+HEADER = "name,size_bytes,jitter_ms,period_ms,deadline_ms"
+
+
+def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = cli.main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _write(tmp_path: Path, text: str) -> str:
+    path = tmp_path / "set.csv"
+    path.write_text(text)
+    return str(path)
+
+
+def test_json_on_sae_tindell1994(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = _run(
+        capsys, str(SAE_CSV), "--bitrate", "250000", "--method", "tindell1994",
+        "--id-bits", "11", "--json",
+    )  # fmt: skip
+    assert code == 0 and err == ""
+    report = json.loads(out)
+    messages = report["messages"]
+    assert len(messages) == 53
+    assert messages[0] == {
+        "name": "14",
+        "priority": 0,
+        "transmission_time_ms": 0.252,
+        "response_time_ms": 0.772,
+        "deadline_ms": 5.0,
+        "schedulable": True,
+    }
+    assert [m["name"] for m in messages[:4]] == ["14", "9", "49", "42"]
+    assert report["method"] == "tindell1994" and report["bitrate"] == 250_000
+    assert report["schedulable"] is True
+
+
+def test_json_defaults_and_unbounded_response(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = _run(capsys, str(SAE_CSV), "--bitrate", "125k", "--id-bits", "11", "--json")
+    assert code == 0
+    report = json.loads(out)
+    assert report["method"] == "davis2007" and report["blocking"] == "max-frame"
+    messages = report["messages"]
+    assert messages[0]["response_time_ms"] == pytest.approx(1.7)  # 0.1 + 0.52 + 0.52
+    assert messages[-1]["response_time_ms"] is None
+    assert messages[-1]["schedulable"] is False
+    assert isinstance(messages[7]["response_time_ms"], float)
+    assert messages[7]["response_time_ms"] > messages[7]["deadline_ms"]  # reported anyway
+    assert report["schedulable"] is False
+
+
+def test_table_output(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = _run(capsys, str(SAE_CSV), "--bitrate", "125000", "--id-bits", "11")
+    assert code == 0
+    lines = out.splitlines()
+    assert "davis2007" in lines[0] and "125000 bit/s" in lines[0]
+    assert lines[1].split()[:2] == ["message", "prio"]
+    assert lines[2].split() == ["14", "0", "1", "0.52", "0.1", "50", "5", "1.7", "ok"]
+    assert any(line.endswith("MISS") for line in lines)
+    assert "unbounded" in out
+    assert lines[-1].startswith("46 of 53 messages miss their deadlines")
+
+
+def test_priority_column_and_assign(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    path = _write(
+        tmp_path,
+        f"{HEADER},priority\nslow,8,0,10,10,7\nfast,8,0,1,1,2\n",
+    )
+    code, out, _ = _run(capsys, path, "--bitrate", "1M", "--id-bits", "11", "--json")
+    assert code == 0
+    messages = json.loads(out)["messages"]
+    assert [m["name"] for m in messages] == ["slow", "fast"]
+    assert messages[1]["response_time_ms"] == pytest.approx(0.27)
+    assert [m["priority"] for m in messages] == [7, 2]  # the file's values
+    code, out, _ = _run(capsys, path, "--assign", "audsley", "--json")
+    assert code == 0
+    assert [m["priority"] for m in json.loads(out)["messages"]] == [1, 0]
+
+
+def test_assign_audsley_failure_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    path = _write(tmp_path, f"{HEADER}\na,8,0,1,0.1\n")
+    code, out, err = _run(capsys, path, "--assign", "audsley")
+    assert code == 1 and out == ""
+    assert "'a'" in err and "deadline" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("content", "needle"),
+    [
+        (None, "cannot read"),
+        ("name,size_bytes,period_ms\na,1,10\n", "missing column(s) jitter_ms, deadline_ms"),
+        (f"{HEADER}\na,1,0,ten,10\n", "period_ms 'ten' is not a number"),
+        (f"{HEADER}\na,1,0,-5,10\n", "period_ms must be positive"),
+        (f"{HEADER}\na,one,0,5,10\n", "size_bytes 'one' is not an integer"),
+        (f"{HEADER}\na,9,0,5,10\n", "0..8"),
+        (f"{HEADER}\na,1,0,5\n", "expected 5 columns"),
+        (f"{HEADER}\na,1,0,5,5\na,1,0,5,5\n", "used twice"),
+        (f"{HEADER}\n", "no messages"),
+        ("", "no header"),
+        (f"{HEADER},priority\na,1,0,5,5,x\n", "priority 'x' is not an integer"),
+        (f"{HEADER},priority\na,1,0,5,5,1\nb,1,0,5,5,1\n", "priority 1 is given to both"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, content: str | None, needle: str
+) -> None:
+    path = str(tmp_path / "absent.csv") if content is None else _write(tmp_path, content)
+    code, out, err = _run(capsys, path)
+    assert code == 2 and out == ""
+    assert len(err.splitlines()) == 1
+    assert err.startswith("ups analyze: error: ")
+    assert needle in err
+    assert "Traceback" not in err
+
+
+def test_bad_bitrate_is_rejected_by_argparse(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as caught:
+        cli.main([str(SAE_CSV), "--bitrate", "fast"])
+    assert caught.value.code == 2
+    assert "invalid bit rate" in capsys.readouterr().err
+
+
+def test_add_arguments_on_a_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
+    """How the ``ups`` command wires it: a subparser, then ``run``."""
+    parser = argparse.ArgumentParser(prog="ups")
+    commands = parser.add_subparsers(dest="command", required=True)
+    cli.add_arguments(commands.add_parser("analyze"))
+    args = parser.parse_args(["analyze", str(SAE_CSV), "--id-bits", "11", "--json"])
+    assert cli.run(args) == 0
+    assert json.loads(capsys.readouterr().out)["bitrate"] == 500_000
+
+
+def test_python_dash_m() -> None:
+    for module in ("ups.rt.cli", "ups.rt"):
+        done = subprocess.run(
+            [sys.executable, "-m", module, str(SAE_CSV), "--id-bits", "11", "--json"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert done.returncode == 0, done.stderr
+        assert len(json.loads(done.stdout)["messages"]) == 53
