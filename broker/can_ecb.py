@@ -13,6 +13,8 @@ import logging
 import sqlite3
 from collections import defaultdict
 from collections.abc import Callable
+from fractions import Fraction
+from math import ceil
 from pathlib import Path
 
 import can
@@ -20,6 +22,7 @@ import can
 from ups import _canproto as p
 from ups._canlink import CanLink
 from ups._errors import DecodeError
+from ups.rt import MessageSpec, NotSchedulable, assign_priorities
 
 log = logging.getLogger("ups.can_ecb")
 
@@ -28,6 +31,9 @@ RACE_TIMEOUT = 1.0  # a race whose leader fell silent this long starts again
 #: real bus arbitration already lets the lowest id through first; buses emulated over IP or in
 #: memory deliver simultaneous offers in any order.
 SETTLE = 0.05
+#: Priorities the CAN-ECB gives declared real-time streams; best-effort channels stay below
+#: (0x80 by default), management frames above (0x00, 0x01).
+RT_FIRST, RT_LAST = 0x02, 0x7F
 
 
 class _Store:
@@ -69,7 +75,12 @@ class CanEcb:
     """The CAN-ECB of one bus. ``on_change(uid)`` is called when a channel's subscribers change."""
 
     def __init__(
-        self, link: CanLink, db_path: str | Path = "ups-can-ecb.db", settle: float = SETTLE
+        self,
+        link: CanLink,
+        db_path: str | Path = "ups-can-ecb.db",
+        *,
+        bitrate: int = 500_000,
+        settle: float = SETTLE,
     ) -> None:
         self.link = link
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
@@ -78,12 +89,16 @@ class CanEcb:
         self._prefix: list[int] = []
         self._race_timer: asyncio.TimerHandle | None = None
         self._settle = settle
+        self.bitrate = bitrate
+        #: (etag, TxNode) -> the declared real-time stream, and the priority it was granted
+        self.declared: dict[tuple[int, int], MessageSpec] = {}
+        self.granted: dict[tuple[int, int], int] = {}
         self._free_etag = p.FIRST_ETAG
         self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
         self.publishers: defaultdict[int, set[int]] = defaultdict(set)
         self.on_change: Callable[[int], None] | None = None
         self.counters = dict.fromkeys(
-            ("joined", "bound", "requests", "malformed", "foreign", "refused"), 0
+            ("joined", "bound", "requests", "malformed", "foreign", "refused", "admitted"), 0
         )
 
     @property
@@ -141,6 +156,9 @@ class CanEcb:
         elif isinstance(msg, p.Request):
             self.counters["requests"] += 1
             self._on_request(msg)
+        elif isinstance(msg, p.Declare):
+            self.counters["requests"] += 1
+            self._on_declare(msg)
 
     # --- the TxNode race -------------------------------------------------------------------
 
@@ -266,6 +284,51 @@ class CanEcb:
         for table in (self.subscribers, self.publishers):
             for uid in [u for u, nodes in table.items() if txnode in nodes]:
                 self._update(table, uid, txnode, add=False)
+        for key in [k for k in self.declared if k[1] == txnode]:
+            del self.declared[key]
+            self.granted.pop(key, None)
+
+    # --- real-time admission -----------------------------------------------------------------
+
+    def _on_declare(self, msg: p.Declare) -> None:
+        """Admit a stream if every declared stream of the bus stays schedulable, else refuse."""
+        key = (msg.etag, msg.txnode)
+        if msg.etag not in self._store.taken_etags:
+            self.counters["malformed"] += 1
+            log.warning("TxNode %d declared unbound etag %#x", msg.txnode, msg.etag)
+            return
+        unit = Fraction(p.TIME_UNIT_US, 1000)
+        spec = MessageSpec(
+            _stream_name(key), msg.size_bytes, msg.period * unit, msg.deadline * unit,
+            msg.jitter * unit,
+        )  # fmt: skip
+        candidate = {**self.declared, key: spec}
+        try:
+            values = assign_priorities(
+                [candidate[k] for k in sorted(candidate)], self.bitrate, 29,
+                first=RT_FIRST, last=RT_LAST,
+            )  # fmt: skip
+        except NotSchedulable as exc:
+            self.counters["refused"] += 1
+            miss = _stream_key(exc.channel)
+            response = p.RESPONSE_UNBOUNDED
+            if exc.response_time_ms is not None:
+                response = min(p.RESPONSE_UNBOUNDED, ceil(exc.response_time_ms * 100))
+            log.info("refused %s: %s", spec.name, exc)
+            self._send(p.Refuse(msg.etag, msg.txnode, miss[0], miss[1], response))
+            return
+        except ValueError as exc:  # more streams than priority levels
+            self.counters["refused"] += 1
+            log.info("refused %s: %s", spec.name, exc)
+            self._send(p.Refuse(msg.etag, msg.txnode, msg.etag, msg.txnode, 0))
+            return
+        self.counters["admitted"] += 1
+        self.declared = candidate
+        for k in sorted(candidate):
+            priority = values[_stream_name(k)]
+            if k == key or self.granted.get(k) != priority:  # Audsley may move others
+                self.granted[k] = priority
+                self._send(p.Grant(k[0], k[1], priority))
 
     def _changed(self, uid: int) -> None:
         if self.on_change is not None:
@@ -276,13 +339,22 @@ class CanEcb:
         self.link.send(can_id, data, self._handler)
 
 
-async def serve(bus: str, db_path: str | Path) -> None:
+async def serve(bus: str, db_path: str | Path, bitrate: int = 500_000) -> None:
     """Run a standalone CAN-ECB on ``bus`` until cancelled."""
     link = CanLink.open(bus)
-    ecb = CanEcb(link, db_path)
+    ecb = CanEcb(link, db_path, bitrate=bitrate)
     try:
         await ecb.start()
         await asyncio.Event().wait()
     finally:
         ecb.close()
         link.close()
+
+
+def _stream_name(key: tuple[int, int]) -> str:
+    return f"{key[0]:04x}/{key[1]}"
+
+
+def _stream_key(name: str) -> tuple[int, int]:
+    etag, txnode = name.split("/")
+    return int(etag, 16), int(txnode)

@@ -6,7 +6,9 @@ Runs in one process on a python-can ``virtual`` bus, so it needs no hardware:
 * a wheel encoder publishes ``robot/speed`` (cm/s, int16) at 20 Hz;
 * a sonar publishes ``robot/distance`` (cm, uint16) at 10 Hz, the obstacle coming closer;
 * a motor controller subscribes to both and publishes ``robot/brake`` when an obstacle is
-  near while the robot moves, on a high-priority channel;
+  near while the robot moves. It declares ``robot/brake`` a real-time channel (at most every
+  50 ms, due on the bus within 2 ms): the CAN-ECB checks that the bus can guarantee it and
+  gives it a priority above all best-effort traffic;
 * a dashboard subscribes to everything and prints what it sees.
 
 ``ups demo`` (or ``scripts/demo``) runs it; it exits 0 when every channel was seen.
@@ -24,7 +26,6 @@ from ups import Node
 from ups._canlink import CanLink
 
 SPEED, DISTANCE, BRAKE = "robot/speed", "robot/distance", "robot/brake"
-BRAKE_PRIORITY = 0x10
 NEAR_CM = 40
 
 
@@ -44,7 +45,8 @@ async def sonar(node: Node, stop: asyncio.Event) -> None:
 
 
 async def motor_controller(node: Node, stop: asyncio.Event) -> None:
-    node.set_priority(BRAKE, BRAKE_PRIORITY)
+    priority = await node.declare(BRAKE, period_ms=50, deadline_ms=2, size_bytes=1)
+    print(f"motor-controller: {BRAKE} admitted as real-time, priority {priority:#04x}")
     sub = await node.subscribe(SPEED, DISTANCE)
     speed = distance = None
     braking = False

@@ -47,6 +47,26 @@ management = st.one_of(
     st.builds(p.EtagsFull, u64),
     st.builds(p.Bind, st.integers(p.FIRST_ETAG, p.LAST_ETAG), u64),
     st.builds(
+        p.Grant, st.integers(p.FIRST_ETAG, p.LAST_ETAG), st.integers(0, 126), st.integers(0, 255)
+    ),
+    st.builds(
+        p.Refuse,
+        st.integers(p.FIRST_ETAG, p.LAST_ETAG),
+        st.integers(0, 126),
+        st.integers(p.FIRST_ETAG, p.LAST_ETAG),
+        st.integers(0, 126),
+        st.integers(0, 0xFFFF),
+    ),
+    st.builds(
+        p.Declare,
+        st.integers(0, 126),
+        st.integers(p.FIRST_ETAG, p.LAST_ETAG),
+        st.integers(0, 8),
+        st.integers(1, 0xFFFF),
+        st.integers(1, 0xFFFF),
+        st.integers(0, 255),
+    ),
+    st.builds(
         p.Request,
         st.sampled_from([p.PUB_BIND, p.SUB_BIND, p.UNSUB, p.CLAIM]),
         st.integers(0, 126),

@@ -12,6 +12,7 @@ from ._errors import (
     DecodeError,
     Exhausted,
     PayloadTooLarge,
+    Unschedulable,
     UpsError,
 )
 from ._message import Message
@@ -32,6 +33,7 @@ __all__ = [
     "Overflow",
     "PayloadTooLarge",
     "Subscription",
+    "Unschedulable",
     "UpsError",
     "name_to_uid",
     "parse_channel",

@@ -16,7 +16,7 @@ import can
 
 from . import _canproto as p
 from ._canlink import CanLink
-from ._errors import BrokerUnavailable, ConfigError, DecodeError, Exhausted
+from ._errors import BrokerUnavailable, ConfigError, DecodeError, Exhausted, Unschedulable
 
 if TYPE_CHECKING:
     from ._node import ChannelState, Node
@@ -73,6 +73,8 @@ class CanFace:
         self._offer: p.Stage | None = None
         self._answered: tuple[int, int] | None = None
         self._announcer: asyncio.Task[None] | None = None
+        self._declared: dict[int, tuple[int, int, int, int]] = {}  # uid -> size, T, D, J
+        self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed"), 0
         )
@@ -92,7 +94,7 @@ class CanFace:
             self._announcer.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._announcer
-        for fut in self._pending.values():
+        for fut in [*self._pending.values(), *self._verdicts.values()]:
             fut.cancel()
         self.link.remove_handler(self._handler)
         if self._owns_link:
@@ -169,6 +171,9 @@ class CanFace:
             fut = self._pending.pop(msg.uid, None)
             if fut is not None and not fut.done():
                 fut.set_exception(Exhausted(f"the CAN-ECB has no etag left for {msg.uid:#018x}"))
+        elif isinstance(msg, p.Grant | p.Refuse):
+            if msg.txnode == self.txnode:
+                self._on_verdict(msg)
         elif isinstance(msg, p.Hello) and self.txnode is not None:
             self._announce_all()
         elif isinstance(msg, p.Assign) and self.txnode is not None:
@@ -194,6 +199,64 @@ class CanFace:
         fut = self._pending.pop(uid, None)
         if fut is not None and not fut.done():
             fut.set_result(etag)
+
+    # --- real-time declarations ------------------------------------------------------------
+
+    async def declare(
+        self, state: ChannelState, size: int, period_ms: float, deadline_ms: float, jitter_ms: float
+    ) -> int:
+        unit = p.TIME_UNIT_US / 1000
+        period, deadline = int(period_ms / unit), int(deadline_ms / unit)  # round down: safe
+        jitter = -int(-jitter_ms // unit)  # round up: safe
+        if not 0 <= size <= p.CLASSIC_MAX_DATA:
+            raise ConfigError(f"size_bytes must be 0..{p.CLASSIC_MAX_DATA}, got {size}")
+        if not (1 <= period <= 0xFFFF and 1 <= deadline <= 0xFFFF and 0 <= jitter <= 0xFF):
+            raise ConfigError(
+                "period and deadline must be 0.1..6553.5 ms, jitter 0..25.5 ms; got "
+                f"{period_ms}, {deadline_ms}, {jitter_ms}"
+            )
+        uid = state.channel.uid
+        self._declared[uid] = (size, period, deadline, jitter)
+        etag = self._etag_of[uid]
+        fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
+        msg = p.Declare(self._my_txnode(), etag, size, period, deadline, jitter)
+        try:
+            priority = await self._ask(msg, fut, f"admit {state.channel}")
+        except Unschedulable:
+            del self._declared[uid]
+            raise
+        state.priority = priority
+        return priority
+
+    def _on_verdict(self, msg: p.Grant | p.Refuse) -> None:
+        uid = self._uid_of.get(msg.etag)
+        fut = self._verdicts.pop(msg.etag, None)
+        if isinstance(msg, p.Grant):
+            state = self._node._states.get(uid) if uid is not None else None
+            if state is not None:  # also when another node's declaration moved ours
+                state.priority = msg.priority
+            if fut is not None and not fut.done():
+                fut.set_result(msg.priority)
+            return
+        if fut is None or fut.done():
+            return
+        if (msg.miss_etag, msg.miss_txnode) == (msg.etag, msg.txnode):
+            culprit = "it"
+        else:
+            other = self._uid_of.get(msg.miss_etag)
+            name = f"0x{other:016x}" if other is not None else f"etag {msg.miss_etag:#x}"
+            culprit = f"channel {name} of TxNode {msg.miss_txnode}"
+        if msg.response_10us == p.RESPONSE_UNBOUNDED:
+            response = "no bounded response time"
+        else:
+            response = f"worst-case response {msg.response_10us / 100:g} ms"
+        channel = f"0x{uid:016x}" if uid is not None else f"etag {msg.etag:#x}"
+        fut.set_exception(
+            Unschedulable(
+                f"the CAN-ECB refused real-time channel {channel}: with it, {culprit} would "
+                f"miss its deadline ({response})"
+            )
+        )
 
     # --- joining: the TxNode race ----------------------------------------------------------
 
@@ -258,19 +321,28 @@ class CanFace:
         fut = self._pending.get(uid)
         if fut is None:
             fut = self._pending[uid] = asyncio.get_running_loop().create_future()
+        try:
+            return await self._ask(
+                p.Request(kind, self._my_txnode(), uid), fut, f"bind {uid:#018x}"
+            )
+        finally:
+            if self._pending.get(uid) is fut and not fut.done():
+                del self._pending[uid]
+
+    async def _ask(self, msg: p.Management, fut: asyncio.Future[int], what: str) -> int:
+        """Send ``msg`` until ``fut`` has the CAN-ECB's answer: 50 ms, doubling, 5 s in all."""
         delay = _RETRY_FIRST
         waited = 0.0
         while True:
-            self._send(p.Request(kind, self._my_txnode(), uid))
+            self._send(msg)
             try:
                 return await asyncio.wait_for(asyncio.shield(fut), delay)
             except TimeoutError:
                 waited += delay
                 if waited >= _BIND_TIMEOUT:
-                    self._pending.pop(uid, None)
                     raise BrokerUnavailable(
-                        f"the CAN-ECB on {self.link.channel_info} did not bind "
-                        f"{uid:#018x} within {_BIND_TIMEOUT:g} s"
+                        f"the CAN-ECB on {self.link.channel_info} did not {what} "
+                        f"within {_BIND_TIMEOUT:g} s"
                     ) from None
                 delay = min(delay * 2, _RETRY_MAX)
 
@@ -290,6 +362,11 @@ class CanFace:
             if state.published:
                 await asyncio.sleep(_ANNOUNCE_GAP)
                 self._send(p.Request(p.PUB_BIND, txnode, uid))
+            if uid in self._declared and uid in self._etag_of:
+                await asyncio.sleep(_ANNOUNCE_GAP)
+                size, period, deadline, jitter = self._declared[uid]
+                etag = self._etag_of[uid]
+                self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
 
     # --- helpers ---------------------------------------------------------------------------
 

@@ -10,6 +10,7 @@ CAN-ECB and nodes still without a TxNode) or its etag is below ``FIRST_ETAG``; e
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 
 from ._errors import DecodeError
@@ -60,7 +61,7 @@ def nibbles_of(node_id: int) -> tuple[int, ...]:
 # --- configuration: the TxNode race (priority 0x00, TxNode 0x7F, etag field = op | arg) ------
 
 _OP_STAGE, _OP_ACK, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
-_ST_RESET, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO = 0, 1, 2, 3
+_ST_RESET, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO, _ST_GRANT, _ST_REFUSE = range(6)
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +117,31 @@ class EtagsFull:
     uid: int
 
 
+@dataclass(frozen=True, slots=True)
+class Grant:
+    """The real-time stream of ``txnode`` on ``etag`` is admitted and sent at ``priority``."""
+
+    etag: int
+    txnode: int
+    priority: int
+
+
+@dataclass(frozen=True, slots=True)
+class Refuse:
+    """A declaration on ``etag`` by ``txnode`` is refused: with it, the stream of ``miss_txnode``
+    on ``miss_etag`` would miss its deadline (worst-case response ``response_10us`` x 10 us,
+    ``RESPONSE_UNBOUNDED`` when the analysis finds no bound or it does not fit 16 bits)."""
+
+    etag: int
+    txnode: int
+    miss_etag: int
+    miss_txnode: int
+    response_10us: int
+
+
+RESPONSE_UNBOUNDED = 0xFFFF
+TIME_UNIT_US = 100  #: declared periods, deadlines and jitters are multiples of 100 us
+
 # --- binding (priority 0x01, TxNode 0x7F, etag field = the bound etag) ----------------------
 
 
@@ -133,6 +159,7 @@ PUB_BIND = 0x0001  #: bind a channel to publish on it
 SUB_BIND = 0x0002  #: bind a channel and subscribe to it
 UNSUB = 0x0003  #: the node's last subscriber of the channel left
 CLAIM = 0x0004  #: "I hold this TxNode": sent after a CAN-ECB (re)start
+DECLARE = 0x0005  #: a real-time declaration (see Declare)
 _REQUEST_KINDS = (PUB_BIND, SUB_BIND, UNSUB, CLAIM)
 
 
@@ -145,7 +172,33 @@ class Request:
     value: int
 
 
-Management = Stage | Ack | Assign | Reset | Hello | TxNodesFull | EtagsFull | Bind | Request
+@dataclass(frozen=True, slots=True)
+class Declare:
+    """``txnode`` publishes on ``etag`` at most one frame of ``size_bytes`` every ``period``,
+    released up to ``jitter`` late, due within ``deadline``; all in units of 100 us."""
+
+    txnode: int
+    etag: int
+    size_bytes: int
+    period: int  # 1..65535
+    deadline: int  # 1..65535
+    jitter: int  # 0..255
+
+
+Management = (
+    Stage
+    | Ack
+    | Assign
+    | Reset
+    | Hello
+    | TxNodesFull
+    | EtagsFull
+    | Grant
+    | Refuse
+    | Bind
+    | Request
+    | Declare
+)
 
 
 def encode(msg: Management) -> tuple[int, bytes]:
@@ -171,8 +224,19 @@ def encode(msg: Management) -> tuple[int, bytes]:
         return _config_id(_OP_STATUS, _ST_TXNODES_FULL << 8), msg.node_id.to_bytes(8, "big")
     if isinstance(msg, EtagsFull):
         return _config_id(_OP_STATUS, _ST_ETAGS_FULL << 8), msg.uid.to_bytes(8, "big")
+    if isinstance(msg, Grant):
+        data = struct.pack(">HBB4x", msg.etag, msg.txnode, msg.priority)
+        return _config_id(_OP_STATUS, _ST_GRANT << 8), data
+    if isinstance(msg, Refuse):
+        data = struct.pack(
+            ">HBBHH", msg.etag, msg.txnode, msg.miss_txnode, msg.miss_etag, msg.response_10us
+        )
+        return _config_id(_OP_STATUS, _ST_REFUSE << 8), data
     if isinstance(msg, Bind):
         return make_id(BIND_PRIORITY, MGMT_TXNODE, msg.etag), msg.uid.to_bytes(8, "big")
+    if isinstance(msg, Declare):
+        data = struct.pack(">HBHHB", msg.etag, msg.size_bytes, msg.period, msg.deadline, msg.jitter)
+        return make_id(CONFIG_PRIORITY, msg.txnode, DECLARE), data
     return make_id(CONFIG_PRIORITY, msg.txnode, msg.kind), msg.value.to_bytes(8, "big")
 
 
@@ -187,6 +251,8 @@ def decode(can_id: int, data: bytes) -> Management:
     """
     priority, txnode, etag = split_id(can_id)
     if txnode != MGMT_TXNODE:
+        if priority == CONFIG_PRIORITY and etag == DECLARE:
+            return _decode_declare(txnode, data, can_id)
         if priority != CONFIG_PRIORITY or etag not in _REQUEST_KINDS:
             raise DecodeError(f"unknown node request {can_id:#010x}")
         return Request(etag, txnode, _u64(data, can_id))
@@ -219,7 +285,31 @@ def decode(can_id: int, data: bytes) -> Management:
         return TxNodesFull(_u64(data, can_id))
     if status == _ST_ETAGS_FULL and arg & 0xFF == 0:
         return EtagsFull(_u64(data, can_id))
+    if status == _ST_GRANT and arg & 0xFF == 0:
+        _expect_len(data, 8, can_id)
+        etag, node, prio, pad = struct.unpack(">HBBI", data)
+        if pad or not _stream_ok(etag, node):
+            raise DecodeError(f"bad grant {data.hex()}")
+        return Grant(etag, node, prio)
+    if status == _ST_REFUSE and arg & 0xFF == 0:
+        _expect_len(data, 8, can_id)
+        etag, node, miss_node, miss_etag, response = struct.unpack(">HBBHH", data)
+        if not (_stream_ok(etag, node) and _stream_ok(miss_etag, miss_node)):
+            raise DecodeError(f"bad refusal {data.hex()}")
+        return Refuse(etag, node, miss_etag, miss_node, response)
     raise DecodeError(f"unknown status frame {can_id:#010x}")
+
+
+def _stream_ok(etag: int, txnode: int) -> bool:
+    return FIRST_ETAG <= etag <= LAST_ETAG and txnode < TXNODE_COUNT
+
+
+def _decode_declare(txnode: int, data: bytes, can_id: int) -> Declare:
+    _expect_len(data, 8, can_id)
+    etag, size, period, deadline, jitter = struct.unpack(">HBHHB", data)
+    if not (FIRST_ETAG <= etag <= LAST_ETAG and size <= CLASSIC_MAX_DATA and period and deadline):
+        raise DecodeError(f"bad declaration {data.hex()}")
+    return Declare(txnode, etag, size, period, deadline, jitter)
 
 
 def _expect_len(data: bytes, n: int, can_id: int) -> None:

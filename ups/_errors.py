@@ -32,6 +32,10 @@ class Exhausted(UpsError):
     """The broker has no identifier left to give (all 127 TxNodes or all etags are bound)."""
 
 
+class Unschedulable(UpsError):
+    """The CAN-ECB refused a real-time declaration: a declared channel would miss its deadline."""
+
+
 class DecodeError(UpsError):
     """Bytes received from a link are not a valid UPS frame."""
 

@@ -30,13 +30,14 @@ DEFAULT_QUEUE = 1024
 class ChannelState:
     """What a node knows of one channel: its local subscriptions, priority and publishing."""
 
-    __slots__ = ("channel", "priority", "published", "subs")
+    __slots__ = ("channel", "declared", "priority", "published", "subs")
 
     def __init__(self, channel: Channel, priority: int) -> None:
         self.channel = channel
         self.priority = priority
         self.subs: list[Subscription] = []
         self.published = False
+        self.declared = False  # a real-time stream: the broker owns its priority
 
 
 class Face(Protocol):
@@ -334,13 +335,50 @@ class Node:
             finally:
                 self._any_waiter = None
 
+    async def declare(
+        self,
+        channel: ChannelLike,
+        *,
+        period_ms: float,
+        deadline_ms: float,
+        size_bytes: int = 8,
+        jitter_ms: float = 0.0,
+    ) -> int:
+        """Declare ``channel`` a real-time channel that this node publishes on (CAN only).
+
+        At most one event of ``size_bytes`` every ``period_ms``, released up to ``jitter_ms``
+        late, each due on the bus within ``deadline_ms``. The CAN-ECB admits the stream only if
+        every declared stream of the bus stays schedulable (worst-case response-time analysis,
+        Davis et al. 2007), and then sets its priority (returned; from then on publishing uses
+        it). Otherwise it raises ``Unschedulable`` naming the channel that would miss its
+        deadline. Times are rounded to 0.1 ms, towards the safe side.
+        """
+        self._check_open()
+        from ._canface import CanFace
+
+        face = self.face
+        if not isinstance(face, CanFace):
+            raise ConfigError("real-time declarations are for CAN channels")
+        state = await self._publishing_state(channel)
+        priority = await face.declare(state, size_bytes, period_ms, deadline_ms, jitter_ms)
+        state.declared = True
+        return priority
+
     # --- settings and statistics ----------------------------------------------------------
 
     def set_priority(self, channel: ChannelLike, priority: int) -> None:
-        """Set the priority this node publishes ``channel`` with (0 highest .. 255 lowest)."""
+        """Set the priority this node publishes ``channel`` with (0 highest .. 255 lowest).
+
+        Declared real-time channels get theirs from the CAN-ECB; best-effort channels should
+        stay in 0x80..0xFF, below every declared one (0x02..0x7F).
+        """
         if not 0 <= priority <= 0xFF:
             raise ConfigError(f"priority must be 0..255, got {priority}")
         uid = as_channel(channel).uid
+        if uid in self._states and self._states[uid].declared:
+            raise ConfigError(
+                f"{self._states[uid].channel} is declared: the CAN-ECB sets its priority"
+            )
         self._priorities[uid] = priority
         if uid in self._states:
             self._states[uid].priority = priority

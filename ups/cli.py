@@ -51,6 +51,10 @@ def _parser() -> argparse.ArgumentParser:
     cmd = commands.add_parser("can-broker", help="run the CAN-ECB of one bus")
     _add_can(cmd)
     cmd.add_argument("--db", default="ups-can-ecb.db", help="SQLite file of TxNodes and etags")
+    cmd.add_argument(
+        "--bitrate", type=int, default=500_000,
+        help="the bus's bit rate, for admitting real-time channels (default 500000)",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_can_broker)
 
     cmd = commands.add_parser("pub", help="publish events on a channel")
@@ -155,7 +159,7 @@ def _run_can_broker(args: argparse.Namespace) -> int:
     from broker.can_ecb import serve
 
     async def run() -> int:
-        await serve(args.can, args.db)
+        await serve(args.can, args.db, args.bitrate)
         return 0
 
     return _run_until_signal(run())
