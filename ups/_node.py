@@ -175,6 +175,7 @@ class Node:
         self._filter_limit = filter_limit
         self._face: Face | None = None
         self._states: dict[int, ChannelState] = {}
+        self._publishing: dict[ChannelLike, ChannelState] = {}
         self._priorities: dict[int, int] = {}
         self._subs: list[Subscription] = []
         self._any_waiter: asyncio.Future[None] | None = None
@@ -254,9 +255,9 @@ class Node:
 
         Raises ``PayloadTooLarge`` when ``data`` does not fit one frame of the network.
         """
-        state = self._states.get(channel) if type(channel) is int else None
-        if state is None or not state.published:
-            state = await self._publishing_state(channel)
+        state = self._publishing.get(channel)  # keyed as the caller names it: no re-hashing
+        if state is None:
+            state = self._publishing[channel] = await self._publishing_state(channel)
         payload = bytes(data)
         face = self._face
         assert face is not None
