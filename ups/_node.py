@@ -255,6 +255,8 @@ class Node:
 
         Raises ``PayloadTooLarge`` when ``data`` does not fit one frame of the network.
         """
+        if self._closed:
+            raise Closed("node closed")
         state = self._publishing.get(channel)  # keyed as the caller names it: no re-hashing
         if state is None:
             state = self._publishing[channel] = await self._publishing_state(channel)
