@@ -43,3 +43,20 @@ def test_documented_constants() -> None:
     assert "0x00\u20130x7E (127 nodes)" in DOC and p.TXNODE_COUNT == 127 and p.MGMT_TXNODE == 0x7F
     assert "0x0010\u20130x3FFF" in DOC and (p.FIRST_ETAG, p.LAST_ETAG) == (0x10, 0x3FFF)
     assert "0x80 by default" in DOC and p.DEFAULT_PRIORITY == 0x80
+
+
+TCP_ROW = re.compile(r"^\| `([0-9a-f ]+)` \| `([^`]+)`", re.M)
+TCP_EXAMPLES = TCP_ROW.findall(DOC.split("## TCP/IP framing", 1)[1])
+
+
+@pytest.mark.parametrize(("raw", "frame"), TCP_EXAMPLES)
+def test_tcp_example_frame(raw: str, frame: str) -> None:
+    from ups import _tcpwire as w
+
+    expected = eval(frame, {"__builtins__": {}}, vars(w))  # our own doc, our names
+    assert w.encode(expected) == bytes.fromhex(raw)
+    assert w.Decoder().feed(bytes.fromhex(raw)) == [expected]
+
+
+def test_tcp_examples_are_found() -> None:
+    assert len(TCP_EXAMPLES) == 3

@@ -1,0 +1,86 @@
+"""The TCP framing: round trips, streams cut anywhere, and bad bytes as one clear error."""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from ups import DecodeError
+from ups import _tcpwire as w
+
+u64 = st.integers(0, (1 << 64) - 1)
+port = st.integers(0, 0xFFFF)
+peer = st.builds(w.Peer, u64, st.text(max_size=40), port)
+frames = st.one_of(
+    st.builds(w.Hello, u64, st.text(max_size=40), st.text(max_size=40), port),
+    st.builds(w.Event, u64, st.binary(max_size=300), st.integers(0, 255)),
+    st.builds(w.Subscribe, u64),
+    st.builds(w.Unsubscribe, u64),
+    st.builds(w.Advertise, u64),
+    st.builds(w.Unadvertise, u64),
+    st.builds(w.Subscribers, u64, st.lists(peer, max_size=5).map(tuple)),
+    st.just(w.Ping()),
+    st.just(w.Pong()),
+)
+
+
+@given(st.lists(frames, max_size=8), st.data())
+def test_stream_round_trip_cut_anywhere(sent: list[w.Frame], data: st.DataObject) -> None:
+    stream = b"".join(w.encode(f) for f in sent)
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=6)))
+    decoder = w.Decoder()
+    got: list[w.Frame] = []
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        got += decoder.feed(stream[a:b])
+    assert got == sent
+
+
+def test_event_fast_path_is_the_same_bytes() -> None:
+    assert w.encode_event(7, b"\x01\x02", 0x20) == w.encode(w.Event(7, b"\x01\x02", 0x20))
+
+
+def test_header_layout() -> None:
+    frame = w.encode(w.Ping())
+    assert frame == bytes([1, 0, 0, 2]) + msgpack.packb([7])  # version 1, body of 2 bytes
+
+
+@given(st.binary(max_size=64))
+def test_arbitrary_bytes_decode_or_raise_decode_error(junk: bytes) -> None:
+    try:
+        for frame in w.Decoder().feed(junk):
+            assert isinstance(frame, w.Frame)
+    except DecodeError:
+        pass
+
+
+def _raw(body: bytes, version: int = 1) -> bytes:
+    return bytes([version]) + len(body).to_bytes(3, "big") + body
+
+
+@pytest.mark.parametrize(
+    ("raw", "why"),
+    [
+        (_raw(b"\x90", version=2), "unsupported UPS/TCP version 2"),
+        (bytes([1, 0x10, 0, 0]), "exceeds the limit"),
+        (_raw(b"\xc1"), "not msgpack"),
+        (_raw(b"\x07"), "array starting with its kind"),
+        (_raw(msgpack.packb([99])), "unknown frame kind 99"),
+        (_raw(msgpack.packb([1, -1, b"", 0])), "64-bit"),
+        (_raw(msgpack.packb([1, 1, "x", 0])), "binary"),
+        (_raw(msgpack.packb([1, 1, b"", 256])), "0..255"),
+        (_raw(msgpack.packb([2, 1, 2])), "bad frame"),
+        (_raw(msgpack.packb([6, 1, [[1, "h"]]])), "bad frame"),
+    ],
+)
+def test_bad_frames_are_decode_errors(raw: bytes, why: str) -> None:
+    with pytest.raises(DecodeError, match=why):
+        w.Decoder(max_frame=1 << 16).feed(raw)
+
+
+def test_oversized_event_is_refused_before_its_body_arrives() -> None:
+    decoder = w.Decoder(max_frame=100)
+    big = w.encode(w.Event(1, bytes(200), 0))
+    with pytest.raises(DecodeError, match="exceeds the limit of 100"):
+        decoder.feed(big[:4])

@@ -1,0 +1,229 @@
+"""UPS on TCP/IP: one framing for every TCP link (node <-> ECB, node <-> node, gateway), pure.
+
+A frame is a 4-byte header, ``version (u8) | body length (u24, big-endian)``, then the body: a
+msgpack array whose first element says what the frame is. ``docs/protocol.md`` has the table.
+Decoding bad bytes raises ``DecodeError``; whoever reads a link closes that link and goes on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+
+from ._errors import DecodeError
+
+VERSION = 1
+HEADER = 4
+MAX_BODY = (1 << 24) - 1
+DEFAULT_MAX_FRAME = 1 << 20  #: what a receiver accepts unless told otherwise
+
+_HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG = range(9)
+
+
+@dataclass(frozen=True, slots=True)
+class Hello:
+    """First frame on every link: who is speaking, and where it listens for its peers."""
+
+    node_id: int
+    name: str
+    host: str
+    port: int
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    uid: int
+    data: bytes
+    priority: int
+
+
+@dataclass(frozen=True, slots=True)
+class Subscribe:
+    uid: int
+
+
+@dataclass(frozen=True, slots=True)
+class Unsubscribe:
+    uid: int
+
+
+@dataclass(frozen=True, slots=True)
+class Advertise:
+    """The sender publishes on ``uid``: the ECB keeps it told of the channel's subscribers."""
+
+    uid: int
+
+
+@dataclass(frozen=True, slots=True)
+class Unadvertise:
+    uid: int
+
+
+@dataclass(frozen=True, slots=True)
+class Peer:
+    node_id: int
+    host: str
+    port: int
+
+
+@dataclass(frozen=True, slots=True)
+class Subscribers:
+    """The ECB's complete, current list of the nodes subscribed to ``uid``."""
+
+    uid: int
+    peers: tuple[Peer, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Ping:
+    pass
+
+
+@dataclass(frozen=True, slots=True)
+class Pong:
+    pass
+
+
+_CHANNEL_FRAMES: dict[int, type[Subscribe | Unsubscribe | Advertise | Unadvertise]] = {
+    _SUB: Subscribe,
+    _UNSUB: Unsubscribe,
+    _ADVERTISE: Advertise,
+    _UNADVERTISE: Unadvertise,
+}
+
+Frame = (
+    Hello | Event | Subscribe | Unsubscribe | Advertise | Unadvertise | Subscribers | Ping | Pong
+)
+
+_packer = msgpack.Packer(use_bin_type=True)
+
+
+def encode(frame: Frame) -> bytes:
+    """The bytes of one frame, header included."""
+    body: bytes = _packer.pack(_fields(frame))
+    if len(body) > MAX_BODY:
+        raise ValueError(f"frame body of {len(body)} bytes exceeds {MAX_BODY}")
+    return (VERSION << 24 | len(body)).to_bytes(HEADER, "big") + body
+
+
+def encode_event(uid: int, data: bytes, priority: int) -> bytes:
+    """``encode(Event(...))`` without building the dataclass: the publish hot path."""
+    body: bytes = _packer.pack((_EVENT, uid, data, priority))
+    return (VERSION << 24 | len(body)).to_bytes(HEADER, "big") + body
+
+
+def _fields(frame: Frame) -> tuple[Any, ...]:
+    if isinstance(frame, Event):
+        return (_EVENT, frame.uid, frame.data, frame.priority)
+    if isinstance(frame, Hello):
+        return (_HELLO, frame.node_id, frame.name, frame.host, frame.port)
+    if isinstance(frame, Subscribe):
+        return (_SUB, frame.uid)
+    if isinstance(frame, Unsubscribe):
+        return (_UNSUB, frame.uid)
+    if isinstance(frame, Advertise):
+        return (_ADVERTISE, frame.uid)
+    if isinstance(frame, Unadvertise):
+        return (_UNADVERTISE, frame.uid)
+    if isinstance(frame, Subscribers):
+        peers = [(p.node_id, p.host, p.port) for p in frame.peers]
+        return (_SUBSCRIBERS, frame.uid, peers)
+    return (_PING,) if isinstance(frame, Ping) else (_PONG,)
+
+
+class Decoder:
+    """Cuts a byte stream into frames. ``feed`` bytes as they come; it returns whole frames.
+
+    Raises ``DecodeError`` on a wrong version, a frame longer than ``max_frame``, bytes that are
+    not msgpack, or a body of the wrong shape; the stream is unusable after that.
+    """
+
+    def __init__(self, max_frame: int = DEFAULT_MAX_FRAME) -> None:
+        self.max_frame = max_frame
+        self._buf = bytearray()
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
+        buf = self._buf
+        buf += data
+        frames: list[Frame] = []
+        pos = 0
+        end = len(buf)
+        while end - pos >= HEADER:
+            head = int.from_bytes(buf[pos : pos + HEADER], "big")
+            version, length = head >> 24, head & MAX_BODY
+            if version != VERSION:
+                raise DecodeError(f"unsupported UPS/TCP version {version} (this is {VERSION})")
+            if length > self.max_frame:
+                raise DecodeError(f"frame of {length} bytes exceeds the limit of {self.max_frame}")
+            if end - pos - HEADER < length:
+                break
+            start = pos + HEADER
+            frames.append(decode_body(bytes(buf[start : start + length])))
+            pos = start + length
+        if pos:
+            del buf[:pos]
+        return frames
+
+
+def decode_body(body: bytes) -> Frame:
+    """Decode one frame body (the bytes after the header)."""
+    try:
+        fields = msgpack.unpackb(body, use_list=False, raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises a variety of types for bad input
+        raise DecodeError(f"frame body is not msgpack: {exc}") from None
+    if not isinstance(fields, tuple) or not fields or type(fields[0]) is not int:
+        raise DecodeError(f"frame body must be an array starting with its kind: {fields!r:.60}")
+    try:
+        return _frame(fields)
+    except (TypeError, ValueError) as exc:
+        raise DecodeError(f"bad frame {fields!r:.80}: {exc}") from None
+
+
+def _frame(f: tuple[Any, ...]) -> Frame:
+    kind = f[0]
+    if kind == _EVENT:
+        _, uid, data, priority = f
+        return Event(_uid(uid), _bytes(data), _int(priority, 0xFF))
+    if kind == _HELLO:
+        _, node_id, name, host, port = f
+        return Hello(_uid(node_id), _str(name), _str(host), _int(port, 0xFFFF))
+    if kind in (_SUB, _UNSUB, _ADVERTISE, _UNADVERTISE):
+        _, uid = f
+        return _CHANNEL_FRAMES[kind](_uid(uid))
+    if kind == _SUBSCRIBERS:
+        _, uid, peers = f
+        if not isinstance(peers, tuple):
+            raise TypeError("peers must be an array")
+        return Subscribers(
+            _uid(uid),
+            tuple(Peer(_uid(n), _str(h), _int(p, 0xFFFF)) for n, h, p in peers),
+        )
+    if kind in (_PING, _PONG) and len(f) == 1:
+        return Ping() if kind == _PING else Pong()
+    raise ValueError(f"unknown frame kind {kind}")
+
+
+def _uid(value: Any) -> int:
+    if type(value) is not int or not 0 <= value < 1 << 64:
+        raise ValueError(f"not a 64-bit unsigned integer: {value!r:.30}")
+    return value
+
+
+def _int(value: Any, top: int) -> int:
+    if type(value) is not int or not 0 <= value <= top:
+        raise ValueError(f"not an integer in 0..{top}: {value!r:.30}")
+    return value
+
+
+def _bytes(value: Any) -> bytes:
+    if not isinstance(value, bytes):
+        raise TypeError(f"not binary data: {value!r:.30}")
+    return value
+
+
+def _str(value: Any) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"not a string: {value!r:.30}")
+    return value
