@@ -1,0 +1,315 @@
+"""Round trip and one-way throughput on loopback TCP, 8-byte payloads, several peers side by side.
+
+For each selected peer (``benchmarks/peers/``), in one run:
+
+* round trip: a pong process echoes, a ping process sends N messages one at a time after a
+  warm-up and times each; both are pinned to one CPU (``--cpu``), and so is a broker if the
+  peer has one. Reported: p50 and p99 in
+  microseconds, and p50 as a multiple of the raw-TCP floor.
+* throughput: a source process sends M messages as fast as the transport takes them, a sink
+  process counts what arrives. Reported: received/sent, loss, and the rate at the sink
+  (messages between its first and last arrival). Unpinned unless ``--pin-throughput``.
+
+Each side is a separate ``spawn``ed process; every wait has a timeout and every child is
+killed by PID if it has not ended. Needs ``scripts/bench-setup`` for pyzmq, paho-mqtt,
+eclipse-zenoh, uvloop and mosquitto; a peer whose package is missing is skipped.
+
+    .venv/bin/python -m benchmarks.tcp_compare [--roundtrips N] [--messages M]
+        [--peers raw,asyncio,zmq,mqtt,zenoh] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import importlib.metadata
+import json
+import multiprocessing
+import os
+import platform
+import socket
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass
+from multiprocessing.process import BaseProcess
+from types import ModuleType
+from typing import Any
+
+from benchmarks.peers import PEERS, Link, PeerSpec, SinkResult
+from benchmarks.peers._child import run_role
+
+HOST = "127.0.0.1"
+RAW_LABEL = PEERS["raw"][0].label  # the floor the ratios are taken against
+IDLE_TIMEOUT = 2.0  # a sink gives up after this long without a message
+SETUP_TIMEOUT = 30.0  # for a child to get ready, and slack added to every other wait
+EXIT_GRACE = 5.0  # for a child to exit by itself before it is killed
+_SPAWN = multiprocessing.get_context("spawn")
+
+
+@dataclass
+class Row:
+    """One line of the table (all times in microseconds, rates in messages per second)."""
+
+    peer: str
+    note: str = ""
+    rtt_p50_us: float | None = None
+    rtt_p99_us: float | None = None
+    rtt_mean_us: float | None = None
+    rtt_p50_x_raw: float | None = None
+    roundtrips: int = 0
+    sent: int = 0
+    received: int = 0
+    lost: int = 0
+    rate_msg_s: float | None = None
+    error: str = ""
+
+
+class Child:
+    """One role of a peer in a spawned process, with a pipe for ready/result messages."""
+
+    def __init__(
+        self, module: str, role: str, link: Link, kwargs: dict[str, Any], pin: int | None
+    ) -> None:
+        self.conn, child_conn = _SPAWN.Pipe()
+        self.proc: BaseProcess = _SPAWN.Process(
+            target=run_role,
+            args=(module, role, link, kwargs, pin, child_conn),
+            name=f"{module.rsplit('.', 1)[-1]}:{role}",
+            daemon=True,
+        )
+        self.proc.start()
+        child_conn.close()
+
+    def expect(self, kind: str, timeout: float) -> Any:
+        """Wait for the child's ``kind`` message ("ready" or "result") and return its value."""
+        if not self.conn.poll(timeout):
+            raise TimeoutError(f"{self.proc.name}: no {kind} within {timeout:.0f} s")
+        try:
+            got, value = self.conn.recv()
+        except EOFError:
+            raise RuntimeError(f"{self.proc.name}: exited (code {self.proc.exitcode})") from None
+        if got == "error":  # value: the child's traceback; its last line says what failed
+            raise RuntimeError(f"{self.proc.name}: {value.strip().splitlines()[-1]}\n{value}")
+        if got != kind:
+            raise RuntimeError(f"{self.proc.name}: expected {kind}, got {got}")
+        return value
+
+    def release(self) -> None:
+        """Let a source close its connection (its sink has reported)."""
+        with contextlib.suppress(OSError):
+            self.conn.send("release")
+
+    def stop(self) -> None:
+        """Give the child EXIT_GRACE seconds to end, then kill it by PID."""
+        self.proc.join(EXIT_GRACE)
+        if self.proc.is_alive():
+            self.proc.kill()  # SIGKILL to self.proc.pid
+            self.proc.join(EXIT_GRACE)
+        self.conn.close()
+
+
+def free_ports(n: int) -> tuple[int, ...]:
+    """``n`` TCP ports on HOST that were free a moment ago."""
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_STREAM) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind((HOST, 0))
+        return tuple(s.getsockname()[1] for s in socks)
+    finally:
+        for s in socks:
+            s.close()
+
+
+def service(
+    peer: ModuleType, link: Link, pin: int | None
+) -> contextlib.AbstractContextManager[Any]:
+    """The peer's per-measurement infrastructure (a broker), or nothing."""
+    factory = getattr(peer, "service", None)
+    return factory(link, pin) if factory else contextlib.nullcontext()
+
+
+def measure_rtt(spec: PeerSpec, peer: ModuleType, args: argparse.Namespace) -> list[float]:
+    """Ping-pong between two processes pinned to ``args.cpu``; RTTs in seconds."""
+    link = Link(HOST, free_ports(2), spec.options)
+    timeout = SETUP_TIMEOUT + (args.warmup + args.roundtrips) * 2e-3  # fails above 2 ms/RTT
+    children: list[Child] = []
+    with service(peer, link, args.cpu):
+        try:
+            pong = Child(spec.module, "pong", link, {}, args.cpu)
+            children.append(pong)
+            pong.expect("ready", SETUP_TIMEOUT)
+            kwargs = {"warmup": args.warmup, "rounds": args.roundtrips}
+            ping = Child(spec.module, "ping", link, kwargs, args.cpu)
+            children.append(ping)
+            rtts: list[float] = ping.expect("result", timeout)
+            pong.expect("result", EXIT_GRACE)
+            return rtts
+        finally:
+            for child in children:
+                child.stop()
+
+
+def measure_throughput(spec: PeerSpec, peer: ModuleType, args: argparse.Namespace) -> SinkResult:
+    """Source to sink, ``args.messages`` messages; what the sink counted."""
+    link = Link(HOST, free_ports(2), spec.options)
+    pin = args.cpu if args.pin_throughput else None
+    timeout = SETUP_TIMEOUT + IDLE_TIMEOUT + args.messages * 50e-6  # fails below 20k msg/s
+    children: list[Child] = []
+    with service(peer, link, pin):
+        try:
+            sink = Child(spec.module, "sink", link,
+                         {"count": args.messages, "idle_timeout": IDLE_TIMEOUT}, pin)  # fmt: skip
+            children.append(sink)
+            sink.expect("ready", SETUP_TIMEOUT)
+            source = Child(spec.module, "source", link, {"count": args.messages}, pin)
+            children.append(source)
+            result: SinkResult = sink.expect("result", timeout)
+            source.release()
+            source.expect("result", SETUP_TIMEOUT)
+            return result
+        finally:
+            for child in children:
+                child.stop()
+
+
+def percentile(sorted_values: list[float], q: float) -> float:
+    """The ``q`` quantile (0..1) of already sorted values, linear between neighbours."""
+    return statistics.quantiles(sorted_values, n=1000, method="inclusive")[round(q * 1000) - 1]
+
+
+def run_spec(spec: PeerSpec, args: argparse.Namespace) -> Row:
+    """The measurements ``spec`` asks for; a failure ends up in ``Row.error``."""
+    row = Row(spec.label)
+    peer = importlib.import_module(spec.module)
+    link = Link(HOST, (0, 0), spec.options)
+    why_not = getattr(peer, "missing", lambda _link: None)(link)
+    if why_not:
+        row.error = f"skipped: {why_not}"
+        return row
+    row.note = getattr(peer, "describe", lambda _link: "")(link)
+    try:
+        if "rtt" in spec.measure:
+            rtts = sorted(t * 1e6 for t in measure_rtt(spec, peer, args))
+            row.rtt_p50_us = percentile(rtts, 0.50)
+            row.rtt_p99_us = percentile(rtts, 0.99)
+            row.rtt_mean_us = statistics.fmean(rtts)
+            row.roundtrips = len(rtts)
+        if "throughput" in spec.measure:
+            sink = measure_throughput(spec, peer, args)
+            row.sent, row.received = args.messages, sink.received
+            row.lost = args.messages - sink.received
+            if sink.received > 1 and sink.seconds > 0:
+                row.rate_msg_s = (sink.received - 1) / sink.seconds
+    except Exception as exc:
+        row.error = f"{type(exc).__name__}: {exc}"
+    return row
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def add_ratios(rows: list[Row]) -> None:
+    """Set each row's ``rtt_p50_x_raw`` (RTT p50 over raw TCP's), if raw TCP was measured."""
+    floor = next((r.rtt_p50_us for r in rows if r.peer == RAW_LABEL and r.rtt_p50_us), None)
+    for r in rows:
+        if floor and r.rtt_p50_us:
+            r.rtt_p50_x_raw = r.rtt_p50_us / floor
+
+
+LEGEND = """\
+RTT in microseconds, both processes pinned to one CPU; x raw: RTT p50 over raw TCP's.
+msg/s: at the sink, from its first to its last arrival (over what arrived, if lost)."""
+
+
+def table(rows: list[Row]) -> str:
+    """The rows as a fixed-width text table (see LEGEND)."""
+    head = (f"{'peer':<30} {'RTT p50':>9} {'RTT p99':>9} {'x raw':>6} "
+            f"{'msg/s':>11} {'received':>17} {'loss':>14}  note")  # fmt: skip
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        if r.error:
+            lines.append(f"{r.peer:<30} {r.error.splitlines()[0]}")
+            continue
+        got = f"{r.received}/{r.sent}" if r.sent else "-"
+        if not r.sent:
+            loss = "-"
+        elif r.lost:
+            loss = f"{r.lost} ({100 * r.lost / r.sent:.1f}%)"
+        else:
+            loss = "0"
+        ratio = _fmt(r.rtt_p50_x_raw, ".2f")
+        lines.append(
+            f"{r.peer:<30} {_fmt(r.rtt_p50_us, '.1f'):>9} {_fmt(r.rtt_p99_us, '.1f'):>9} "
+            f"{ratio:>6} {_fmt(r.rate_msg_s, ',.0f'):>11} {got:>17} {loss:>14}  {r.note}"
+        )
+    return "\n".join(lines)
+
+
+def environment() -> dict[str, Any]:
+    """Python, machine, and the versions of the packages the peers use."""
+    versions: dict[str, str | None] = {}
+    for dist in ("msgpack", "uvloop", "pyzmq", "paho-mqtt", "eclipse-zenoh"):
+        try:
+            versions[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            versions[dist] = None
+    return {
+        "python": sys.version.split()[0],
+        "implementation": platform.python_implementation(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "packages": versions,
+    }
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--roundtrips", type=int, default=50_000, help="measured round trips")
+    p.add_argument("--warmup", type=int, default=5_000, help="round trips before measuring")
+    p.add_argument("--messages", type=int, default=500_000, help="messages for throughput")
+    p.add_argument("--peers", default=",".join(PEERS),
+                   help=f"comma-separated, from {','.join(PEERS)}")  # fmt: skip
+    p.add_argument("--cpu", type=int, default=0, help="CPU both round-trip processes run on")
+    p.add_argument("--pin-throughput", action="store_true",
+                   help="pin the throughput processes to --cpu too")  # fmt: skip
+    p.add_argument("--json", metavar="PATH", help="also write the results as JSON here")
+    args = p.parse_args(argv)
+    unknown = [name for name in args.peers.split(",") if name not in PEERS]
+    if unknown:
+        p.error(f"unknown peer(s) {','.join(unknown)}; choose from {','.join(PEERS)}")
+    if min(args.roundtrips, args.messages) < 2 or args.warmup < 0:
+        p.error("--roundtrips and --messages need at least 2, --warmup at least 0")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    specs = [spec for name in args.peers.split(",") for spec in PEERS[name]]
+    print(f"loopback {HOST}, 8-byte payloads, {args.roundtrips} round trips "
+          f"(+{args.warmup} warm-up) pinned to CPU {args.cpu}, {args.messages} messages "
+          f"one way ({'pinned' if args.pin_throughput else 'unpinned'})", flush=True)  # fmt: skip
+    rows: list[Row] = []
+    started = time.monotonic()
+    for spec in specs:
+        t0 = time.monotonic()
+        rows.append(run_spec(spec, args))
+        status = rows[-1].error.splitlines()[0] if rows[-1].error else "ok"
+        print(f"  {spec.label}: {status} ({time.monotonic() - t0:.1f} s)", flush=True)
+    add_ratios(rows)
+    print(f"\n{table(rows)}\n{LEGEND}\ntotal {time.monotonic() - started:.0f} s")
+    for r in rows:
+        if r.error and "\n" in r.error:
+            print(f"\n{r.peer}:\n{r.error}", file=sys.stderr)
+    if args.json:
+        doc = {"settings": {k: v for k, v in vars(args).items() if k != "json"},
+               "environment": environment(), "rows": [asdict(r) for r in rows]}  # fmt: skip
+        with open(args.json, "w") as f:
+            json.dump(doc, f, indent=2)
+    return 0 if all(not r.error or r.error.startswith("skipped") for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
