@@ -268,8 +268,7 @@ class CanEcb:
         log.warning(
             "node %016x claims TxNode %d held by another node: reassigning", node_id, txnode
         )
-        self._forget_node(txnode)
-        self._assign(node_id)
+        self._assign(node_id)  # the holder of ``txnode`` keeps it and its channels
 
     def _update(self, table: defaultdict[int, set[int]], uid: int, txnode: int, add: bool) -> None:
         before = len(table[uid])

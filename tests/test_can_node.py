@@ -327,3 +327,18 @@ async def test_iteration_and_node_get_msg(bus: str, ecb: CanEcb) -> None:
         await a.close()
         assert await asyncio.wait_for(reader, 5) == [b"x", b"y"]
         assert b.pending == 0
+
+
+async def test_a_false_claim_leaves_the_holder_alone(
+    bus: str, ecb: CanEcb, raw_bus: can.BusABC
+) -> None:
+    async with Node(can=bus, node_id=0x11) as holder:
+        await holder.subscribe("a")
+        txnode = holder.stats()["txnode"]
+        # another node id claims the holder's TxNode (say, a node configured from a stale copy)
+        can_id, data = p.encode(p.Request(p.CLAIM, txnode, 0x999))
+        raw_bus.send(can.Message(arbitration_id=can_id, data=data))
+        await eventually(lambda: 0x999 in ecb.txnodes)
+        assert ecb.txnodes[0x999] != txnode  # the claimant is moved to a TxNode of its own
+        assert ecb.txnodes[0x11] == txnode
+        assert ecb.subscribers[name_to_uid("a")] == {txnode}  # the holder keeps its channels
