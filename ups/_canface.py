@@ -222,8 +222,8 @@ class CanFace:
         msg = p.Declare(self._my_txnode(), etag, size, period, deadline, jitter)
         try:
             priority = await self._ask(msg, fut, f"admit {state.channel}")
-        except Unschedulable:
-            del self._declared[uid]
+        except BaseException:  # refused, unanswered or cancelled: nothing to re-announce
+            self._declared.pop(uid, None)
             raise
         state.priority = priority
         return priority

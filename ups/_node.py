@@ -12,13 +12,18 @@ import asyncio
 import collections
 import contextlib
 import logging
+import sys
 import time
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import IO, Any, Literal, Protocol
 
+from ._canface import CanFace
+from ._canproto import DEFAULT_PRIORITY
 from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError, PayloadTooLarge
 from ._message import Message
+from ._nodeid import claim_node_id
 
 log = logging.getLogger("ups")
 
@@ -209,11 +214,7 @@ class Node:
         if self._face is not None:
             return
         if self._node_id is None:
-            from ._nodeid import claim_node_id
-
             self._node_id, self._id_lock = claim_node_id(self.name)
-        from ._canface import CanFace
-
         face = CanFace(self, self._can, self._node_id, self._join_timeout, self._filter_limit)
         try:
             await face.start()
@@ -357,8 +358,6 @@ class Node:
         deadline. Times are rounded to 0.1 ms, towards the safe side.
         """
         self._check_open()
-        from ._canface import CanFace
-
         face = self.face
         if not isinstance(face, CanFace):
             raise ConfigError("real-time declarations are for CAN channels")
@@ -408,8 +407,6 @@ class Node:
     def _state(self, chan: Channel) -> ChannelState:
         state = self._states.get(chan.uid)
         if state is None:
-            from ._canproto import DEFAULT_PRIORITY
-
             priority = self._priorities.get(chan.uid, DEFAULT_PRIORITY)
             state = self._states[chan.uid] = ChannelState(chan, priority)
         return state
@@ -442,7 +439,4 @@ class Node:
 
 
 def _program_name() -> str:
-    import sys
-    from pathlib import Path
-
     return Path(sys.argv[0]).name or "python"
