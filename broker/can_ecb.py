@@ -131,8 +131,10 @@ class CanEcb:
         )
 
     def close(self) -> None:
+        """Stop serving the bus (the link stays open). Safe to call twice."""
         if self._race_timer is not None:
             self._race_timer.cancel()
+            self._race_timer = None
         self.link.remove_handler(self._handler)
         self._store.close()
 

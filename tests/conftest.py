@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import os
 import threading
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -32,15 +34,24 @@ def raw_bus(bus: str) -> Iterator[can.BusABC]:
     raw.shutdown()
 
 
+@contextlib.asynccontextmanager
+async def running_ecb(bus: str, db: Path, **options: Any) -> AsyncIterator[CanEcb]:
+    """A started CAN-ECB on its own link to ``bus``; closed (again, if need be) on exit."""
+    link = CanLink.open(bus)
+    broker = CanEcb(link, db, **options)
+    try:
+        await broker.start()
+        yield broker
+    finally:
+        broker.close()
+        link.close()
+
+
 @pytest.fixture
 async def ecb(bus: str, tmp_path: Path) -> AsyncIterator[CanEcb]:
     """A CAN-ECB serving the test's bus, its tables in a fresh SQLite file."""
-    link = CanLink.open(bus)
-    broker = CanEcb(link, tmp_path / "ecb.db")
-    await broker.start()
-    yield broker
-    broker.close()
-    link.close()
+    async with running_ecb(bus, tmp_path / "ecb.db") as broker:
+        yield broker
 
 
 @pytest.fixture(autouse=True)

@@ -20,9 +20,8 @@ from ups import (
     name_to_uid,
 )
 from ups import _canproto as p
-from ups._canlink import CanLink
 
-from .conftest import eventually
+from .conftest import eventually, running_ecb
 
 
 def etag_of(node: Node, channel: str) -> int:
@@ -69,16 +68,12 @@ async def test_node_waits_for_a_late_ecb(bus: str, tmp_path: Path, raw_bus: can.
     # the node is asking: its first offer is on the bus before any ECB exists
     frame = await asyncio.to_thread(raw_bus.recv, 5.0)
     assert frame is not None and isinstance(p.decode(frame.arbitration_id, frame.data), p.Stage)
-    link = CanLink.open(bus)
-    late = CanEcb(link, tmp_path / "late.db")
     try:
-        await late.start()
-        await asyncio.wait_for(joining, 10)
-        assert node.stats()["txnode"] == 0
+        async with running_ecb(bus, tmp_path / "late.db"):
+            await asyncio.wait_for(joining, 10)
+            assert node.stats()["txnode"] == 0
     finally:
         await node.close()
-        late.close()
-        link.close()
 
 
 async def test_join_without_ecb_times_out_clearly(bus: str) -> None:
@@ -93,18 +88,12 @@ async def test_txnodes_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> N
     for t in range(p.TXNODE_COUNT):
         store.add_txnode(0xAAAA_0000 + t, t)
     store.close()
-    link = CanLink.open(bus)
-    full = CanEcb(link, tmp_path / "full.db")
-    await full.start()
-    try:
+    async with running_ecb(bus, tmp_path / "full.db") as full:
         async with Node(can=bus, node_id=0xAAAA_0005) as known:  # known nodes still join
             assert known.stats()["txnode"] == 5
         with pytest.raises(Exhausted, match="127 TxNodes"):
             await Node(can=bus, node_id=0xBEEF, join_timeout=5).start()
         assert full.stats()["refused"] == 1
-    finally:
-        full.close()
-        link.close()
 
 
 async def test_etags_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> None:
@@ -112,17 +101,10 @@ async def test_etags_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> Non
     with sqlite3.connect(tmp_path / "full.db") as db:
         rows = [(f"{e:016x}", e) for e in range(p.FIRST_ETAG, p.LAST_ETAG + 1)]
         db.executemany("INSERT INTO etags VALUES (?, ?)", rows)
-    link = CanLink.open(bus)
-    full = CanEcb(link, tmp_path / "full.db")
-    await full.start()
-    try:
-        async with Node(can=bus, node_id=1) as node:
-            with pytest.raises(Exhausted, match="no etag left"):
-                await node.subscribe("one/too/many")
-            await node.subscribe(p.FIRST_ETAG + 3)  # a bound channel still works
-    finally:
-        full.close()
-        link.close()
+    async with running_ecb(bus, tmp_path / "full.db"), Node(can=bus, node_id=1) as node:
+        with pytest.raises(Exhausted, match="no etag left"):
+            await node.subscribe("one/too/many")
+        await node.subscribe(p.FIRST_ETAG + 3)  # a bound channel still works
 
 
 async def test_publish_reaches_local_and_remote_subscribers_only(bus: str, ecb: CanEcb) -> None:
@@ -183,39 +165,27 @@ async def test_unsubscribe_stops_delivery(bus: str, ecb: CanEcb) -> None:
 
 async def test_ecb_restart_keeps_every_binding(bus: str, tmp_path: Path) -> None:
     db = tmp_path / "ecb.db"
-    link = CanLink.open(bus)
-    first = CanEcb(link, db)
-    await first.start()
-    async with Node(can=bus, node_id=0x11) as a:
+    async with running_ecb(bus, db) as first, Node(can=bus, node_id=0x11) as a:
         for name in ("a", "b", "c"):
             await a.subscribe(name)
         before = first.etags
         txnode = a.stats()["txnode"]
         first.close()  # the broker dies; the node keeps running
-        second = CanEcb(link, db)
-        await second.start()  # its Hello makes the node announce itself again
-        await eventually(lambda: len([u for u, s in second.subscribers.items() if s]) == 3)
-        assert second.etags == before
-        assert second.txnodes == {0x11: txnode}
-        async with Node(can=bus, node_id=0x22) as b:
-            await b.publish("b", b"x")
-            assert etag_of(b, "b") == before[name_to_uid("b")]
-        second.close()
-    link.close()
+        async with running_ecb(bus, db) as second:  # its Hello makes the node announce again
+            await eventually(lambda: len([u for u, s in second.subscribers.items() if s]) == 3)
+            assert second.etags == before
+            assert second.txnodes == {0x11: txnode}
+            async with Node(can=bus, node_id=0x22) as b:
+                await b.publish("b", b"x")
+                assert etag_of(b, "b") == before[name_to_uid("b")]
 
 
 async def test_claim_recovers_a_lost_ecb_database(bus: str, tmp_path: Path) -> None:
-    link = CanLink.open(bus)
-    first = CanEcb(link, tmp_path / "one.db")
-    await first.start()
-    async with Node(can=bus, node_id=0x99) as node:
+    async with running_ecb(bus, tmp_path / "one.db") as first, Node(can=bus, node_id=0x99) as node:
         txnode = node.stats()["txnode"]
         first.close()
-        fresh = CanEcb(link, tmp_path / "two.db")  # the tables are gone
-        await fresh.start()
-        await eventually(lambda: fresh.txnodes == {0x99: txnode})
-        fresh.close()
-    link.close()
+        async with running_ecb(bus, tmp_path / "two.db") as fresh:  # the tables are gone
+            await eventually(lambda: fresh.txnodes == {0x99: txnode})
 
 
 async def test_foreign_frames_are_skipped_and_counted(

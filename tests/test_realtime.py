@@ -10,9 +10,8 @@ import pytest
 from broker.can_ecb import RT_FIRST, RT_LAST, CanEcb
 from ups import ConfigError, Node, Unschedulable, name_to_uid
 from ups import _canproto as p
-from ups._canlink import CanLink
 
-from .conftest import eventually
+from .conftest import eventually, running_ecb
 
 # At 125 kbit/s a worst-case 8-byte frame with a 29-bit identifier (160 bits) takes 1.28 ms.
 SLOW = 125_000
@@ -20,12 +19,8 @@ SLOW = 125_000
 
 @pytest.fixture
 async def slow_ecb(bus: str, tmp_path: Path) -> AsyncIterator[CanEcb]:
-    link = CanLink.open(bus)
-    ecb = CanEcb(link, tmp_path / "ecb.db", bitrate=SLOW)
-    await ecb.start()
-    yield ecb
-    ecb.close()
-    link.close()
+    async with running_ecb(bus, tmp_path / "ecb.db", bitrate=SLOW) as ecb:
+        yield ecb
 
 
 async def test_declared_channel_is_admitted_and_published_at_its_priority(
@@ -80,19 +75,14 @@ async def test_a_tighter_stream_moves_an_admitted_one(bus: str, slow_ecb: CanEcb
 
 
 async def test_declarations_survive_a_broker_restart(bus: str, tmp_path: Path) -> None:
-    link = CanLink.open(bus)
-    first = CanEcb(link, tmp_path / "ecb.db", bitrate=SLOW)
-    await first.start()
-    async with Node(can=bus, node_id=1) as node:
+    db = tmp_path / "ecb.db"
+    async with running_ecb(bus, db, bitrate=SLOW) as first, Node(can=bus, node_id=1) as node:
         priority = await node.declare("brake", period_ms=10, deadline_ms=5, size_bytes=1)
         granted = dict(first.granted)
         first.close()
-        second = CanEcb(link, tmp_path / "ecb.db", bitrate=SLOW)
-        await second.start()  # Hello: the node declares its stream again
-        await eventually(lambda: second.granted == granted)
+        async with running_ecb(bus, db, bitrate=SLOW) as second:  # Hello: declared again
+            await eventually(lambda: second.granted == granted)
         assert list(granted.values()) == [priority]
-        second.close()
-    link.close()
 
 
 async def test_bad_declarations_are_config_errors(bus: str, slow_ecb: CanEcb) -> None:
