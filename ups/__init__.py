@@ -16,7 +16,8 @@ from ._errors import (
     UpsError,
 )
 from ._message import Message
-from ._node import Node, Overflow, Subscription
+from ._node import Node, Subscription
+from ._tcplink import Overflow
 
 __all__ = [
     "BlockingNode",

@@ -16,7 +16,7 @@ import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import IO, Any, Literal, Protocol
+from typing import IO, Any, Protocol
 
 from ._canface import CanFace
 from ._canproto import DEFAULT_PRIORITY
@@ -24,11 +24,11 @@ from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError, PayloadTooLarge
 from ._message import Message
 from ._nodeid import claim_node_id
+from ._tcpface import TcpFace
+from ._tcplink import OVERFLOWS, Overflow
 
 log = logging.getLogger("ups")
 
-Overflow = Literal["drop_oldest", "drop_newest"]
-_OVERFLOWS = ("drop_oldest", "drop_newest")
 DEFAULT_QUEUE = 1024
 
 
@@ -142,11 +142,11 @@ class Subscription:
 
 
 class Node:
-    """An Event Channel Handler on one network: ``can="INTERFACE:CHANNEL"`` or (later) a broker.
+    """An Event Channel Handler on one network: a CAN bus, or a TCP/IP network with a TCP-ECB.
 
-    Use it as an async context manager::
+    Use it as an async context manager; the API is the same on both networks::
 
-        async with Node(can="virtual:demo") as node:
+        async with Node(can="virtual:demo") as node:  # or Node(broker="127.0.0.1:7411")
             sub = await node.subscribe("robot/speed")
             await node.publish("robot/speed", b"\\x10")
             msg = await sub.get_msg(timeout=1.0)
@@ -154,22 +154,38 @@ class Node:
     ``node_id`` is the node's 64-bit identity (its TxNode on CAN is keyed by it); by default it
     is derived from this machine, ``name`` and a per-machine slot, so it is stable across
     restarts and distinct between copies running at once. ``join_timeout`` bounds the wait for
-    the network's broker (None: wait forever, retrying). ``filter_limit``: a CAN node subscribed
-    to at most this many channels installs one acceptance filter per etag (in the kernel on
-    SocketCAN); beyond it, it receives every frame and filters in software.
+    the network's broker (None: wait forever, retrying).
+
+    CAN only: ``filter_limit``: a node subscribed to at most this many channels installs one
+    acceptance filter per etag (in the kernel on SocketCAN); beyond it, it receives every frame
+    and filters in software.
+
+    TCP/IP only: ``listen`` (HOST:PORT) is where publishers reach this node; by default the
+    address it reaches the TCP-ECB from, on a free port. Each subscribing peer gets a queue of
+    ``peer_queue`` events that the peer has not read yet; when it is full, ``peer_overflow``
+    (``"drop_oldest"`` or ``"drop_newest"``) decides what is dropped, and
+    ``stats()["peer_dropped"]`` counts it: a stalled subscriber never holds up the publisher
+    or the other subscribers.
     """
 
     def __init__(
         self,
         *,
         can: Any = None,
+        broker: str | None = None,
         node_id: int | None = None,
         name: str | None = None,
         join_timeout: float | None = 30.0,
         filter_limit: int = 16,
+        listen: str | None = None,
+        peer_queue: int = DEFAULT_QUEUE,
+        peer_overflow: Overflow = "drop_oldest",
     ) -> None:
-        if can is None:
-            raise ConfigError("a node needs a network: Node(can='INTERFACE:CHANNEL')")
+        if (can is None) == (broker is None):
+            raise ConfigError(
+                "a node needs one network: Node(can='INTERFACE:CHANNEL') or "
+                "Node(broker='HOST:PORT')"
+            )
         if node_id is not None and not 0 <= node_id < 1 << 64:
             raise ConfigError(f"node_id must fit in 64 bits, got {node_id!r}")
         self.name = name or _program_name()
@@ -178,6 +194,12 @@ class Node:
         self._can = can
         self._join_timeout = join_timeout
         self._filter_limit = filter_limit
+        self._tcp: dict[str, Any] = {
+            "broker": broker,
+            "listen": listen,
+            "peer_queue": peer_queue,
+            "peer_overflow": peer_overflow,
+        }
         self._face: Face | None = None
         self._states: dict[int, ChannelState] = {}
         self._publishing: dict[ChannelLike, ChannelState] = {}
@@ -210,12 +232,26 @@ class Node:
         return self._face
 
     async def start(self) -> None:
-        """Open the network and join it (on CAN: obtain a TxNode from the CAN-ECB)."""
+        """Open the network and join it (on CAN: obtain a TxNode from the CAN-ECB; on TCP/IP:
+        register with the TCP-ECB)."""
         if self._face is not None:
             return
         if self._node_id is None:
             self._node_id, self._id_lock = claim_node_id(self.name)
-        face = CanFace(self, self._can, self._node_id, self._join_timeout, self._filter_limit)
+        face: Face
+        if self._can is not None:
+            face = CanFace(self, self._can, self._node_id, self._join_timeout, self._filter_limit)
+        else:
+            tcp = self._tcp
+            face = TcpFace(
+                self,
+                tcp["broker"],
+                self._node_id,
+                listen=tcp["listen"],
+                join_timeout=self._join_timeout,
+                peer_queue=tcp["peer_queue"],
+                peer_overflow=tcp["peer_overflow"],
+            )
         try:
             await face.start()
         except BaseException:
@@ -286,8 +322,8 @@ class Node:
             raise ConfigError("subscribe needs at least one channel")
         if maxlen < 1:
             raise ConfigError(f"maxlen must be at least 1, got {maxlen}")
-        if overflow not in _OVERFLOWS:
-            raise ConfigError(f"overflow must be one of {_OVERFLOWS}, got {overflow!r}")
+        if overflow not in OVERFLOWS:
+            raise ConfigError(f"overflow must be one of {OVERFLOWS}, got {overflow!r}")
         chans = tuple(dict.fromkeys(as_channel(c) for c in channels))
         sub = Subscription(self, chans, maxlen, overflow)
         for chan in chans:

@@ -7,6 +7,8 @@ Decoding bad bytes raises ``DecodeError``; whoever reads a link closes that link
 
 from __future__ import annotations
 
+import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,7 +21,11 @@ HEADER = 4
 MAX_BODY = (1 << 24) - 1
 DEFAULT_MAX_FRAME = 1 << 20  #: what a receiver accepts unless told otherwise
 
-_HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG = range(9)
+(
+    _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
+    _STATUS_REQUEST, _STATUS,
+) = range(11)  # fmt: skip
+_HEAD = struct.Struct(">I")
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +92,18 @@ class Pong:
     pass
 
 
+@dataclass(frozen=True, slots=True)
+class StatusRequest:
+    """Asks a daemon or node for its ``Status``; any link may carry it, before or after Hello."""
+
+
+@dataclass(frozen=True, slots=True)
+class Status:
+    """A daemon's or node's counters and tables, as a msgpack map with string keys."""
+
+    info: dict[str, Any]
+
+
 _CHANNEL_FRAMES: dict[int, type[Subscribe | Unsubscribe | Advertise | Unadvertise]] = {
     _SUB: Subscribe,
     _UNSUB: Unsubscribe,
@@ -94,7 +112,17 @@ _CHANNEL_FRAMES: dict[int, type[Subscribe | Unsubscribe | Advertise | Unadvertis
 }
 
 Frame = (
-    Hello | Event | Subscribe | Unsubscribe | Advertise | Unadvertise | Subscribers | Ping | Pong
+    Hello
+    | Event
+    | Subscribe
+    | Unsubscribe
+    | Advertise
+    | Unadvertise
+    | Subscribers
+    | Ping
+    | Pong
+    | StatusRequest
+    | Status
 )
 
 _packer = msgpack.Packer(use_bin_type=True)
@@ -130,6 +158,10 @@ def _fields(frame: Frame) -> tuple[Any, ...]:
     if isinstance(frame, Subscribers):
         peers = [(p.node_id, p.host, p.port) for p in frame.peers]
         return (_SUBSCRIBERS, frame.uid, peers)
+    if isinstance(frame, Status):
+        return (_STATUS, frame.info)
+    if isinstance(frame, StatusRequest):
+        return (_STATUS_REQUEST,)
     return (_PING,) if isinstance(frame, Ping) else (_PONG,)
 
 
@@ -148,37 +180,81 @@ class Decoder:
         buf = self._buf
         buf += data
         frames: list[Frame] = []
-        pos = 0
-        end = len(buf)
-        while end - pos >= HEADER:
-            head = int.from_bytes(buf[pos : pos + HEADER], "big")
-            version, length = head >> 24, head & MAX_BODY
-            if version != VERSION:
-                raise DecodeError(f"unsupported UPS/TCP version {version} (this is {VERSION})")
-            if length > self.max_frame:
-                raise DecodeError(f"frame of {length} bytes exceeds the limit of {self.max_frame}")
-            if end - pos - HEADER < length:
-                break
-            start = pos + HEADER
-            frames.append(decode_body(bytes(buf[start : start + length])))
-            pos = start + length
+
+        def on_event(uid: int, data: bytes, priority: int) -> None:
+            frames.append(Event(uid, data, priority))
+
+        pos = parse(buf, 0, len(buf), self.max_frame, on_event, frames.append)
         if pos:
             del buf[:pos]
         return frames
 
 
-def decode_body(body: bytes) -> Frame:
-    """Decode one frame body (the bytes after the header)."""
+def parse(
+    buf: bytearray,
+    pos: int,
+    end: int,
+    max_frame: int,
+    on_event: Callable[[int, bytes, int], None],
+    on_frame: Callable[[Frame], None],
+) -> int:
+    """Decode the whole frames in ``buf[pos:end]``; return where the first incomplete one starts.
+
+    Events go to ``on_event(uid, data, priority)`` without building an ``Event`` (the hot path),
+    every other frame to ``on_frame``. Raises ``DecodeError`` as ``Decoder.feed`` does; frames
+    before the bad one have been handed over by then.
+    """
+    view = memoryview(buf)
+    try:
+        while end - pos >= HEADER:
+            (head,) = _HEAD.unpack_from(buf, pos)
+            length = head & MAX_BODY
+            if head >> 24 != VERSION:
+                raise DecodeError(f"unsupported UPS/TCP version {head >> 24} (this is {VERSION})")
+            if length > max_frame:
+                raise DecodeError(f"frame of {length} bytes exceeds the limit of {max_frame}")
+            start = pos + HEADER
+            if end - start < length:
+                break
+            pos = start + length
+            fields = _unpack(view[start:pos])
+            if fields[0] == _EVENT and len(fields) == 4:
+                _, uid, data, priority = fields
+                if (
+                    type(uid) is int
+                    and 0 <= uid < 1 << 64
+                    and type(data) is bytes
+                    and type(priority) is int
+                    and 0 <= priority <= 0xFF
+                ):
+                    on_event(uid, data, priority)
+                    continue
+            on_frame(_checked(fields))
+    finally:
+        view.release()
+    return pos
+
+
+def _unpack(body: bytes | memoryview) -> tuple[Any, ...]:
     try:
         fields = msgpack.unpackb(body, use_list=False, raw=False, strict_map_key=True)
     except Exception as exc:  # msgpack raises a variety of types for bad input
         raise DecodeError(f"frame body is not msgpack: {exc}") from None
     if not isinstance(fields, tuple) or not fields or type(fields[0]) is not int:
         raise DecodeError(f"frame body must be an array starting with its kind: {fields!r:.60}")
+    return fields
+
+
+def _checked(fields: tuple[Any, ...]) -> Frame:
     try:
         return _frame(fields)
     except (TypeError, ValueError) as exc:
         raise DecodeError(f"bad frame {fields!r:.80}: {exc}") from None
+
+
+def decode_body(body: bytes) -> Frame:
+    """Decode one frame body (the bytes after the header)."""
+    return _checked(_unpack(body))
 
 
 def _frame(f: tuple[Any, ...]) -> Frame:
@@ -200,8 +276,13 @@ def _frame(f: tuple[Any, ...]) -> Frame:
             _uid(uid),
             tuple(Peer(_uid(n), _str(h), _int(p, 0xFFFF)) for n, h, p in peers),
         )
-    if kind in (_PING, _PONG) and len(f) == 1:
-        return Ping() if kind == _PING else Pong()
+    if kind in (_PING, _PONG, _STATUS_REQUEST) and len(f) == 1:
+        return Ping() if kind == _PING else Pong() if kind == _PONG else StatusRequest()
+    if kind == _STATUS:
+        _, info = f
+        if not isinstance(info, dict) or not all(isinstance(k, str) for k in info):
+            raise TypeError("status must be a map with string keys")
+        return Status(info)
     raise ValueError(f"unknown frame kind {kind}")
 
 

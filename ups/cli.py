@@ -17,8 +17,9 @@ from collections.abc import Coroutine
 from typing import Any
 
 from ._channel import Channel, parse_channel
-from ._errors import UpsError
+from ._errors import ConfigError, UpsError
 from ._node import Node
+from ._tcpface import DEFAULT_PORT, query_status
 from .rt import cli as rt_cli
 
 EXIT_TIMEOUT = 1
@@ -57,6 +58,26 @@ def _parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_can_broker)
 
+    cmd = commands.add_parser("broker", help="run a TCP-ECB (the registry of a TCP/IP network)")
+    cmd.add_argument(
+        "--listen", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="HOST:PORT",
+        help=f"address to listen on (default 127.0.0.1:{DEFAULT_PORT}; 0.0.0.0 for every one)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--liveness", type=_positive_float, default=3.0,
+        help="seconds a silent or disconnected node stays registered (default 3)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--recovery", type=float, default=1.5,
+        help="seconds after start to collect re-registrations before answering (default 1.5)",
+    )  # fmt: skip
+    cmd.set_defaults(run=_run_broker)
+
+    cmd = commands.add_parser("status", help="print the tables and counters of a TCP daemon")
+    cmd.add_argument("address", metavar="HOST:PORT", help="a TCP-ECB, gateway or node")
+    cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
+    cmd.set_defaults(run=_run_status)
+
     cmd = commands.add_parser("pub", help="publish events on a channel")
     cmd.add_argument("channel", type=_channel_arg, help="channel name, or UID as 0x + hex")
     cmd.add_argument("data", type=_hex_arg, help="payload as hex digits ('' for none)")
@@ -94,7 +115,19 @@ def _add_can(cmd: argparse.ArgumentParser) -> None:
 
 
 def _add_node_options(cmd: argparse.ArgumentParser) -> None:
-    _add_can(cmd)
+    network = cmd.add_mutually_exclusive_group(required=True)
+    network.add_argument(
+        "--can",
+        metavar="INTERFACE:CHANNEL[,key=value...]",
+        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114",
+    )
+    network.add_argument(
+        "--broker", metavar="HOST:PORT", help="TCP/IP network served by the TCP-ECB at HOST:PORT"
+    )
+    cmd.add_argument(
+        "--listen", metavar="HOST:PORT", default=None,
+        help="TCP/IP: where publishers reach this node (default: towards the broker, any port)",
+    )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
     cmd.add_argument(
         "--join-timeout", type=float, default=30.0, help="seconds to wait for the broker"
@@ -113,6 +146,13 @@ def _hex_arg(text: str) -> bytes:
         return bytes.fromhex(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not hex digits: {text!r}") from None
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -152,8 +192,12 @@ def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
 
 
 def _node(args: argparse.Namespace) -> Node:
+    if args.listen is not None and args.broker is None:
+        raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
     return Node(
         can=args.can,
+        broker=args.broker,
+        listen=args.listen,
         node_id=args.node_id,
         name=f"ups-{args.command}",
         join_timeout=args.join_timeout,
@@ -165,6 +209,25 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 
     async def run() -> int:
         await serve(args.can, args.db, args.bitrate)
+        return 0
+
+    return _run_until_signal(run())
+
+
+def _run_broker(args: argparse.Namespace) -> int:
+    from broker.tcp_ecb import serve
+
+    async def run() -> int:
+        await serve(args.listen, args.liveness, args.recovery)
+        return 0
+
+    return _run_until_signal(run())
+
+
+def _run_status(args: argparse.Namespace) -> int:
+    async def run() -> int:
+        info = await query_status(args.address, args.timeout)
+        print(json.dumps(info, indent=2))
         return 0
 
     return _run_until_signal(run())
@@ -182,8 +245,11 @@ def _run_pub(args: argparse.Namespace) -> int:
                     await asyncio.sleep(max(0.0, start + i / args.rate - loop.time()))
                 await node.publish(args.channel, args.data)
             stats = node.stats()
-        if stats["tx_failed"]:
+        if stats.get("tx_failed"):
             print(f"ups pub: {stats['tx_failed']} frames could not be sent", file=sys.stderr)
+            return 1
+        if stats.get("peer_dropped"):
+            print(f"ups pub: {stats['peer_dropped']} events were dropped", file=sys.stderr)
             return 1
         return 0
 

@@ -1,0 +1,337 @@
+"""The TCP-ECB: the registry of a TCP/IP network's nodes and of who subscribes to what.
+
+Nodes connect, say Hello (node id, name, the address they listen on), then register the
+channels they subscribe to and publish on. The ECB answers every Subscribe and Advertise with
+the channel's current subscriber list, and pushes the new list to the channel's publishers
+whenever it changes. It is never on the data path: publishers connect to subscribers directly.
+
+Liveness: every frame from a node counts as a sign of life (nodes Ping once a second). A node
+silent for ``liveness`` seconds, or whose link ended and did not come back within that time,
+leaves every list. A node that closed its link after withdrawing everything leaves at once.
+
+Recovery: an ECB that just started knows nothing, and nodes reconnect with backoff. For its
+first ``recovery`` seconds it collects registrations and answers none, so no publisher is told
+a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from typing import Any
+
+from ups import _tcpwire as w
+from ups._errors import ConfigError
+from ups._tcpface import DEFAULT_PORT, HEARTBEAT, parse_address
+from ups._tcplink import Link
+
+log = logging.getLogger("ups.tcp_ecb")
+
+DEFAULT_LIVENESS = 3 * HEARTBEAT
+DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
+_LOST_LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
+
+
+class _Member:
+    """A registered node."""
+
+    __slots__ = ("address", "heard", "link", "name", "node_id", "pubs", "stale", "subs")
+
+    def __init__(self, hello: w.Hello, link: Link) -> None:
+        self.node_id = hello.node_id
+        self.name = hello.name
+        self.address = (hello.host, hello.port)
+        self.link: Link | None = link
+        self.subs: set[int] = set()
+        self.pubs: set[int] = set()
+        self.stale: set[tuple[bool, int]] | None = None  # registrations awaiting renewal
+        self.heard = time.monotonic()
+
+    def peer(self) -> w.Peer:
+        return w.Peer(self.node_id, *self.address)
+
+
+class TcpEcb:
+    """A TCP-ECB listening on ``host:port`` (port 0: any free port; see ``port`` once started)."""
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        *,
+        liveness: float = DEFAULT_LIVENESS,
+        recovery: float = DEFAULT_RECOVERY,
+    ) -> None:
+        if liveness < 2 * HEARTBEAT:
+            raise ConfigError(
+                f"liveness must be at least {2 * HEARTBEAT:g} s (nodes ping every {HEARTBEAT:g} s)"
+            )
+        self.host = host
+        self.port = port
+        self.liveness = liveness
+        self.recovery = recovery
+        self._server: asyncio.AbstractServer | None = None
+        self._members: dict[int, _Member] = {}
+        self._subscribers: dict[int, set[int]] = {}  # uid -> node ids
+        self._publishers: dict[int, set[int]] = {}  # uid -> node ids
+        self._links: set[Link] = set()
+        self._recovering = False
+        self._waiting: dict[int, set[int]] = {}  # uid -> node ids owed an answer after recovery
+        self._tasks: list[asyncio.Task[None]] = []
+        self.counters = dict.fromkeys(("joined", "left", "malformed", "pushes"), 0)
+
+    async def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(
+            self._new_link, self.host, self.port, reuse_address=True
+        )
+        self.port = self._server.sockets[0].getsockname()[1]
+        self._recovering = self.recovery > 0
+        if self._recovering:
+            self._tasks.append(loop.create_task(self._end_recovery()))
+        self._tasks.append(loop.create_task(self._sweep()))
+        log.info(
+            "TCP-ECB on %s:%d (liveness %g s, recovery %g s)",
+            self.host,
+            self.port,
+            self.liveness,
+            self.recovery,
+        )
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._tasks.clear()
+        if self._server is not None:
+            self._server.close()
+            self._server = None
+        for link in list(self._links):
+            link.close()
+
+    def status(self) -> dict[str, Any]:
+        """The registry, as ``ups status`` prints it."""
+        channels = sorted(set(self._subscribers) | set(self._publishers))
+        return {
+            "node_id": _hex(0),
+            "name": "ups-broker",
+            "stats": {**self.counters, "nodes": len(self._members)},
+            "nodes": [
+                {
+                    "node_id": _hex(m.node_id),
+                    "name": m.name,
+                    "address": f"{m.address[0]}:{m.address[1]}",
+                    "connected": m.link is not None,
+                    "subscribed": [_hex(uid) for uid in sorted(m.subs)],
+                    "published": [_hex(uid) for uid in sorted(m.pubs)],
+                }
+                for m in self._members.values()
+            ],
+            "channels": [
+                {
+                    "uid": _hex(uid),
+                    "subscribers": [_hex(n) for n in sorted(self._subscribers.get(uid, ()))],
+                    "publishers": [_hex(n) for n in sorted(self._publishers.get(uid, ()))],
+                }
+                for uid in channels
+            ],
+        }
+
+    # --- links -----------------------------------------------------------------------------
+
+    def _new_link(self) -> Link:
+        link = Link(self._on_event, self._on_frame, self._on_lost, limit=_LOST_LINK_LIMIT)
+        self._links.add(link)
+        return link
+
+    def _on_event(self, link: Link, uid: int, data: bytes, priority: int) -> None:
+        self.counters["malformed"] += 1
+        log.warning("closed the link from %s: events do not go through the ECB", link.name)
+        link.abort("sent an event to the ECB")
+
+    def _on_frame(self, link: Link, frame: w.Frame) -> None:
+        member: _Member | None = link.peer
+        if isinstance(frame, w.StatusRequest):
+            link.send(w.encode(w.Status(self.status())))
+            return
+        if member is None:
+            if isinstance(frame, w.Hello):
+                self._hello(link, frame)
+            else:
+                self.counters["malformed"] += 1
+                log.warning("closed the link from %s: %s before Hello", link.name, frame)
+                link.abort("no Hello")
+            return
+        member.heard = time.monotonic()
+        if isinstance(frame, w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise):
+            self._register(member, frame)
+        elif isinstance(frame, w.Ping):
+            if member.stale is not None:
+                self._forget_stale(member)
+            link.send(w.encode(w.Pong()))
+        elif not isinstance(frame, w.Pong):
+            self.counters["malformed"] += 1
+            log.warning("closed the link from %s: unexpected %s", link.name, frame)
+            link.abort("unexpected frame")
+
+    def _on_lost(self, link: Link, reason: str | None) -> None:
+        self._links.discard(link)
+        if reason is not None and reason.startswith("bad frame"):
+            self.counters["malformed"] += 1
+        member: _Member | None = link.peer
+        if member is None or member.link is not link:
+            return
+        member.link = None
+        if not member.subs and not member.pubs:
+            self._leave(member, "closed its link")
+        else:
+            log.info(
+                "node %016x (%s) lost its link (%s); it leaves in %g s unless it comes back",
+                member.node_id,
+                member.name,
+                reason or "closed",
+                self.liveness,
+            )
+
+    # --- the registry ----------------------------------------------------------------------
+
+    def _hello(self, link: Link, hello: w.Hello) -> None:
+        member = self._members.get(hello.node_id)
+        if member is None:
+            member = self._members[hello.node_id] = _Member(hello, link)
+            self.counters["joined"] += 1
+            log.info(
+                "node %016x (%s) joined from %s:%d",
+                hello.node_id,
+                hello.name,
+                hello.host,
+                hello.port,
+            )
+        else:  # the same node again: after a lost link, or restarted
+            old = member.link
+            member.link = link
+            member.name = hello.name
+            member.heard = time.monotonic()
+            if old is not None:
+                old.abort("replaced by a new link of the same node")
+            # What it does not register again before its first Ping, it no longer has.
+            member.stale = {(True, uid) for uid in member.subs} | {
+                (False, uid) for uid in member.pubs
+            }
+            if member.address != (hello.host, hello.port):
+                member.address = (hello.host, hello.port)
+                for uid in member.subs:
+                    self._push(uid)
+            log.info(
+                "node %016x (%s) is back from %s:%d", hello.node_id, hello.name, *member.address
+            )
+        link.peer = member
+        link.send(w.encode(w.Hello(0, "ups-broker", self.host, self.port)))
+
+    def _register(
+        self, member: _Member, frame: w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise
+    ) -> None:
+        uid = frame.uid
+        subscribe = isinstance(frame, w.Subscribe | w.Unsubscribe)
+        adding = isinstance(frame, w.Subscribe | w.Advertise)
+        mine = member.subs if subscribe else member.pubs
+        table = self._subscribers if subscribe else self._publishers
+        if member.stale is not None:
+            member.stale.discard((subscribe, uid))
+        if adding:
+            new = uid not in mine
+            mine.add(uid)
+            table.setdefault(uid, set()).add(member.node_id)
+            self._answer(member, uid)
+            if subscribe and new:
+                self._push(uid, skip=member.node_id)
+        elif uid in mine:
+            mine.discard(uid)
+            self._discard(table, uid, member.node_id)
+            if subscribe:
+                self._push(uid)
+
+    def _forget_stale(self, member: _Member) -> None:
+        stale, member.stale = member.stale or set(), None
+        for subscribe, uid in stale:
+            frame = w.Unsubscribe(uid) if subscribe else w.Unadvertise(uid)
+            self._register(member, frame)
+
+    def _leave(self, member: _Member, why: str) -> None:
+        del self._members[member.node_id]
+        self.counters["left"] += 1
+        log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
+        for uid in member.pubs:
+            self._discard(self._publishers, uid, member.node_id)
+        for uid in member.subs:
+            self._discard(self._subscribers, uid, member.node_id)
+            self._push(uid)
+        link, member.link = member.link, None
+        if link is not None:
+            link.abort(why)
+
+    @staticmethod
+    def _discard(table: dict[int, set[int]], uid: int, node_id: int) -> None:
+        nodes = table.get(uid)
+        if nodes is not None:
+            nodes.discard(node_id)
+            if not nodes:
+                del table[uid]
+
+    # --- telling nodes ---------------------------------------------------------------------
+
+    def _subscribers_frame(self, uid: int) -> bytes:
+        peers = tuple(self._members[n].peer() for n in sorted(self._subscribers.get(uid, ())))
+        return w.encode(w.Subscribers(uid, peers))
+
+    def _answer(self, member: _Member, uid: int) -> None:
+        if self._recovering:
+            self._waiting.setdefault(uid, set()).add(member.node_id)
+        elif member.link is not None:
+            member.link.send(self._subscribers_frame(uid))
+
+    def _push(self, uid: int, skip: int | None = None) -> None:
+        """Tell the publishers of ``uid`` its new subscriber list."""
+        for node_id in self._publishers.get(uid, ()):
+            if node_id != skip:
+                self._answer(self._members[node_id], uid)
+                self.counters["pushes"] += 1
+
+    async def _end_recovery(self) -> None:
+        await asyncio.sleep(self.recovery)
+        self._recovering = False
+        waiting, self._waiting = self._waiting, {}
+        for uid, node_ids in waiting.items():
+            for node_id in node_ids:
+                member = self._members.get(node_id)
+                if member is not None:
+                    self._answer(member, uid)
+        log.info("TCP-ECB recovered: %d nodes registered", len(self._members))
+
+    async def _sweep(self) -> None:
+        """Remove nodes that have been silent for ``liveness`` seconds."""
+        while True:
+            await asyncio.sleep(self.liveness / 4)
+            now = time.monotonic()
+            for member in list(self._members.values()):
+                if now - member.heard > self.liveness:
+                    self._leave(member, f"silent for {self.liveness:g} s")
+
+
+def _hex(value: int) -> str:
+    return f"0x{value:016x}"
+
+
+async def serve(listen: str, liveness: float, recovery: float) -> None:
+    """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled."""
+    host, port = parse_address(listen)
+    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery)
+    await ecb.start()
+    try:
+        await asyncio.Event().wait()
+    finally:
+        await ecb.close()

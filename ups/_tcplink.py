@@ -1,0 +1,202 @@
+"""One TCP connection carrying UPS frames, for nodes, the TCP-ECB and the gateway alike.
+
+Receiving: a ``BufferedProtocol`` whose one buffer is reused for every read; whole frames are
+decoded in place (``_tcpwire.parse``), events without building a frame object. Bad bytes close
+this connection only. Sending: frames are queued and written together once per event-loop
+iteration (or as soon as ``limit`` of them are waiting), so a burst costs one system call. The
+queue is bounded: while the peer does not read (the transport paused us) it fills up to
+``limit`` frames, then ``overflow`` decides which frame is lost, and ``dropped`` counts it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+from collections.abc import Callable
+from typing import Any, Literal, cast
+
+from . import _tcpwire as w
+from ._errors import DecodeError
+
+log = logging.getLogger("ups.tcp")
+
+Overflow = Literal["drop_oldest", "drop_newest"]
+OVERFLOWS: tuple[Overflow, ...] = ("drop_oldest", "drop_newest")
+_BUFFER = 1 << 18  # receive buffer; grown for frames bigger than this
+_WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us
+
+
+class Link(asyncio.BufferedProtocol):
+    """A connection: ``on_event(link, uid, data, priority)`` and ``on_frame(link, frame)`` get
+    what arrives, ``on_lost(link, reason)`` is called once when it ends (reason None: we closed
+    it). ``peer`` is whatever the owner wants to remember about the other side."""
+
+    def __init__(
+        self,
+        on_event: Callable[[Link, int, bytes, int], None],
+        on_frame: Callable[[Link, w.Frame], None],
+        on_lost: Callable[[Link, str | None], None],
+        *,
+        max_frame: int = w.DEFAULT_MAX_FRAME,
+        limit: int = 1024,
+        overflow: Overflow = "drop_oldest",
+    ) -> None:
+        self.peer: Any = None
+        self.limit = limit
+        self.overflow: Overflow = overflow
+        self.sent = 0
+        self.dropped = 0
+        self.received = 0
+        self.transport: asyncio.Transport | None = None
+        self._on_event = on_event
+        self._on_frame = on_frame
+        self._on_lost = on_lost
+        self._max_frame = max_frame
+        self._buf = bytearray(_BUFFER)
+        self._start = 0
+        self._end = 0
+        self._out: collections.deque[bytes] = collections.deque()
+        self._flush_pending = False
+        self._paused = False
+        self._closing = False
+        self._loop = asyncio.get_running_loop()
+        self.lost: asyncio.Future[str | None] = self._loop.create_future()
+
+    def __repr__(self) -> str:
+        return f"<Link {self.name} queued={len(self._out)} dropped={self.dropped}>"
+
+    @property
+    def name(self) -> str:
+        if self.transport is None:
+            return "(unconnected)"
+        addr = self.transport.get_extra_info("peername")
+        return f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) else str(addr)
+
+    @property
+    def queued(self) -> int:
+        return len(self._out)
+
+    # --- sending ---------------------------------------------------------------------------
+
+    def send(self, frame: bytes) -> bool:
+        """Queue one encoded frame; never blocks. False if a full queue made it drop this one."""
+        out = self._out
+        if len(out) >= self.limit:
+            if self._writable():  # a producer that never yields: write the batch now
+                self._flush()
+            else:
+                self.dropped += 1
+                if self.overflow == "drop_newest":
+                    return False
+                out.popleft()
+        out.append(frame)
+        if not self._flush_pending and self._writable():
+            self._flush_pending = True
+            self._loop.call_soon(self._flush)
+        return True
+
+    def adopt(self, other: Link) -> None:
+        """Queue what ``other`` (a lost link to the same peer) had not written yet."""
+        frames = list(other._out)
+        other._out.clear()
+        excess = len(frames) - max(0, self.limit - len(self._out))
+        if excess > 0:
+            self.dropped += excess
+            frames = frames[excess:] if self.overflow == "drop_oldest" else frames[:-excess]
+        self._out.extend(frames)
+
+    def _writable(self) -> bool:
+        return self.transport is not None and not self._paused and not self._closing
+
+    def _flush(self) -> None:
+        self._flush_pending = False
+        out = self._out
+        if out and self._writable():
+            assert self.transport is not None
+            self.sent += len(out)
+            self.transport.write(out[0] if len(out) == 1 else b"".join(out))
+            out.clear()
+
+    def pause_writing(self) -> None:
+        self._paused = True
+
+    def resume_writing(self) -> None:
+        self._paused = False
+        self._flush()
+
+    def close(self) -> None:
+        """Close after writing what is queued (an unreachable peer's queue is dropped)."""
+        if self._closing:
+            return
+        self._flush()
+        self._closing = True
+        if self.transport is not None:
+            self.transport.close()
+        elif not self.lost.done():
+            self._lost(None)
+
+    def abort(self, reason: str) -> None:
+        """Drop the connection at once: bad bytes from the peer, or the peer went silent."""
+        self._closing = True
+        if self.transport is not None:
+            self.transport.abort()
+        if not self.lost.done():
+            self._lost(reason)
+
+    # --- receiving -------------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.Transport, transport)  # uvloop's is no subclass
+        self.transport.set_write_buffer_limits(high=_WRITE_HIGH)
+        if self._closing:
+            self.transport.close()
+        else:
+            self._flush()
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        buf = self._buf
+        if self._end == len(buf):  # full: move the partial frame to the front, or grow
+            if self._start:
+                rest = self._end - self._start
+                buf[:rest] = buf[self._start : self._end]
+                self._start, self._end = 0, rest
+            else:
+                buf.extend(bytes(len(buf)))
+        return memoryview(buf)[self._end :]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self._end += nbytes
+        try:
+            pos = w.parse(
+                self._buf, self._start, self._end, self._max_frame, self._event, self._frame
+            )
+        except DecodeError as exc:
+            log.warning("closed the link from %s: %s", self.name, exc)
+            self.abort(f"bad frame: {exc}")
+            return
+        if pos == self._end:
+            self._start = self._end = 0
+        else:
+            self._start = pos
+
+    def _event(self, uid: int, data: bytes, priority: int) -> None:
+        self.received += 1
+        self._on_event(self, uid, data, priority)
+
+    def _frame(self, frame: w.Frame) -> None:
+        self.received += 1
+        self._on_frame(self, frame)
+
+    def eof_received(self) -> bool:
+        return False  # close our side too
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.lost.done():
+            reason = None if self._closing else (str(exc) if exc else "closed by peer")
+            self._lost(reason)
+
+    def _lost(self, reason: str | None) -> None:
+        self._closing = True
+        self.lost.set_result(reason)
+        self._on_lost(self, reason)
