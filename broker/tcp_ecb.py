@@ -31,7 +31,7 @@ log = logging.getLogger("ups.tcp_ecb")
 
 DEFAULT_LIVENESS = 3 * HEARTBEAT
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
-_LOST_LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
+_LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 
 
 class _Member:
@@ -144,7 +144,7 @@ class TcpEcb:
     # --- links -----------------------------------------------------------------------------
 
     def _new_link(self) -> Link:
-        link = Link(self._on_event, self._on_frame, self._on_lost, limit=_LOST_LINK_LIMIT)
+        link = Link(self._on_event, self._on_frame, self._on_lost, limit=_LINK_LIMIT)
         self._links.add(link)
         return link
 
@@ -293,6 +293,9 @@ class TcpEcb:
             self._waiting.setdefault(uid, set()).add(member.node_id)
         elif member.link is not None:
             member.link.send(self._subscribers_frame(uid))
+            if member.link.dropped:  # a list lost would leave it wrong for good: cut it off
+                log.warning("node %016x does not read its link; cut off", member.node_id)
+                member.link.abort("not reading")
 
     def _push(self, uid: int, skip: int | None = None) -> None:
         """Tell the publishers of ``uid`` its new subscriber list."""

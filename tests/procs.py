@@ -79,9 +79,21 @@ class Proc:
             reader.join(timeout=5)
         return self.popen.returncode, "".join(self.stdout_lines)
 
+    def kill(self) -> None:
+        """SIGKILL: the process gets no chance to tidy up."""
+        self.popen.kill()
+        self.popen.wait()
+
+    def pause(self) -> None:
+        self.popen.send_signal(signal.SIGSTOP)
+
+    def resume(self) -> None:
+        self.popen.send_signal(signal.SIGCONT)
+
     def stop(self) -> int:
         """SIGTERM, then SIGKILL if it does not exit within 10 s; returns the exit code."""
         if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGCONT)  # a paused process could not handle SIGTERM
             self.popen.send_signal(signal.SIGTERM)
             try:
                 self.popen.wait(timeout=10)
@@ -102,6 +114,19 @@ class Proc:
         tb: TracebackType | None,
     ) -> None:
         self.stop()
+
+
+def start_tcp_broker(*options: str, port: int = 0) -> tuple[Proc, str]:
+    """``ups broker`` on loopback (any free port unless told); returns it and its HOST:PORT."""
+    broker = Proc("broker", "--listen", f"127.0.0.1:{port}", *options)
+    try:
+        line = broker.wait_for_line(r"TCP-ECB on 127\.0\.0\.1:\d+")
+    except BaseException:
+        broker.stop()
+        raise
+    found = re.search(r"TCP-ECB on (127\.0\.0\.1:\d+)", line)
+    assert found is not None
+    return broker, found.group(1)
 
 
 def private_multicast_bus() -> str:

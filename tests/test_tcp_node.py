@@ -106,7 +106,7 @@ async def test_node_close_withdraws_everything_and_leaves_at_once(tcp_ecb: TcpEc
             await node.subscribe("x")
             await eventually(lambda: bool(pub.face._targets))
         await eventually(lambda: not pub.face._targets)
-        assert len(tcp_ecb._members) == 1
+        await eventually(lambda: len(tcp_ecb._members) == 1)
     await eventually(lambda: not tcp_ecb._members)
     assert tcp_ecb.counters["left"] == 2
 

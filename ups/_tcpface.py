@@ -109,6 +109,8 @@ class TcpFace:
         self._peers: dict[int, _Peer] = {}
         self._targets: dict[int, list[_Peer]] = {}  # uid -> peers subscribed to it
         self._incoming: set[Link] = set()
+        self._gone_dropped = 0  # events dropped for peers that are no longer subscribers
+        self._closing: set[asyncio.Task[None]] = set()  # links to former subscribers
         self._closed = False
         self.counters = dict.fromkeys(
             ("sent", "received", "unsubscribed", "malformed", "reconnects"), 0
@@ -153,7 +155,10 @@ class TcpFace:
             for uid in self._advertised:
                 self._ecb.send(w.encode(w.Unadvertise(uid)))
             self._ecb.close()
-        await self._close_peers(list(self._peers.values()))
+        peers = list(self._peers.values())
+        self._peers.clear()
+        self._targets.clear()
+        await asyncio.gather(self._close_peers(peers), *self._closing)
         for link in list(self._incoming):
             link.close()
         if self._server is not None:
@@ -165,7 +170,7 @@ class TcpFace:
         peers = self._peers.values()
         return {
             **self.counters,
-            "peer_dropped": sum(peer.total_dropped() for peer in peers),
+            "peer_dropped": self._gone_dropped + sum(peer.total_dropped() for peer in peers),
             "peers": sum(1 for peer in peers if peer.link and peer.link.transport),
             "queued": sum(peer.link.queued for peer in peers if peer.link),
             "broker_connected": int(self._ecb is not None and not self._ecb.lost.done()),
@@ -400,8 +405,8 @@ class TcpFace:
 
     def _peer_lost(self, link: Link, reason: str | None) -> None:
         peer = link.peer
-        if reason is None or peer.link is not link or self._closed:
-            return
+        if reason is None or peer.link is not link or self._peers.get(peer.node_id) is not peer:
+            return  # closed by us, replaced, or no longer a subscriber
         log.info("link to subscriber %016x lost (%s); dialling again", peer.node_id, reason)
         self._connect_peer(peer, lost=link)
 
@@ -413,10 +418,13 @@ class TcpFace:
             if targets and peer in targets:
                 targets.remove(peer)
         peer.uids.clear()
-        asyncio.get_running_loop().create_task(self._close_peers([peer]))
+        task = asyncio.get_running_loop().create_task(self._close_peers([peer]))
+        self._closing.add(task)
+        task.add_done_callback(self._closing.discard)
 
     async def _close_peers(self, peers: list[_Peer]) -> None:
-        """Give each peer's queued events a moment to go out, then close its link."""
+        """Give each peer's queued events a moment to go out, then close its link; what is
+        still queued after that is dropped, and counted."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + _CLOSE_TIMEOUT
         for peer in peers:
@@ -428,15 +436,19 @@ class TcpFace:
                     await asyncio.wait_for(asyncio.shield(task), max(0.0, deadline - loop.time()))
             if task is not None:
                 task.cancel()
-            unsent = link.queued if link.transport is None else 0
+            hello_unsent = link.transport is None
             link.close()
-            if link.transport is not None:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(link.lost, max(0.0, deadline - loop.time()))
-            peer.dropped += link.dropped + max(0, unsent - 1)  # the Hello is no event
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(link.lost), max(0.0, deadline - loop.time()))
+            unsent = link.queued - hello_unsent
+            if not link.lost.done():
+                link.abort("closing")
+            peer.dropped += link.dropped + unsent
             peer.link = None
             if peer.dropped > peer.reported:
                 self._report(peer)
+            if self._peers.get(peer.node_id) is not peer:  # gone: keep its count
+                self._gone_dropped += peer.dropped
 
     def _report_drops(self) -> None:
         for peer in self._peers.values():
@@ -446,8 +458,8 @@ class TcpFace:
     def _report(self, peer: _Peer) -> None:
         total = peer.total_dropped()
         log.warning(
-            "dropped %d events for subscriber %016x at %s:%d (%d in all): its queue of %d "
-            "was full (%s)",
+            "dropped %d events for subscriber %016x at %s:%d (%d in all): it does not read "
+            "them, and its queue of %d is full (%s) or was left at close",
             total - peer.reported,
             peer.node_id,
             *peer.addr,

@@ -80,8 +80,12 @@ class Link(asyncio.BufferedProtocol):
     # --- sending ---------------------------------------------------------------------------
 
     def send(self, frame: bytes) -> bool:
-        """Queue one encoded frame; never blocks. False if a full queue made it drop this one."""
+        """Queue one encoded frame; never blocks. False if it was dropped: the queue was full
+        (and ``overflow`` is drop_newest), or the link is closing."""
         out = self._out
+        if self._closing:
+            self.dropped += 1
+            return False
         if len(out) >= self.limit:
             if self._writable():  # a producer that never yields: write the batch now
                 self._flush()
@@ -107,7 +111,7 @@ class Link(asyncio.BufferedProtocol):
         self._out.extend(frames)
 
     def _writable(self) -> bool:
-        return self.transport is not None and not self._paused and not self._closing
+        return self.transport is not None and not self._paused and not self.lost.done()
 
     def _flush(self) -> None:
         self._flush_pending = False
@@ -117,6 +121,8 @@ class Link(asyncio.BufferedProtocol):
             self.sent += len(out)
             self.transport.write(out[0] if len(out) == 1 else b"".join(out))
             out.clear()
+        if self._closing and not out and self.transport is not None:
+            self.transport.close()  # writes what the transport holds, then closes
 
     def pause_writing(self) -> None:
         self._paused = True
@@ -126,15 +132,16 @@ class Link(asyncio.BufferedProtocol):
         self._flush()
 
     def close(self) -> None:
-        """Close after writing what is queued (an unreachable peer's queue is dropped)."""
+        """Close once everything queued is written (``lost`` resolves then); an unconnected
+        link closes at once, its queue unsent."""
         if self._closing:
             return
-        self._flush()
         self._closing = True
-        if self.transport is not None:
-            self.transport.close()
-        elif not self.lost.done():
-            self._lost(None)
+        if self.transport is None:
+            if not self.lost.done():
+                self._lost(None)
+        else:
+            self._flush()
 
     def abort(self, reason: str) -> None:
         """Drop the connection at once: bad bytes from the peer, or the peer went silent."""
@@ -149,10 +156,7 @@ class Link(asyncio.BufferedProtocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = cast(asyncio.Transport, transport)  # uvloop's is no subclass
         self.transport.set_write_buffer_limits(high=_WRITE_HIGH)
-        if self._closing:
-            self.transport.close()
-        else:
-            self._flush()
+        self._flush()
 
     def get_buffer(self, sizehint: int) -> memoryview:
         buf = self._buf
@@ -197,6 +201,5 @@ class Link(asyncio.BufferedProtocol):
             self._lost(reason)
 
     def _lost(self, reason: str | None) -> None:
-        self._closing = True
         self.lost.set_result(reason)
         self._on_lost(self, reason)

@@ -83,7 +83,9 @@ def _parser() -> argparse.ArgumentParser:
     cmd.add_argument("data", type=_hex_arg, help="payload as hex digits ('' for none)")
     _add_node_options(cmd)
     cmd.add_argument("--count", type=_positive_int, default=1, help="events to publish")
-    cmd.add_argument("--rate", type=float, default=10.0, help="events per second")
+    cmd.add_argument(
+        "--rate", type=float, default=10.0, help="events per second (0: as fast as possible)"
+    )
     cmd.add_argument("--priority", type=_priority_arg, default=None, help="0 (highest)..255")
     cmd.set_defaults(run=_run_pub)
 
@@ -241,10 +243,12 @@ def _run_pub(args: argparse.Namespace) -> int:
             loop = asyncio.get_running_loop()
             start = loop.time()
             for i in range(args.count):
-                if i and args.rate > 0:
+                if args.rate <= 0:
+                    await asyncio.sleep(0)  # flat out, but let the writes drain
+                elif i:
                     await asyncio.sleep(max(0.0, start + i / args.rate - loop.time()))
                 await node.publish(args.channel, args.data)
-            stats = node.stats()
+        stats = node.stats()  # after closing: what could not be delivered is counted by now
         if stats.get("tx_failed"):
             print(f"ups pub: {stats['tx_failed']} frames could not be sent", file=sys.stderr)
             return 1
