@@ -404,7 +404,7 @@ class TcpFace:
                 log.debug("subscriber %016x at %s:%d: %s", peer.node_id, *peer.addr, exc)
 
     def _peer_lost(self, link: Link, reason: str | None) -> None:
-        peer = link.peer
+        peer: _Peer = link.peer
         if reason is None or peer.link is not link or self._peers.get(peer.node_id) is not peer:
             return  # closed by us, replaced, or no longer a subscriber
         log.info("link to subscriber %016x lost (%s); dialling again", peer.node_id, reason)

@@ -133,4 +133,8 @@ PEERS: dict[str, list[PeerSpec]] = {
         PeerSpec("paho-mqtt QoS 0, default queue", _P + "mqtt_paho", _MOSQUITTO_DEFAULT, _ONE_WAY),
     ],
     "zenoh": [PeerSpec("zenoh peer-to-peer", _P + "zenoh_peer")],
+    "ups": [
+        PeerSpec("UPS TCP, uvloop", _P + "ups_tcp", {"loop": "uvloop"}),
+        PeerSpec("UPS TCP, stdlib loop", _P + "ups_tcp", {"loop": "asyncio"}),
+    ],
 }
