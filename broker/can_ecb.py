@@ -72,7 +72,12 @@ class _Store:
 
 
 class CanEcb:
-    """The CAN-ECB of one bus. ``on_change(uid)`` is called when a channel's subscribers change."""
+    """The CAN-ECB of one bus.
+
+    ``subscribers`` and ``publishers`` map each channel UID to the TxNodes that subscribe to or
+    publish on it. ``on_change(uid)`` is called when either set of a channel becomes empty or
+    stops being empty (the gateway forwards by them).
+    """
 
     def __init__(
         self,
@@ -278,7 +283,7 @@ class CanEcb:
             table[uid].add(txnode)
         else:
             table[uid].discard(txnode)
-        if table is self.subscribers and (before == 0) != (len(table[uid]) == 0):
+        if (before == 0) != (len(table[uid]) == 0):
             self._changed(uid)
 
     def _forget_node(self, txnode: int) -> None:

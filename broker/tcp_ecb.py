@@ -29,7 +29,7 @@ from ups._tcplink import Link
 
 log = logging.getLogger("ups.tcp_ecb")
 
-DEFAULT_LIVENESS = 3 * HEARTBEAT
+DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 

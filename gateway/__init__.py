@@ -1,1 +1,5 @@
-"""The two-faced gateway between a CAN bus and a TCP/IP network."""
+"""The UPS gateway: one ECH with a CAN face and a TCP face (``ups gateway``)."""
+
+from ._gateway import Gateway, serve
+
+__all__ = ["Gateway", "serve"]

@@ -130,9 +130,9 @@ class CanFace:
             self._update_filters()
         self._send(p.Request(p.UNSUB, self._my_txnode(), uid))
 
-    def send(self, state: ChannelState, data: bytes) -> None:
+    def send(self, state: ChannelState, data: bytes, priority: int) -> None:
         etag = self._etag_of[state.channel.uid]
-        can_id = (state.priority << p.PRIORITY_SHIFT) | (self.txnode << p.TXNODE_SHIFT) | etag  # type: ignore[operator]
+        can_id = (priority << p.PRIORITY_SHIFT) | (self.txnode << p.TXNODE_SHIFT) | etag  # type: ignore[operator]
         if self.link.send(can_id, data, self._handler):
             self.counters["sent"] += 1
 

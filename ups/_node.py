@@ -32,6 +32,12 @@ log = logging.getLogger("ups")
 DEFAULT_QUEUE = 1024
 
 
+class Sink(Protocol):
+    """Where a node delivers a channel's events: a ``Subscription``, or a gateway's forwarder."""
+
+    def _push(self, msg: Message) -> None: ...
+
+
 class ChannelState:
     """What a node knows of one channel: its local subscriptions, priority and publishing."""
 
@@ -40,7 +46,7 @@ class ChannelState:
     def __init__(self, channel: Channel, priority: int) -> None:
         self.channel = channel
         self.priority = priority
-        self.subs: list[Subscription] = []
+        self.subs: list[Sink] = []
         self.published = False
         self.declared = False  # a real-time stream: the broker owns its priority
 
@@ -58,7 +64,7 @@ class Face(Protocol):
     async def unsubscribe(self, state: ChannelState) -> None:
         """The node's last local subscriber of the channel left."""
 
-    def send(self, state: ChannelState, data: bytes) -> None:
+    def send(self, state: ChannelState, data: bytes, priority: int) -> None:
         """Publish ``data`` on the network; never blocks, counts what it must drop."""
 
     def stats(self) -> dict[str, int]: ...
@@ -308,7 +314,7 @@ class Node:
         self.published += 1
         if state.subs:
             self._deliver(state, payload, state.priority, None, time.time())
-        face.send(state, payload)
+        face.send(state, payload, state.priority)
 
     async def subscribe(
         self,
@@ -327,10 +333,7 @@ class Node:
         chans = tuple(dict.fromkeys(as_channel(c) for c in channels))
         sub = Subscription(self, chans, maxlen, overflow)
         for chan in chans:
-            state = self._state(chan)
-            if not state.subs:
-                await self.face.bind(state, subscribe=True)
-            state.subs.append(sub)
+            await self._attach(chan, sub)
         self._subs.append(sub)
         return sub
 
@@ -340,7 +343,7 @@ class Node:
             subs = [target]
         else:
             state = self._states.get(as_channel(target).uid)
-            subs = list(state.subs) if state else []
+            subs = [s for s in state.subs if isinstance(s, Subscription)] if state else []
         for sub in subs:
             if sub._closed:
                 continue
@@ -348,10 +351,7 @@ class Node:
             with contextlib.suppress(ValueError):
                 self._subs.remove(sub)
             for chan in sub.channels:
-                state = self._states[chan.uid]
-                state.subs.remove(sub)
-                if not state.subs and self._face is not None and not self._closed:
-                    await self._face.unsubscribe(state)
+                await self._detach(chan, sub)
 
     async def get_msg(self, timeout: float | None = None) -> Message:
         """The next event from any of this node's subscriptions, oldest first.
@@ -446,6 +446,20 @@ class Node:
             priority = self._priorities.get(chan.uid, DEFAULT_PRIORITY)
             state = self._states[chan.uid] = ChannelState(chan, priority)
         return state
+
+    async def _attach(self, chan: Channel, sink: Sink) -> ChannelState:
+        """Deliver ``chan``'s events to ``sink`` too (subscribing on the network if need be)."""
+        state = self._state(chan)
+        if not state.subs:
+            await self.face.bind(state, subscribe=True)
+        state.subs.append(sink)
+        return state
+
+    async def _detach(self, chan: Channel, sink: Sink) -> None:
+        state = self._states[chan.uid]
+        state.subs.remove(sink)
+        if not state.subs and self._face is not None and not self._closed:
+            await self._face.unsubscribe(state)
 
     async def _publishing_state(self, channel: ChannelLike) -> ChannelState:
         self._check_open()

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
@@ -112,6 +113,10 @@ class TcpFace:
         self._gone_dropped = 0  # events dropped for peers that are no longer subscribers
         self._closing: set[asyncio.Task[None]] = set()  # links to former subscribers
         self._closed = False
+        #: called with a UID when its first remote subscriber comes or its last one goes
+        self.on_targets: Callable[[int], None] | None = None
+        #: more tables for ``ups status`` (the gateway's)
+        self.extra_status: Callable[[], dict[str, Any]] | None = None
         self.counters = dict.fromkeys(
             ("sent", "received", "unsubscribed", "malformed", "reconnects"), 0
         )
@@ -195,6 +200,7 @@ class TcpFace:
                 }
                 for peer in self._peers.values()
             ],
+            **(self.extra_status() if self.extra_status is not None else {}),
         }
 
     # --- the Face protocol -----------------------------------------------------------------
@@ -213,10 +219,10 @@ class TcpFace:
         self._subscribed.discard(uid)
         self._to_ecb(w.Unsubscribe(uid))
 
-    def send(self, state: ChannelState, data: bytes) -> None:
+    def send(self, state: ChannelState, data: bytes, priority: int) -> None:
         peers = self._targets.get(state.channel.uid)
         if peers:
-            frame = w.encode_event(state.channel.uid, data, state.priority)
+            frame = w.encode_event(state.channel.uid, data, priority)
             for peer in peers:
                 assert peer.link is not None
                 peer.link.send(frame)
@@ -366,10 +372,17 @@ class TcpFace:
                 peer.uids.discard(uid)
                 if not peer.uids:
                     self._drop_peer(peer)
+        had = uid in self._targets
         if targets:
             self._targets[uid] = targets
         else:
             self._targets.pop(uid, None)
+        if had != bool(targets) and self.on_targets is not None:
+            self.on_targets(uid)
+
+    def subscribed_elsewhere(self, uid: int) -> bool:
+        """Whether another node subscribes to ``uid`` (known for channels we publish on)."""
+        return uid in self._targets
 
     def _connect_peer(self, peer: _Peer, lost: Link | None = None) -> None:
         """Dial ``peer``; when ``lost`` is its old link, what that had not written goes first."""

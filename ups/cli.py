@@ -73,6 +73,29 @@ def _parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_broker)
 
+    cmd = commands.add_parser(
+        "gateway", help="forward subscribed events between a CAN bus and TCP/IP"
+    )
+    _add_can(cmd)
+    cmd.add_argument("--broker", required=True, metavar="HOST:PORT", help="the TCP-ECB")
+    cmd.add_argument(
+        "--listen", metavar="HOST:PORT", default=None,
+        help="where TCP publishers and 'ups status' reach the gateway (default: any port)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--db", default="ups-gateway.db", help="SQLite file of the hosted CAN-ECB's tables"
+    )
+    cmd.add_argument(
+        "--external-can-ecb", action="store_true",
+        help="do not host the bus's CAN-ECB: one already runs ('ups can-broker')",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--bitrate", type=int, default=500_000,
+        help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
+    )  # fmt: skip
+    cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    cmd.set_defaults(run=_run_gateway)
+
     cmd = commands.add_parser("status", help="print the tables and counters of a TCP daemon")
     cmd.add_argument("address", metavar="HOST:PORT", help="a TCP-ECB, gateway or node")
     cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
@@ -221,6 +244,26 @@ def _run_broker(args: argparse.Namespace) -> int:
 
     async def run() -> int:
         await serve(args.listen, args.liveness, args.recovery)
+        return 0
+
+    return _run_until_signal(run())
+
+
+def _run_gateway(args: argparse.Namespace) -> int:
+    from gateway import Gateway, serve
+
+    gateway = Gateway(
+        args.can,
+        args.broker,
+        db=args.db,
+        host_can_ecb=not args.external_can_ecb,
+        bitrate=args.bitrate,
+        node_id=args.node_id,
+        listen=args.listen,
+    )
+
+    async def run() -> int:
+        await serve(gateway)
         return 0
 
     return _run_until_signal(run())

@@ -1,0 +1,393 @@
+"""The gateway: one ECH with a CAN face and a TCP face, forwarding only what is subscribed.
+
+As in section 4.3 of the paper:
+
+- TCP -> CAN, for a channel that some CAN node subscribes to. The gateway subscribes on the
+  TCP side on the CAN nodes' behalf, and withdraws when the last of them leaves.
+- CAN -> TCP, for a channel that some CAN node publishes on and some TCP node subscribes to.
+  The gateway advertises on the TCP side every channel published on its bus, and so learns
+  who subscribes.
+
+An event is never sent back into the network it came from: what arrives from TCP goes only to
+CAN, and what arrives from CAN goes only to TCP. The gateway's own CAN frames come back to it
+as echoes, which the CAN face discards. The priority of every event is kept across the hop.
+
+What the bus cannot carry is not pushed at it. TCP->CAN frames wait in a queue of
+``can_queue`` frames, which is drained no faster than ``bitrate`` allows (worst-case stuffed
+frame lengths). When the queue is full the oldest frame is dropped, and counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+from pathlib import Path
+from typing import IO, Any
+
+import can
+
+from broker.can_ecb import CanEcb
+from ups import _canproto as p
+from ups._canlink import CanLink
+from ups._channel import Channel
+from ups._errors import ConfigError, DecodeError, UpsError
+from ups._message import Message
+from ups._node import ChannelState, Node
+from ups._nodeid import claim_node_id
+from ups._tcpface import TcpFace
+from ups.rt import frame_bits
+
+log = logging.getLogger("ups.gateway")
+
+_REQUEST_FILTER = {"can_id": 0, "can_mask": p.ETAG_MASK & ~(p.FIRST_ETAG - 1), "extended": True}
+_BURST = 4  # frames the pacer may send back to back after an idle spell
+
+
+class _Tables:
+    """Who subscribes to and publishes on each channel of the bus, learnt from the requests
+    that nodes send (when the CAN-ECB is not ours). Same interface as ``CanEcb``'s tables."""
+
+    def __init__(self, link: CanLink) -> None:
+        self.link = link
+        self.subscribers: collections.defaultdict[int, set[int]] = collections.defaultdict(set)
+        self.publishers: collections.defaultdict[int, set[int]] = collections.defaultdict(set)
+        self.on_change: Any = None
+        self._handler = self._on_frame
+
+    def start(self) -> None:
+        self.link.add_handler(self._handler, [_REQUEST_FILTER])
+
+    def close(self) -> None:
+        self.link.remove_handler(self._handler)
+
+    def _on_frame(self, frame: can.Message) -> None:
+        can_id = frame.arbitration_id
+        if not frame.is_extended_id or (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK == p.MGMT_TXNODE:
+            return
+        try:
+            msg = p.decode(can_id, bytes(frame.data))
+        except DecodeError:
+            return
+        if not isinstance(msg, p.Request) or msg.kind == p.CLAIM:
+            return
+        table = self.subscribers if msg.kind in (p.SUB_BIND, p.UNSUB) else self.publishers
+        before = bool(table[msg.value])
+        if msg.kind == p.UNSUB:
+            table[msg.value].discard(msg.txnode)
+        else:
+            table[msg.value].add(msg.txnode)
+        if before != bool(table[msg.value]) and self.on_change is not None:
+            self.on_change(msg.value)
+
+
+class _ToCan:
+    """Sink of the TCP side: events for CAN subscribers, paced to what the bus carries."""
+
+    def __init__(self, gateway: Gateway, state: ChannelState) -> None:
+        self._gateway = gateway
+        self.state = state  # the CAN side's state of the channel
+
+    def _push(self, msg: Message) -> None:
+        self._gateway._to_can(self.state, msg)
+
+
+class _ToTcp:
+    """Sink of the CAN side: events for TCP subscribers."""
+
+    def __init__(self, gateway: Gateway, state: ChannelState) -> None:
+        self._gateway = gateway
+        self.state = state  # the TCP side's state of the channel
+
+    def _push(self, msg: Message) -> None:
+        self._gateway._to_tcp(self.state, msg)
+
+
+class Gateway:
+    """A gateway between the CAN bus ``can`` and the TCP/IP network of the TCP-ECB ``broker``.
+
+    By default it hosts the bus's CAN-ECB, its tables in the SQLite file ``db``;
+    ``host_can_ecb=False`` uses a CAN-ECB that already serves the bus. In that case the gateway
+    learns who subscribes and publishes from the nodes' requests, so it sees only what nodes
+    register after it starts, or re-announce when their CAN-ECB restarts. ``bitrate`` is the
+    bus's bit rate (admission control, pacing). ``listen`` is where TCP publishers reach it
+    (and ``ups status`` too).
+    """
+
+    def __init__(
+        self,
+        can: str | CanLink,
+        broker: str,
+        *,
+        db: str | Path = "ups-gateway.db",
+        host_can_ecb: bool = True,
+        bitrate: int = 500_000,
+        node_id: int | None = None,
+        name: str = "ups-gateway",
+        listen: str | None = None,
+        join_timeout: float | None = 30.0,
+        can_queue: int = 256,
+    ) -> None:
+        if can_queue < 1:
+            raise ConfigError(f"can_queue must be at least 1, got {can_queue}")
+        if bitrate <= 0:
+            raise ConfigError(f"bitrate must be positive, got {bitrate}")
+        self._can_spec = can
+        self._broker = broker
+        self._db = db
+        self._host_can_ecb = host_can_ecb
+        self.bitrate = bitrate
+        self._node_id = node_id
+        self.name = name
+        self._listen = listen
+        self._join_timeout = join_timeout
+        self._can_queue: collections.deque[tuple[ChannelState, bytes, int]] = collections.deque()
+        self._can_queue_limit = can_queue
+        self._link: CanLink | None = None
+        self._owns_link = False
+        self._ecb: CanEcb | None = None
+        self._tables: CanEcb | _Tables | None = None
+        self._id_lock: IO[bytes] | None = None
+        self.can: Node | None = None
+        self.tcp: Node | None = None
+        self._to_tcp_sinks: dict[int, _ToTcp] = {}  # uid -> forwarder on the CAN side
+        self._to_can_sinks: dict[int, _ToCan] = {}  # uid -> forwarder on the TCP side
+        self._dirty: set[int] = set()
+        self._wake = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._pacer_wake = asyncio.Event()
+        self.counters = dict.fromkeys(
+            ("to_tcp", "to_can", "can_dropped", "too_large_for_can", "reconcile_errors"), 0
+        )
+
+    # --- life cycle ------------------------------------------------------------------------
+
+    async def __aenter__(self) -> Gateway:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def start(self) -> None:
+        try:
+            await self._start()
+        except BaseException:
+            await self.close()
+            raise
+
+    async def _start(self) -> None:
+        if isinstance(self._can_spec, CanLink):
+            self._link = self._can_spec
+        else:
+            self._link = CanLink.open(self._can_spec)
+            self._owns_link = True
+        if self._host_can_ecb:
+            self._ecb = self._tables = CanEcb(self._link, self._db, bitrate=self.bitrate)
+            await self._ecb.start()
+        else:
+            self._tables = _Tables(self._link)
+            self._tables.start()
+            self._link.start()
+        if self._node_id is None:
+            self._node_id, self._id_lock = claim_node_id(self.name)
+        self.can = Node(
+            can=self._link, node_id=self._node_id, name=self.name, join_timeout=self._join_timeout
+        )
+        await self.can.start()
+        self.tcp = Node(
+            broker=self._broker,
+            node_id=self._node_id,
+            name=self.name,
+            listen=self._listen,
+            join_timeout=self._join_timeout,
+        )
+        await self.tcp.start()
+        tcp_face = self._tcp_face()
+        tcp_face.on_targets = self._changed
+        tcp_face.extra_status = self.status
+        self._tables.on_change = self._changed
+        self._dirty.update(self._tables.subscribers)
+        self._dirty.update(self._tables.publishers)
+        loop = asyncio.get_running_loop()
+        self._tasks = [loop.create_task(self._reconcile_loop()), loop.create_task(self._pace())]
+        self._wake.set()
+        host, port = tcp_face.address or ("?", 0)
+        log.info(
+            "gateway %016x between %s (TxNode %s) and the TCP-ECB at %s, listening on %s:%d",
+            self._node_id,
+            self._link.channel_info,
+            self.can.stats().get("txnode"),
+            self._broker,
+            host,
+            port,
+        )
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._tasks.clear()
+        if self._tables is not None:
+            self._tables.on_change = None
+        for node in (self.tcp, self.can):
+            if node is not None:
+                await node.close()
+        if isinstance(self._tables, _Tables):
+            self._tables.close()
+        if self._ecb is not None:
+            self._ecb.close()
+        if self._link is not None and self._owns_link:
+            self._link.close()
+        if self._id_lock is not None:
+            self._id_lock.close()
+            self._id_lock = None
+
+    # --- statistics ------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, int]:
+        """Events forwarded each way, drops, and the channels forwarded."""
+        can_stats = self.can.stats() if self.can else {}
+        tcp_stats = self.tcp.stats() if self.tcp else {}
+        return {
+            **self.counters,
+            "can_queued": len(self._can_queue),
+            "tcp_dropped": tcp_stats.get("peer_dropped", 0),
+            "can_tx_failed": can_stats.get("tx_failed", 0),
+            "bindings": can_stats.get("bindings", 0),
+            "forwarding_to_tcp": len(self._to_tcp_sinks),
+            "forwarding_to_can": len(self._to_can_sinks),
+        }
+
+    def status(self) -> dict[str, Any]:
+        """What ``ups status`` shows for the gateway, next to its TCP node's own tables."""
+        return {
+            "gateway": {
+                **self.stats(),
+                "can_bus": self._link.channel_info if self._link else None,
+                "txnode": self.can.stats().get("txnode") if self.can else None,
+                "channels_to_tcp": [f"0x{uid:016x}" for uid in sorted(self._to_tcp_sinks)],
+                "channels_to_can": [f"0x{uid:016x}" for uid in sorted(self._to_can_sinks)],
+                "can_node": self.can.stats() if self.can else {},
+                "can_ecb": self._ecb.stats() if self._ecb else "external",
+            }
+        }
+
+    # --- deciding what to forward ----------------------------------------------------------
+
+    def _changed(self, uid: int) -> None:
+        self._dirty.add(uid)
+        self._wake.set()
+
+    async def _reconcile_loop(self) -> None:
+        """Bring every changed channel's forwarding in line with the tables, one at a time."""
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while self._dirty:
+                uid = self._dirty.pop()
+                try:
+                    await self._reconcile(uid)
+                except UpsError as exc:  # e.g. the CAN-ECB did not answer: try again later
+                    self.counters["reconcile_errors"] += 1
+                    log.warning("could not update forwarding of %016x: %s", uid, exc)
+                    asyncio.get_running_loop().call_later(1.0, self._changed, uid)
+
+    async def _reconcile(self, uid: int) -> None:
+        assert self._tables is not None and self.can is not None and self.tcp is not None
+        me = self._can_face_txnode()
+        can_subs = self._tables.subscribers.get(uid, set()) - {me}
+        can_pubs = self._tables.publishers.get(uid, set()) - {me}
+        channel = Channel(uid)
+
+        if can_subs and uid not in self._to_can_sinks:  # TCP -> CAN
+            can_state = await self.can._publishing_state(channel)
+            sink = self._to_can_sinks[uid] = _ToCan(self, can_state)
+            await self.tcp._attach(channel, sink)
+            log.info("forwarding %016x from TCP to CAN", uid)
+        elif not can_subs and uid in self._to_can_sinks:
+            await self.tcp._detach(channel, self._to_can_sinks.pop(uid))
+            log.info("stopped forwarding %016x from TCP to CAN", uid)
+
+        tcp_state = None
+        if can_pubs:  # advertise it on TCP, to learn who subscribes
+            tcp_state = await self.tcp._publishing_state(channel)
+        wanted = can_pubs and self._tcp_face().subscribed_elsewhere(uid)
+        if wanted and uid not in self._to_tcp_sinks:  # CAN -> TCP
+            assert tcp_state is not None
+            sink_tcp = self._to_tcp_sinks[uid] = _ToTcp(self, tcp_state)
+            await self.can._attach(channel, sink_tcp)
+            log.info("forwarding %016x from CAN to TCP", uid)
+        elif not wanted and uid in self._to_tcp_sinks:
+            await self.can._detach(channel, self._to_tcp_sinks.pop(uid))
+            log.info("stopped forwarding %016x from CAN to TCP", uid)
+
+    # --- forwarding ------------------------------------------------------------------------
+
+    def _to_tcp(self, tcp_state: ChannelState, msg: Message) -> None:
+        assert self.tcp is not None
+        self.counters["to_tcp"] += 1
+        self._tcp_face().send(tcp_state, msg.data, msg.priority)
+
+    def _to_can(self, can_state: ChannelState, msg: Message) -> None:
+        if len(msg.data) > p.CLASSIC_MAX_DATA:
+            self.counters["too_large_for_can"] += 1
+            return
+        queue = self._can_queue
+        if len(queue) >= self._can_queue_limit:
+            queue.popleft()
+            self.counters["can_dropped"] += 1
+        queue.append((can_state, msg.data, msg.priority))
+        self._pacer_wake.set()
+
+    async def _pace(self) -> None:
+        """Send the TCP->CAN queue no faster than the bus carries it (token bucket)."""
+        loop = asyncio.get_running_loop()
+        assert self.can is not None
+        face = self.can.face
+        bits_per_s = float(self.bitrate)
+        capacity = float(_BURST * frame_bits(8))  # the bucket holds bus time, in bits
+        tokens = capacity
+        last = loop.time()
+        queue = self._can_queue
+        while True:
+            if not queue:
+                self._pacer_wake.clear()
+                await self._pacer_wake.wait()
+            now = loop.time()
+            tokens = min(capacity, tokens + (now - last) * bits_per_s)
+            last = now
+            while queue:
+                state, data, priority = queue[0]
+                cost = frame_bits(len(data))
+                if tokens < cost:
+                    await asyncio.sleep((cost - tokens) / bits_per_s)
+                    break
+                tokens -= cost
+                queue.popleft()
+                face.send(state, data, priority)
+                self.counters["to_can"] += 1
+
+    # --- helpers ---------------------------------------------------------------------------
+
+    def _tcp_face(self) -> TcpFace:
+        assert self.tcp is not None
+        face = self.tcp.face
+        assert isinstance(face, TcpFace)
+        return face
+
+    def _can_face_txnode(self) -> int:
+        assert self.can is not None
+        return int(self.can.stats()["txnode"])
+
+
+async def serve(gateway: Gateway) -> None:
+    """Run ``gateway`` until cancelled; log its counters when it stops."""
+    async with gateway:
+        try:
+            await asyncio.Event().wait()
+        finally:
+            log.info("gateway stopping: %s", gateway.stats())
