@@ -75,8 +75,8 @@ class CanEcb:
     """The CAN-ECB of one bus.
 
     ``subscribers`` and ``publishers`` map each channel UID to the TxNodes that subscribe to or
-    publish on it. ``on_change(uid)`` is called when either set of a channel becomes empty or
-    stops being empty (the gateway forwards by them).
+    publish on it. ``on_change(uid)`` is called whenever either set of a channel changes (the
+    gateway forwards by them).
     """
 
     def __init__(
@@ -283,7 +283,7 @@ class CanEcb:
             table[uid].add(txnode)
         else:
             table[uid].discard(txnode)
-        if (before == 0) != (len(table[uid]) == 0):
+        if before != len(table[uid]):
             self._changed(uid)
 
     def _forget_node(self, txnode: int) -> None:

@@ -73,12 +73,12 @@ class _Tables:
         if not isinstance(msg, p.Request) or msg.kind == p.CLAIM:
             return
         table = self.subscribers if msg.kind in (p.SUB_BIND, p.UNSUB) else self.publishers
-        before = bool(table[msg.value])
+        before = len(table[msg.value])
         if msg.kind == p.UNSUB:
             table[msg.value].discard(msg.txnode)
         else:
             table[msg.value].add(msg.txnode)
-        if before != bool(table[msg.value]) and self.on_change is not None:
+        if before != len(table[msg.value]) and self.on_change is not None:
             self.on_change(msg.value)
 
 
