@@ -1,17 +1,25 @@
-"""Demo: a small robot whose smart sensors and actuators talk over UPS on one CAN bus.
+"""Demo: a small robot whose smart sensors and actuators talk over UPS on one CAN bus, and an
+operator station that watches and commands it over TCP/IP through a gateway.
 
-Runs in one process on a python-can ``virtual`` bus, so it needs no hardware:
+Runs in one process on a python-can ``virtual`` bus and loopback TCP, so it needs no hardware:
 
-* the CAN-ECB hands out TxNodes and etags;
-* a wheel encoder publishes ``robot/speed`` (cm/s, int16) at 20 Hz;
+* a TCP-ECB (the TCP/IP registry) listens on a free loopback port;
+* the gateway joins the bus and the TCP network; it hosts the bus's CAN-ECB, which hands out
+  TxNodes and etags;
+* a wheel encoder publishes ``robot/speed`` (cm/s, int16) at 20 Hz, never above the limit it
+  last got on ``robot/max-speed``;
 * a sonar publishes ``robot/distance`` (cm, uint16) at 10 Hz, the obstacle coming closer;
 * a motor controller subscribes to both and publishes ``robot/brake`` when an obstacle is
   near while the robot moves. It declares ``robot/brake`` a real-time channel (at most every
   50 ms, due on the bus within 2 ms): the CAN-ECB checks that the bus can guarantee it and
   gives it a priority above all best-effort traffic;
-* a dashboard subscribes to everything and prints what it sees.
+* a dashboard subscribes to everything and prints what it sees;
+* the operator station, a TCP/IP node, subscribes to ``robot/speed`` and ``robot/brake``
+  (the gateway forwards them from CAN, because someone on TCP subscribes) and publishes
+  ``robot/max-speed`` (the gateway forwards it to CAN, because the encoder subscribes).
 
-``ups demo`` (or ``scripts/demo``) runs it; it exits 0 when every channel was seen.
+``ups demo`` (or ``scripts/demo``) runs it; it exits 0 when every channel was seen on CAN and
+the operator saw the robot slow down to its limit and brake.
 """
 
 from __future__ import annotations
@@ -21,17 +29,29 @@ import struct
 import tempfile
 from pathlib import Path
 
-from broker.can_ecb import CanEcb
+from broker.tcp_ecb import TcpEcb
+from gateway import Gateway
 from ups import Node
-from ups._canlink import CanLink
 
-SPEED, DISTANCE, BRAKE = "robot/speed", "robot/distance", "robot/brake"
+SPEED, DISTANCE, BRAKE, MAX_SPEED = (
+    "robot/speed",
+    "robot/distance",
+    "robot/brake",
+    "robot/max-speed",
+)
 NEAR_CM = 40
+LIMIT_CM_S = 30
 
 
 async def wheel_encoder(node: Node, stop: asyncio.Event) -> None:
     speed = 50
+    limits = await node.subscribe(MAX_SPEED)
     while not stop.is_set():
+        while limits.pending:
+            msg = await limits.get_msg()
+            (limit,) = struct.unpack(">h", msg.data)
+            print(f"wheel-encoder: speed limit {limit} cm/s from TxNode {msg.source}")
+            speed = min(speed, limit)
         await node.publish(SPEED, struct.pack(">h", speed))
         await asyncio.sleep(0.05)
 
@@ -81,22 +101,52 @@ async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> No
             print(f"dashboard: {name} = {value} (from TxNode {msg.source})")
 
 
+async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> None:
+    """On TCP/IP: watch the robot through the gateway, and cap its speed once it moves."""
+    sub = await node.subscribe(SPEED, BRAKE)
+    limited = False
+    while not stop.is_set():
+        try:
+            msg = await sub.get_msg(timeout=0.2)
+        except TimeoutError:
+            continue
+        name = msg.channel.name or str(msg.channel)
+        seen[name] = seen.get(name, 0) + 1
+        if name == BRAKE:
+            print(f"operator (TCP): BRAKE via the gateway (priority {msg.priority:#04x})")
+            continue
+        (speed,) = struct.unpack(">h", msg.data)
+        if speed <= LIMIT_CM_S:
+            seen["slowed"] = 1
+        if not limited:
+            print(f"operator (TCP): robot moves at {speed} cm/s; limiting it to {LIMIT_CM_S}")
+            await node.publish(MAX_SPEED, struct.pack(">h", LIMIT_CM_S))
+            limited = True
+
+
 async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
     with tempfile.TemporaryDirectory() as tmp:
-        link = CanLink.open(bus)
-        ecb = CanEcb(link, Path(tmp) / "can-ecb.db")
-        await ecb.start()
+        registry = TcpEcb("127.0.0.1", 0, recovery=0)  # any free port
+        await registry.start()
+        broker = f"127.0.0.1:{registry.port}"
+        gateway = Gateway(bus, broker, db=Path(tmp) / "gateway.db", node_id=0x0D3E_00FF)
         names = ("wheel-encoder", "sonar", "motor-controller", "dashboard")
         nodes = [Node(can=bus, name=name, node_id=0x0D3E_0000 + i) for i, name in enumerate(names)]
+        operator = Node(broker=broker, name="operator", node_id=0x0D3E_0100)
         try:
+            await gateway.start()
+            print(f"gateway: on the bus as TxNode {gateway.stats()['txnode']}, TCP-ECB at {broker}")
             for node in nodes:
                 await node.start()
                 print(f"{node.name}: joined as TxNode {node.stats()['txnode']}")
+            await operator.start()
             stop = asyncio.Event()
             seen: dict[str, int] = {}
+            remote: dict[str, int] = {}
             encoder, sensor, controller, board = nodes
             tasks = [
                 asyncio.create_task(dashboard(board, stop, seen)),
+                asyncio.create_task(operator_station(operator, stop, remote)),
                 asyncio.create_task(motor_controller(controller, stop)),
                 asyncio.create_task(wheel_encoder(encoder, stop)),
                 asyncio.create_task(sonar(sensor, stop)),
@@ -105,10 +155,14 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
             stop.set()
             await asyncio.gather(*tasks)
             print(f"dashboard saw {seen}")
-            print(f"CAN-ECB: {ecb.stats()}")
-            return 0 if all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE)) else 1
+            print(f"operator saw {remote}")
+            print(f"gateway: {gateway.stats()}")
+            local_ok = all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE))
+            remote_ok = all(remote.get(ch) for ch in (SPEED, BRAKE, "slowed"))
+            return 0 if local_ok and remote_ok else 1
         finally:
+            await operator.close()
             for node in nodes:
                 await node.close()
-            ecb.close()
-            link.close()
+            await gateway.close()
+            await registry.close()

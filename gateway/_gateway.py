@@ -260,6 +260,7 @@ class Gateway:
             "bindings": can_stats.get("bindings", 0),
             "forwarding_to_tcp": len(self._to_tcp_sinks),
             "forwarding_to_can": len(self._to_can_sinks),
+            "txnode": can_stats.get("txnode", -1),
         }
 
     def status(self) -> dict[str, Any]:

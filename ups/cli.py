@@ -124,7 +124,9 @@ def _parser() -> argparse.ArgumentParser:
     rt_cli.add_arguments(cmd)
     cmd.set_defaults(run=rt_cli.run)
 
-    cmd = commands.add_parser("demo", help="run the demo robots on an in-process virtual CAN bus")
+    cmd = commands.add_parser(
+        "demo", help="run the demo robots on a virtual CAN bus, with a gateway to loopback TCP/IP"
+    )
     cmd.add_argument("--duration", type=float, default=3.0, help="seconds to run")
     cmd.set_defaults(run=_run_demo)
     return parser
