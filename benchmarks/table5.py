@@ -1,0 +1,1120 @@
+"""Round trips across TCP/IP, the gateway and CAN, as in Table 5 of the paper; and the gateway's
+CAN->TCP forwarding rate beside a saturated CAN bus.
+
+Round trips, 8-byte payloads: a *pinger* process publishes on a ping channel and waits for an
+*echo* process to publish the same bytes back on a pong channel; one at a time, N of them
+after W warm-ups, each timed with ``perf_counter_ns`` in the pinger. Before measuring, the pinger
+probes (bounded) until a round trip succeeds, as subscriptions reach the gateway asynchronously.
+The paths, side by side in one run:
+
+1. TCP host -> TCP host, same host (loopback).
+2. TCP host -> TCP host, two network namespaces joined by a veth pair (the broker in one).
+3. TCP host -> gateway -> CAN node -> back.
+4. CAN node -> gateway -> TCP host -> back.
+5. CAN node -> CAN node -> back, no gateway on the path (the paper's C167 <-> RTLinux rows).
+6. Floors without middleware: a blocking python-can udp_multicast echo, a blocking TCP echo.
+
+Every path runs unpinned and with the pinger, the echo and (on gateway paths) the gateway
+pinned to CPU 0. All processes share one clock, so the payload (the pinger's ``time_ns``) also
+splits each round trip into its two one-way legs; for a CAN receiver the leg is split again
+at the kernel's receive timestamp of the UDP datagram (SO_TIMESTAMPNS).
+
+Rate: a CAN publisher process sends K 8-byte events at each given rate (and F flat out, long
+enough to overrun the gateway's socket buffer if the gateway is slower than the publisher),
+either in 1 ms timer ticks (bursts) or busy-waiting to space them evenly as a real bus does. A
+TCP subscriber process counts what the gateway forwards (sequence numbers: loss, order); the
+gateway's CPU time (``/proc/PID/stat``), its UDP socket drops (``/proc/net/udp``) and its
+counters (``ups status``) are read around each step. Compare with a saturated 1 Mbit/s bus:
+6.3-7.6k 8-byte frames/s.
+
+CAN is python-can's udp_multicast, which must stay inside a private network namespace:
+
+    scripts/netns-run .venv/bin/python -m benchmarks.table5 [--roundtrips N] [--warmup W]
+        [--events K] [--flat-events F] [--rates 2000,...,50000,0] [--pacing timer,spin]
+        [--pin both|off|on] [--no-veth] [--no-rate] [--json PATH]
+
+Each daemon and measuring process is a child started here; every wait has a timeout, and every
+child is stopped by its PID (SIGTERM, then SIGKILL). The two namespaces of path 2 are deleted
+on the way out, also after an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import queue
+import re
+import signal
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Coroutine, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+GW_ID = 0x6A7E
+MARKER = b"\xff" * 8  # published once by an echo to register as publisher; never a ping
+PROBE_STEP = 0xFFFF  # step number of the rate publisher's probes
+SETUP_TIMEOUT = 60.0  # for a daemon or a child to be ready, or a path to work
+EXIT_GRACE = 10.0
+
+# Table 5 of the paper, min / avg / max in microseconds (Pentium III 800 MHz, C167 20 MHz).
+PAPER = {
+    "tcp_local": ("PC1 -> PC1", (361, 421, 493)),
+    "tcp_veth": ("PC1 -> PC2 (Ethernet)", (981, 1020, 1083)),
+    "tcp_gw_can": ("PC1 -> gw -> C167", (4060, 4099, 4323)),
+    "can_gw_tcp": ("C167 -> gw -> PC1", (4204, 4350, 6068)),
+    "can_can": ("C167 -> RTLinux", (3757, 3769, 3772)),
+}
+PAPER_RTLINUX_VIA_GW = (1103, 1248, 2910)  # PC1 -> gateway -> PC3 (RTLinux CAN node)
+
+# Classic CAN at 1 Mbit/s, extended identifiers: frames per second on a saturated bus.
+BUS_FPS = {"8-byte, worst-case stuffing": 1e6 / 160, "8-byte, no stuffing": 1e6 / 131}
+BUS_FPS_1BYTE = (11_000, 13_000)
+
+
+# =============================================================================================
+# Child processes: the measuring roles
+# =============================================================================================
+
+
+def _node(net: str, name: str, node_id: int) -> Any:
+    """A ``Node`` on ``tcp:HOST:PORT`` (the TCP-ECB) or ``can:INTERFACE:CHANNEL,...``."""
+    from ups import Node
+
+    kind, _, where = net.partition(":")
+    if kind == "tcp":
+        return Node(broker=where, name=name, node_id=node_id)
+    return Node(can=where, name=name, node_id=node_id)
+
+
+def _emit(obj: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+async def _read_line() -> str:
+    return await asyncio.to_thread(sys.stdin.readline)
+
+
+async def child_echo(cfg: dict[str, Any]) -> None:
+    """Echo every ping on the pong channel until told to stop (stdin) or ``lifetime`` passes."""
+    from ups import Closed
+
+    async with _node(cfg["net"], "table5-echo", cfg["node_id"]) as node:
+        sub = await node.subscribe(cfg["ping"], maxlen=4096)
+        await node.publish(cfg["pong"], MARKER)  # be known as the pong publisher from the start
+        _emit({"event": "ready"})
+
+        async def stop_on_command() -> None:
+            await _read_line()
+            await sub.close()
+
+        stopper = asyncio.create_task(stop_on_command())
+        records: list[tuple[int, int, int, int]] = []
+        deadline = time.monotonic() + cfg["lifetime"]
+        pong = cfg["pong"]
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                msg = await sub.get_msg(timeout=left)
+            except (TimeoutError, Closed):  # Closed: told to stop
+                break
+            recv_ns = time.time_ns()
+            reply_ns = time.time_ns()
+            await node.publish(pong, msg.data)
+            if len(msg.data) == 8:
+                (sent_ns,) = struct.unpack("<Q", msg.data)
+                records.append((sent_ns, recv_ns, int(msg.timestamp * 1e9), reply_ns))
+        stopper.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await stopper
+        _emit({"event": "result", "records": records, "stats": node.stats()})
+
+
+async def child_ping(cfg: dict[str, Any]) -> None:
+    """Probe until a round trip works, then time ``warmup`` + ``count`` round trips."""
+    async with _node(cfg["net"], "table5-ping", cfg["node_id"]) as node:
+        sub = await node.subscribe(cfg["pong"], maxlen=4096)
+        ping = cfg["ping"]
+
+        async def one(timeout: float) -> tuple[int, int, int, int] | None:
+            payload = struct.pack("<Q", time.time_ns())
+            start = time.perf_counter_ns()
+            await node.publish(ping, payload)
+            deadline = time.monotonic() + timeout
+            while (left := deadline - time.monotonic()) > 0:
+                try:
+                    msg = await sub.get_msg(timeout=left)
+                except TimeoutError:
+                    return None
+                if msg.data == payload:
+                    rtt = time.perf_counter_ns() - start
+                    back_ns = time.time_ns()
+                    sent_ns = struct.unpack("<Q", payload)[0]
+                    return sent_ns, back_ns, int(msg.timestamp * 1e9), rtt
+            return None
+
+        t0 = time.monotonic()
+        probes = 0
+        while True:
+            probes += 1
+            if await one(cfg["probe_timeout"]) is not None:
+                break
+            if time.monotonic() - t0 > cfg["setup_timeout"]:
+                _emit({"event": "error", "error": f"no round trip after {probes} probes"})
+                return
+        setup_s = time.monotonic() - t0
+        samples: list[tuple[int, int, int, int]] = []
+        lost = 0
+        gap = cfg["gap"]
+        for i in range(cfg["warmup"] + cfg["count"]):
+            if gap:
+                await asyncio.sleep(gap)
+            result = await one(2.0)
+            if result is None:
+                lost += 1
+                if lost > max(10, cfg["count"] // 10):
+                    break
+            elif i >= cfg["warmup"]:
+                samples.append(result)
+        _emit(
+            {
+                "event": "result",
+                "samples": samples,
+                "probes": probes,
+                "setup_s": setup_s,
+                "lost": lost,
+                "stats": node.stats(),
+            }
+        )
+
+
+def _raw_can_ids() -> tuple[int, int]:
+    from ups import _canproto as p
+
+    # Not management frames (a real TxNode field, an etag above the reserved ones) and on no
+    # etag the CAN-ECB hands out this early: every UPS handler on the bus ignores them.
+    return p.make_id(0xFF, 0x7E, 0x3FFD), p.make_id(0xFF, 0x7E, 0x3FFE)
+
+
+def child_raw_can_echo(cfg: dict[str, Any]) -> None:
+    """The floor of a CAN hop: python-can's blocking recv/send, no middleware."""
+    import can
+
+    from ups._canlink import open_bus
+
+    ping_id, pong_id = _raw_can_ids()
+    bus = open_bus(cfg["bus"])
+    try:
+        _emit({"event": "ready"})
+        deadline = time.monotonic() + cfg["lifetime"]
+        idle = 0.0
+        while time.monotonic() < deadline and idle < 3.0:
+            frame = bus.recv(0.5)
+            if frame is None:
+                idle += 0.5
+                continue
+            idle = 0.0
+            if frame.arbitration_id == ping_id and frame.is_extended_id:
+                bus.send(can.Message(arbitration_id=pong_id, data=frame.data, is_extended_id=True))
+    finally:
+        bus.shutdown()
+
+
+def child_raw_can_ping(cfg: dict[str, Any]) -> None:
+    import can
+
+    from ups._canlink import open_bus
+
+    ping_id, pong_id = _raw_can_ids()
+    bus = open_bus(cfg["bus"])
+
+    def one(timeout: float) -> int | None:
+        payload = struct.pack("<Q", time.time_ns())
+        start = time.perf_counter_ns()
+        bus.send(can.Message(arbitration_id=ping_id, data=payload, is_extended_id=True))
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            frame = bus.recv(left)
+            if frame is not None and frame.arbitration_id == pong_id and frame.data == payload:
+                return time.perf_counter_ns() - start
+        return None
+
+    try:
+        _raw_ping_loop(one, cfg)
+    finally:
+        bus.shutdown()
+
+
+def _raw_ping_loop(one: Callable[[float], int | None], cfg: dict[str, Any]) -> None:
+    t0 = time.monotonic()
+    probes = 0
+    while True:
+        probes += 1
+        if one(cfg["probe_timeout"]) is not None:
+            break
+        if time.monotonic() - t0 > cfg["setup_timeout"]:
+            _emit({"event": "error", "error": f"no round trip after {probes} probes"})
+            return
+    rtts: list[int] = []
+    lost = 0
+    for i in range(cfg["warmup"] + cfg["count"]):
+        if cfg["gap"]:
+            time.sleep(cfg["gap"])
+        rtt = one(2.0)
+        if rtt is None:
+            lost += 1
+            if lost > max(10, cfg["count"] // 10):
+                break
+        elif i >= cfg["warmup"]:
+            rtts.append(rtt)
+    samples = [(0, 0, 0, rtt) for rtt in rtts]
+    _emit({"event": "result", "samples": samples, "probes": probes, "lost": lost})
+
+
+def child_raw_tcp_echo(cfg: dict[str, Any]) -> None:
+    """The floor of a TCP hop: a blocking socket echoing 8-byte messages, no middleware."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        server.settimeout(SETUP_TIMEOUT)
+        _emit({"event": "ready", "port": server.getsockname()[1]})
+        conn, _ = server.accept()
+        with conn:
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            conn.settimeout(cfg["lifetime"])
+            while data := _recv_exact(conn, 8):
+                conn.sendall(data)
+
+
+def _recv_exact(conn: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = conn.recv(n - len(data))
+        if not chunk:
+            return b""
+        data += chunk
+    return data
+
+
+def child_raw_tcp_ping(cfg: dict[str, Any]) -> None:
+    with socket.create_connection(("127.0.0.1", cfg["port"]), timeout=10) as conn:
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+        def one(timeout: float) -> int | None:
+            payload = struct.pack("<Q", time.time_ns())
+            start = time.perf_counter_ns()
+            conn.sendall(payload)
+            back = _recv_exact(conn, 8)
+            return time.perf_counter_ns() - start if back == payload else None
+
+        _raw_ping_loop(one, cfg)
+
+
+async def child_rate_sub(cfg: dict[str, Any]) -> None:
+    """Count the events of each step; answer ``report STEP K`` on stdin with the counts."""
+    async with _node(cfg["net"], "table5-ratesub", cfg["node_id"]) as node:
+        sub = await node.subscribe(cfg["channel"], maxlen=1 << 21)
+        _emit({"event": "ready"})
+        steps: dict[int, dict[str, Any]] = {}
+        path_seen = False
+
+        async def receive() -> None:
+            nonlocal path_seen
+            while True:
+                msg = await sub.get_msg()
+                now = time.perf_counter()
+                seq, step = struct.unpack("<IH2x", msg.data)
+                if step == PROBE_STEP:
+                    if not path_seen:
+                        path_seen = True
+                        _emit({"event": "path"})
+                    continue
+                st = steps.get(step)
+                if st is None:
+                    st = steps[step] = {"n": 0, "seen": set(), "first": now, "last": now, "ooo": 0}
+                    st["prev"] = -1
+                st["n"] += 1
+                st["seen"].add(seq)
+                st["last"] = now
+                if seq < st["prev"]:
+                    st["ooo"] += 1
+                st["prev"] = seq
+
+        receiver = asyncio.create_task(receive())
+        try:
+            while line := (await _read_line()).split():
+                if line[0] != "report":
+                    break
+                step, expect = int(line[1]), int(line[2])
+                t0 = time.perf_counter()
+                while time.perf_counter() - t0 < 15.0:  # bounded: 15 s at most per step
+                    st = steps.get(step)
+                    if st is not None and st["n"] >= expect:
+                        break
+                    last = st["last"] if st is not None else t0
+                    if time.perf_counter() - max(last, t0) > 1.0:  # 1 s without an event
+                        break
+                    await asyncio.sleep(0.02)
+                st = steps.get(step, {"n": 0, "seen": set(), "first": 0.0, "last": 0.0, "ooo": 0})
+                _emit(
+                    {
+                        "event": "report",
+                        "received": st["n"],
+                        "unique": len(st["seen"]),
+                        "out_of_order": st["ooo"],
+                        "span_s": st["last"] - st["first"],
+                        "stats": node.stats(),
+                    }
+                )
+        finally:
+            receiver.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await receiver
+
+
+async def child_rate_pub(cfg: dict[str, Any]) -> None:
+    """Probe (every 20 ms) until the first ``run STEP RATE K PACING``; then K events per run.
+
+    Pacing ``timer``: whatever is due goes at once, then the loop sleeps until the next event
+    is due (uvloop's timers have 1 ms resolution, so events leave in bursts of RATE/1000).
+    Pacing ``spin``: each event leaves at its own time, busy-waiting in between, as frames
+    spaced by a real bus (this costs the publisher a whole CPU).
+    """
+    async with _node(cfg["net"], "table5-ratepub", cfg["node_id"]) as node:
+        channel = cfg["channel"]
+        await node.publish(channel, struct.pack("<IH2x", 0, PROBE_STEP))
+        _emit({"event": "ready"})
+
+        async def probe() -> None:
+            for seq in range(int(SETUP_TIMEOUT / 0.02)):
+                await node.publish(channel, struct.pack("<IH2x", seq, PROBE_STEP))
+                await asyncio.sleep(0.02)
+
+        prober: asyncio.Task[None] | None = asyncio.create_task(probe())
+        while line := (await _read_line()).split():
+            if prober is not None:
+                prober.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await prober
+                prober = None
+            if line[0] != "run":
+                break
+            step, rate, count, spin = int(line[1]), float(line[2]), int(line[3]), line[4] == "spin"
+            failed0 = node.stats().get("tx_failed", 0)
+            pack = struct.Struct("<IH2x").pack
+            start = time.perf_counter()
+            if rate <= 0:  # flat out, letting the loop run every 64 events
+                for seq in range(count):
+                    await node.publish(channel, pack(seq, step))
+                    if seq % 64 == 63:
+                        await asyncio.sleep(0)
+            elif spin:
+                clock = time.perf_counter
+                for seq in range(count):
+                    due = start + seq / rate
+                    while clock() < due:
+                        pass
+                    await node.publish(channel, pack(seq, step))
+                    if seq % 256 == 255:  # read our own echoes now and then
+                        await asyncio.sleep(0)
+            else:  # on schedule: whatever is due goes at once, then sleep until the next
+                seq = 0
+                while seq < count:
+                    due = min(count, int((time.perf_counter() - start) * rate) + 1)
+                    while seq < due:
+                        await node.publish(channel, pack(seq, step))
+                        seq += 1
+                    ahead = seq / rate - (time.perf_counter() - start)
+                    await asyncio.sleep(max(0.0, ahead))
+            duration = time.perf_counter() - start
+            _emit(
+                {
+                    "event": "done",
+                    "sent": count,
+                    "duration_s": duration,
+                    "tx_failed": node.stats().get("tx_failed", 0) - failed0,
+                }
+            )
+
+
+CHILDREN: dict[str, Callable[[dict[str, Any]], Any]] = {
+    "echo": child_echo,
+    "ping": child_ping,
+    "raw_can_echo": child_raw_can_echo,
+    "raw_can_ping": child_raw_can_ping,
+    "raw_tcp_echo": child_raw_tcp_echo,
+    "raw_tcp_ping": child_raw_tcp_ping,
+    "rate_sub": child_rate_sub,
+    "rate_pub": child_rate_pub,
+}
+
+
+def run_child(role: str, cfg: dict[str, Any]) -> None:
+    if cfg.get("cpu") is not None:
+        os.sched_setaffinity(0, {cfg["cpu"]})
+    import can
+
+    can.util.set_logging_level("warning")
+    result = CHILDREN[role](cfg)
+    if asyncio.iscoroutine(result):
+        _run_async(result)
+
+
+def _run_async(coro: Coroutine[Any, Any, None]) -> None:
+    """On uvloop when installed, as ``ups`` itself runs."""
+    try:
+        import uvloop
+    except ImportError:
+        asyncio.run(coro)
+        return
+    uvloop.run(coro)
+
+
+# =============================================================================================
+# The harness: daemons, children, namespaces
+# =============================================================================================
+
+
+class Child:
+    """A child process; its stdout lines (JSON for roles) and stderr lines are collected."""
+
+    def __init__(self, argv: list[str], label: str) -> None:
+        self.label = label
+        self.popen = subprocess.Popen(
+            argv,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            bufsize=1,
+        )
+        self.stderr_lines: list[str] = []
+        self._out: queue.Queue[str | None] = queue.Queue()
+        self._err: queue.Queue[str | None] = queue.Queue()
+        for stream, sink, keep in (
+            (self.popen.stdout, self._out, False),
+            (self.popen.stderr, self._err, True),
+        ):
+            threading.Thread(target=self._read, args=(stream, sink, keep), daemon=True).start()
+
+    def _read(self, stream: Any, sink: queue.Queue[str | None], keep: bool) -> None:
+        for line in stream:
+            if keep:
+                self.stderr_lines.append(line)
+            sink.put(line)
+        sink.put(None)
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def wait_stderr(self, pattern: str, timeout: float = SETUP_TIMEOUT) -> re.Match[str]:
+        regex = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self._err.get(timeout=left)
+            except queue.Empty:
+                break
+            if line is None:
+                raise RuntimeError(f"{self.label} ended: {self.tail()}")
+            if found := regex.search(line):
+                return found
+        raise RuntimeError(f"{self.label}: no {pattern!r} within {timeout} s: {self.tail()}")
+
+    def event(self, timeout: float) -> dict[str, Any]:
+        """The next JSON line from the child's stdout."""
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self._out.get(timeout=left)
+            except queue.Empty:
+                break
+            if line is None:
+                raise RuntimeError(f"{self.label} ended: {self.tail()}")
+            with contextlib.suppress(json.JSONDecodeError):
+                obj: dict[str, Any] = json.loads(line)
+                if obj.get("event") == "error":
+                    raise RuntimeError(f"{self.label}: {obj['error']}")
+                return obj
+        raise RuntimeError(f"{self.label}: nothing within {timeout} s: {self.tail()}")
+
+    def send(self, line: str) -> None:
+        assert self.popen.stdin is not None
+        with contextlib.suppress(BrokenPipeError, OSError):
+            self.popen.stdin.write(line + "\n")
+            self.popen.stdin.flush()
+
+    def tail(self) -> str:
+        time.sleep(0.2)
+        return "".join(self.stderr_lines[-15:]).strip() or "(no stderr)"
+
+    def finish(self, timeout: float = EXIT_GRACE) -> None:
+        """Wait for the child to exit by itself; stop it if it does not."""
+        try:
+            self.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.stop()
+
+    def stop(self) -> None:
+        """SIGTERM, then SIGKILL (``ip netns exec`` execs its command: the PID is the child's)."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout=EXIT_GRACE)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait()
+        if self.popen.stdin is not None:
+            with contextlib.suppress(OSError):
+                self.popen.stdin.close()
+
+
+def role_argv(role: str, cfg: dict[str, Any], netns: str | None = None) -> list[str]:
+    argv = [sys.executable, "-m", "benchmarks.table5", "--child", role, json.dumps(cfg)]
+    return ["ip", "netns", "exec", netns, *argv] if netns else argv
+
+
+def ups_argv(*args: str, netns: str | None = None) -> list[str]:
+    argv = [sys.executable, "-m", "ups.cli", *args]
+    return ["ip", "netns", "exec", netns, *argv] if netns else argv
+
+
+def set_affinity(pid: int, cpus: set[int]) -> None:
+    """Move every thread of ``pid`` to ``cpus``."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setaffinity(int(tid), cpus)
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of ``pid`` so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def udp_drops(pid: int) -> int:
+    """Datagrams dropped at the UDP sockets of ``pid`` (receive buffer full), this namespace."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    drops = 0
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        with contextlib.suppress(OSError):
+            for row in Path(table).read_text().splitlines()[1:]:
+                cols = row.split()
+                if cols[9] in inodes:
+                    drops += int(cols[-1])
+    return drops
+
+
+def status(address: str) -> dict[str, Any]:
+    from ups._tcpface import query_status
+
+    return dict(asyncio.run(query_status(address, timeout=10)))
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def check_private_namespace() -> None:
+    """udp_multicast must never leave the machine: only inside scripts/netns-run."""
+    routes = subprocess.run(
+        ["ip", "route", "show", "default"], capture_output=True, text=True, check=False
+    )
+    if os.environ.get("UPS_IN_NETNS") != "1" or routes.returncode or routes.stdout.strip():
+        sys.exit("run inside a private network namespace: scripts/netns-run .venv/bin/python ...")
+
+
+@contextlib.contextmanager
+def veth_pair() -> Iterator[tuple[str, str]]:
+    """Two namespaces joined by a veth pair, 10.77.0.1/24 and 10.77.0.2/24; deleted at exit."""
+    tag = f"{os.getpid() % 100000}"
+    ns_a, ns_b = f"ups-t5-{tag}-a", f"ups-t5-{tag}-b"
+    dev_a, dev_b = f"t5a{tag}"[:15], f"t5b{tag}"[:15]
+    made: list[str] = []
+    try:
+        for ns in (ns_a, ns_b):
+            subprocess.run(["ip", "netns", "add", ns], check=True)
+            made.append(ns)
+        commands = [
+            ["ip", "link", "add", dev_a, "type", "veth", "peer", "name", dev_b],
+            ["ip", "link", "set", dev_a, "netns", ns_a],
+            ["ip", "link", "set", dev_b, "netns", ns_b],
+            ["ip", "-n", ns_a, "addr", "add", "10.77.0.1/24", "dev", dev_a],
+            ["ip", "-n", ns_b, "addr", "add", "10.77.0.2/24", "dev", dev_b],
+        ]
+        for ns, dev in ((ns_a, dev_a), (ns_b, dev_b)):
+            commands += [["ip", "-n", ns, "link", "set", "lo", "up"]]
+            commands += [["ip", "-n", ns, "link", "set", dev, "up"]]
+        for cmd in commands:
+            subprocess.run(cmd, check=True)
+        yield ns_a, ns_b
+    finally:
+        for ns in made:  # deleting a namespace deletes its end of the pair, and so both ends
+            subprocess.run(["ip", "netns", "del", ns], check=False)
+
+
+# =============================================================================================
+# Measurements
+# =============================================================================================
+
+
+@dataclass
+class Rtt:
+    """One path in one pinning mode."""
+
+    key: str
+    label: str
+    pinned: bool
+    rtt_us: list[float] = field(default_factory=list)
+    legs: dict[str, list[float]] = field(default_factory=dict)
+    probes: int = 0
+    setup_s: float = 0.0
+    lost: int = 0
+    error: str = ""
+
+    def summary(self) -> tuple[float, float, float, float, float] | None:
+        if not self.rtt_us:
+            return None
+        us = sorted(self.rtt_us)
+        p99 = us[min(len(us) - 1, int(len(us) * 0.99))]
+        return us[0], statistics.median(us), statistics.fmean(us), p99, us[-1]
+
+
+@dataclass
+class Route:
+    key: str
+    label: str
+    ping_net: str
+    echo_net: str
+    gateway: bool = False
+    ping_ns: str | None = None
+    echo_ns: str | None = None
+    raw: str = ""  # "can" or "tcp": a floor without UPS
+
+
+class Bench:
+    def __init__(self, args: argparse.Namespace, tmp: Path) -> None:
+        self.args = args
+        self.tmp = tmp
+        self.bus = args.can or f"udp_multicast:239.74.163.2,port={free_udp_port()}"
+        self.children: list[Child] = []
+        self.daemons: list[Child] = []
+        self.gateway: Child | None = None
+        self.gateway_status = ""
+        self.broker = ""
+        self.next_id = 0x7AB1E5_000
+        self.all_cpus = os.sched_getaffinity(0)
+
+    def node_id(self) -> int:
+        self.next_id += 1
+        return self.next_id
+
+    def spawn(self, argv: list[str], label: str) -> Child:
+        child = Child(argv, label)
+        self.children.append(child)
+        return child
+
+    def close(self) -> None:
+        for child in reversed(self.children):
+            child.stop()
+
+    # --- daemons ---------------------------------------------------------------------------
+
+    def start_broker(self, host: str = "127.0.0.1", netns: str | None = None) -> str:
+        proc = self.spawn(
+            ups_argv("broker", "--listen", f"{host}:0", "--recovery", "0", netns=netns),
+            f"broker {host}",
+        )
+        self.daemons.append(proc)
+        return proc.wait_stderr(r"TCP-ECB on (\S+:\d+)").group(1)
+
+    def start_gateway(self) -> None:
+        self.gateway = self.spawn(
+            ups_argv(
+                "gateway", "--can", self.bus, "--broker", self.broker,
+                "--db", str(self.tmp / "gw.db"), "--node-id", hex(GW_ID),
+                "--bitrate", "1000000", "--listen", "127.0.0.1:0",
+            ),
+            "gateway",
+        )  # fmt: skip
+        self.daemons.append(self.gateway)
+        self.gateway_status = self.gateway.wait_stderr(r"listening on (\S+:\d+)").group(1)
+
+    # --- round trips -----------------------------------------------------------------------
+
+    def round_trip(self, path: Route, pinned: bool, tag: str) -> Rtt:
+        row = Rtt(path.key, path.label, pinned)
+        cpu = 0 if pinned else None
+        if self.gateway is not None:
+            set_affinity(self.gateway.pid, {0} if pinned and path.gateway else self.all_cpus)
+        common = {
+            "cpu": cpu,
+            "lifetime": 600.0,
+            "count": self.args.roundtrips,
+            "warmup": self.args.warmup,
+            "gap": self.args.gap / 1000,
+            "probe_timeout": 0.25,
+            "setup_timeout": SETUP_TIMEOUT,
+        }
+        echo: Child | None = None
+        ping: Child | None = None
+        try:
+            if path.raw == "tcp":
+                echo = self.spawn(role_argv("raw_tcp_echo", common), f"{tag} echo")
+                port = echo.event(SETUP_TIMEOUT)["port"]
+                ping = self.spawn(role_argv("raw_tcp_ping", {**common, "port": port}), tag)
+            elif path.raw == "can":
+                cfg = {**common, "bus": self.bus}
+                echo = self.spawn(role_argv("raw_can_echo", cfg), f"{tag} echo")
+                echo.event(SETUP_TIMEOUT)
+                ping = self.spawn(role_argv("raw_can_ping", cfg), tag)
+            else:
+                channels = {"ping": f"table5/{tag}/ping", "pong": f"table5/{tag}/pong"}
+                echo_cfg = {**common, **channels, "net": path.echo_net, "node_id": self.node_id()}
+                echo = self.spawn(role_argv("echo", echo_cfg, path.echo_ns), f"{tag} echo")
+                echo.event(SETUP_TIMEOUT)
+                ping_cfg = {**common, **channels, "net": path.ping_net, "node_id": self.node_id()}
+                ping = self.spawn(role_argv("ping", ping_cfg, path.ping_ns), tag)
+            budget = 2 * SETUP_TIMEOUT + (self.args.roundtrips + self.args.warmup) * 0.1
+            result = ping.event(budget)
+            row.rtt_us = [s[3] / 1000 for s in result["samples"]]
+            row.probes, row.lost = result["probes"], result["lost"]
+            row.setup_s = result.get("setup_s", 0.0)
+            ping.finish()
+            if not path.raw:
+                echo.send("stop")
+                records = echo.event(SETUP_TIMEOUT)["records"]
+                row.legs = legs(result["samples"], records, path)
+            echo.finish()
+        except RuntimeError as exc:
+            row.error = str(exc).splitlines()[0][:200]
+            print(f"  {tag}: {exc}", file=sys.stderr)
+        finally:
+            for child in (ping, echo):
+                if child is not None:
+                    child.stop()
+        return row
+
+    # --- CAN -> TCP rate -------------------------------------------------------------------
+
+    def rate(self) -> list[dict[str, Any]]:
+        assert self.gateway is not None
+        set_affinity(self.gateway.pid, self.all_cpus)
+        gw = self.gateway.pid
+        channel = "table5/rate"
+        sub = self.spawn(
+            role_argv(
+                "rate_sub", {"net": f"tcp:{self.broker}", "channel": channel, "node_id": 0x5B}
+            ),
+            "rate subscriber",
+        )
+        sub.event(SETUP_TIMEOUT)
+        pub = self.spawn(
+            role_argv("rate_pub", {"net": f"can:{self.bus}", "channel": channel, "node_id": 0x5C}),
+            "rate publisher",
+        )
+        pub.event(SETUP_TIMEOUT)
+        sub.event(SETUP_TIMEOUT)  # "path": a probe went CAN -> gateway -> TCP
+        steps = []
+        plan = [(p, r) for p in self.args.pacing for r in self.args.rates if r > 0 or p == "timer"]
+        for index, (pacing, rate) in enumerate(plan):
+            time.sleep(0.5)  # let the previous step drain
+            k = self.args.events if rate > 0 else self.args.flat_events
+            before = (cpu_seconds(gw), udp_drops(gw), status(self.gateway_status)["gateway"])
+            pub.send(f"run {index} {rate} {k} {pacing}")
+            done = pub.event(SETUP_TIMEOUT + k / max(rate, 1000.0) * 3)
+            sub.send(f"report {index} {k}")
+            report = sub.event(30.0)
+            after = (cpu_seconds(gw), udp_drops(gw), status(self.gateway_status)["gateway"])
+            span = max(report["span_s"], 1e-9)
+            step = {
+                "pacing": pacing,
+                "rate": rate,
+                "sent": done["sent"],
+                "send_rate": done["sent"] / done["duration_s"],
+                "tx_failed": done["tx_failed"],
+                "received": report["received"],
+                "unique": report["unique"],
+                "lost": done["sent"] - report["unique"],
+                "out_of_order": report["out_of_order"],
+                "recv_rate": (report["received"] - 1) / span if report["received"] > 1 else 0.0,
+                "gw_cpu_s": after[0] - before[0],
+                "gw_cpu_pct": 100 * (after[0] - before[0]) / max(span, done["duration_s"]),
+                "gw_udp_drops": after[1] - before[1],
+                "gw_to_tcp": after[2]["to_tcp"] - before[2]["to_tcp"],
+                "gw_tcp_dropped": after[2]["tcp_dropped"] - before[2]["tcp_dropped"],
+                "sub_dropped": report["stats"].get("dropped", 0),
+            }
+            steps.append(step)
+            label = "flat out" if rate <= 0 else f"{rate:g}/s {pacing}"
+            print(
+                f"  rate {label}: received {step['unique']}/{k} at {step['recv_rate']:.0f}/s, "
+                f"gateway CPU {step['gw_cpu_pct']:.0f}%",
+                file=sys.stderr,
+            )
+        pub.send("quit")
+        sub.send("quit")
+        pub.finish()
+        sub.finish()
+        return steps
+
+
+def legs(samples: list[list[int]], records: list[list[int]], path: Route) -> dict[str, list[float]]:
+    """One-way legs of each round trip, from the shared wall clock (µs)."""
+    by_sent = {r[0]: r for r in records}
+    out: dict[str, list[float]] = {"out": [], "out_rx": [], "back": [], "back_rx": []}
+    for sent, back, back_stamp, _ in samples:
+        rec = by_sent.get(sent)
+        if rec is None:
+            continue
+        _, recv, stamp, reply = rec
+        out["out"].append((recv - sent) / 1000)
+        out["out_rx"].append((recv - stamp) / 1000)
+        out["back"].append((back - reply) / 1000)
+        out["back_rx"].append((back - back_stamp) / 1000)
+    return out
+
+
+# =============================================================================================
+# Report
+# =============================================================================================
+
+
+def p50(values: list[float]) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def print_round_trips(rows: list[Rtt], args: argparse.Namespace) -> None:
+    modes = sorted({r.pinned for r in rows})
+    print()
+    print(
+        f"Table 5 today: round trips of 8-byte events, {args.roundtrips} after {args.warmup} "
+        f"warm-ups, µs (min / p50 / avg / p99 / max)"
+    )
+    header = f"{'path':44}"
+    for pinned in modes:
+        header += f" | {'pinned to CPU 0' if pinned else 'unpinned':^36}"
+    header += " | paper min / avg / max"
+    print(header)
+    seen: list[str] = []
+    for r in rows:
+        if r.key not in seen:
+            seen.append(r.key)
+    for key in seen:
+        mine = {r.pinned: r for r in rows if r.key == key}
+        label = next(iter(mine.values())).label
+        line = f"{label:44}"
+        for pinned in modes:
+            cell = mine.get(pinned)
+            s = cell.summary() if cell else None
+            if s is None:
+                line += f" | {'(failed)' if cell and cell.error else '':^36}"
+            else:
+                line += " | " + f"{' '.join(f'{v:6.0f}' for v in s):36}"
+        if key in PAPER:
+            name, (lo, avg, hi) = PAPER[key]
+            line += f" | {lo} / {avg} / {hi}  {name}"
+        print(line)
+        if key == "tcp_gw_can":
+            lo, avg, hi = PAPER_RTLINUX_VIA_GW
+            pad = "".join(f" | {'':36}" for _ in modes)
+            print(f"{'':44}{pad} | {lo} / {avg} / {hi}  PC1 -> gw -> RTLinux")
+    print()
+    print("Where the time goes (p50, µs): 'out' = ping publish -> echo holds it, 'back' = echo")
+    print("publishes -> pinger holds it; 'rx->app' = from the receiver's message timestamp (CAN:")
+    print("the kernel's receive time of the datagram; TCP: when the TCP face decoded it) until")
+    print("the waiting task has it. Shared wall clock, so one-way legs are real.")
+    print(
+        f"{'path':44} {'mode':9} {'out':>7} {'rx->app':>8} {'back':>7} {'rx->app':>8} "
+        f"{'probes':>6} {'setup s':>7} {'lost':>4}"
+    )
+    for r in rows:
+        if not r.legs:
+            continue
+        print(
+            f"{r.label:44} {'pinned' if r.pinned else 'unpinned':9} {p50(r.legs['out']):7.0f} "
+            f"{p50(r.legs['out_rx']):8.0f} {p50(r.legs['back']):7.0f} "
+            f"{p50(r.legs['back_rx']):8.0f} {r.probes:6d} {r.setup_s:7.2f} {r.lost:4d}"
+        )
+    for pinned in modes:
+        p50s = {r.key: p50(r.rtt_us) for r in rows if r.pinned == pinned and r.rtt_us}
+        if all(k in p50s for k in ("tcp_local", "can_can", "tcp_gw_can", "can_gw_tcp")):
+            base = p50s["tcp_local"] + p50s["can_can"]
+            print(
+                f"({'pinned' if pinned else 'unpinned'}, p50: path 3 {p50s['tcp_gw_can']:.0f} µs, "
+                f"path 4 {p50s['can_gw_tcp']:.0f} µs vs path 1 + path 5 = {base:.0f} µs: a TCP "
+                "and a CAN round trip, as if the gateway were just one more node)"
+            )
+
+
+def print_rates(steps: list[dict[str, Any]], args: argparse.Namespace) -> None:
+    print()
+    print(
+        f"CAN -> gateway -> TCP forwarding, {args.events} events of 8 bytes per step, "
+        f"{args.flat_events} flat out (udp_multicast publisher, TCP subscriber)"
+    )
+    print("pacing 'timer': the publisher sends what is due each 1 ms timer tick (bursts); 'spin':")
+    print("it busy-waits to space events evenly, as a real bus would (one whole CPU for it).")
+    print(
+        f"{'pacing':6} {'asked':>9} {'sent/s':>8} {'recv/s':>8} {'received':>9} {'lost':>6} "
+        f"{'loss':>6} {'ooo':>4} {'gw CPU%':>7} {'gw µs/ev':>8} {'udp drop':>8} {'tcp drop':>8} "
+        f"{'tx fail':>7}"
+    )
+    best: dict[str, dict[str, Any]] = {}
+    for s in steps:
+        asked = "flat out" if s["rate"] <= 0 else f"{s['rate']:.0f}"
+        per_event = 1e6 * s["gw_cpu_s"] / max(1, s["received"])
+        loss = 100 * s["lost"] / max(1, s["sent"])
+        print(
+            f"{s['pacing']:6} {asked:>9} {s['send_rate']:8.0f} {s['recv_rate']:8.0f} "
+            f"{s['unique']:9d} {s['lost']:6d} {loss:5.1f}% {s['out_of_order']:4d} "
+            f"{s['gw_cpu_pct']:7.0f} {per_event:8.1f} {s['gw_udp_drops']:8d} "
+            f"{s['gw_tcp_dropped']:8d} {s['tx_failed']:7d}"
+        )
+        top = best.get(s["pacing"])
+        if s["lost"] == 0 and (top is None or s["recv_rate"] > top["recv_rate"]):
+            best[s["pacing"]] = s
+    lo, hi = BUS_FPS["8-byte, worst-case stuffing"], BUS_FPS["8-byte, no stuffing"]
+    print(
+        f"A saturated 1 Mbit/s classic CAN bus carries {lo:.0f}-{hi:.0f} 8-byte frames/s "
+        f"({BUS_FPS_1BYTE[0]}-{BUS_FPS_1BYTE[1]} 1-byte frames/s)."
+    )
+    for pacing in dict.fromkeys(s["pacing"] for s in steps):
+        top = best.get(pacing)
+        if top is None:
+            print(f"{pacing}: no step was free of loss.")
+            continue
+        per_event = 1e6 * top["gw_cpu_s"] / max(1, top["received"])
+        print(
+            f"{pacing}: highest rate with zero loss {top['recv_rate']:.0f} events/s "
+            f"({top['recv_rate'] / hi:.1f}x a saturated bus of 8-byte frames, "
+            f"{top['recv_rate'] / BUS_FPS_1BYTE[1]:.1f}x of 1-byte ones); gateway CPU "
+            f"{top['gw_cpu_pct']:.0f}% of one core there, {per_event:.1f} µs per event."
+        )
+
+
+# =============================================================================================
+# main
+# =============================================================================================
+
+
+def parse_rates(text: str) -> list[float]:
+    return [float(t) for t in text.split(",") if t.strip()]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--roundtrips", type=int, default=300, help="measured round trips")
+    parser.add_argument("--warmup", type=int, default=30, help="round trips before measuring")
+    parser.add_argument("--gap", type=float, default=0.0, help="ms between round trips")
+    parser.add_argument(
+        "--events", type=int, default=20_000, help="events per paced step of the rate test"
+    )
+    parser.add_argument(
+        "--flat-events", type=int, default=200_000, help="events of the flat-out step"
+    )
+    parser.add_argument(
+        "--rates",
+        type=parse_rates,
+        default=parse_rates("2000,4000,6300,7600,10000,13000,20000,30000,50000,0"),
+        help="events/s of each rate step, comma-separated (0: as fast as the publisher can)",
+    )
+    parser.add_argument(
+        "--pacing",
+        type=lambda t: [x for x in t.split(",") if x in ("timer", "spin")],
+        default=["timer", "spin"],
+        help="publisher pacing of the rate test: timer, spin or timer,spin (default)",
+    )
+    parser.add_argument("--pin", choices=("both", "off", "on"), default="both")
+    parser.add_argument("--can", default=None, help="udp_multicast bus (default: a free port)")
+    parser.add_argument("--no-veth", action="store_true", help="skip the two-namespace path")
+    parser.add_argument("--no-rate", action="store_true", help="skip the rate test")
+    parser.add_argument("--json", type=Path, default=None, help="write the raw results here")
+    args = parser.parse_args()
+    check_private_namespace()
+    modes = {"both": [False, True], "off": [False], "on": [True]}[args.pin]
+
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        bench = Bench(args, Path(tmp))
+        stack.callback(bench.close)
+        bench.broker = bench.start_broker()
+        bench.start_gateway()
+        tcp, can = f"tcp:{bench.broker}", f"can:{bench.bus}"
+        paths = [
+            Route("tcp_local", "1 TCP host -> TCP host, same host", tcp, tcp),
+            Route("tcp_veth", "2 TCP host -> TCP host, two netns over veth", "", ""),
+            Route("tcp_gw_can", "3 TCP host -> gateway -> CAN node -> back", tcp, can, True),
+            Route("can_gw_tcp", "4 CAN node -> gateway -> TCP host -> back", can, tcp, True),
+            Route("can_can", "5 CAN node -> CAN node -> back (no gw)", can, can),
+            Route("raw_can", "6a floor: python-can udp_multicast echo", "", "", raw="can"),
+            Route("raw_tcp", "6b floor: blocking TCP socket echo", "", "", raw="tcp"),
+        ]
+        if not args.no_veth:
+            ns_a, ns_b = stack.enter_context(veth_pair())
+            far = bench.start_broker("10.77.0.1", netns=ns_a)
+            paths[1] = Route(
+                "tcp_veth", paths[1].label, f"tcp:{far}", f"tcp:{far}", False, ns_a, ns_b
+            )
+        else:
+            del paths[1]
+        rows: list[Rtt] = []
+        for path in paths:
+            for pinned in modes:
+                tag = f"{path.key}-{'pin' if pinned else 'free'}"
+                print(f"  round trip {tag} ...", file=sys.stderr)
+                rows.append(bench.round_trip(path, pinned, tag))
+        steps = [] if args.no_rate else bench.rate()
+        gw_final = status(bench.gateway_status)["gateway"]
+
+    print(f"\nUPS Table 5 on {bench.bus}, gateway at 1 Mbit/s, {os.cpu_count()} CPUs, "
+          f"Python {sys.version.split()[0]}")  # fmt: skip
+    print_round_trips(rows, args)
+    if steps:
+        print_rates(steps, args)
+    print(
+        f"\ngateway counters at the end: to_tcp={gw_final['to_tcp']} to_can={gw_final['to_can']} "
+        f"can_dropped={gw_final['can_dropped']} tcp_dropped={gw_final['tcp_dropped']}"
+    )
+    for daemon in bench.daemons:
+        warnings = [line for line in daemon.stderr_lines if " WARNING" in line or " ERROR" in line]
+        print(f"{daemon.label}: {len(warnings)} warnings/errors in its log")
+        for line in warnings[:5]:
+            print(f"   {line.rstrip()}")
+    if args.json is not None:
+        args.json.write_text(
+            json.dumps(
+                {
+                    "bus": bench.bus,
+                    "round_trips": [r.__dict__ for r in rows],
+                    "rate": steps,
+                    "gateway": gw_final,
+                },
+                indent=1,
+            )
+        )
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--child":
+        run_child(sys.argv[2], json.loads(sys.argv[3]))
+    else:
+        main()
