@@ -86,8 +86,9 @@ def _widen_udp_buffer(bus: can.BusABC) -> None:
 class CanLink:
     """A bus, the loop that reads it, and the handlers each received frame is given to."""
 
-    def __init__(self, bus: can.BusABC, *, owns_bus: bool = True) -> None:
+    def __init__(self, bus: can.BusABC, *, owns_bus: bool = True, spec: str | None = None) -> None:
         self.bus = bus
+        self._spec = spec
         self._owns_bus = owns_bus
         self._handlers: list[Handler] = []
         self._filters: dict[Handler, list[dict[str, Any]] | None] = {}
@@ -106,11 +107,13 @@ class CanLink:
 
     @classmethod
     def open(cls, spec: str) -> CanLink:
-        return cls(open_bus(spec), owns_bus=True)
+        return cls(open_bus(spec), owns_bus=True, spec=spec)
 
     @property
     def channel_info(self) -> str:
-        return str(getattr(self.bus, "channel_info", "?"))
+        """The bus's own description, or the spec it was opened with when it has none."""
+        info = str(getattr(self.bus, "channel_info", "unknown"))
+        return self._spec if info == "unknown" and self._spec else info
 
     def add_handler(self, handler: Handler, filters: list[dict[str, Any]] | None = None) -> None:
         """Give every received frame to ``handler``; ``filters`` says which frames it needs."""
