@@ -9,10 +9,11 @@ state: after a start the CAN-ECB says Hello and every node announces itself agai
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import sqlite3
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from fractions import Fraction
 from math import ceil
 from pathlib import Path
@@ -31,6 +32,7 @@ RACE_TIMEOUT = 1.0  # a race whose leader fell silent this long starts again
 #: real bus arbitration already lets the lowest id through first; buses emulated over IP or in
 #: memory deliver simultaneous offers in any order.
 SETTLE = 0.05
+GATE_TIMEOUT = 1.0  # the longest a publisher's binding waits for the gateway
 #: Priorities the CAN-ECB gives declared real-time streams; best-effort channels stay below
 #: (0x80 by default), management frames above (0x00, 0x01).
 RT_FIRST, RT_LAST = 0x02, 0x7F
@@ -76,7 +78,9 @@ class CanEcb:
 
     ``subscribers`` and ``publishers`` map each channel UID to the TxNodes that subscribe to or
     publish on it. ``on_change(uid)`` is called whenever either set of a channel changes (the
-    gateway forwards by them).
+    gateway forwards by them). ``bind_gate(uid)``, when set, is awaited (at most
+    ``GATE_TIMEOUT`` s) before a publisher's binding is answered, so that a gateway is
+    forwarding the channel before its first event is sent.
     """
 
     def __init__(
@@ -102,6 +106,8 @@ class CanEcb:
         self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
         self.publishers: defaultdict[int, set[int]] = defaultdict(set)
         self.on_change: Callable[[int], None] | None = None
+        self.bind_gate: Callable[[int], Awaitable[None]] | None = None
+        self._gated: set[asyncio.Task[None]] = set()
         self.counters = dict.fromkeys(
             ("joined", "bound", "requests", "malformed", "foreign", "refused", "admitted"), 0
         )
@@ -140,6 +146,8 @@ class CanEcb:
         if self._race_timer is not None:
             self._race_timer.cancel()
             self._race_timer = None
+        for task in self._gated:
+            task.cancel()
         self.link.remove_handler(self._handler)
         self._store.close()
 
@@ -246,9 +254,21 @@ class CanEcb:
             self.counters["refused"] += 1
             self._send(p.EtagsFull(uid))
             return
-        self._send(p.Bind(etag, uid))
         table = self.subscribers if msg.kind == p.SUB_BIND else self.publishers
         self._update(table, uid, msg.txnode, add=True)
+        if msg.kind == p.PUB_BIND and self.bind_gate is not None:
+            task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid))
+            self._gated.add(task)
+            task.add_done_callback(self._gated.discard)
+        else:
+            self._send(p.Bind(etag, uid))
+
+    async def _gated_bind(self, etag: int, uid: int) -> None:
+        assert self.bind_gate is not None
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(GATE_TIMEOUT):
+                await self.bind_gate(uid)
+        self._send(p.Bind(etag, uid))
 
     def _etag_for(self, uid: int) -> int | None:
         etag = self._store.etags.get(uid)

@@ -154,6 +154,8 @@ class Gateway:
         self._to_tcp_sinks: dict[int, _ToTcp] = {}  # uid -> forwarder on the CAN side
         self._to_can_sinks: dict[int, _ToCan] = {}  # uid -> forwarder on the TCP side
         self._dirty: set[int] = set()
+        self._settled: dict[int, list[asyncio.Future[None]]] = {}  # uid -> awaiting its reconcile
+        self._current: int | None = None  # the channel being reconciled
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._pacer_wake = asyncio.Event()
@@ -208,6 +210,8 @@ class Gateway:
         tcp_face.on_targets = self._changed
         tcp_face.extra_status = self.status
         self._tables.on_change = self._changed
+        if self._ecb is not None:
+            self._ecb.bind_gate = self._until_settled
         self._dirty.update(self._tables.subscribers)
         self._dirty.update(self._tables.publishers)
         loop = asyncio.get_running_loop()
@@ -289,13 +293,27 @@ class Gateway:
             await self._wake.wait()
             self._wake.clear()
             while self._dirty:
-                uid = self._dirty.pop()
+                uid = self._current = self._dirty.pop()
                 try:
                     await self._reconcile(uid)
                 except UpsError as exc:  # e.g. the CAN-ECB did not answer: try again later
                     self.counters["reconcile_errors"] += 1
                     log.warning("could not update forwarding of %016x: %s", uid, exc)
                     asyncio.get_running_loop().call_later(1.0, self._changed, uid)
+                self._current = None
+                if uid not in self._dirty:
+                    for fut in self._settled.pop(uid, ()):
+                        if not fut.done():
+                            fut.set_result(None)
+
+    async def _until_settled(self, uid: int) -> None:
+        """Wait until the forwarding of ``uid`` follows the tables (the CAN-ECB's bind gate: a
+        new publisher's first events are then forwarded to subscribers already on TCP)."""
+        if uid not in self._dirty and uid != self._current:
+            return
+        fut = asyncio.get_running_loop().create_future()
+        self._settled.setdefault(uid, []).append(fut)
+        await fut
 
     async def _reconcile(self, uid: int) -> None:
         assert self._tables is not None and self.can is not None and self.tcp is not None

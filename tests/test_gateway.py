@@ -78,6 +78,21 @@ async def test_can_publisher_to_tcp_subscriber_keeps_the_priority(
         assert gw.stats()["to_tcp"] == sent
 
 
+async def test_a_new_can_publishers_first_event_reaches_tcp(
+    bus: str, tcp_ecb: TcpEcb, tmp_path: Path
+) -> None:
+    """The hosted CAN-ECB answers a new publisher's binding only once the gateway forwards."""
+    async with (
+        gateway(bus, tcp_ecb, tmp_path / "gw.db") as gw,
+        can_node(bus, 0xCA) as cpub,
+        tcp_node(tcp_ecb, 0x7A) as tsub_node,
+    ):
+        sub = await tsub_node.subscribe("first")
+        await cpub.publish("first", b"\x01")  # its very first event on a fresh channel
+        assert (await sub.get_msg(timeout=5)).data == b"\x01"
+        assert forwarding(gw, "first", "tcp")
+
+
 async def test_tcp_publisher_to_can_subscriber_keeps_the_priority(
     bus: str, raw_bus: can.BusABC, tcp_ecb: TcpEcb, tmp_path: Path
 ) -> None:
