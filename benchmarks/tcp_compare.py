@@ -15,7 +15,7 @@ killed by PID if it has not ended. Needs ``scripts/bench-setup`` for pyzmq, paho
 eclipse-zenoh, uvloop and mosquitto; a peer whose package is missing is skipped.
 
     .venv/bin/python -m benchmarks.tcp_compare [--roundtrips N] [--messages M]
-        [--peers raw,asyncio,zmq,mqtt,zenoh] [--json PATH]
+        [--peers raw,asyncio,zmq,mqtt,zenoh,ups] [--json PATH]
 """
 
 from __future__ import annotations
