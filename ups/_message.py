@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from ._channel import Channel
 
 
-@dataclass(frozen=True, slots=True)
-class Message:
-    """One event received on a channel.
+class Message(NamedTuple):
+    """One event received on a channel (immutable; a named tuple, the cheapest to build).
 
     ``timestamp`` is the receive time in seconds since the epoch (``time.time()``), taken when
     the frame reached this node (or, for a local publish, when it was published). ``source`` is
-    the publisher's address on the network the event came from (its TxNode on CAN), or ``None``
-    for an event published in this process.
+    the publisher's address on the network the event came from (its TxNode on CAN, its node id
+    on TCP/IP), or ``None`` for an event published in this process.
     """
 
     channel: Channel

@@ -88,6 +88,7 @@ class Subscription:
         self.dropped = 0
         self._node = node
         self._queue: collections.deque[Message] = collections.deque()
+        self._loop = asyncio.get_running_loop()
         self._waiter: asyncio.Future[None] | None = None
         self._closed = False
 
@@ -119,10 +120,10 @@ class Subscription:
         while not self._queue:
             if self._closed:
                 raise Closed("subscription closed")
-            waiter = asyncio.get_running_loop().create_future()
+            waiter = self._loop.create_future()
             self._waiter = waiter
             try:
-                await asyncio.wait_for(waiter, timeout)
+                await _wait(self._loop, waiter, timeout)
             finally:
                 self._waiter = None
         return self._queue.popleft()
@@ -368,10 +369,11 @@ class Node:
             if oldest is not None:
                 return oldest._queue.popleft()
             self._check_open()
-            waiter = asyncio.get_running_loop().create_future()
+            loop = asyncio.get_running_loop()
+            waiter = loop.create_future()
             self._any_waiter = waiter
             try:
-                await asyncio.wait_for(waiter, timeout)
+                await _wait(loop, waiter, timeout)
             finally:
                 self._any_waiter = None
 
@@ -486,6 +488,25 @@ class Node:
             self._any_waiter = None
             if not waiter.done():
                 waiter.set_result(None)
+
+
+async def _wait(
+    loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[None], timeout: float | None
+) -> None:
+    """Await ``waiter``; raise ``TimeoutError`` after ``timeout`` s (cheaper than wait_for)."""
+    if timeout is None:
+        await waiter
+        return
+    timer = loop.call_later(timeout, _expire, waiter)
+    try:
+        await waiter
+    finally:
+        timer.cancel()
+
+
+def _expire(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_exception(TimeoutError())
 
 
 def _program_name() -> str:

@@ -2,8 +2,9 @@
 
 Receiving: a ``BufferedProtocol`` whose one buffer is reused for every read; whole frames are
 decoded in place (``_tcpwire.parse``), events without building a frame object. Bad bytes close
-this connection only. Sending: frames are queued and written together once per event-loop
-iteration (or as soon as ``limit`` of them are waiting), so a burst costs one system call. The
+this connection only. Sending: the first frame of an event-loop iteration is written at once;
+the frames that follow it in the same iteration are queued and written together at its end
+(or as soon as ``limit`` of them are waiting), so a burst costs two system calls, not one each. The
 queue is bounded: while the peer does not read (the transport paused us) it fills up to
 ``limit`` frames, then ``overflow`` decides which frame is lost, and ``dropped`` counts it.
 """
@@ -94,10 +95,14 @@ class Link(asyncio.BufferedProtocol):
                 if self.overflow == "drop_newest":
                     return False
                 out.popleft()
-        out.append(frame)
         if not self._flush_pending and self._writable():
-            self._flush_pending = True
+            self._flush_pending = True  # frames sent later in this loop iteration are batched
             self._loop.call_soon(self._flush)
+            if not out:  # the first frame of this iteration goes out at once: no added latency
+                self.sent += 1
+                self.transport.write(frame)  # type: ignore[union-attr]
+                return True
+        out.append(frame)
         return True
 
     def adopt(self, other: Link) -> None:
