@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -82,26 +83,16 @@ class _Tables:
             self.on_change(msg.value)
 
 
-class _ToCan:
-    """Sink of the TCP side: events for CAN subscribers, paced to what the bus carries."""
+class _Forward:
+    """A sink in one side's channel table: hands each event to the gateway for the other side,
+    with ``state``, the other side's state of the channel."""
 
-    def __init__(self, gateway: Gateway, state: ChannelState) -> None:
-        self._gateway = gateway
-        self.state = state  # the CAN side's state of the channel
-
-    def _push(self, msg: Message) -> None:
-        self._gateway._to_can(self.state, msg)
-
-
-class _ToTcp:
-    """Sink of the CAN side: events for TCP subscribers."""
-
-    def __init__(self, gateway: Gateway, state: ChannelState) -> None:
-        self._gateway = gateway
-        self.state = state  # the TCP side's state of the channel
+    def __init__(self, send: Callable[[ChannelState, Message], None], state: ChannelState) -> None:
+        self._send = send
+        self.state = state
 
     def _push(self, msg: Message) -> None:
-        self._gateway._to_tcp(self.state, msg)
+        self._send(self.state, msg)
 
 
 class Gateway:
@@ -151,8 +142,8 @@ class Gateway:
         self._id_lock: IO[bytes] | None = None
         self.can: Node | None = None
         self.tcp: Node | None = None
-        self._to_tcp_sinks: dict[int, _ToTcp] = {}  # uid -> forwarder on the CAN side
-        self._to_can_sinks: dict[int, _ToCan] = {}  # uid -> forwarder on the TCP side
+        self._to_tcp_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the CAN side
+        self._to_can_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the TCP side
         self._dirty: set[int] = set()
         self._settled: dict[int, list[asyncio.Future[None]]] = {}  # uid -> awaiting its reconcile
         self._current: int | None = None  # the channel being reconciled
@@ -324,7 +315,7 @@ class Gateway:
 
         if can_subs and uid not in self._to_can_sinks:  # TCP -> CAN
             can_state = await self.can._publishing_state(channel)
-            sink = self._to_can_sinks[uid] = _ToCan(self, can_state)
+            sink = self._to_can_sinks[uid] = _Forward(self._to_can, can_state)
             await self.tcp._attach(channel, sink)
             log.info("forwarding %016x from TCP to CAN", uid)
         elif not can_subs and uid in self._to_can_sinks:
@@ -337,7 +328,7 @@ class Gateway:
         wanted = can_pubs and self._tcp_face().subscribed_elsewhere(uid)
         if wanted and uid not in self._to_tcp_sinks:  # CAN -> TCP
             assert tcp_state is not None
-            sink_tcp = self._to_tcp_sinks[uid] = _ToTcp(self, tcp_state)
+            sink_tcp = self._to_tcp_sinks[uid] = _Forward(self._to_tcp, tcp_state)
             await self.can._attach(channel, sink_tcp)
             log.info("forwarding %016x from CAN to TCP", uid)
         elif not wanted and uid in self._to_tcp_sinks:

@@ -15,7 +15,9 @@ import can
 import pytest
 
 from broker.can_ecb import CanEcb
-from ups._canlink import CanLink
+from ups._canlink import CanLink, open_bus
+
+from .procs import private_multicast_bus, vcan_bus
 
 _bus_numbers = itertools.count()
 
@@ -74,3 +76,23 @@ async def eventually(predicate: Callable[[], bool], timeout: float = 5.0) -> Non
         if loop.time() > deadline:
             raise AssertionError(f"condition not met within {timeout} s")
         await asyncio.sleep(0.001)
+
+
+@pytest.fixture(
+    params=[
+        pytest.param("udp_multicast", marks=pytest.mark.netns),
+        pytest.param("socketcan", marks=pytest.mark.socketcan),
+    ]
+)
+def mbus(request: pytest.FixtureRequest) -> str:
+    """A bus that separate processes share: udp_multicast in a private network namespace, and
+    (a second run of the test) SocketCAN vcan0 inside User-Mode Linux."""
+    return private_multicast_bus() if request.param == "udp_multicast" else vcan_bus()
+
+
+@pytest.fixture
+def wire(mbus: str) -> Iterator[can.BusABC]:
+    """A listener on ``mbus``, opened before any process so that it hears every frame."""
+    listener = open_bus(mbus)
+    yield listener
+    listener.shutdown()

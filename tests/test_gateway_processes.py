@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import json
 import re
-from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -20,27 +19,10 @@ from ups import name_to_uid
 from ups._canlink import open_bus
 from ups._tcpface import query_status
 
-from .procs import Proc, private_multicast_bus, start_tcp_broker, vcan_bus
+from .procs import Proc, private_multicast_bus, start_tcp_broker
 from .test_tcp_processes import wait_until
 
 GW_ID = 0x6A7E
-
-
-@pytest.fixture(
-    params=[
-        pytest.param("udp_multicast", marks=pytest.mark.netns),
-        pytest.param("socketcan", marks=pytest.mark.socketcan),
-    ]
-)
-def mbus(request: pytest.FixtureRequest) -> str:
-    return private_multicast_bus() if request.param == "udp_multicast" else vcan_bus()
-
-
-@pytest.fixture
-def wire(mbus: str) -> Iterator[can.BusABC]:
-    listener = open_bus(mbus)
-    yield listener
-    listener.shutdown()
 
 
 def start_gateway(bus: str, broker: str, db: Path, node_id: int = GW_ID) -> tuple[Proc, str]:

@@ -8,35 +8,14 @@ by a plain python-can listener and checked against the layout in docs/protocol.m
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 
 import can
-import pytest
 
 from ups import _canproto as p
 from ups import name_to_uid
-from ups._canlink import open_bus
 
-from .procs import Proc, private_multicast_bus, vcan_bus
-
-
-@pytest.fixture(
-    params=[
-        pytest.param("udp_multicast", marks=pytest.mark.netns),
-        pytest.param("socketcan", marks=pytest.mark.socketcan),
-    ]
-)
-def mbus(request: pytest.FixtureRequest) -> str:
-    return private_multicast_bus() if request.param == "udp_multicast" else vcan_bus()
-
-
-@pytest.fixture
-def wire(mbus: str) -> Iterator[can.BusABC]:
-    """A listener on the bus, opened before any process so it hears every frame."""
-    listener = open_bus(mbus)
-    yield listener
-    listener.shutdown()
+from .procs import Proc
 
 
 def drain(bus: can.BusABC) -> list[can.Message]:
