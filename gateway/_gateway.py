@@ -54,7 +54,7 @@ class _Tables:
         self.link = link
         self.subscribers: collections.defaultdict[int, set[int]] = collections.defaultdict(set)
         self.publishers: collections.defaultdict[int, set[int]] = collections.defaultdict(set)
-        self.on_change: Any = None
+        self.on_change: Callable[[int], None] | None = None
         self._handler = self._on_frame
 
     def start(self) -> None:

@@ -143,7 +143,7 @@ def test_two_buses_two_gateways(tmp_path: Path) -> None:
     with broker, gw_a, gw_b:
         sub_a = Proc("sub", "from-b", "--can", bus_a, "--json", "--count", "2", "--node-id", "0xA1")
         sub_b = Proc("sub", "from-a", "--can", bus_b, "--json", "--count", "2", "--node-id", "0xB1")
-        host = Proc("sub", "from-a", "from-b", "--broker", address, "--json", "--count", "4")
+        host = Proc("sub", "from-a", "from-b", "--broker", address, "--json", "--count", "20")
         with sub_a, sub_b, host:
             for proc in (sub_a, sub_b, host):
                 proc.wait_for_line("subscribed to")
@@ -159,7 +159,7 @@ def test_two_buses_two_gateways(tmp_path: Path) -> None:
                 code, out = host.finish(timeout=60)
                 assert code == 0
                 seen = {json.loads(line)["data"] for line in out.splitlines()}
-                assert seen <= {"aa", "bb"}  # TCP hosts see both buses (4 events of the two)
+                assert seen == {"aa", "bb"}  # a TCP host sees both buses
 
 
 @pytest.mark.netns

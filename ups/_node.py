@@ -201,12 +201,10 @@ class Node:
         self._can = can
         self._join_timeout = join_timeout
         self._filter_limit = filter_limit
-        self._tcp: dict[str, Any] = {
-            "broker": broker,
-            "listen": listen,
-            "peer_queue": peer_queue,
-            "peer_overflow": peer_overflow,
-        }
+        self._broker = broker
+        self._listen = listen
+        self._peer_queue = peer_queue
+        self._peer_overflow: Overflow = peer_overflow
         self._face: Face | None = None
         self._states: dict[int, ChannelState] = {}
         self._publishing: dict[ChannelLike, ChannelState] = {}
@@ -249,15 +247,15 @@ class Node:
         if self._can is not None:
             face = CanFace(self, self._can, self._node_id, self._join_timeout, self._filter_limit)
         else:
-            tcp = self._tcp
+            assert self._broker is not None
             face = TcpFace(
                 self,
-                tcp["broker"],
+                self._broker,
                 self._node_id,
-                listen=tcp["listen"],
+                listen=self._listen,
                 join_timeout=self._join_timeout,
-                peer_queue=tcp["peer_queue"],
-                peer_overflow=tcp["peer_overflow"],
+                peer_queue=self._peer_queue,
+                peer_overflow=self._peer_overflow,
             )
         try:
             await face.start()

@@ -498,11 +498,13 @@ class TcpFace:
         return link
 
     def _incoming_event(self, link: Link, uid: int, data: bytes, priority: int) -> None:
+        if link.peer is None:
+            self.counters["malformed"] += 1
+            link.abort("event before Hello")
+            return
         state = self._node._states.get(uid)
-        if state is None or not state.subs or link.peer is None:
-            self.counters["unsubscribed" if link.peer is not None else "malformed"] += 1
-            if link.peer is None:
-                link.abort("event before Hello")
+        if state is None or not state.subs:  # we unsubscribed; the publisher will hear of it
+            self.counters["unsubscribed"] += 1
             return
         self.counters["received"] += 1
         self._node._deliver(state, data, priority, link.peer, time.time())

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import logging
 from collections.abc import Callable
 from typing import Any, Literal, cast
@@ -46,12 +47,10 @@ class Link(asyncio.BufferedProtocol):
         self.peer: Any = None
         self.limit = limit
         self.overflow: Overflow = overflow
-        self.sent = 0
         self.dropped = 0
-        self.received = 0
         self.transport: asyncio.Transport | None = None
-        self._on_event = on_event
-        self._on_frame = on_frame
+        self._event = functools.partial(on_event, self)  # made once: no per-event trampoline
+        self._frame = functools.partial(on_frame, self)
         self._on_lost = on_lost
         self._max_frame = max_frame
         self._buf = bytearray(_BUFFER)
@@ -99,7 +98,6 @@ class Link(asyncio.BufferedProtocol):
             self._flush_pending = True  # frames sent later in this loop iteration are batched
             self._loop.call_soon(self._flush)
             if not out:  # the first frame of this iteration goes out at once: no added latency
-                self.sent += 1
                 self.transport.write(frame)  # type: ignore[union-attr]
                 return True
         out.append(frame)
@@ -123,7 +121,6 @@ class Link(asyncio.BufferedProtocol):
         out = self._out
         if out and self._writable():
             assert self.transport is not None
-            self.sent += len(out)
             self.transport.write(out[0] if len(out) == 1 else b"".join(out))
             out.clear()
         if self._closing and not out and self.transport is not None:
@@ -188,14 +185,6 @@ class Link(asyncio.BufferedProtocol):
             self._start = self._end = 0
         else:
             self._start = pos
-
-    def _event(self, uid: int, data: bytes, priority: int) -> None:
-        self.received += 1
-        self._on_event(self, uid, data, priority)
-
-    def _frame(self, frame: w.Frame) -> None:
-        self.received += 1
-        self._on_frame(self, frame)
 
     def eof_received(self) -> bool:
         return False  # close our side too
