@@ -13,13 +13,15 @@ Two methods:
     worst case with bit stuffing (``frame_bits(..., stuffing="worst")``).
 
 ``tindell1994``
-    The computation behind Table 1 of paper 000 (Tindell & Burns 1994 as that paper applies
-    it): ``R_m = w_m + C_m`` with
-    ``w_m = B_m + sum_{k in hp(m)} ceil((w_m + tau_bit) / T_k) C_k``, only the first instance,
-    queuing jitter left out (paper 000, section 4.2: "J_m is not factored into the calculations
-    in Table 1"), and frame times from ``8s + g + 13 + floor((g + 8s) / 5)`` (63 bits for one
-    byte, 130 for eight, 11-bit identifiers). It is optimistic: it ignores jitter, under-counts
-    stuff bits, and misses the push-through of a message's own earlier instance.
+    The computation behind Table 1 of paper 000, the first-instance analysis of Tindell and Burns
+    (1994; Tindell, Burns and Wellings 1995): ``R_m = J_m + w_m + C_m`` with
+    ``w_m = B_m + sum_{k in hp(m)} ceil((w_m + J_k + tau_bit) / T_k) C_k``. As paper 000 applies
+    it, the message's own queuing jitter ``J_m`` is left out of ``R_m`` (section 4.2: "J_m is not
+    factored into the calculations in Table 1. However, the rest of the calculation remains
+    intact"), so ``R_m = w_m + C_m``; the higher-priority messages' jitter ``J_k`` still counts in
+    ``w_m``. Frame times come from ``8s + g + 13 + floor((g + 8s) / 5)`` (63 bits for one byte,
+    130 for eight, 11-bit identifiers). It is optimistic: it leaves out ``J_m``, under-counts stuff
+    bits, and misses the push-through of a message's own earlier instance.
 
 Blocking ``B_m`` is, by default (``blocking="max-frame"``), the longest frame of the bus's format
 (8 data bytes, or 64 with CAN FD), because a UPS bus may carry foreign frames outside the
@@ -106,7 +108,7 @@ def _prepare(
             spec=spec,
             c=n * tau,
             t=spec.period_ms,
-            j=Fraction(0) if method == "tindell1994" else spec.jitter_ms,
+            j=spec.jitter_ms,
             d=spec.deadline_ms,
         )
         for spec, n in zip(specs, bits, strict=True)
@@ -146,7 +148,7 @@ def _response_time(bus: _Bus, higher: Sequence[_Msg], m: _Msg, b: Fraction) -> F
         if _utilisation(higher) >= 1:
             return None
         w = _queuing(b, higher, b + hp_sum, bus.tau)
-        return m.j + w + m.c
+        return w + m.c  # paper 000 leaves out J_m, not the J_k inside w_m
     level = [*higher, m]
     if _utilisation(level) >= 1:
         return None

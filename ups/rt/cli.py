@@ -60,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=METHODS,
         default="davis2007",
         help="davis2007: revised analysis with queuing jitter (default); tindell1994: the "
-        "computation behind Table 1 of paper 000 (no jitter; optimistic)",
+        "computation behind Table 1 of paper 000 (own queuing jitter left out; optimistic)",
     )
     parser.add_argument(
         "--id-bits", type=int, choices=(11, 29), default=29, help="identifier length (default 29)"
