@@ -1,9 +1,19 @@
 """The CAN Event Channel Broker: gives TxNodes to joining nodes and binds channel UIDs to etags.
 
-Exactly one CAN-ECB serves a bus, standalone (``ups can-broker``) or hosted by the gateway. Its
-tables (node id -> TxNode, UID -> etag) live in an SQLite file, so a restarted CAN-ECB gives every
-node and channel the same identifiers as before. Who publishes and subscribes what is soft
-state: after a start the CAN-ECB says Hello and every node announces itself again.
+Exactly one CAN-ECB serves a bus, standalone (``ups can-broker``) or hosted by the gateway.
+Its tables (node id -> TxNode, UID -> etag) live in an SQLite file of the bus's own
+(``_store``), so a restarted CAN-ECB gives every node and channel the same identifiers as
+before. It announces an assignment or a binding only once it is durable.
+
+A started CAN-ECB says Hello and, for ``recovery`` seconds, only listens: nodes already on the
+bus claim their TxNodes and report the bindings they hold (SUB_AT, PUB_AT), and the CAN-ECB
+adopts whatever does not contradict its tables. So a CAN-ECB that lost its file relearns the
+bus without moving any etag. Requests for new bindings and joins wait for the window's end.
+
+Nothing a node or a stray frame says can make two channels share an etag: a report or a Bind
+that contradicts the tables is counted, logged and answered with the tables' own Binds, and
+nodes re-bind on any contradiction (docs/protocol.md). A second CAN-ECB is detected by its
+frames; the one that served first (else the lower instance id) stays, the other stands by.
 """
 
 from __future__ import annotations
@@ -11,11 +21,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import sqlite3
+import secrets
+import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
-from fractions import Fraction
-from math import ceil
 from pathlib import Path
 
 import can
@@ -23,54 +32,22 @@ import can
 from ups import _canproto as p
 from ups._canlink import CanLink
 from ups._errors import DecodeError
-from ups.rt import MessageSpec, NotSchedulable, assign_priorities
+
+from ._admission import Admission
+from ._census import Census
+from ._store import Store, Write
 
 log = logging.getLogger("ups.can_ecb")
 
-RACE_TIMEOUT = 1.0  # a race whose leader fell silent this long starts again
-#: A complete id is held this long before it wins, so that a lower id can still object. On a
-#: real bus arbitration already lets the lowest id through first; buses emulated over IP or in
-#: memory deliver simultaneous offers in any order.
-SETTLE = 0.05
-GATE_TIMEOUT = 1.0  # the longest a publisher's binding waits for the gateway
-#: Priorities the CAN-ECB gives declared real-time streams; best-effort channels stay below
-#: (0x80 by default), management frames above (0x00, 0x01).
-RT_FIRST, RT_LAST = 0x02, 0x7F
-
-
-class _Store:
-    """The persistent tables, mirrored in dicts; every change is committed at once."""
-
-    def __init__(self, path: str | Path) -> None:
-        self._db = sqlite3.connect(str(path))
-        self._db.executescript(
-            """
-            CREATE TABLE IF NOT EXISTS txnodes (node_id TEXT PRIMARY KEY,
-                                                txnode INTEGER UNIQUE NOT NULL);
-            CREATE TABLE IF NOT EXISTS etags (uid TEXT PRIMARY KEY, etag INTEGER UNIQUE NOT NULL);
-            """
-        )
-        self.txnodes: dict[int, int] = {
-            int(k, 16): v for k, v in self._db.execute("SELECT * FROM txnodes")
-        }
-        self.etags: dict[int, int] = {
-            int(k, 16): v for k, v in self._db.execute("SELECT * FROM etags")
-        }
-        self.taken_etags = set(self.etags.values())
-
-    def add_txnode(self, node_id: int, txnode: int) -> None:
-        with self._db:
-            self._db.execute("INSERT INTO txnodes VALUES (?, ?)", (f"{node_id:016x}", txnode))
-        self.txnodes[node_id] = txnode
-
-    def add_etag(self, uid: int, etag: int) -> None:
-        with self._db:
-            self._db.execute("INSERT INTO etags VALUES (?, ?)", (f"{uid:016x}", etag))
-        self.etags[uid] = etag
-        self.taken_etags.add(etag)
-
-    def close(self) -> None:
-        self._db.close()
+RECOVERY = 2.0  #: seconds after Hello during which the CAN-ECB only listens and adopts (longer
+#: than the nodes' Hello answer gap of 1 s, so that every node answers within it)
+GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
+HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
+LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
+MAX_CHANNELS = 1024  #: channels one TxNode may subscribe to or publish on
+MAX_DEFERRED = 4096  #: binding requests held during the recovery window
+DECLARE_RATE = 10.0  #: admission analyses per second and TxNode (a burst of twice that)
+LOG_GAP = 10.0  #: a repeated warning is logged at most this often
 
 
 class CanEcb:
@@ -80,76 +57,150 @@ class CanEcb:
     publish on it. ``on_change(uid)`` is called whenever either set of a channel changes (the
     gateway forwards by them). ``bind_gate(uid)``, when set, is awaited (at most
     ``GATE_TIMEOUT`` s) before a publisher's binding is answered, so that a gateway is
-    forwarding the channel before its first event is sent.
+    forwarding the channel before its first event is sent. ``on_standby(reason)`` is called
+    when another CAN-ECB serves the bus and this one stops answering.
     """
 
     def __init__(
         self,
         link: CanLink,
-        db_path: str | Path = "ups-can-ecb.db",
+        db_path: str | Path,
         *,
         bitrate: int = 500_000,
-        settle: float = SETTLE,
+        recovery: float = RECOVERY,
+        lease: float = LEASE,
+        max_channels: int = MAX_CHANNELS,
     ) -> None:
         self.link = link
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
-        self._store = _Store(db_path)
-        self._epoch = 0
-        self._prefix: list[int] = []
-        self._race_timer: asyncio.TimerHandle | None = None
-        self._settle = settle
+        self._store = Store(db_path)
+        self.instance = secrets.randbits(64)
+        self._recovery = recovery
+        self._lease = lease
+        self._max_channels = max_channels
+        self.recovering = False
+        self.standby = False
+        self._census = Census(self._send, self._found)
+        self._admission = Admission(bitrate)
         self.bitrate = bitrate
-        #: (etag, TxNode) -> the declared real-time stream, and the priority it was granted
-        self.declared: dict[tuple[int, int], MessageSpec] = {}
-        self.granted: dict[tuple[int, int], int] = {}
-        self._free_etag = p.FIRST_ETAG
+        self._node_at = {t: n for n, t in self._store.txnodes.items()}  # TxNode -> node id
+        self._uid_at = {e: u for u, e in self._store.etags.items()}  # etag -> UID
+        self._pending_tx: dict[int, int] = {}  # node id -> TxNode being written
+        self._pending_etag: dict[int, tuple[int, list[tuple[int, int]]]] = {}  # uid -> etag, asks
+        now = time.monotonic()
+        self._seen_tx = dict.fromkeys(range(p.TXNODE_COUNT), now)  # TxNode -> last frame
+        self._seen_etag: dict[int, float] = {}  # etag -> last event (default: start time)
+        self._started = now
+        self._deferred: dict[tuple[int, int, int], None] = {}
+        self._knocked = False
+        self._recovery_timer: asyncio.TimerHandle | None = None
+        self._last_hello = -HELLO_GAP
+        self._logged: dict[str, float] = {}
+        self._declare_tokens: dict[int, tuple[float, float]] = {}
         self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
         self.publishers: defaultdict[int, set[int]] = defaultdict(set)
+        self._channels_of: defaultdict[int, set[int]] = defaultdict(set)  # TxNode -> uids
+        self._asking: defaultdict[int, set[int]] = defaultdict(set)  # TxNode -> uids being bound
         self.on_change: Callable[[int], None] | None = None
         self.bind_gate: Callable[[int], Awaitable[None]] | None = None
+        self.on_standby: Callable[[str], None] | None = None
         self._gated: set[asyncio.Task[None]] = set()
         self.counters = dict.fromkeys(
-            ("joined", "bound", "requests", "malformed", "foreign", "refused", "admitted"), 0
-        )
+            (
+                "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
+                "adopted", "conflicts", "foreign_ecb_frames", "unassigned", "deferred",
+                "limited", "reclaimed", "storage_errors", "handler_errors",
+            ),
+            0,
+        )  # fmt: skip
+
+    # --- tables and statistics -------------------------------------------------------------
 
     @property
     def txnodes(self) -> dict[int, int]:
-        """node id -> TxNode, every assignment ever made on this bus."""
+        """node id -> TxNode, every durable assignment on this bus."""
         return dict(self._store.txnodes)
 
     @property
     def etags(self) -> dict[int, int]:
-        """channel UID -> etag, every binding ever made on this bus."""
+        """channel UID -> etag, every durable binding on this bus."""
         return dict(self._store.etags)
 
-    def stats(self) -> dict[str, int]:
+    @property
+    def declared(self) -> dict[tuple[int, int], object]:
+        return dict(self._admission.declared)
+
+    @property
+    def granted(self) -> dict[tuple[int, int], int]:
+        return dict(self._admission.granted)
+
+    @property
+    def healthy(self) -> bool:
+        """False while the database fails or another CAN-ECB serves the bus."""
+        return self._store.last_error is None and not self.standby
+
+    def stats(self) -> dict[str, object]:
         return {
             **self.counters,
+            **{f"census_{k}": v for k, v in self._census.counters.items()},
             "txnodes": len(self._store.txnodes),
             "etags": len(self._store.etags),
+            "storage_batches": self._store.batches,
+            "storage_error": self._store.last_error,
+            "db": str(self._store.path),
+            "healthy": self.healthy,
+            "standby": self.standby,
+            "instance": f"{self.instance:016x}",
         }
+
+    # --- life cycle ------------------------------------------------------------------------
 
     async def start(self) -> None:
         """Listen on the bus and say Hello, so that nodes already running announce themselves."""
+        self._store.start()
         self.link.add_handler(self._handler, None)
         self.link.start()
-        self._send(p.Hello(self._epoch))
+        self._hello()
         log.info(
-            "CAN-ECB on %s: %d TxNodes, %d etags bound",
+            "CAN-ECB on %s: %d TxNodes, %d etags bound (%s), instance %016x",
             self.link.channel_info,
             len(self._store.txnodes),
             len(self._store.etags),
+            self._store.path,
+            self.instance,
         )
 
     def close(self) -> None:
         """Stop serving the bus (the link stays open). Safe to call twice."""
-        if self._race_timer is not None:
-            self._race_timer.cancel()
-            self._race_timer = None
+        self._census.close()
+        if self._recovery_timer is not None:
+            self._recovery_timer.cancel()
+            self._recovery_timer = None
         for task in self._gated:
             task.cancel()
         self.link.remove_handler(self._handler)
         self._store.close()
+
+    def _hello(self) -> None:
+        self._last_hello = time.monotonic()
+        self.recovering = True
+        if self._recovery_timer is not None:
+            self._recovery_timer.cancel()
+        loop = asyncio.get_running_loop()
+        self._recovery_timer = loop.call_later(self._recovery, self._recovered)
+        self._send(p.Hello(self.instance))
+
+    def _recovered(self) -> None:
+        self._recovery_timer = None
+        self.recovering = False
+        if self.standby:
+            return
+        deferred, self._deferred = list(self._deferred), {}
+        for kind, txnode, uid in deferred:
+            self._on_bind_request(p.Request(kind, txnode, uid))
+        if self._knocked:
+            self._knocked = False
+            self._census.knock()
 
     # --- frames ----------------------------------------------------------------------------
 
@@ -158,7 +209,11 @@ class CanEcb:
             self.counters["foreign"] += 1
             return
         can_id = frame.arbitration_id
+        txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
+        if txnode != p.MGMT_TXNODE:
+            self._seen_tx[txnode] = time.monotonic()
         if not p.is_management(can_id):
+            self._seen_etag[can_id & p.ETAG_MASK] = time.monotonic()
             return
         try:
             msg = p.decode(can_id, bytes(frame.data))
@@ -166,97 +221,239 @@ class CanEcb:
             self.counters["malformed"] += 1
             log.debug("skipped malformed management frame: %s", exc)
             return
-        if isinstance(msg, p.Stage):
-            self._on_stage(msg)
-        elif isinstance(msg, p.Request):
-            self.counters["requests"] += 1
-            self._on_request(msg)
-        elif isinstance(msg, p.Declare):
-            self.counters["requests"] += 1
-            self._on_declare(msg)
+        try:
+            self._on_management(msg)
+        except Exception:  # a bug must not stop the CAN-ECB: count it, log it, go on
+            self.counters["handler_errors"] += 1
+            log.exception("CAN-ECB failed on %s", msg)
 
-    # --- the TxNode race -------------------------------------------------------------------
-
-    def _on_stage(self, msg: p.Stage) -> None:
-        prefix = self._prefix
-        if msg.epoch != self._epoch or msg.stage > len(prefix):
-            self._announce_state()  # stale: tell the sender where the race stands
+    def _on_management(self, msg: p.Management) -> None:
+        if isinstance(msg, p.ECB_FRAMES):
+            self._on_foreign_ecb(msg)
+        elif self.standby:
             return
-        if msg.stage == len(prefix):
-            prefix.append(msg.nibble)
-        elif msg.nibble < prefix[msg.stage]:
-            del prefix[msg.stage :]
-            prefix.append(msg.nibble)
-        else:  # a repeat, or a higher id than the leader's
-            self._announce_state()
-            return
-        self._epoch = (self._epoch + 1) % p.EPOCHS
-        self._send(p.Ack(self._epoch, tuple(prefix)))
-        if len(prefix) < p.NIBBLES:
-            self._arm_race_timer(RACE_TIMEOUT, self._restart_race)
-        else:
-            self._arm_race_timer(self._settle, self._complete_race)
+        elif isinstance(msg, p.Stage):
+            if not self.recovering:
+                self._census.on_stage(msg)
+        elif isinstance(msg, p.Knock):
+            if self.recovering:
+                self._knocked = True
+            else:
+                self._census.knock()
+        elif isinstance(msg, p.Request | p.Holds | p.Declare):
+            self.counters["requests"] += 1
+            if isinstance(msg, p.Request) and msg.kind == p.CLAIM:
+                self._on_claim(msg.txnode, msg.value)
+            elif msg.txnode not in self._node_at:
+                self._unassigned(msg.txnode)
+            elif isinstance(msg, p.Holds):
+                self._on_holds(msg)
+            elif isinstance(msg, p.Declare):
+                self._on_declare(msg)
+            elif msg.kind == p.UNSUB:
+                self._update(self.subscribers, msg.value, msg.txnode, add=False)
+            else:
+                self._on_bind_request(msg)
 
-    def _complete_race(self) -> None:
-        node_id = 0
-        for nib in self._prefix:
-            node_id = (node_id << 4) | nib
-        self._assign(node_id)
-        self._restart_race()
+    def _unassigned(self, txnode: int) -> None:
+        """A request from a TxNode this CAN-ECB does not know: its tables are behind the bus
+        (or someone forges frames). Say Hello again, so that nodes claim (rate-limited)."""
+        self.counters["unassigned"] += 1
+        self._warn("unassigned", "request from TxNode %d, which no node holds", txnode)
+        if not self.recovering and time.monotonic() - self._last_hello >= HELLO_GAP:
+            self._hello()
+
+    # --- another CAN-ECB, or forged frames ---------------------------------------------------
+
+    def _on_foreign_ecb(self, msg: p.Management) -> None:
+        self.counters["foreign_ecb_frames"] += 1
+        if self.standby:
+            return
+        if isinstance(msg, p.Hello | p.Serving):
+            if msg.instance == self.instance:
+                return
+            first = isinstance(msg, p.Serving) and self.recovering
+            if first or (
+                (self.recovering or isinstance(msg, p.Serving)) and msg.instance < self.instance
+            ):
+                self._stand_by(f"CAN-ECB {msg.instance:016x} already serves this bus")
+                return
+            self._warn("ecb", "another CAN-ECB (%016x) on this bus: telling it to stand by",
+                       msg.instance)  # fmt: skip
+            self._send(p.Serving(self.instance))
+            return
+        if isinstance(msg, p.Bind):
+            mine = self._uid_at.get(msg.etag)
+            if mine == msg.uid:
+                return
+            self.counters["conflicts"] += 1
+            self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
+                       msg.etag, msg.uid)  # fmt: skip
+            self._correct(msg.etag, msg.uid)
+            return
+        self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a forger",
+                   type(msg).__name__)  # fmt: skip
+        if time.monotonic() - self._logged.get("serving", -LOG_GAP) >= 1.0:
+            self._logged["serving"] = time.monotonic()
+            self._send(p.Serving(self.instance))
+
+    def _stand_by(self, reason: str) -> None:
+        self.standby = True
+        self._census.close()
+        log.error("%s: this CAN-ECB stands by and answers nothing", reason)
+        if self.on_standby is not None:
+            self.on_standby(reason)
+
+    def _correct(self, etag: int, uid: int) -> None:
+        """Repeat the tables' truth about ``etag`` and ``uid``."""
+        if etag in self._uid_at:
+            self._send(p.Bind(etag, self._uid_at[etag]))
+        if uid in self._store.etags and self._store.etags[uid] != etag:
+            self._send(p.Bind(self._store.etags[uid], uid))
+
+    # --- joining -----------------------------------------------------------------------------
+
+    def _found(self, node_ids: list[int]) -> None:
+        for node_id in node_ids:
+            self._assign(node_id)
 
     def _assign(self, node_id: int) -> None:
+        if self.standby or node_id in self._pending_tx:
+            return
         txnode = self._store.txnodes.get(node_id)
+        if txnode is not None:
+            self._assigned(node_id, txnode)
+            return
+        writes: list[Write] = []
+        txnode = self._free_txnode(writes)
         if txnode is None:
-            taken = set(self._store.txnodes.values())
-            txnode = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
-            if txnode is None:
-                self.counters["refused"] += 1
-                log.warning("no TxNode left for node %016x", node_id)
-                self._send(p.TxNodesFull(node_id))
-                return
-            self._store.add_txnode(node_id, txnode)
+            self.counters["refused"] += 1
+            log.warning("no TxNode left for node %016x", node_id)
+            self._send(p.TxNodesFull(node_id))
+            return
+        self._pending_tx[node_id] = txnode
+        writes.append(("txnodes", node_id, txnode))
+
+        def done(error: BaseException | None) -> None:
+            del self._pending_tx[node_id]
+            if self._stored(error, f"TxNode {txnode} of node {node_id:016x}", node_id):
+                self._hold_txnode(node_id, txnode)
+                self._assigned(node_id, txnode)
+
+        self._store.submit(writes, done)
+
+    def _assigned(self, node_id: int, txnode: int) -> None:
         self.counters["joined"] += 1
+        self._seen_tx[txnode] = time.monotonic()
         self._forget_node(txnode)  # a (re)joining node starts with no subscriptions
         log.info("node %016x has TxNode %d", node_id, txnode)
         self._send(p.Assign(txnode, node_id))
 
-    def _restart_race(self) -> None:
-        self._prefix = []
-        self._epoch = (self._epoch + 1) % p.EPOCHS
-        if self._race_timer is not None:
-            self._race_timer.cancel()
-            self._race_timer = None
-        self._send(p.Reset(self._epoch))
+    def _free_txnode(self, writes: list[Write]) -> int | None:
+        taken = set(self._node_at) | set(self._pending_tx.values())
+        free = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
+        if free is not None:
+            return free
+        now = time.monotonic()
+        idle = [t for t in self._node_at if t not in self._pending_tx.values()]
+        oldest = min(idle, key=lambda t: self._seen_tx[t], default=None)
+        if oldest is None or now - self._seen_tx[oldest] < self._lease:
+            return None
+        old_id = self._node_at.pop(oldest)
+        del self._store.txnodes[old_id]
+        self._forget_node(oldest)
+        writes.append(("txnodes", old_id, None))
+        self.counters["reclaimed"] += 1
+        log.warning("reclaimed TxNode %d of node %016x, silent for %.0f s", oldest, old_id,
+                    now - self._seen_tx[oldest])  # fmt: skip
+        return oldest
 
-    def _arm_race_timer(self, delay: float, then: Callable[[], None]) -> None:
-        if self._race_timer is not None:
-            self._race_timer.cancel()
-        self._race_timer = asyncio.get_running_loop().call_later(delay, then)
+    def _hold_txnode(self, node_id: int, txnode: int) -> None:
+        self._store.txnodes[node_id] = txnode
+        self._node_at[txnode] = node_id
 
-    def _announce_state(self) -> None:
-        if self._prefix:
-            self._send(p.Ack(self._epoch, tuple(self._prefix)))
-        else:
-            self._send(p.Reset(self._epoch))
-
-    # --- binding and subscriptions ---------------------------------------------------------
-
-    def _on_request(self, msg: p.Request) -> None:
-        if msg.kind == p.CLAIM:
-            self._on_claim(msg.txnode, msg.value)
+    def _on_claim(self, txnode: int, node_id: int) -> None:
+        known = self._store.txnodes.get(node_id)
+        if known == txnode:
             return
-        uid = msg.value
-        if msg.kind == p.UNSUB:
-            self._update(self.subscribers, uid, msg.txnode, add=False)
+        holder = self._node_at.get(txnode)
+        if not self.recovering:  # claims answer Hello; any other is stray or forged
+            self.counters["conflicts"] += 1
+            self._warn("claim", "ignored CLAIM of TxNode %d by node %016x outside recovery",
+                       txnode, node_id)  # fmt: skip
+            if holder is None and known is None:
+                self._unassigned(txnode)
             return
-        etag = self._etag_for(uid)
+        if known is None and holder is None and txnode not in self._pending_tx.values():
+            self.counters["adopted"] += 1
+            log.info("adopting TxNode %d of node %016x", txnode, node_id)
+            self._hold_txnode(node_id, txnode)
+            self._store.submit([("txnodes", node_id, txnode)], self._adopt_done(node_id))
+            return
+        self.counters["conflicts"] += 1
+        log.warning("node %016x claims TxNode %d held by another node: reassigning",
+                    node_id, txnode)  # fmt: skip
+        self._assign(node_id)  # the holder of ``txnode`` keeps it and its channels
+
+    def _adopt_done(self, value: int) -> Callable[[BaseException | None], None]:
+        def done(error: BaseException | None) -> None:
+            self._stored(error, f"adopted entry {value:016x}", None)
+
+        return done
+
+    # --- binding and subscriptions -------------------------------------------------------------
+
+    def _on_bind_request(self, msg: p.Request) -> None:
+        uid, txnode = msg.value, msg.txnode
+        if self.recovering and uid not in self._store.etags:
+            if len(self._deferred) < MAX_DEFERRED:
+                self.counters["deferred"] += 1
+                self._deferred[(msg.kind, txnode, uid)] = None
+            return
+        if not self._within_limit(txnode, uid):
+            return
+        etag = self._store.etags.get(uid)
+        if etag is not None:
+            self._bound(msg.kind, txnode, uid, etag)
+            return
+        pending = self._pending_etag.get(uid)
+        if pending is not None:
+            pending[1].append((msg.kind, txnode))
+            self._asking[txnode].add(uid)
+            return
+        writes: list[Write] = []
+        etag = self._free_etag(writes)
         if etag is None:
             self.counters["refused"] += 1
+            self._warn("etags", "no etag left for channel %016x", uid)
             self._send(p.EtagsFull(uid))
             return
-        table = self.subscribers if msg.kind == p.SUB_BIND else self.publishers
-        self._update(table, uid, msg.txnode, add=True)
-        if msg.kind == p.PUB_BIND and self.bind_gate is not None:
+        self._pending_etag[uid] = (etag, [(msg.kind, txnode)])
+        self._asking[txnode].add(uid)
+        writes.append(("etags", uid, etag))
+        self._store.submit(writes, self._bind_done(uid, etag))
+
+    def _bind_done(self, uid: int, etag: int) -> Callable[[BaseException | None], None]:
+        def done(error: BaseException | None) -> None:
+            _, asks = self._pending_etag.pop(uid)
+            for _, txnode in asks:
+                self._asking[txnode].discard(uid)
+                if not self._asking[txnode]:
+                    del self._asking[txnode]
+            if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
+                return
+            self.counters["bound"] += 1
+            self._hold_etag(uid, etag)
+            for kind, txnode in asks:
+                if txnode in self._node_at:
+                    self._bound(kind, txnode, uid, etag)
+
+        return done
+
+    def _bound(self, kind: int, txnode: int, uid: int, etag: int) -> None:
+        publish = kind == p.PUB_BIND
+        self._update(self.publishers if publish else self.subscribers, uid, txnode, add=True)
+        if publish and self.bind_gate is not None:
             task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid))
             self._gated.add(task)
             task.add_done_callback(self._gated.discard)
@@ -270,91 +467,153 @@ class CanEcb:
                 await self.bind_gate(uid)
         self._send(p.Bind(etag, uid))
 
-    def _etag_for(self, uid: int) -> int | None:
-        etag = self._store.etags.get(uid)
-        if etag is not None:
-            return etag
-        taken = self._store.taken_etags
-        while self._free_etag in taken:
-            self._free_etag += 1
-        if self._free_etag > p.LAST_ETAG:
-            log.warning("no etag left for channel %016x", uid)
+    def _free_etag(self, writes: list[Write]) -> int | None:
+        pending = {e for e, _ in self._pending_etag.values()}
+        for etag in range(p.FIRST_ETAG, p.LAST_ETAG + 1):
+            if etag not in self._uid_at and etag not in pending:
+                return etag
+        now = time.monotonic()
+        idle = [
+            e for e, u in self._uid_at.items()
+            if e not in pending and not self.subscribers.get(u) and not self.publishers.get(u)
+        ]  # fmt: skip
+        oldest = min(idle, key=lambda e: self._seen_etag.get(e, self._started), default=None)
+        if oldest is None or now - self._seen_etag.get(oldest, self._started) < self._lease:
             return None
-        self._store.add_etag(uid, self._free_etag)
-        self.counters["bound"] += 1
-        return self._free_etag
+        old_uid = self._uid_at.pop(oldest)
+        del self._store.etags[old_uid]
+        writes.append(("etags", old_uid, None))
+        self.counters["reclaimed"] += 1
+        log.warning("reclaimed etag %#x of channel %016x, unused", oldest, old_uid)
+        return oldest
 
-    def _on_claim(self, txnode: int, node_id: int) -> None:
-        known = self._store.txnodes.get(node_id)
-        if known == txnode:
+    def _hold_etag(self, uid: int, etag: int) -> None:
+        self._store.etags[uid] = etag
+        self._uid_at[etag] = uid
+
+    def _on_holds(self, msg: p.Holds) -> None:
+        """A node reports a binding it holds (SUB_AT / PUB_AT)."""
+        uid, etag = msg.uid, msg.etag
+        known = self._store.etags.get(uid)
+        holder = self._uid_at.get(etag)
+        kind = p.PUB_BIND if msg.publish else p.SUB_BIND
+        if known == etag:
+            if self._within_limit(msg.txnode, uid):
+                self._update(self.publishers if msg.publish else self.subscribers, uid,
+                             msg.txnode, add=True)  # fmt: skip
             return
-        if known is None and txnode not in self._store.txnodes.values():
-            log.info("adopting TxNode %d of node %016x", txnode, node_id)
-            self._store.add_txnode(node_id, txnode)
+        pending = {e for e, _ in self._pending_etag.values()}
+        if (
+            known is None
+            and holder is None
+            and etag not in pending
+            and uid not in self._pending_etag
+        ):
+            if not self._within_limit(msg.txnode, uid):
+                return
+            self.counters["adopted"] += 1
+            log.info("adopting etag %#x of channel %016x from TxNode %d", etag, uid, msg.txnode)
+            self._hold_etag(uid, etag)
+            self._store.submit([("etags", uid, etag)], self._adopt_done(uid))
+            self._update(self.publishers if msg.publish else self.subscribers, uid,
+                         msg.txnode, add=True)  # fmt: skip
             return
-        log.warning(
-            "node %016x claims TxNode %d held by another node: reassigning", node_id, txnode
-        )
-        self._assign(node_id)  # the holder of ``txnode`` keeps it and its channels
+        self.counters["conflicts"] += 1
+        self._warn("holds", "TxNode %d holds %016x at etag %#x, which contradicts the tables: "
+                   "correcting", msg.txnode, uid, etag)  # fmt: skip
+        self._correct(etag, uid)
+        if known is None and not self.recovering:  # it will ask again; answer it now
+            self._on_bind_request(p.Request(kind, msg.txnode, uid))
+
+    def _within_limit(self, txnode: int, uid: int) -> bool:
+        channels = self._channels_of.get(txnode, set())
+        asking = self._asking.get(txnode, set())
+        if uid in channels or uid in asking or len(channels | asking) < self._max_channels:
+            return True
+        self.counters["limited"] += 1
+        self._warn("limit", "TxNode %d uses %d channels already: refused %016x", txnode,
+                   len(channels), uid)  # fmt: skip
+        self._send(p.Limit(txnode, uid))
+        return False
 
     def _update(self, table: defaultdict[int, set[int]], uid: int, txnode: int, add: bool) -> None:
-        before = len(table[uid])
+        nodes = table.get(uid)
         if add:
-            table[uid].add(txnode)
+            if nodes is None:
+                nodes = table[uid] = set()
+            if txnode in nodes:
+                return
+            nodes.add(txnode)
+            self._channels_of[txnode].add(uid)
         else:
-            table[uid].discard(txnode)
-        if before != len(table[uid]):
-            self._changed(uid)
+            if nodes is None or txnode not in nodes:
+                return
+            nodes.discard(txnode)
+            if not nodes:
+                del table[uid]
+            if uid not in self.subscribers.get(uid, ()) and txnode not in self.publishers.get(
+                uid, ()
+            ):
+                self._channels_of[txnode].discard(uid)
+        self._changed(uid)
 
     def _forget_node(self, txnode: int) -> None:
-        for table in (self.subscribers, self.publishers):
-            for uid in [u for u, nodes in table.items() if txnode in nodes]:
-                self._update(table, uid, txnode, add=False)
-        for key in [k for k in self.declared if k[1] == txnode]:
-            del self.declared[key]
-            self.granted.pop(key, None)
+        for uid in list(self._channels_of.pop(txnode, ())):
+            for table in (self.subscribers, self.publishers):
+                nodes = table.get(uid)
+                if nodes is not None and txnode in nodes:
+                    nodes.discard(txnode)
+                    if not nodes:
+                        del table[uid]
+                    self._changed(uid)
+        self._admission.forget(txnode)
 
-    # --- real-time admission -----------------------------------------------------------------
+    # --- real-time admission -------------------------------------------------------------------
 
     def _on_declare(self, msg: p.Declare) -> None:
         """Admit a stream if every declared stream of the bus stays schedulable, else refuse."""
-        key = (msg.etag, msg.txnode)
-        if msg.etag not in self._store.taken_etags:
+        if msg.etag not in self._uid_at:
             self.counters["malformed"] += 1
             log.warning("TxNode %d declared unbound etag %#x", msg.txnode, msg.etag)
             return
-        unit = Fraction(p.TIME_UNIT_US, 1000)
-        spec = MessageSpec(
-            _stream_name(key), msg.size_bytes, msg.period * unit, msg.deadline * unit,
-            msg.jitter * unit,
-        )  # fmt: skip
-        candidate = {**self.declared, key: spec}
-        try:
-            values = assign_priorities(
-                [candidate[k] for k in sorted(candidate)], self.bitrate, 29,
-                first=RT_FIRST, last=RT_LAST,
-            )  # fmt: skip
-        except NotSchedulable as exc:
-            self.counters["refused"] += 1
-            miss = _stream_key(exc.channel)
-            response = p.RESPONSE_UNBOUNDED
-            if exc.response_time_ms is not None:
-                response = min(p.RESPONSE_UNBOUNDED, ceil(exc.response_time_ms * 100))
-            log.info("refused %s: %s", spec.name, exc)
-            self._send(p.Refuse(msg.etag, msg.txnode, miss[0], miss[1], response))
+        repeat = self._admission.repeat(msg)
+        if repeat is not None:
+            self._send(repeat)
             return
-        except ValueError as exc:  # more streams than priority levels
-            self.counters["refused"] += 1
-            log.info("refused %s: %s", spec.name, exc)
-            self._send(p.Refuse(msg.etag, msg.txnode, msg.etag, msg.txnode, 0))
+        if not self._declare_allowed(msg.txnode):
+            self.counters["limited"] += 1
+            self._warn("declare", "TxNode %d declares too often: ignored", msg.txnode)
             return
-        self.counters["admitted"] += 1
-        self.declared = candidate
-        for k in sorted(candidate):
-            priority = values[_stream_name(k)]
-            if k == key or self.granted.get(k) != priority:  # Audsley may move others
-                self.granted[k] = priority
-                self._send(p.Grant(k[0], k[1], priority))
+        verdict = self._admission.decide(msg)
+        self.counters["admitted" if verdict.admitted else "refused"] += 1
+        for frame in verdict.frames:
+            self._send(frame)
+
+    def _declare_allowed(self, txnode: int) -> bool:
+        now = time.monotonic()
+        tokens, last = self._declare_tokens.get(txnode, (2 * DECLARE_RATE, now))
+        tokens = min(2 * DECLARE_RATE, tokens + (now - last) * DECLARE_RATE)
+        allowed = tokens >= 1
+        self._declare_tokens[txnode] = (tokens - 1 if allowed else tokens, now)
+        return allowed
+
+    # --- helpers -------------------------------------------------------------------------------
+
+    def _stored(self, error: BaseException | None, what: str, value: int | None) -> bool:
+        """Report a write's outcome; on failure tell the asker (Failed) and count it."""
+        if error is None:
+            return True
+        self.counters["storage_errors"] += 1
+        log.error("CAN-ECB could not store %s in %s: %s", what, self._store.path, error)
+        if value is not None:
+            self._send(p.Failed(value))
+        return False
+
+    def _warn(self, key: str, text: str, *args: object) -> None:
+        now = time.monotonic()
+        if now - self._logged.get(key, -LOG_GAP) >= LOG_GAP:
+            self._logged[key] = now
+            log.warning(text, *args)
 
     def _changed(self, uid: int) -> None:
         if self.on_change is not None:
@@ -365,22 +624,27 @@ class CanEcb:
         self.link.send(can_id, data, self._handler)
 
 
-async def serve(bus: str, db_path: str | Path, bitrate: int = 500_000) -> None:
-    """Run a standalone CAN-ECB on ``bus`` until cancelled."""
+async def serve(
+    bus: str, db_path: str | Path, bitrate: int = 500_000, **options: float | int
+) -> int:
+    """Run a standalone CAN-ECB on ``bus`` until cancelled or stood down.
+
+    Returns 1 if another CAN-ECB serves the bus or the database failed during the run, else 0.
+    """
     link = CanLink.open(bus)
-    ecb = CanEcb(link, db_path, bitrate=bitrate)
+    try:
+        ecb = CanEcb(link, db_path, bitrate=bitrate, **options)  # type: ignore[arg-type]
+    except BaseException:
+        link.close()
+        raise
+    stood_down = asyncio.Event()
+    ecb.on_standby = lambda _reason: stood_down.set()
     try:
         await ecb.start()
-        await asyncio.Event().wait()
+        await stood_down.wait()
+        return 1
+    except asyncio.CancelledError:
+        return 1 if ecb.counters["storage_errors"] else 0
     finally:
         ecb.close()
         link.close()
-
-
-def _stream_name(key: tuple[int, int]) -> str:
-    return f"{key[0]:04x}/{key[1]}"
-
-
-def _stream_key(name: str) -> tuple[int, int]:
-    etag, txnode = name.split("/")
-    return int(etag, 16), int(txnode)

@@ -29,20 +29,26 @@ from typing import IO, Any
 
 import can
 
+from broker._store import default_db
 from broker.can_ecb import CanEcb
 from ups import _canproto as p
 from ups._canlink import CanLink
 from ups._channel import Channel
 from ups._errors import ConfigError, DecodeError, UpsError
+from ups._face import ChannelState
 from ups._message import Message
-from ups._node import ChannelState, Node
+from ups._node import Node
 from ups._nodeid import claim_node_id
 from ups._tcpface import TcpFace
 from ups.rt import frame_bits
 
 log = logging.getLogger("ups.gateway")
 
-_REQUEST_FILTER = {"can_id": 0, "can_mask": p.ETAG_MASK & ~(p.FIRST_ETAG - 1), "extended": True}
+#: node requests (etags below 0x10) and SUB_AT / PUB_AT (priorities 0x00 and 0x01)
+_REQUEST_FILTERS = [
+    {"can_id": 0, "can_mask": p.ETAG_MASK & ~(p.FIRST_ETAG - 1), "extended": True},
+    {"can_id": 0, "can_mask": 0xFE << p.PRIORITY_SHIFT, "extended": True},
+]
 _BURST = 4  # frames the pacer may send back to back after an idle spell
 
 
@@ -58,7 +64,7 @@ class _Tables:
         self._handler = self._on_frame
 
     def start(self) -> None:
-        self.link.add_handler(self._handler, [_REQUEST_FILTER])
+        self.link.add_handler(self._handler, _REQUEST_FILTERS)
 
     def close(self) -> None:
         self.link.remove_handler(self._handler)
@@ -67,20 +73,29 @@ class _Tables:
         can_id = frame.arbitration_id
         if not frame.is_extended_id or (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK == p.MGMT_TXNODE:
             return
+        if not p.is_management(can_id):
+            return
         try:
             msg = p.decode(can_id, bytes(frame.data))
         except DecodeError:
             return
-        if not isinstance(msg, p.Request) or msg.kind == p.CLAIM:
-            return
-        table = self.subscribers if msg.kind in (p.SUB_BIND, p.UNSUB) else self.publishers
-        before = len(table[msg.value])
-        if msg.kind == p.UNSUB:
-            table[msg.value].discard(msg.txnode)
+        if isinstance(msg, p.Holds):
+            table, uid, add = self.publishers if msg.publish else self.subscribers, msg.uid, True
+        elif isinstance(msg, p.Request) and msg.kind != p.CLAIM:
+            table = self.subscribers if msg.kind in (p.SUB_BIND, p.UNSUB) else self.publishers
+            uid, add = msg.value, msg.kind != p.UNSUB
         else:
-            table[msg.value].add(msg.txnode)
-        if before != len(table[msg.value]) and self.on_change is not None:
-            self.on_change(msg.value)
+            return
+        nodes = table[uid]
+        before = len(nodes)
+        if add:
+            nodes.add(msg.txnode)
+        else:
+            nodes.discard(msg.txnode)
+        if not nodes:
+            del table[uid]
+        if before != len(nodes) and self.on_change is not None:
+            self.on_change(uid)
 
 
 class _Forward:
@@ -98,7 +113,8 @@ class _Forward:
 class Gateway:
     """A gateway between the CAN bus ``can`` and the TCP/IP network of the TCP-ECB ``broker``.
 
-    By default it hosts the bus's CAN-ECB, its tables in the SQLite file ``db``;
+    By default it hosts the bus's CAN-ECB, its tables in the SQLite file ``db`` (by default the
+    bus's own file, ``broker._store.default_db``, the same a standalone CAN-ECB would use);
     ``host_can_ecb=False`` uses a CAN-ECB that already serves the bus. In that case the gateway
     learns who subscribes and publishes from the nodes' requests, so it sees only what nodes
     register after it starts, or re-announce when their CAN-ECB restarts. ``bitrate`` is the
@@ -111,7 +127,7 @@ class Gateway:
         can: str | CanLink,
         broker: str,
         *,
-        db: str | Path = "ups-gateway.db",
+        db: str | Path | None = None,
         host_can_ecb: bool = True,
         bitrate: int = 500_000,
         node_id: int | None = None,
@@ -151,7 +167,15 @@ class Gateway:
         self._tasks: list[asyncio.Task[None]] = []
         self._pacer_wake = asyncio.Event()
         self.counters = dict.fromkeys(
-            ("to_tcp", "to_can", "can_dropped", "too_large_for_can", "reconcile_errors"), 0
+            (
+                "to_tcp",
+                "to_can",
+                "can_dropped",
+                "too_large_for_can",
+                "reconcile_errors",
+                "pacer_errors",
+            ),
+            0,
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -177,7 +201,12 @@ class Gateway:
             self._link = CanLink.open(self._can_spec)
             self._owns_link = True
         if self._host_can_ecb:
-            self._ecb = self._tables = CanEcb(self._link, self._db, bitrate=self.bitrate)
+            db = self._db
+            if db is None:
+                if not isinstance(self._can_spec, str):
+                    raise ConfigError("a gateway on a CanLink needs db=: the bus has no name")
+                db = default_db(self._can_spec)
+            self._ecb = self._tables = CanEcb(self._link, db, bitrate=self.bitrate)
             await self._ecb.start()
         else:
             self._tables = _Tables(self._link)
@@ -287,9 +316,12 @@ class Gateway:
                 uid = self._current = self._dirty.pop()
                 try:
                     await self._reconcile(uid)
-                except UpsError as exc:  # e.g. the CAN-ECB did not answer: try again later
+                except Exception as exc:  # e.g. the CAN-ECB did not answer: try again later
                     self.counters["reconcile_errors"] += 1
-                    log.warning("could not update forwarding of %016x: %s", uid, exc)
+                    if isinstance(exc, UpsError):
+                        log.warning("could not update forwarding of %016x: %s", uid, exc)
+                    else:
+                        log.exception("could not update forwarding of %016x", uid)
                     asyncio.get_running_loop().call_later(1.0, self._changed, uid)
                 self._current = None
                 if uid not in self._dirty:
@@ -378,7 +410,12 @@ class Gateway:
                     break
                 tokens -= cost
                 queue.popleft()
-                face.send(state, data, priority)
+                try:
+                    face.send(state, data, priority)
+                except Exception:  # one bad frame must not stop TCP->CAN for every channel
+                    self.counters["pacer_errors"] += 1
+                    log.exception("could not send a TCP->CAN frame on %s", state.channel)
+                    continue
                 self.counters["to_can"] += 1
 
     # --- helpers ---------------------------------------------------------------------------

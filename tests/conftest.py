@@ -51,8 +51,9 @@ async def running_ecb(bus: str, db: Path, **options: Any) -> AsyncIterator[CanEc
 
 @pytest.fixture
 async def ecb(bus: str, tmp_path: Path) -> AsyncIterator[CanEcb]:
-    """A CAN-ECB serving the test's bus, its tables in a fresh SQLite file."""
-    async with running_ecb(bus, tmp_path / "ecb.db") as broker:
+    """A CAN-ECB serving the test's bus, its tables in a fresh SQLite file (a short recovery
+    window: nodes join after it)."""
+    async with running_ecb(bus, tmp_path / "ecb.db", recovery=0.1) as broker:
         yield broker
 
 

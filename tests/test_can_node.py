@@ -9,7 +9,8 @@ from pathlib import Path
 import can
 import pytest
 
-from broker.can_ecb import CanEcb, _Store
+from broker._store import Store
+from broker.can_ecb import CanEcb
 from ups import (
     BrokerUnavailable,
     Closed,
@@ -25,10 +26,10 @@ from .conftest import eventually, running_ecb
 
 
 def etag_of(node: Node, channel: str) -> int:
-    return node.face._etag_of[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
+    return node.face._bound[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
 
 
-async def test_simultaneous_joiners_get_distinct_txnodes_lowest_id_first(
+async def test_simultaneous_joiners_get_distinct_txnodes(
     bus: str, ecb: CanEcb
 ) -> None:
     ids = [0xFFFF_0000_0000_0001, 0x1234, 0x8000_0000_0000_0000, 0x1235, 0x0FED_CBA9_8765_4321]
@@ -37,8 +38,6 @@ async def test_simultaneous_joiners_get_distinct_txnodes_lowest_id_first(
         await asyncio.gather(*(n.start() for n in nodes))
         txnodes = {n.node_id: n.stats()["txnode"] for n in nodes}
         assert sorted(txnodes.values()) == list(range(len(ids)))
-        # the race always lets the lowest id win, so TxNodes follow the ids' order
-        assert [txnodes[i] for i in sorted(ids)] == list(range(len(ids)))
         assert ecb.txnodes == txnodes
     finally:
         for n in nodes:
@@ -67,7 +66,7 @@ async def test_node_waits_for_a_late_ecb(bus: str, tmp_path: Path, raw_bus: can.
     joining = asyncio.create_task(node.start())
     # the node is asking: its first offer is on the bus before any ECB exists
     frame = await asyncio.to_thread(raw_bus.recv, 5.0)
-    assert frame is not None and isinstance(p.decode(frame.arbitration_id, frame.data), p.Stage)
+    assert frame is not None and isinstance(p.decode(frame.arbitration_id, frame.data), p.Knock)
     try:
         async with running_ecb(bus, tmp_path / "late.db"):
             await asyncio.wait_for(joining, 10)
@@ -78,16 +77,16 @@ async def test_node_waits_for_a_late_ecb(bus: str, tmp_path: Path, raw_bus: can.
 
 async def test_join_without_ecb_times_out_clearly(bus: str) -> None:
     node = Node(can=bus, node_id=1, join_timeout=0.3)
-    with pytest.raises(BrokerUnavailable, match="no CAN-ECB answered"):
+    with pytest.raises(BrokerUnavailable, match="no CAN-ECB gave this node a TxNode"):
         await node.start()
     await node.close()
 
 
 async def test_txnodes_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> None:
-    store = _Store(tmp_path / "full.db")
-    for t in range(p.TXNODE_COUNT):
-        store.add_txnode(0xAAAA_0000 + t, t)
-    store.close()
+    Store(tmp_path / "full.db").close()  # creates the tables
+    with sqlite3.connect(tmp_path / "full.db") as db:
+        rows = [(f"{0xAAAA_0000 + t:016x}", t) for t in range(p.TXNODE_COUNT)]
+        db.executemany("INSERT INTO txnodes VALUES (?, ?)", rows)
     async with running_ecb(bus, tmp_path / "full.db") as full:
         async with Node(can=bus, node_id=0xAAAA_0005) as known:  # known nodes still join
             assert known.stats()["txnode"] == 5
@@ -97,7 +96,7 @@ async def test_txnodes_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> N
 
 
 async def test_etags_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> None:
-    _Store(tmp_path / "full.db").close()  # creates the tables
+    Store(tmp_path / "full.db").close()  # creates the tables
     with sqlite3.connect(tmp_path / "full.db") as db:
         rows = [(f"{e:016x}", e) for e in range(p.FIRST_ETAG, p.LAST_ETAG + 1)]
         db.executemany("INSERT INTO etags VALUES (?, ?)", rows)
@@ -200,7 +199,7 @@ async def test_foreign_frames_are_skipped_and_counted(
         raw_bus.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
         raw_bus.send(can.Message(arbitration_id=0x123, is_remote_frame=True, is_extended_id=False))
         raw_bus.send(can.Message(arbitration_id=p.make_id(0x80, 0x50, 0x3ABC), data=b"\x01"))
-        raw_bus.send(can.Message(arbitration_id=p.make_id(0x00, 0x7F, 0x3F00), data=b""))
+        raw_bus.send(can.Message(arbitration_id=p.make_id(0x00, 0x7F, 0x3E00), data=b""))
         await pub.publish("speed", b"\x07")  # the barrier
         assert (await s.get_msg(timeout=5)).data == b"\x07"
         stats = sub.stats()
@@ -308,7 +307,7 @@ async def test_a_false_claim_leaves_the_holder_alone(
         # another node id claims the holder's TxNode (say, a node configured from a stale copy)
         can_id, data = p.encode(p.Request(p.CLAIM, txnode, 0x999))
         raw_bus.send(can.Message(arbitration_id=can_id, data=data))
-        await eventually(lambda: 0x999 in ecb.txnodes)
-        assert ecb.txnodes[0x999] != txnode  # the claimant is moved to a TxNode of its own
-        assert ecb.txnodes[0x11] == txnode
+        # claims answer a Hello; outside the recovery window one is ignored and counted
+        await eventually(lambda: ecb.stats()["conflicts"] == 1)
+        assert 0x999 not in ecb.txnodes and ecb.txnodes[0x11] == txnode
         assert ecb.subscribers[name_to_uid("a")] == {txnode}  # the holder keeps its channels

@@ -34,17 +34,26 @@ def test_priority_decides_arbitration(a: int, b: int, node_a: int, node_b: int) 
 def test_management_space() -> None:
     assert p.is_management(p.make_id(0x80, p.MGMT_TXNODE, 0x100))
     assert p.is_management(p.make_id(0x00, 5, 0x0002))
-    assert not p.is_management(p.make_id(0x00, 5, p.FIRST_ETAG))
+    assert p.is_management(p.make_id(0x00, 5, p.FIRST_ETAG))  # SUB_AT
+    assert p.is_management(p.make_id(0x01, 5, p.FIRST_ETAG))  # PUB_AT
+    assert not p.is_management(p.make_id(p.FIRST_EVENT_PRIORITY, 5, p.FIRST_ETAG))
 
 
 management = st.one_of(
     st.builds(p.Stage, st.integers(0, 15), st.integers(0, 15), nibble),
-    st.builds(p.Ack, st.integers(0, 15), st.lists(nibble, min_size=1, max_size=16).map(tuple)),
+    st.builds(p.Query, st.integers(0, 15), st.lists(nibble, min_size=1, max_size=15).map(tuple)),
     st.builds(p.Assign, st.integers(0, 126), u64),
-    st.builds(p.Reset, st.integers(0, 15)),
-    st.builds(p.Hello, st.integers(0, 15)),
+    st.builds(p.Census, st.integers(0, 15)),
+    st.builds(p.Knock),
+    st.builds(p.Hello, u64),
+    st.builds(p.Serving, u64),
     st.builds(p.TxNodesFull, u64),
     st.builds(p.EtagsFull, u64),
+    st.builds(p.Failed, u64),
+    st.builds(p.Limit, st.integers(0, 126), u64),
+    st.builds(
+        p.Holds, st.booleans(), st.integers(0, 126), st.integers(p.FIRST_ETAG, p.LAST_ETAG), u64
+    ),
     st.builds(p.Bind, st.integers(p.FIRST_ETAG, p.LAST_ETAG), u64),
     st.builds(
         p.Grant, st.integers(p.FIRST_ETAG, p.LAST_ETAG), st.integers(0, 126), st.integers(0, 255)
@@ -98,10 +107,15 @@ def test_decode_never_fails_other_than_decode_error(can_id: int, data: bytes) ->
     ("can_id", "data", "why"),
     [
         (p.make_id(0, 0x7F, 0x0123), b"\x00", "stage carries no data"),
-        (p.make_id(0, 0x7F, 0x1100), b"\x10" + bytes(7), "ack prefix does not match its nibble"),
-        (p.make_id(0, 0x7F, 0x1100), b"\x01" + bytes(7), "ack has nibbles past its length"),
+        (p.make_id(0, 0x7F, 0x1100), b"\x10" + bytes(7), "query prefix does not match its nibble"),
+        (p.make_id(0, 0x7F, 0x1100), b"\x01" + bytes(7), "query has nibbles past its length"),
+        (p.make_id(0, 0x7F, 0x1FF0), bytes(8), "query of a whole id (16 nibbles)"),
+        (p.make_id(0, 0x7F, 0x3F00), b"\x00", "knock carries no data"),
+        (p.make_id(0, 0x7F, 0x3010), b"", "census epoch out of range"),
+        (p.make_id(0, 0x7F, 0x387F), bytes(8), "limit names the reserved TxNode"),
+        (p.make_id(1, 3, 0x0100), bytes(7), "PUB_AT without a full UID"),
         (p.make_id(0, 0x7F, 0x207F), bytes(8), "assignment of the reserved TxNode"),
-        (p.make_id(0, 0x7F, 0x3F00), b"", "unknown status"),
+        (p.make_id(0, 0x7F, 0x3E00), b"", "unknown status"),
         (p.make_id(1, 0x7F, 0x0005), bytes(8), "binding of a reserved etag"),
         (p.make_id(1, 0x7F, 0x0100), bytes(7), "binding without a full UID"),
         (p.make_id(2, 0x7F, 0x0100), bytes(8), "unknown management priority"),

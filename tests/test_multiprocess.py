@@ -118,4 +118,4 @@ def test_node_without_broker_exits_with_a_clear_error(mbus: str) -> None:
     sub = Proc("sub", "x", "--can", mbus, "--join-timeout", "0.5")
     code, _ = sub.finish()
     assert code == 2
-    assert "no CAN-ECB answered" in "".join(sub.stderr_lines)
+    assert "no CAN-ECB gave this node a TxNode" in "".join(sub.stderr_lines)

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from broker.can_ecb import RT_FIRST, RT_LAST, CanEcb
+from broker._admission import RT_FIRST, RT_LAST
+from broker.can_ecb import CanEcb
 from ups import ConfigError, Node, Unschedulable, name_to_uid
 from ups import _canproto as p
 

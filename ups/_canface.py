@@ -1,8 +1,9 @@
 """The CAN face of a node: joining the bus, binding channels to etags, sending and filtering.
 
-See docs/protocol.md for the frames. The join is a race over the node's 64-bit id, nibble by
-nibble, refereed by the CAN-ECB: the lowest id among simultaneous joiners always wins, the
-others start again, and a node restarting gets its old TxNode back.
+See docs/protocol.md for the frames. A node relies only on bindings the CAN-ECB gave in answer
+to its own request. Any Bind that contradicts one of them (another UID on the etag, or another
+etag for the UID) makes the node drop both, stop delivering and sending on them, and ask the
+CAN-ECB again: no event of one channel is ever delivered as another.
 """
 
 from __future__ import annotations
@@ -10,23 +11,25 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from typing import TYPE_CHECKING, Any
+import time
+from typing import Any
 
 import can
 
 from . import _canproto as p
+from ._canjoin import Joiner
 from ._canlink import CanLink
 from ._errors import BrokerUnavailable, ConfigError, DecodeError, Exhausted, Unschedulable
-
-if TYPE_CHECKING:
-    from ._node import ChannelState, Node
+from ._face import ChannelState, Deliver
 
 log = logging.getLogger("ups.can")
 
 _RETRY_FIRST = 0.05  # seconds before asking the CAN-ECB again
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
-_ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB restart
+_ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
+_HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
+_LOG_GAP = 10.0
 _MGMT_FILTER = {
     "can_id": p.MGMT_TXNODE << p.TXNODE_SHIFT,
     "can_mask": p.TXNODE_MASK << p.TXNODE_SHIFT,
@@ -41,13 +44,16 @@ class CanFace:
 
     def __init__(
         self,
-        node: Node,
         bus: str | can.BusABC | CanLink,
         node_id: int,
+        *,
+        deliver: Deliver,
+        channels: dict[int, ChannelState],
         join_timeout: float | None,
         filter_limit: int,
     ) -> None:
-        self._node = node
+        self._deliver = deliver
+        self._channels = channels
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
         if isinstance(bus, CanLink):
             self.link = bus
@@ -62,38 +68,42 @@ class CanFace:
             raise ConfigError(f"can= takes 'INTERFACE:CHANNEL' or a python-can bus, not {bus!r}")
         self.node_id = node_id
         self.txnode: int | None = None
-        self._nibbles = p.nibbles_of(node_id)
-        self._join_timeout = join_timeout
+        self._joiner = Joiner(node_id, self._send, self.link.channel_info, join_timeout)
         self._filter_limit = filter_limit
-        self._etag_of: dict[int, int] = {}  # uid -> etag, every binding heard on the bus
-        self._uid_of: dict[int, int] = {}  # etag -> uid
+        self._bound: dict[int, int] = {}  # uid -> etag, confirmed to this node by the CAN-ECB
+        self._uid_at: dict[int, int] = {}  # etag -> uid, the same, inverted
+        self._heard: dict[int, int] = {}  # etag -> uid, every Bind heard (for the counters)
         self._rx: dict[int, ChannelState] = {}  # etag -> channel with local subscribers
         self._pending: dict[int, asyncio.Future[int]] = {}  # uid -> etag awaited
-        self._joined: asyncio.Future[int] | None = None
-        self._offer: p.Stage | None = None
-        self._answered: tuple[int, int] | None = None
+        self._rebinding: dict[int, asyncio.Task[None]] = {}
         self._announcer: asyncio.Task[None] | None = None
+        self._last_announce = -_HELLO_GAP
+        self._logged: dict[str, float] = {}
         self._declared: dict[int, tuple[int, int, int, int]] = {}  # uid -> size, T, D, J
         self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
-            ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed"), 0
-        )
+            ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
+             "rebinds", "unbound_dropped", "task_errors"),
+            0,
+        )  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
 
     async def start(self) -> None:
         self.link.add_handler(self._handler, [_MGMT_FILTER])
         self.link.start()
-        self.txnode = await self._join()
+        self.txnode = await self._joiner.run()
         log.info(
             "node %016x joined %s as TxNode %d", self.node_id, self.link.channel_info, self.txnode
         )
 
     async def close(self) -> None:
-        if self._announcer is not None:
-            self._announcer.cancel()
+        tasks = [t for t in (self._announcer, *self._rebinding.values()) if t is not None]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
-                await self._announcer
+                await task
         for fut in [*self._pending.values(), *self._verdicts.values()]:
             fut.cancel()
         self.link.remove_handler(self._handler)
@@ -104,7 +114,7 @@ class CanFace:
         return {
             **self.counters,
             "tx_failed": self.link.tx_failed,
-            "bindings": len(self._etag_of),
+            "bindings": len(self._bound),
             "txnode": -1 if self.txnode is None else self.txnode,
         }
 
@@ -112,27 +122,30 @@ class CanFace:
 
     async def bind(self, state: ChannelState, subscribe: bool) -> None:
         uid = state.channel.uid
-        kind = p.SUB_BIND if subscribe else p.PUB_BIND
-        etag = self._etag_of.get(uid)
+        etag = self._bound.get(uid)
         if etag is None:
-            etag = await self._request_etag(kind, uid)
-        else:  # bound already: tell the CAN-ECB, but the bus works without waiting for it
-            self._send(p.Request(kind, self._my_txnode(), uid))
+            etag = await self._request_etag(p.SUB_BIND if subscribe else p.PUB_BIND, uid)
+        else:  # confirmed already: tell the CAN-ECB our role; it corrects us if need be
+            self._send(p.Holds(not subscribe, self._my_txnode(), etag, uid))
         if subscribe:
             self._rx[etag] = state
             self._update_filters()
 
     async def unsubscribe(self, state: ChannelState) -> None:
         uid = state.channel.uid
-        etag = self._etag_of.get(uid)
+        etag = self._bound.get(uid)
         if etag is not None and self._rx.get(etag) is state:
             del self._rx[etag]
             self._update_filters()
         self._send(p.Request(p.UNSUB, self._my_txnode(), uid))
 
     def send(self, state: ChannelState, data: bytes, priority: int) -> None:
-        etag = self._etag_of[state.channel.uid]
-        can_id = (priority << p.PRIORITY_SHIFT) | (self.txnode << p.TXNODE_SHIFT) | etag  # type: ignore[operator]
+        etag = self._bound.get(state.channel.uid)
+        if etag is None:  # being bound again after a contradiction: nothing may go out
+            self.counters["unbound_dropped"] += 1
+            return
+        priority = max(priority, p.FIRST_EVENT_PRIORITY)
+        can_id = (priority << p.PRIORITY_SHIFT) | (self._my_txnode() << p.TXNODE_SHIFT) | etag
         if self.link.send(can_id, data, self._handler):
             self.counters["sent"] += 1
 
@@ -145,16 +158,16 @@ class CanFace:
         can_id = frame.arbitration_id
         etag = can_id & p.ETAG_MASK
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
-        if txnode == p.MGMT_TXNODE or etag < p.FIRST_ETAG:
+        if txnode == p.MGMT_TXNODE or etag < p.FIRST_ETAG or can_id >> p.PRIORITY_SHIFT < 2:
             self._on_management(can_id, bytes(frame.data))
             return
         state = self._rx.get(etag)
         if state is None:
-            self.counters["filtered" if etag in self._uid_of else "unknown"] += 1
+            self.counters["filtered" if etag in self._heard else "unknown"] += 1
         elif txnode == self.txnode:
             self.counters["own_echo"] += 1
         else:
-            self._node._deliver(
+            self._deliver(
                 state, bytes(frame.data), can_id >> p.PRIORITY_SHIFT, txnode, frame.timestamp
             )
 
@@ -167,38 +180,96 @@ class CanFace:
             return
         if isinstance(msg, p.Bind):
             self._on_bind(msg.etag, msg.uid)
+        elif self.txnode is None:
+            self._joiner.on_frame(msg)
         elif isinstance(msg, p.EtagsFull):
-            fut = self._pending.pop(msg.uid, None)
-            if fut is not None and not fut.done():
-                fut.set_exception(Exhausted(f"the CAN-ECB has no etag left for {msg.uid:#018x}"))
+            self._fail(msg.uid, Exhausted(f"the CAN-ECB has no etag left for {msg.uid:#018x}"))
+        elif isinstance(msg, p.Limit) and msg.txnode == self.txnode:
+            self._fail(msg.uid, Exhausted("the CAN-ECB allows this node no more channels"))
+        elif isinstance(msg, p.Failed):
+            self._fail(
+                msg.value,
+                BrokerUnavailable(
+                    f"the CAN-ECB of {self.link.channel_info} could not store the binding of "
+                    f"{msg.value:#018x}: its database fails (see its log and 'ups status')"
+                ),
+            )
         elif isinstance(msg, p.Grant | p.Refuse):
             if msg.txnode == self.txnode:
                 self._on_verdict(msg)
-        elif isinstance(msg, p.Hello) and self.txnode is not None:
+        elif isinstance(msg, p.Hello):
             self._announce_all()
-        elif isinstance(msg, p.Assign) and self.txnode is not None:
-            if msg.node_id == self.node_id and msg.txnode != self.txnode:
-                log.warning("CAN-ECB moved this node from TxNode %d to %d", self.txnode, msg.txnode)
-                self.txnode = msg.txnode
-        elif self._joined is not None and not self._joined.done():
-            self._on_race(msg)
+        elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
+            self._moved(msg.txnode)
+
+    def _moved(self, txnode: int) -> None:
+        """The CAN-ECB gave this node another TxNode (its CLAIM clashed with another node's)."""
+        if txnode != self.txnode:
+            log.warning("CAN-ECB moved this node from TxNode %s to %d", self.txnode, txnode)
+            self.txnode = txnode
+            self._last_announce = -_HELLO_GAP
+            self._announce_all()  # our channels, under the new TxNode
 
     def _on_bind(self, etag: int, uid: int) -> None:
-        old_etag = self._etag_of.get(uid)
-        old_uid = self._uid_of.get(etag)
-        if old_uid is not None and old_uid != uid:  # etag re-bound: the ECB lost its tables
-            del self._etag_of[old_uid]
-        if old_etag is not None and old_etag != etag:
-            del self._uid_of[old_etag]
-            state = self._rx.pop(old_etag, None)
-            if state is not None:
-                self._rx[etag] = state
-                self._update_filters()
-        self._etag_of[uid] = etag
-        self._uid_of[etag] = uid
+        self._heard[etag] = uid
+        old_uid = self._uid_at.get(etag)
+        old_etag = self._bound.get(uid)
+        if (old_uid is not None and old_uid != uid) or (old_etag is not None and old_etag != etag):
+            self.counters["rebinds"] += 1
+            self._warn("rebind", "Bind(%#x, %016x) contradicts this node's bindings: binding "
+                       "the channels involved again", etag, uid)  # fmt: skip
+            for involved in {old_uid, uid if old_etag is not None else None}:
+                if involved is not None:
+                    self._suspend(involved)
+            return
+        fut = self._pending.get(uid)
+        if fut is not None and not fut.done():
+            self._bound[uid] = etag
+            self._uid_at[etag] = uid
+            fut.set_result(etag)
+
+    def _fail(self, uid: int, exc: Exception) -> None:
         fut = self._pending.pop(uid, None)
         if fut is not None and not fut.done():
-            fut.set_result(etag)
+            fut.set_exception(exc)
+
+    # --- re-binding after a contradiction ---------------------------------------------------
+
+    def _suspend(self, uid: int) -> None:
+        """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again."""
+        etag = self._bound.pop(uid, None)
+        if etag is not None:
+            self._uid_at.pop(etag, None)
+            if self._rx.pop(etag, None) is not None:
+                self._update_filters()
+        state = self._channels.get(uid)
+        if state is None or not (state.subs or state.published) or uid in self._rebinding:
+            return
+        task = asyncio.get_running_loop().create_task(self._rebind(uid, state))
+        self._rebinding[uid] = task
+        task.add_done_callback(self._rebind_done)
+
+    async def _rebind(self, uid: int, state: ChannelState) -> None:
+        while True:
+            try:
+                etag = await self._request_etag(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
+                break
+            except BrokerUnavailable as exc:
+                self._warn("rebind-wait", "still binding %016x again: %s", uid, exc)
+        if state.subs:
+            self._rx[etag] = state
+            self._update_filters()
+            if state.published:
+                self._send(p.Holds(True, self._my_txnode(), etag, uid))
+        log.info("channel %s bound again, to etag %#x", state.channel, etag)
+
+    def _rebind_done(self, task: asyncio.Task[None]) -> None:
+        for uid, t in list(self._rebinding.items()):
+            if t is task:
+                del self._rebinding[uid]
+        if not task.cancelled() and task.exception() is not None:
+            self.counters["task_errors"] += 1
+            log.error("could not bind a channel again: %s", task.exception())
 
     # --- real-time declarations ------------------------------------------------------------
 
@@ -217,7 +288,7 @@ class CanFace:
             )
         uid = state.channel.uid
         self._declared[uid] = (size, period, deadline, jitter)
-        etag = self._etag_of[uid]
+        etag = self._bound[uid]
         fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
         msg = p.Declare(self._my_txnode(), etag, size, period, deadline, jitter)
         try:
@@ -229,10 +300,10 @@ class CanFace:
         return priority
 
     def _on_verdict(self, msg: p.Grant | p.Refuse) -> None:
-        uid = self._uid_of.get(msg.etag)
+        uid = self._uid_at.get(msg.etag)
         fut = self._verdicts.pop(msg.etag, None)
         if isinstance(msg, p.Grant):
-            state = self._node._states.get(uid) if uid is not None else None
+            state = self._channels.get(uid) if uid is not None else None
             if state is not None:  # also when another node's declaration moved ours
                 state.priority = msg.priority
             if fut is not None and not fut.done():
@@ -243,7 +314,7 @@ class CanFace:
         if (msg.miss_etag, msg.miss_txnode) == (msg.etag, msg.txnode):
             culprit = "it"
         else:
-            other = self._uid_of.get(msg.miss_etag)
+            other = self._heard.get(msg.miss_etag)
             name = f"0x{other:016x}" if other is not None else f"etag {msg.miss_etag:#x}"
             culprit = f"channel {name} of TxNode {msg.miss_txnode}"
         if msg.response_10us == p.RESPONSE_UNBOUNDED:
@@ -258,63 +329,6 @@ class CanFace:
             )
         )
 
-    # --- joining: the TxNode race ----------------------------------------------------------
-
-    async def _join(self) -> int:
-        loop = asyncio.get_running_loop()
-        self._joined = loop.create_future()
-        self._make_offer(0, 0)
-        deadline = None if self._join_timeout is None else loop.time() + self._join_timeout
-        delay = _RETRY_FIRST
-        while True:
-            try:
-                return await asyncio.wait_for(asyncio.shield(self._joined), delay)
-            except TimeoutError:
-                pass
-            if deadline is not None and loop.time() >= deadline:
-                raise BrokerUnavailable(
-                    f"no CAN-ECB answered on {self.link.channel_info} within "
-                    f"{self._join_timeout:g} s; start one with 'ups can-broker --can ...' "
-                    "or a gateway"
-                )
-            delay = min(delay * 2, _RETRY_MAX)
-            self._answered = None
-            if self._offer is not None:  # ask again: a stale offer makes the ECB repeat its state
-                self._send(self._offer)
-
-    def _on_race(self, msg: p.Management) -> None:
-        assert self._joined is not None
-        if isinstance(msg, p.Reset | p.Hello):
-            self._answer(msg.epoch, 0, 0)
-        elif isinstance(msg, p.Ack):
-            prefix = msg.prefix
-            mine = self._nibbles[: len(prefix)]
-            if prefix == mine:
-                if len(prefix) < p.NIBBLES:
-                    self._answer(msg.epoch, len(prefix), len(prefix))
-            else:
-                d = next(i for i, (a, b) in enumerate(zip(prefix, mine, strict=True)) if a != b)
-                if prefix[d] > mine[d]:  # the leader's id is higher: claim the lead at d
-                    self._answer(msg.epoch, len(prefix), d)
-                # else: a lower id leads; wait for the next race
-        elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
-            self._joined.set_result(msg.txnode)
-        elif isinstance(msg, p.TxNodesFull) and msg.node_id == self.node_id:
-            self._joined.set_exception(
-                Exhausted(f"all {p.TXNODE_COUNT} TxNodes of {self.link.channel_info} are taken")
-            )
-
-    def _answer(self, epoch: int, state_len: int, stage: int) -> None:
-        """Answer one ECB state once: repeats of it (caused by others) are not answered again."""
-        if self._answered == (epoch, state_len):
-            return
-        self._answered = (epoch, state_len)
-        self._make_offer(epoch, stage)
-
-    def _make_offer(self, epoch: int, stage: int) -> None:
-        self._offer = p.Stage(epoch, stage, self._nibbles[stage])
-        self._send(self._offer)
-
     # --- binding ---------------------------------------------------------------------------
 
     async def _request_etag(self, kind: int, uid: int) -> int:
@@ -326,7 +340,7 @@ class CanFace:
                 p.Request(kind, self._my_txnode(), uid), fut, f"bind {uid:#018x}"
             )
         finally:
-            if self._pending.get(uid) is fut and not fut.done():
+            if self._pending.get(uid) is fut:
                 del self._pending[uid]
 
     async def _ask(self, msg: p.Management, fut: asyncio.Future[int], what: str) -> int:
@@ -338,6 +352,8 @@ class CanFace:
             try:
                 return await asyncio.wait_for(asyncio.shield(fut), delay)
             except TimeoutError:
+                if fut.done():  # the answer was an error (BrokerUnavailable is a TimeoutError)
+                    return fut.result()
                 waited += delay
                 if waited >= _BIND_TIMEOUT:
                     raise BrokerUnavailable(
@@ -347,36 +363,56 @@ class CanFace:
                 delay = min(delay * 2, _RETRY_MAX)
 
     def _announce_all(self) -> None:
-        """After a CAN-ECB (re)start: claim our TxNode again and re-announce every channel."""
+        """After a CAN-ECB's Hello: claim our TxNode and report every binding we hold, at most
+        once per ``_HELLO_GAP`` s (a later Hello is answered when the gap has passed)."""
         if self._announcer is None or self._announcer.done():
             self._announcer = asyncio.get_running_loop().create_task(self._announce())
+            self._announcer.add_done_callback(self._task_done)
 
     async def _announce(self) -> None:
+        wait = self._last_announce + _HELLO_GAP - time.monotonic()
+        if wait > 0:
+            await asyncio.sleep(wait)
+        self._last_announce = time.monotonic()
         txnode = self._my_txnode()
         self._send(p.Request(p.CLAIM, txnode, self.node_id))
-        for state in list(self._node._states.values()):
+        for state in list(self._channels.values()):
             uid = state.channel.uid
+            etag = self._bound.get(uid)
+            if etag is None:
+                continue
             if state.subs:
                 await asyncio.sleep(_ANNOUNCE_GAP)
-                self._send(p.Request(p.SUB_BIND, txnode, uid))
+                self._send(p.Holds(False, txnode, etag, uid))
             if state.published:
                 await asyncio.sleep(_ANNOUNCE_GAP)
-                self._send(p.Request(p.PUB_BIND, txnode, uid))
-            if uid in self._declared and uid in self._etag_of:
+                self._send(p.Holds(True, txnode, etag, uid))
+            if uid in self._declared:
                 await asyncio.sleep(_ANNOUNCE_GAP)
                 size, period, deadline, jitter = self._declared[uid]
-                etag = self._etag_of[uid]
                 self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
+
+    def _task_done(self, task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            self.counters["task_errors"] += 1
+            log.error("announcing this node failed: %s", task.exception())
 
     # --- helpers ---------------------------------------------------------------------------
 
     def _my_txnode(self) -> int:
-        assert self.txnode is not None, "node has not joined the bus"
+        if self.txnode is None:
+            raise ConfigError("the node has not joined the bus")
         return self.txnode
 
     def _send(self, msg: p.Management) -> None:
         can_id, data = p.encode(msg)
         self.link.send(can_id, data, self._handler)
+
+    def _warn(self, key: str, text: str, *args: object) -> None:
+        now = time.monotonic()
+        if now - self._logged.get(key, -_LOG_GAP) >= _LOG_GAP:
+            self._logged[key] = now
+            log.warning(text, *args)
 
     def _update_filters(self) -> None:
         filters: list[dict[str, Any]] | None = None

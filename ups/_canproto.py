@@ -3,9 +3,10 @@
 No I/O here. ``docs/protocol.md`` describes the same layout byte by byte; keep them in step.
 
 An identifier is ``priority (8) | TxNode (7) | etag (14)``, priority most significant so that
-CAN arbitration follows it. A frame is *management* when its TxNode is ``MGMT_TXNODE`` (the
-CAN-ECB and nodes still without a TxNode) or its etag is below ``FIRST_ETAG``; every other
-29-bit frame is an *event* on the channel bound to its etag.
+CAN arbitration follows it. A frame is *management* when its priority is below
+``FIRST_EVENT_PRIORITY``, its TxNode is ``MGMT_TXNODE`` (the CAN-ECB, and nodes still without
+a TxNode) or its etag is below ``FIRST_ETAG``; every other 29-bit frame is an *event* on the
+channel bound to its etag.
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ MGMT_TXNODE = 0x7F  #: the CAN-ECB's frames and those of nodes still joining
 TXNODE_COUNT = 127  #: TxNodes 0x00..0x7E are given to nodes
 FIRST_ETAG = 0x0010  #: etags 0x0000..0x000F are reserved for management
 LAST_ETAG = 0x3FFF
-CONFIG_PRIORITY = 0x00  #: configuration frames and node requests
-BIND_PRIORITY = 0x01  #: binding announcements from the CAN-ECB
+CONFIG_PRIORITY = 0x00  #: configuration frames, node requests, SUB_AT
+BIND_PRIORITY = 0x01  #: Bind from the CAN-ECB, PUB_AT from nodes
+FIRST_EVENT_PRIORITY = 0x02  #: events use 0x02..0xFF
 DEFAULT_PRIORITY = 0x80  #: events, unless the channel's priority was set
-NIBBLES = 16  #: a 64-bit node id is raced nibble by nibble, most significant first
+NIBBLES = 16  #: a 64-bit node id is offered nibble by nibble, most significant first
 EPOCHS = 16
 CLASSIC_MAX_DATA = 8
 
@@ -48,9 +50,11 @@ def split_id(can_id: int) -> tuple[int, int, int]:
 
 
 def is_management(can_id: int) -> bool:
-    return ((can_id >> TXNODE_SHIFT) & TXNODE_MASK) == MGMT_TXNODE or (
-        can_id & ETAG_MASK
-    ) < FIRST_ETAG
+    return (
+        (can_id >> PRIORITY_SHIFT) & PRIORITY_MASK < FIRST_EVENT_PRIORITY
+        or ((can_id >> TXNODE_SHIFT) & TXNODE_MASK) == MGMT_TXNODE
+        or (can_id & ETAG_MASK) < FIRST_ETAG
+    )
 
 
 def nibbles_of(node_id: int) -> tuple[int, ...]:
@@ -58,27 +62,50 @@ def nibbles_of(node_id: int) -> tuple[int, ...]:
     return tuple((node_id >> (4 * (NIBBLES - 1 - i))) & 0xF for i in range(NIBBLES))
 
 
-# --- configuration: the TxNode race (priority 0x00, TxNode 0x7F, etag field = op | arg) ------
+def id_of(nibbles: tuple[int, ...]) -> int:
+    """The 64-bit node id whose 16 nibbles these are."""
+    value = 0
+    for nib in nibbles:
+        value = (value << 4) | nib
+    return value
 
-_OP_STAGE, _OP_ACK, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
-_ST_RESET, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO, _ST_GRANT, _ST_REFUSE = range(6)
+
+# --- configuration (priority 0x00, TxNode 0x7F, etag field = op (2 bits) | arg (12 bits)) ----
+
+_OP_STAGE, _OP_QUERY, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
+_ST_CENSUS, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO, _ST_GRANT, _ST_REFUSE = range(6)
+_ST_SERVING, _ST_FAILED, _ST_LIMIT = 6, 7, 8
+_ST_KNOCK = 0xF
+
+
+@dataclass(frozen=True, slots=True)
+class Knock:
+    """A node without a TxNode asks the CAN-ECB for a census (every joiner sends the same)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Census:
+    """The CAN-ECB asks every node without a TxNode for its id: query ``epoch``, empty prefix."""
+
+    epoch: int
+
+
+@dataclass(frozen=True, slots=True)
+class Query:
+    """The CAN-ECB asks the joiners whose id starts with ``prefix`` (1..15 nibbles) for the
+    rest of it, in query ``epoch``."""
+
+    epoch: int
+    prefix: tuple[int, ...]
 
 
 @dataclass(frozen=True, slots=True)
 class Stage:
-    """A joining node offers the nibble of its node id at ``stage``, given the ECB's ``epoch``."""
+    """A joiner's answer to query ``epoch``: nibble ``stage`` of its id is ``nibble``."""
 
     epoch: int
     stage: int
     nibble: int
-
-
-@dataclass(frozen=True, slots=True)
-class Ack:
-    """The CAN-ECB's race state: the winning prefix so far, and the epoch it is valid in."""
-
-    epoch: int
-    prefix: tuple[int, ...]  # 1..16 nibbles
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,17 +117,18 @@ class Assign:
 
 
 @dataclass(frozen=True, slots=True)
-class Reset:
-    """The CAN-ECB starts a race with an empty prefix in ``epoch`` (also sent when it starts)."""
+class Hello:
+    """CAN-ECB ``instance`` has just started (or lost track of the bus): configured nodes
+    announce their TxNode and channels again."""
 
-    epoch: int
+    instance: int
 
 
 @dataclass(frozen=True, slots=True)
-class Hello:
-    """The CAN-ECB has just started; configured nodes announce their TxNode and channels again."""
+class Serving:
+    """CAN-ECB ``instance`` serves this bus (the answer to another CAN-ECB's frames)."""
 
-    epoch: int
+    instance: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +142,23 @@ class TxNodesFull:
 class EtagsFull:
     """No etag is left for channel ``uid``."""
 
+    uid: int
+
+
+@dataclass(frozen=True, slots=True)
+class Failed:
+    """The CAN-ECB could not store the assignment or binding of ``value`` (a node id or a
+    channel UID): its storage fails. Ask again later."""
+
+    value: int
+
+
+@dataclass(frozen=True, slots=True)
+class Limit:
+    """``txnode`` already uses as many channels as the CAN-ECB allows one node; ``uid`` is
+    refused."""
+
+    txnode: int
     uid: int
 
 
@@ -158,7 +203,7 @@ class Bind:
 PUB_BIND = 0x0001  #: bind a channel to publish on it
 SUB_BIND = 0x0002  #: bind a channel and subscribe to it
 UNSUB = 0x0003  #: the node's last subscriber of the channel left
-CLAIM = 0x0004  #: "I hold this TxNode": sent after a CAN-ECB (re)start
+CLAIM = 0x0004  #: "I hold this TxNode": the answer to Hello
 DECLARE = 0x0005  #: a real-time declaration (see Declare)
 _REQUEST_KINDS = (PUB_BIND, SUB_BIND, UNSUB, CLAIM)
 
@@ -170,6 +215,17 @@ class Request:
     kind: int
     txnode: int
     value: int
+
+
+@dataclass(frozen=True, slots=True)
+class Holds:
+    """``txnode`` uses channel ``uid`` at ``etag``: it subscribes to it (SUB_AT, priority 0x00)
+    or publishes on it (PUB_AT, priority 0x01)."""
+
+    publish: bool
+    txnode: int
+    etag: int
+    uid: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -186,19 +242,31 @@ class Declare:
 
 
 Management = (
-    Stage
-    | Ack
+    Knock
+    | Census
+    | Query
+    | Stage
     | Assign
-    | Reset
     | Hello
+    | Serving
     | TxNodesFull
     | EtagsFull
+    | Failed
+    | Limit
     | Grant
     | Refuse
     | Bind
     | Request
+    | Holds
     | Declare
 )
+
+#: The frames only a CAN-ECB sends (a CAN-ECB that hears one it did not send knows that
+#: another CAN-ECB, or a forger, is on the bus).
+ECB_FRAMES = (
+    Census, Query, Assign, Hello, Serving, TxNodesFull, EtagsFull, Failed, Limit, Grant, Refuse,
+    Bind,
+)  # fmt: skip
 
 
 def encode(msg: Management) -> tuple[int, bytes]:
@@ -206,24 +274,29 @@ def encode(msg: Management) -> tuple[int, bytes]:
     if isinstance(msg, Stage):
         arg = (msg.epoch << 8) | (msg.stage << 4) | msg.nibble
         return _config_id(_OP_STAGE, arg), b""
-    if isinstance(msg, Ack):
+    if isinstance(msg, Query):
         n = len(msg.prefix)
-        value = 0
-        for nib in msg.prefix:
-            value = (value << 4) | nib
-        value <<= 4 * (NIBBLES - n)
+        value = id_of(msg.prefix) << (4 * (NIBBLES - n))
         arg = (msg.epoch << 8) | ((n - 1) << 4) | msg.prefix[-1]
-        return _config_id(_OP_ACK, arg), value.to_bytes(8, "big")
+        return _config_id(_OP_QUERY, arg), value.to_bytes(8, "big")
     if isinstance(msg, Assign):
         return _config_id(_OP_ASSIGN, msg.txnode), msg.node_id.to_bytes(8, "big")
-    if isinstance(msg, Reset):
-        return _config_id(_OP_STATUS, (_ST_RESET << 8) | msg.epoch), b""
+    if isinstance(msg, Census):
+        return _config_id(_OP_STATUS, (_ST_CENSUS << 8) | msg.epoch), b""
+    if isinstance(msg, Knock):
+        return _config_id(_OP_STATUS, _ST_KNOCK << 8), b""
     if isinstance(msg, Hello):
-        return _config_id(_OP_STATUS, (_ST_HELLO << 8) | msg.epoch), b""
+        return _config_id(_OP_STATUS, _ST_HELLO << 8), msg.instance.to_bytes(8, "big")
+    if isinstance(msg, Serving):
+        return _config_id(_OP_STATUS, _ST_SERVING << 8), msg.instance.to_bytes(8, "big")
     if isinstance(msg, TxNodesFull):
         return _config_id(_OP_STATUS, _ST_TXNODES_FULL << 8), msg.node_id.to_bytes(8, "big")
     if isinstance(msg, EtagsFull):
         return _config_id(_OP_STATUS, _ST_ETAGS_FULL << 8), msg.uid.to_bytes(8, "big")
+    if isinstance(msg, Failed):
+        return _config_id(_OP_STATUS, _ST_FAILED << 8), msg.value.to_bytes(8, "big")
+    if isinstance(msg, Limit):
+        return _config_id(_OP_STATUS, (_ST_LIMIT << 8) | msg.txnode), msg.uid.to_bytes(8, "big")
     if isinstance(msg, Grant):
         data = struct.pack(">HBB4x", msg.etag, msg.txnode, msg.priority)
         return _config_id(_OP_STATUS, _ST_GRANT << 8), data
@@ -234,6 +307,9 @@ def encode(msg: Management) -> tuple[int, bytes]:
         return _config_id(_OP_STATUS, _ST_REFUSE << 8), data
     if isinstance(msg, Bind):
         return make_id(BIND_PRIORITY, MGMT_TXNODE, msg.etag), msg.uid.to_bytes(8, "big")
+    if isinstance(msg, Holds):
+        priority = BIND_PRIORITY if msg.publish else CONFIG_PRIORITY
+        return make_id(priority, msg.txnode, msg.etag), msg.uid.to_bytes(8, "big")
     if isinstance(msg, Declare):
         data = struct.pack(">HBHHB", msg.etag, msg.size_bytes, msg.period, msg.deadline, msg.jitter)
         return make_id(CONFIG_PRIORITY, msg.txnode, DECLARE), data
@@ -251,11 +327,7 @@ def decode(can_id: int, data: bytes) -> Management:
     """
     priority, txnode, etag = split_id(can_id)
     if txnode != MGMT_TXNODE:
-        if priority == CONFIG_PRIORITY and etag == DECLARE:
-            return _decode_declare(txnode, data, can_id)
-        if priority != CONFIG_PRIORITY or etag not in _REQUEST_KINDS:
-            raise DecodeError(f"unknown node request {can_id:#010x}")
-        return Request(etag, txnode, _u64(data, can_id))
+        return _decode_node_frame(priority, txnode, etag, data, can_id)
     if priority == BIND_PRIORITY:
         if etag < FIRST_ETAG:
             raise DecodeError(f"binding announcement for reserved etag {etag:#x}")
@@ -267,31 +339,49 @@ def decode(can_id: int, data: bytes) -> Management:
     if op == _OP_STAGE:
         _expect_len(data, 0, can_id)
         return Stage(epoch, stage, nibble)
-    if op == _OP_ACK:
+    if op == _OP_QUERY:
         value = _u64(data, can_id)
         prefix = nibbles_of(value)[: stage + 1]
-        if prefix[-1] != nibble or value & ((1 << (4 * (NIBBLES - stage - 1))) - 1):
-            raise DecodeError(f"inconsistent race state {can_id:#010x} {data.hex()}")
-        return Ack(epoch, prefix)
+        if stage == NIBBLES - 1 or prefix[-1] != nibble:
+            raise DecodeError(f"inconsistent query {can_id:#010x} {data.hex()}")
+        if value & ((1 << (4 * (NIBBLES - stage - 1))) - 1):
+            raise DecodeError(f"inconsistent query {can_id:#010x} {data.hex()}")
+        return Query(epoch, prefix)
     if op == _OP_ASSIGN:
         if arg >= TXNODE_COUNT:
             raise DecodeError(f"assignment of reserved TxNode {arg:#x}")
         return Assign(arg, _u64(data, can_id))
-    status = arg >> 8
-    if status in (_ST_RESET, _ST_HELLO) and arg & 0xF0 == 0:
+    return _decode_status(arg >> 8, arg & 0xFF, data, can_id)
+
+
+def _decode_status(status: int, low: int, data: bytes, can_id: int) -> Management:
+    if status == _ST_CENSUS and low < EPOCHS:
         _expect_len(data, 0, can_id)
-        return Reset(arg & 0xF) if status == _ST_RESET else Hello(arg & 0xF)
-    if status == _ST_TXNODES_FULL and arg & 0xFF == 0:
+        return Census(low)
+    if status == _ST_LIMIT and low < TXNODE_COUNT:
+        return Limit(low, _u64(data, can_id))
+    if low:
+        raise DecodeError(f"unknown status frame {can_id:#010x}")
+    if status == _ST_KNOCK:
+        _expect_len(data, 0, can_id)
+        return Knock()
+    if status == _ST_HELLO:
+        return Hello(_u64(data, can_id))
+    if status == _ST_SERVING:
+        return Serving(_u64(data, can_id))
+    if status == _ST_TXNODES_FULL:
         return TxNodesFull(_u64(data, can_id))
-    if status == _ST_ETAGS_FULL and arg & 0xFF == 0:
+    if status == _ST_ETAGS_FULL:
         return EtagsFull(_u64(data, can_id))
-    if status == _ST_GRANT and arg & 0xFF == 0:
+    if status == _ST_FAILED:
+        return Failed(_u64(data, can_id))
+    if status == _ST_GRANT:
         _expect_len(data, 8, can_id)
         etag, node, prio, pad = struct.unpack(">HBBI", data)
         if pad or not _stream_ok(etag, node):
             raise DecodeError(f"bad grant {data.hex()}")
         return Grant(etag, node, prio)
-    if status == _ST_REFUSE and arg & 0xFF == 0:
+    if status == _ST_REFUSE:
         _expect_len(data, 8, can_id)
         etag, node, miss_node, miss_etag, response = struct.unpack(">HBBHH", data)
         if not (_stream_ok(etag, node) and _stream_ok(miss_etag, miss_node)):
@@ -300,16 +390,28 @@ def decode(can_id: int, data: bytes) -> Management:
     raise DecodeError(f"unknown status frame {can_id:#010x}")
 
 
+def _decode_node_frame(
+    priority: int, txnode: int, etag: int, data: bytes, can_id: int
+) -> Management:
+    if etag >= FIRST_ETAG:  # SUB_AT (0x00) or PUB_AT (0x01); events never get here
+        if priority > BIND_PRIORITY:
+            raise DecodeError(f"not a management frame {can_id:#010x}")
+        return Holds(priority == BIND_PRIORITY, txnode, etag, _u64(data, can_id))
+    if priority == CONFIG_PRIORITY and etag == DECLARE:
+        _expect_len(data, 8, can_id)
+        etag, size, period, deadline, jitter = struct.unpack(">HBHHB", data)
+        if not (
+            FIRST_ETAG <= etag <= LAST_ETAG and size <= CLASSIC_MAX_DATA and period and deadline
+        ):
+            raise DecodeError(f"bad declaration {data.hex()}")
+        return Declare(txnode, etag, size, period, deadline, jitter)
+    if priority != CONFIG_PRIORITY or etag not in _REQUEST_KINDS:
+        raise DecodeError(f"unknown node request {can_id:#010x}")
+    return Request(etag, txnode, _u64(data, can_id))
+
+
 def _stream_ok(etag: int, txnode: int) -> bool:
     return FIRST_ETAG <= etag <= LAST_ETAG and txnode < TXNODE_COUNT
-
-
-def _decode_declare(txnode: int, data: bytes, can_id: int) -> Declare:
-    _expect_len(data, 8, can_id)
-    etag, size, period, deadline, jitter = struct.unpack(">HBHHB", data)
-    if not (FIRST_ETAG <= etag <= LAST_ETAG and size <= CLASSIC_MAX_DATA and period and deadline):
-        raise DecodeError(f"bad declaration {data.hex()}")
-    return Declare(txnode, etag, size, period, deadline, jitter)
 
 
 def _expect_len(data: bytes, n: int, can_id: int) -> None:

@@ -16,12 +16,13 @@ import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import IO, Any
 
 from ._canface import CanFace
 from ._canproto import DEFAULT_PRIORITY
 from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError, PayloadTooLarge
+from ._face import ChannelState, Face, Sink
 from ._message import Message
 from ._nodeid import claim_node_id
 from ._tcpface import TcpFace
@@ -30,44 +31,6 @@ from ._tcplink import OVERFLOWS, Overflow
 log = logging.getLogger("ups")
 
 DEFAULT_QUEUE = 1024
-
-
-class Sink(Protocol):
-    """Where a node delivers a channel's events: a ``Subscription``, or a gateway's forwarder."""
-
-    def _push(self, msg: Message) -> None: ...
-
-
-class ChannelState:
-    """What a node knows of one channel: its local subscriptions, priority and publishing."""
-
-    __slots__ = ("channel", "declared", "priority", "published", "subs")
-
-    def __init__(self, channel: Channel, priority: int) -> None:
-        self.channel = channel
-        self.priority = priority
-        self.subs: list[Sink] = []
-        self.published = False
-        self.declared = False  # a real-time stream: the broker owns its priority
-
-
-class Face(Protocol):
-    """One network as seen by a node. A face calls ``Node._deliver`` for each event it receives."""
-
-    max_payload: int
-
-    async def start(self) -> None: ...
-    async def close(self) -> None: ...
-    async def bind(self, state: ChannelState, subscribe: bool) -> None:
-        """Make ``state``'s channel usable: to publish on it, or (``subscribe``) to receive it."""
-
-    async def unsubscribe(self, state: ChannelState) -> None:
-        """The node's last local subscriber of the channel left."""
-
-    def send(self, state: ChannelState, data: bytes, priority: int) -> None:
-        """Publish ``data`` on the network; never blocks, counts what it must drop."""
-
-    def stats(self) -> dict[str, int]: ...
 
 
 class Subscription:
@@ -245,7 +208,14 @@ class Node:
             self._node_id, self._id_lock = claim_node_id(self.name)
         face: Face
         if self._can is not None:
-            face = CanFace(self, self._can, self._node_id, self._join_timeout, self._filter_limit)
+            face = CanFace(
+                self._can,
+                self._node_id,
+                deliver=self._deliver,
+                channels=self._states,
+                join_timeout=self._join_timeout,
+                filter_limit=self._filter_limit,
+            )
         else:
             assert self._broker is not None
             face = TcpFace(

@@ -20,7 +20,8 @@ from ._errors import BrokerUnavailable, ConfigError, UpsError
 from ._tcplink import OVERFLOWS, Link, Overflow
 
 if TYPE_CHECKING:
-    from ._node import ChannelState, Node
+    from ._face import ChannelState
+    from ._node import Node
 
 log = logging.getLogger("ups.tcp")
 

@@ -51,7 +51,20 @@ def _parser() -> argparse.ArgumentParser:
 
     cmd = commands.add_parser("can-broker", help="run the CAN-ECB of one bus")
     _add_can(cmd)
-    cmd.add_argument("--db", default="ups-can-ecb.db", help="SQLite file of TxNodes and etags")
+    cmd.add_argument(
+        "--db", default=None,
+        help="SQLite file of TxNodes and etags (default: the bus's own file under "
+        "$UPS_STATE_DIR, $XDG_STATE_HOME/ups or ~/.local/state/ups)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--recovery", type=float, default=2.0,
+        help="seconds after start spent relearning the bus before answering (default 2)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--lease", type=_positive_float, default=86_400.0,
+        help="seconds after which a silent node's TxNode, or an unused etag, may be given to "
+        "another when none is free (default 86400)",
+    )  # fmt: skip
     cmd.add_argument(
         "--bitrate", type=int, default=500_000,
         help="the bus's bit rate, for admitting real-time channels (default 500000)",
@@ -83,8 +96,9 @@ def _parser() -> argparse.ArgumentParser:
         help="where TCP publishers and 'ups status' reach the gateway (default: any port)",
     )  # fmt: skip
     cmd.add_argument(
-        "--db", default="ups-gateway.db", help="SQLite file of the hosted CAN-ECB's tables"
-    )
+        "--db", default=None,
+        help="SQLite file of the hosted CAN-ECB's tables (default: the bus's own, as can-broker)",
+    )  # fmt: skip
     cmd.add_argument(
         "--external-can-ecb", action="store_true",
         help="do not host the bus's CAN-ECB: one already runs ('ups can-broker')",
@@ -232,11 +246,13 @@ def _node(args: argparse.Namespace) -> Node:
 
 
 def _run_can_broker(args: argparse.Namespace) -> int:
+    from broker._store import default_db
     from broker.can_ecb import serve
 
+    db = args.db if args.db is not None else default_db(args.can)
+
     async def run() -> int:
-        await serve(args.can, args.db, args.bitrate)
-        return 0
+        return await serve(args.can, db, args.bitrate, recovery=args.recovery, lease=args.lease)
 
     return _run_until_signal(run())
 

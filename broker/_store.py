@@ -1,0 +1,227 @@
+"""The CAN-ECB's durable tables: one SQLite file per bus, written by a thread of its own.
+
+The event loop never touches the file. The CAN-ECB hands writes to ``Store.submit`` with a
+callback; a writer thread commits everything queued so far in one transaction and then calls
+back on the loop, with None or the error. The CAN-ECB announces an assignment or a binding
+only after its callback said it is durable.
+
+A file is used by one CAN-ECB at a time: ``Store`` holds an exclusive lock on ``FILE.lock``
+and refuses to open a file another process holds. If the file is deleted or replaced while
+the CAN-ECB runs, the writer notices before its next write and writes the whole table into a
+new file at the same path.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fcntl
+import logging
+import os
+import queue
+import re
+import sqlite3
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO
+
+from ups._errors import ConfigError
+
+log = logging.getLogger("ups.can_ecb")
+
+BUSY_TIMEOUT = 5.0  #: seconds a write waits for a lock that another program holds on the file
+MAX_BATCH = 4096  #: writes committed in one transaction, at most
+
+#: One write: (table, key, value). table is "txnodes" (node id -> TxNode) or "etags" (UID ->
+#: etag); value None deletes the row.
+Write = tuple[str, int, int | None]
+Done = Callable[[BaseException | None], None]
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS txnodes (node_id TEXT PRIMARY KEY, txnode INTEGER UNIQUE NOT NULL);
+CREATE TABLE IF NOT EXISTS etags (uid TEXT PRIMARY KEY, etag INTEGER UNIQUE NOT NULL);
+"""
+_COLUMNS = {"txnodes": ("node_id", "txnode"), "etags": ("uid", "etag")}
+
+
+def state_dir() -> Path:
+    """Where daemons keep their state: ``$UPS_STATE_DIR``, else ``$XDG_STATE_HOME/ups``, else
+    ``~/.local/state/ups``."""
+    if os.environ.get("UPS_STATE_DIR"):
+        return Path(os.environ["UPS_STATE_DIR"])
+    base = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
+    return Path(base) / "ups"
+
+
+def default_db(bus: str) -> Path:
+    """The CAN-ECB database of bus ``bus`` (an ``INTERFACE:CHANNEL[,key=value]`` spec): one
+    file per interface, channel and (for udp_multicast) port, so two buses never share one."""
+    head, *options = bus.split(",")
+    port = [o.replace(" ", "") for o in options if o.replace(" ", "").startswith("port=")]
+    slug = re.sub(r"[^A-Za-z0-9.]+", "_", "_".join([head, *port])).strip("_")
+    return state_dir() / f"can-ecb-{slug}.db"
+
+
+class Store:
+    """The tables of one bus, loaded at start and written in batches by a thread."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._lock = _lock(self.path)
+        try:
+            db = self._connect()
+            self.txnodes: dict[int, int] = _load(db, "txnodes")
+            self.etags: dict[int, int] = _load(db, "etags")
+        except sqlite3.Error as exc:
+            self._lock.close()
+            raise ConfigError(f"cannot use the CAN-ECB database {self.path}: {exc}") from exc
+        self._db: sqlite3.Connection | None = db
+        self._inode = _inode(self.path)
+        #: what the file holds, as the writer thread knows it (to rewrite a deleted file)
+        self._durable = {"txnodes": dict(self.txnodes), "etags": dict(self.etags)}
+        self._queue: queue.SimpleQueue[tuple[list[Write], Done] | None] = queue.SimpleQueue()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self.batches = 0
+        self.errors = 0
+        self.last_error: str | None = None
+
+    def start(self) -> None:
+        """Start the writer; callbacks run on the calling (running) event loop."""
+        if self._thread is None:
+            self._loop = asyncio.get_running_loop()
+            self._thread = threading.Thread(target=self._run, name="ups-ecb-store", daemon=True)
+            self._thread.start()
+
+    def submit(self, writes: list[Write], done: Done) -> None:
+        """Make ``writes`` durable; ``done(None)`` once they are, ``done(error)`` if not."""
+        self._queue.put((writes, done))
+
+    def close(self) -> None:
+        """Finish the writes already submitted, then close the file and the lock."""
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join(timeout=BUSY_TIMEOUT + 2)
+            self._thread = None
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+        self._lock.close()
+
+    # --- the writer thread -----------------------------------------------------------------
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT, check_same_thread=False)
+        db.executescript(_SCHEMA)
+        return db
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            batch = [item]
+            while len(batch) < MAX_BATCH:
+                try:
+                    more = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if more is None:
+                    self._queue.put(None)  # finish this batch, then stop
+                    break
+                batch.append(more)
+            error = self._commit([w for writes, _ in batch for w in writes])
+            for _, done in batch:
+                self._call_back(done, error)
+
+    def _commit(self, writes: list[Write]) -> BaseException | None:
+        try:
+            db = self._ensure_file()
+            with db:
+                for table, key, value in writes:
+                    key_col, value_col = _COLUMNS[table]
+                    db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
+                    if value is not None:
+                        db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
+                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
+        except (sqlite3.Error, OSError) as exc:
+            self.errors += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            if self._db is not None:  # open afresh next time: the disk may have come back
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.close()
+                self._db = None
+            return exc
+        self.batches += 1
+        self.last_error = None
+        for table, key, value in writes:
+            if value is None:
+                self._durable[table].pop(key, None)
+            else:
+                self._durable[table][key] = value
+        return None
+
+    def _ensure_file(self) -> sqlite3.Connection:
+        """The open file, or a new one written in full if the old one was deleted or replaced."""
+        inode = _inode(self.path)
+        if self._db is not None and inode == self._inode:
+            return self._db
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+        if inode != self._inode:
+            log.error("CAN-ECB database %s was deleted or replaced: writing it anew", self.path)
+        db = self._connect()
+        with db:
+            for table in _COLUMNS:
+                db.execute(f"DELETE FROM {table}")
+                db.executemany(
+                    f"INSERT INTO {table} VALUES (?, ?)",
+                    [(f"{k:016x}", v) for k, v in self._durable[table].items()],
+                )
+        self._db = db
+        self._inode = _inode(self.path)
+        return db
+
+    def _call_back(self, done: Done, error: BaseException | None) -> None:
+        loop = self._loop
+        assert loop is not None
+        with contextlib.suppress(RuntimeError):  # the loop closed under us
+            loop.call_soon_threadsafe(done, error)
+
+
+def _load(db: sqlite3.Connection, table: str) -> dict[int, int]:
+    return {int(k, 16): v for k, v in db.execute(f"SELECT * FROM {table}")}
+
+
+def _inode(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _lock(path: Path) -> IO[str]:
+    """Hold ``PATH.lock`` exclusively, or fail naming the process that holds it."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(f"{path}.lock", "a+")  # noqa: SIM115 - held for the store's life
+    except OSError as exc:
+        raise ConfigError(f"cannot use the CAN-ECB database {path}: {exc}") from exc
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        raise ConfigError(
+            f"the CAN-ECB database {path} is in use by {holder}: one CAN-ECB per bus, and each "
+            "bus its own --db"
+        ) from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"process {os.getpid()}\n")
+    handle.flush()
+    return handle

@@ -1,0 +1,303 @@
+"""What must never happen on CAN, whatever the order of restarts, lost databases, second
+CAN-ECBs and stray frames: an event of one channel delivered as another, a wedged CAN-ECB,
+damage from a few frames that lasts. In one process, on python-can virtual buses."""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import sqlite3
+from collections.abc import AsyncIterator
+from contextlib import AsyncExitStack, asynccontextmanager
+from pathlib import Path
+
+import can
+import pytest
+
+import broker._store
+from broker.can_ecb import CanEcb
+from ups import BrokerUnavailable, Node, name_to_uid
+from ups import _canproto as p
+from ups._canlink import CanLink
+
+from .conftest import eventually, running_ecb
+
+CHANNELS = [f"trust/{i}" for i in range(24)]
+
+
+def send(raw: can.BusABC, msg: p.Management) -> None:
+    can_id, data = p.encode(msg)
+    raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
+
+
+@asynccontextmanager
+async def nodes(bus: str, ids: list[int]) -> AsyncIterator[list[Node]]:
+    async with AsyncExitStack() as stack:
+        started = [Node(can=bus, node_id=i, join_timeout=10) for i in ids]
+        for node in started:
+            stack.push_async_callback(node.close)
+        await asyncio.gather(*(n.start() for n in started))
+        yield started
+
+
+async def test_lost_database_restarts_never_move_an_etag_nor_misdeliver(
+    bus: str, tmp_path: Path
+) -> None:
+    """Each round the CAN-ECB restarts from an empty file; nodes announce in a random order,
+    and new channels are asked for while it recovers. Every event is checked: the payload
+    names its channel."""
+    rng = random.Random(9)
+    ids = [0x100 + i for i in range(4)]
+    async with (
+        running_ecb(bus, tmp_path / "ecb-0.db", recovery=0.2) as first,
+        nodes(bus, ids) as ns,
+    ):
+        subs = {}
+        for i, name in enumerate(rng.sample(CHANNELS[:16], 16)):  # a random binding order
+            subs[name] = await ns[i % 4].subscribe(name)
+            await ns[(i + 1) % 4].publish(name, name.encode())
+        etags = {name: first.etags[name_to_uid(name)] for name in subs}
+        first.close()  # the file is gone for good: every round starts from nothing
+        for rnd in range(4):
+            for node in ns:  # each node reports its channels in another order
+                face = node.face._channels  # type: ignore[attr-defined]
+                items = list(face.items())
+                rng.shuffle(items)
+                face.clear()
+                face.update(items)
+            # a recovery window longer than the nodes' Hello answer gap (1 s)
+            async with running_ecb(bus, tmp_path / f"ecb-{rnd + 1}.db", recovery=1.2) as ecb:
+                late = CHANNELS[16 + rnd]  # asked for while the new CAN-ECB recovers
+                subs[late] = await ns[rnd % 4].subscribe(late)
+                await ns[(rnd + 1) % 4].publish(late, late.encode())
+                etags[late] = ecb.etags[name_to_uid(late)]
+                await eventually(
+                    lambda ecb=ecb: all(
+                        ecb.etags.get(name_to_uid(n)) == e for n, e in etags.items()
+                    )
+                )
+                for i, name in enumerate(subs):
+                    await ns[(i + 1) % 4].publish(name, name.encode())
+                for name, sub in subs.items():
+                    while sub.pending:
+                        msg = sub._queue.popleft()
+                        assert msg.data == name.encode(), f"round {rnd}: {msg} on {name}"
+                for name in subs:
+                    await ns[(CHANNELS.index(name) + 2) % 4].publish(name, name.encode())
+                for name, sub in subs.items():
+                    msg = await sub.get_msg(timeout=5)
+                    assert msg.data == name.encode(), f"round {rnd}: {msg} on {name}"
+        assert all(n.stats()["rebinds"] == 0 for n in ns)  # nothing ever contradicted
+
+
+async def test_a_forged_bind_is_corrected_and_nothing_is_misdelivered(
+    bus: str, ecb: CanEcb, raw_bus: can.BusABC
+) -> None:
+    async with nodes(bus, [1, 2, 3]) as (pub, sub_node, other):
+        speed = await sub_node.subscribe("speed")
+        await pub.publish("speed", b"speed")
+        await other.publish("brake", b"brake")
+        assert (await speed.get_msg(timeout=5)).data == b"speed"
+        etag_speed = ecb.etags[name_to_uid("speed")]
+        # a stray frame says speed's etag now carries brake
+        send(raw_bus, p.Bind(etag_speed, name_to_uid("brake")))
+        await eventually(lambda: ecb.stats()["conflicts"] >= 1)
+        await eventually(lambda: sub_node.stats()["rebinds"] >= 1)
+        for _ in range(50):  # both channels keep flowing through the confusion
+            await pub.publish("speed", b"speed")
+            await other.publish("brake", b"brake")
+            await asyncio.sleep(0.002)
+        await eventually(lambda: sub_node.stats()["bindings"] == 1)  # bound again
+        await pub.publish("speed", b"last")
+        got = []
+        while (msg := await speed.get_msg(timeout=5)).data != b"last":
+            got.append(msg.data)
+        assert set(got) <= {b"speed"}  # never brake's payload under speed's name
+        assert ecb.etags[name_to_uid("speed")] == etag_speed  # the CAN-ECB kept its table
+
+
+async def test_a_second_can_ecb_stands_by_and_the_first_keeps_the_bus(
+    bus: str, ecb: CanEcb, tmp_path: Path
+) -> None:
+    async with nodes(bus, [7]) as (node,):
+        sub = await node.subscribe("x")
+        async with running_ecb(bus, tmp_path / "second.db", recovery=0.3) as second:
+            await eventually(lambda: second.standby)
+            assert not ecb.standby and ecb.healthy and not second.healthy
+            assert ecb.stats()["foreign_ecb_frames"] >= 1
+            await node.publish("x", b"1")
+            assert (await sub.get_msg(timeout=5)).data == b"1"
+            async with Node(can=bus, node_id=8) as late:  # joins served by the first only
+                assert late.stats()["txnode"] in ecb.txnodes.values()
+            assert second.txnodes == {} and second.etags == {}
+
+
+async def test_two_can_ecbs_started_together_leave_exactly_one_serving(
+    bus: str, tmp_path: Path
+) -> None:
+    async with (
+        running_ecb(bus, tmp_path / "a.db", recovery=0.3) as a,
+        running_ecb(bus, tmp_path / "b.db", recovery=0.3) as b,
+    ):
+        await eventually(lambda: a.standby or b.standby)
+        await asyncio.sleep(0.5)  # past both recovery windows: still exactly one
+        assert a.standby != b.standby
+        async with Node(can=bus, node_id=5) as node:
+            await node.subscribe("y")
+
+
+async def test_forged_claims_and_requests_take_nothing(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    async with (
+        running_ecb(bus, tmp_path / "ecb.db", recovery=0.1, max_channels=8) as ecb,
+        nodes(bus, [0x42]) as (node,),
+    ):
+        await eventually(lambda: not ecb.recovering)
+        me = node.stats()["txnode"]
+        for t in range(p.TXNODE_COUNT):  # every TxNode claimed by made-up nodes
+            send(raw_bus, p.Request(p.CLAIM, t, 0xF00D_0000 + t))
+        for i in range(200):  # bindings asked for by TxNodes nobody holds
+            send(raw_bus, p.Request(p.SUB_BIND, 100, 0xBAD_0000 + i))
+        for i in range(50):  # and by the real node's TxNode, beyond its limit
+            send(raw_bus, p.Request(p.SUB_BIND, me, 0xBEE_0000 + i))
+        for i in range(10_000):  # unsubscriptions of channels nobody has
+            send(raw_bus, p.Request(p.UNSUB, me, 0xC0DE_0000 + i))
+        await eventually(lambda: ecb.stats()["requests"] >= 10_000 + 377, timeout=30)
+        assert ecb.txnodes == {0x42: me}
+        assert len(ecb.etags) <= 8 and ecb.stats()["limited"] >= 42
+        assert ecb.stats()["unassigned"] >= 200
+        assert len(ecb.subscribers) <= 8 and len(ecb._channels_of) <= 2
+        async with Node(can=bus, node_id=0x43) as newcomer:  # the bus still takes nodes
+            assert newcomer.stats()["txnode"] not in (me, -1)
+
+
+async def test_hellos_are_answered_at_most_once_a_second(
+    bus: str, ecb: CanEcb, raw_bus: can.BusABC
+) -> None:
+    async with nodes(bus, [0x61]) as (node,):
+        await node.subscribe("h")
+        while raw_bus.recv(0) is not None:
+            pass
+        for i in range(20):
+            send(raw_bus, p.Hello(0xABC + i))
+        claims = 0
+        loop = asyncio.get_running_loop()
+        end = loop.time() + 1.5
+        while loop.time() < end:
+            frame = await asyncio.to_thread(raw_bus.recv, 0.1)
+            if frame is not None and frame.arbitration_id & p.ETAG_MASK == p.CLAIM:
+                claims += 1
+        assert 1 <= claims <= 2
+
+
+async def test_repeated_declarations_cost_one_analysis(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    async with (
+        running_ecb(bus, tmp_path / "ecb.db", recovery=0.1, bitrate=125_000) as ecb,
+        nodes(bus, [0x71]) as (node,),
+    ):
+        await node.declare("rt", period_ms=10, deadline_ms=10)
+        etag, me = ecb.etags[name_to_uid("rt")], node.stats()["txnode"]
+        for _ in range(2000):
+            send(raw_bus, p.Declare(me, etag, 8, 100, 100, 0))  # identical: answered again
+        for i in range(200):  # each one new: at most the rate limit is analysed
+            send(raw_bus, p.Declare(me, etag, 8, 100 + i, 100, 0))
+        await eventually(lambda: ecb.stats()["requests"] >= 2200, timeout=30)
+        analyses = ecb.stats()["admitted"] + ecb.stats()["refused"]
+        assert analyses <= 1 + 2 * 10 + 10 * 5  # a burst, then 10/s at most for a few s
+        assert ecb.stats()["limited"] > 0
+        async with Node(can=bus, node_id=0x72) as late:
+            await late.subscribe("still/served")
+
+
+async def test_a_silent_nodes_txnode_is_reclaimed_past_the_lease(bus: str, tmp_path: Path) -> None:
+    db = tmp_path / "full.db"
+    broker._store.Store(db).close()
+    with sqlite3.connect(db) as conn:
+        rows = [(f"{0xAAAA_0000 + t:016x}", t) for t in range(p.TXNODE_COUNT)]
+        conn.executemany("INSERT INTO txnodes VALUES (?, ?)", rows)
+    async with running_ecb(bus, db, recovery=0.1, lease=0.3) as ecb:
+        await asyncio.sleep(0.4)  # every assigned node stays silent past the lease
+        async with Node(can=bus, node_id=0xBEEF, join_timeout=10) as node:
+            assert 0xBEEF in ecb.txnodes and ecb.stats()["reclaimed"] == 1
+            assert len(ecb.txnodes) == p.TXNODE_COUNT
+            assert node.stats()["txnode"] == ecb.txnodes[0xBEEF]
+    with sqlite3.connect(db) as conn:  # and it is durable
+        assert conn.execute(
+            "SELECT txnode FROM txnodes WHERE node_id = ?", ("000000000000beef",)
+        ).fetchone()
+
+
+# --- storage --------------------------------------------------------------------------------
+
+
+async def test_a_deleted_database_is_written_anew(bus: str, tmp_path: Path) -> None:
+    db = tmp_path / "ecb.db"
+    async with running_ecb(bus, db, recovery=0.1) as ecb, nodes(bus, [1]) as (node,):
+        await node.subscribe("before")
+        db.unlink()
+        await node.subscribe("after")
+        assert ecb.healthy
+    with sqlite3.connect(db) as conn:
+        uids = {int(u, 16) for (u,) in conn.execute("SELECT uid FROM etags")}
+        nodes_ = {int(n, 16) for (n,) in conn.execute("SELECT node_id FROM txnodes")}
+    assert uids == {name_to_uid("before"), name_to_uid("after")} and nodes_ == {1}
+
+
+async def test_a_locked_database_fails_requests_clearly_and_never_blocks_the_loop(
+    bus: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(broker._store, "BUSY_TIMEOUT", 0.3)
+    db = tmp_path / "ecb.db"
+    async with running_ecb(bus, db, recovery=0.1) as ecb, nodes(bus, [1]) as (node,):
+        await node.subscribe("ok")
+        other = sqlite3.connect(db, timeout=0)  # another program holds the file locked
+        other.execute("BEGIN EXCLUSIVE")
+        loop = asyncio.get_running_loop()
+        ticks = 0
+
+        async def tick() -> None:
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.01)
+                ticks += 1
+
+        ticker = asyncio.create_task(tick())
+        start = loop.time()
+        with pytest.raises(BrokerUnavailable, match="database fails"):
+            await node.subscribe("while/locked")
+        waited = loop.time() - start
+        ticker.cancel()
+        assert ticks >= waited / 0.01 / 3  # the loop kept running while the writer waited
+        assert not ecb.healthy and ecb.stats()["storage_errors"] >= 1
+        with pytest.raises(BrokerUnavailable, match="database fails"):  # joins fail clearly too
+            await Node(can=bus, node_id=2, join_timeout=5).start()
+        other.rollback()
+        other.close()
+        await node.subscribe("while/locked")  # the disk is back: so is the service
+        async with Node(can=bus, node_id=2) as second:
+            assert second.stats()["txnode"] >= 0
+        assert ecb.healthy
+
+
+async def test_one_database_file_is_never_shared(bus: str, tmp_path: Path) -> None:
+    from ups import ConfigError
+
+    async with running_ecb(bus, tmp_path / "ecb.db"):
+        link = CanLink.open(bus + "-other")
+        try:
+            with pytest.raises(ConfigError, match="in use by process"):
+                CanEcb(link, tmp_path / "ecb.db")
+        finally:
+            link.close()
+
+
+def test_each_bus_has_its_own_default_database(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("UPS_STATE_DIR", "/state")
+    a = broker._store.default_db("udp_multicast:239.74.163.2,port=7000,bitrate=500000")
+    b = broker._store.default_db("udp_multicast:239.74.163.2,port=7001")
+    c = broker._store.default_db("socketcan:vcan0")
+    assert len({a, b, c}) == 3 and all(str(x).startswith("/state/can-ecb-") for x in (a, b, c))
+    assert a == broker._store.default_db("udp_multicast:239.74.163.2,bitrate=250000,port=7000")

@@ -1,0 +1,86 @@
+"""A node's side of the census: how a node without a TxNode gets one (docs/protocol.md).
+
+The node sends Knock. To the CAN-ECB's Census it answers with all 16 nibbles of its id, one
+data-less Stage frame each; to a Query whose prefix its id starts with, with the nibbles after
+the prefix. It is joined when an Assign names its id. It knocks again when it has heard no
+Census or Query for a while (50 ms, doubling to 1 s), and gives up after ``timeout``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+
+from . import _canproto as p
+from ._errors import BrokerUnavailable, Exhausted
+
+RETRY_FIRST = 0.05  #: seconds of silence before knocking again ...
+RETRY_MAX = 1.0  #: ... doubling up to this
+
+
+class Joiner:
+    """Joins one node: ``await run()`` returns its TxNode; feed it frames with ``on_frame``."""
+
+    def __init__(
+        self, node_id: int, send: Callable[[p.Management], None], bus: str, timeout: float | None
+    ) -> None:
+        self.node_id = node_id
+        self._nibbles = p.nibbles_of(node_id)
+        self._send = send
+        self._bus = bus
+        self._timeout = timeout
+        self._result: asyncio.Future[int] | None = None
+        self._heard = 0.0  # when the last Census or Query was heard
+        self.stages_sent = 0
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        self._result = result = loop.create_future()
+        deadline = None if self._timeout is None else loop.time() + self._timeout
+        delay = RETRY_FIRST
+        self._send(p.Knock())
+        while True:
+            try:
+                return await asyncio.wait_for(asyncio.shield(result), delay)
+            except TimeoutError:
+                if result.done():  # the answer was an error (BrokerUnavailable is a TimeoutError)
+                    return int(result.result())
+            now = loop.time()
+            if deadline is not None and now >= deadline:
+                raise BrokerUnavailable(
+                    f"no CAN-ECB gave this node a TxNode on {self._bus} within "
+                    f"{self._timeout:g} s; start one with 'ups can-broker --can ...' or a gateway"
+                )
+            if now - self._heard >= delay:  # a census may be running for others: let it end
+                self._send(p.Knock())
+                delay = min(delay * 2, RETRY_MAX)
+
+    def on_frame(self, msg: p.Management) -> None:
+        result = self._result
+        if result is None or result.done():
+            return
+        if isinstance(msg, p.Census):
+            self._heard = asyncio.get_running_loop().time()
+            self._burst(msg.epoch, 0)
+        elif isinstance(msg, p.Query):
+            self._heard = asyncio.get_running_loop().time()
+            if self._nibbles[: len(msg.prefix)] == msg.prefix:
+                self._burst(msg.epoch, len(msg.prefix))
+        elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
+            result.set_result(msg.txnode)
+        elif isinstance(msg, p.TxNodesFull) and msg.node_id == self.node_id:
+            result.set_exception(
+                Exhausted(f"all {p.TXNODE_COUNT} TxNodes of {self._bus} are taken")
+            )
+        elif isinstance(msg, p.Failed) and msg.value == self.node_id:
+            result.set_exception(
+                BrokerUnavailable(
+                    f"the CAN-ECB of {self._bus} could not store this node's TxNode: its "
+                    "database fails (see its log and 'ups status')"
+                )
+            )
+
+    def _burst(self, epoch: int, start: int) -> None:
+        for stage in range(start, p.NIBBLES):
+            self._send(p.Stage(epoch, stage, self._nibbles[stage]))
+        self.stages_sent += p.NIBBLES - start

@@ -1,0 +1,57 @@
+"""What a node and its faces share: the channel table entry, the sink, and the face interface.
+
+A *face* is one network as a node sees it (CAN, TCP/IP, ...). It is built with what it needs
+from the node: the table of channels (UID -> ``ChannelState``) and a ``Deliver`` callback for
+the events it receives. It never imports the node.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+from ._channel import Channel
+from ._message import Message
+
+
+class Sink(Protocol):
+    """Where a node delivers a channel's events: a ``Subscription``, or a gateway's forwarder."""
+
+    def _push(self, msg: Message) -> None: ...
+
+
+class ChannelState:
+    """What a node knows of one channel: its local subscriptions, priority and publishing."""
+
+    __slots__ = ("channel", "declared", "priority", "published", "subs")
+
+    def __init__(self, channel: Channel, priority: int) -> None:
+        self.channel = channel
+        self.priority = priority
+        self.subs: list[Sink] = []
+        self.published = False
+        self.declared = False  # a real-time stream: the broker owns its priority
+
+
+#: ``deliver(state, data, priority, source, timestamp)``: hand one received event to the
+#: local subscriptions of its channel.
+Deliver = Callable[[ChannelState, bytes, int, int | None, float], None]
+
+
+class Face(Protocol):
+    """One network as seen by a node. A face calls its ``Deliver`` for each event it receives."""
+
+    max_payload: int
+
+    async def start(self) -> None: ...
+    async def close(self) -> None: ...
+    async def bind(self, state: ChannelState, subscribe: bool) -> None:
+        """Make ``state``'s channel usable: to publish on it, or (``subscribe``) to receive it."""
+
+    async def unsubscribe(self, state: ChannelState) -> None:
+        """The node's last local subscriber of the channel left."""
+
+    def send(self, state: ChannelState, data: bytes, priority: int) -> None:
+        """Publish ``data`` on the network; never blocks, counts what it must drop."""
+
+    def stats(self) -> dict[str, int]: ...
