@@ -12,7 +12,9 @@ When the answers stop coming, the CAN-ECB reads them stage by stage:
 - no nibble at stage s (frames were lost): the prefix up to s is queried again.
 
 Up to 16 queries are open at once, each in an epoch of its own. An epoch is reused only after
-``QUARANTINE`` s, so that a late answer cannot be taken for an answer to another query. The
+``QUARANTINE`` s, so that a late answer is rarely taken for an answer to another query; when
+one is, it costs a query nobody answers, or an offer nobody claims (the CAN-ECB offers a
+TxNode to each id found, and assigns it only when the node claims it). The
 whole census costs each joiner one Stage frame per nibble and per branching on its path:
 linear in the number of joiners.
 """
@@ -26,9 +28,12 @@ from dataclasses import dataclass, field
 
 from ups import _canproto as p
 
-QUIET = 0.025  #: a query closes once no answer came for this long ...
+FIRST = 0.25  #: a query closes no sooner than 4 round trips (at most this) after it was sent,
+#: the round trip being the time from a query to its first answer, averaged; and only once ...
+QUIET = 0.04  #: ... no answer came for this long (the answers of one query come in bursts) ...
 LONGEST = 2.0  #: ... or this long after it was sent, whichever comes first
-QUARANTINE = 0.25  #: an epoch is not reused for this long after its query closed
+FIRST_MIN = 0.03
+QUARANTINE = 0.04  #: an epoch is not reused for this long after its query closed
 RETRIES = 3  #: a prefix whose answers keep arriving incomplete is queried at most this often
 
 
@@ -38,6 +43,7 @@ class _Query:
     sent: float
     last: float
     stages: list[set[int]] = field(default_factory=list)  # index: stage - len(prefix)
+    answered: bool = False
 
 
 class Census:
@@ -61,6 +67,7 @@ class Census:
         self._next_epoch = 0
         self._tries: dict[tuple[int, ...], int] = {}
         self._again = False
+        self._rtt = 0.025  # the round trip from a query to its first answer, averaged
         self._timer: asyncio.TimerHandle | None = None
         self.counters = dict.fromkeys(("censuses", "queries", "stages", "late_stages"), 0)
 
@@ -85,10 +92,14 @@ class Census:
             self.counters["late_stages"] += 1
             return
         self.counters["stages"] += 1
+        now = asyncio.get_running_loop().time()
+        if not query.answered:
+            query.answered = True
+            self._rtt += (now - query.sent - self._rtt) / 4
         while len(query.stages) <= offset:
             query.stages.append(set())
         query.stages[offset].add(msg.nibble)
-        query.last = asyncio.get_running_loop().time()
+        query.last = now
 
     def close(self) -> None:
         if self._timer is not None:
@@ -128,18 +139,22 @@ class Census:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        times = [min(q.last + self._quiet, q.sent + LONGEST) for q in self._open.values()]
+        times = [self._closes_at(q) for q in self._open.values()]
         if self._waiting:
             times += [t for e, t in enumerate(self._free_at) if e not in self._open]
         if times:
             delay = max(0.0, min(times) - now)
             self._timer = asyncio.get_running_loop().call_later(delay, self._tick)
 
+    def _closes_at(self, query: _Query) -> float:
+        first = min(FIRST, max(FIRST_MIN, 4 * self._rtt))
+        return min(max(query.sent + first, query.last + self._quiet), query.sent + LONGEST)
+
     def _tick(self) -> None:
         self._timer = None
         now = asyncio.get_running_loop().time()
         for epoch, query in list(self._open.items()):
-            if now >= min(query.last + self._quiet, query.sent + LONGEST):
+            if now >= self._closes_at(query):
                 del self._open[epoch]
                 self._free_at[epoch] = now + self._quarantine
                 self._conclude(query)

@@ -6,9 +6,9 @@ back on the loop, with None or the error. The CAN-ECB announces an assignment or
 only after its callback said it is durable.
 
 A file is used by one CAN-ECB at a time: ``Store`` holds an exclusive lock on ``FILE.lock``
-and refuses to open a file another process holds. If the file is deleted or replaced while
-the CAN-ECB runs, the writer notices before its next write and writes the whole table into a
-new file at the same path.
+and refuses to open a file another process holds. The file is opened for each batch
+and closed after it; if it was deleted or replaced in between, the writer writes the whole
+table into a new file at the same path.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import sqlite3
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO
 
 from ups._errors import ConfigError
 
@@ -71,12 +70,14 @@ class Store:
         self._lock = _lock(self.path)
         try:
             db = self._connect()
-            self.txnodes: dict[int, int] = _load(db, "txnodes")
-            self.etags: dict[int, int] = _load(db, "etags")
+            try:
+                self.txnodes: dict[int, int] = _load(db, "txnodes")
+                self.etags: dict[int, int] = _load(db, "etags")
+            finally:
+                db.close()
         except sqlite3.Error as exc:
-            self._lock.close()
+            os.close(self._lock)
             raise ConfigError(f"cannot use the CAN-ECB database {self.path}: {exc}") from exc
-        self._db: sqlite3.Connection | None = db
         self._inode = _inode(self.path)
         #: what the file holds, as the writer thread knows it (to rewrite a deleted file)
         self._durable = {"txnodes": dict(self.txnodes), "etags": dict(self.etags)}
@@ -99,15 +100,14 @@ class Store:
         self._queue.put((writes, done))
 
     def close(self) -> None:
-        """Finish the writes already submitted, then close the file and the lock."""
+        """Finish the writes already submitted, then let go of the lock."""
         if self._thread is not None:
             self._queue.put(None)
             self._thread.join(timeout=BUSY_TIMEOUT + 2)
             self._thread = None
-        if self._db is not None:
-            self._db.close()
-            self._db = None
-        self._lock.close()
+        if self._lock >= 0:
+            os.close(self._lock)
+            self._lock = -1
 
     # --- the writer thread -----------------------------------------------------------------
 
@@ -136,22 +136,31 @@ class Store:
                 self._call_back(done, error)
 
     def _commit(self, writes: list[Write]) -> BaseException | None:
+        """Write one batch. The file is opened for each batch and closed after it, so that no
+        descriptor stays open for writing between batches (a disk can be remounted)."""
         try:
-            db = self._ensure_file()
-            with db:
-                for table, key, value in writes:
-                    key_col, value_col = _COLUMNS[table]
-                    db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
-                    if value is not None:
-                        db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
-                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
+            inode = _inode(self.path)
+            db = self._connect()
+            try:
+                with db:
+                    if inode != self._inode:  # deleted or replaced: write it all anew
+                        log.error(
+                            "CAN-ECB database %s was deleted or replaced: writing it anew",
+                            self.path,
+                        )
+                        self._write_all(db)
+                    for table, key, value in writes:
+                        key_col, value_col = _COLUMNS[table]
+                        db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
+                        if value is not None:
+                            db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
+                            db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
+            finally:
+                db.close()
+            self._inode = _inode(self.path)
         except (sqlite3.Error, OSError) as exc:
             self.errors += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
-            if self._db is not None:  # open afresh next time: the disk may have come back
-                with contextlib.suppress(sqlite3.Error):
-                    self._db.close()
-                self._db = None
             return exc
         self.batches += 1
         self.last_error = None
@@ -162,27 +171,13 @@ class Store:
                 self._durable[table][key] = value
         return None
 
-    def _ensure_file(self) -> sqlite3.Connection:
-        """The open file, or a new one written in full if the old one was deleted or replaced."""
-        inode = _inode(self.path)
-        if self._db is not None and inode == self._inode:
-            return self._db
-        if self._db is not None:
-            self._db.close()
-            self._db = None
-        if inode != self._inode:
-            log.error("CAN-ECB database %s was deleted or replaced: writing it anew", self.path)
-        db = self._connect()
-        with db:
-            for table in _COLUMNS:
-                db.execute(f"DELETE FROM {table}")
-                db.executemany(
-                    f"INSERT INTO {table} VALUES (?, ?)",
-                    [(f"{k:016x}", v) for k, v in self._durable[table].items()],
-                )
-        self._db = db
-        self._inode = _inode(self.path)
-        return db
+    def _write_all(self, db: sqlite3.Connection) -> None:
+        for table in _COLUMNS:
+            db.execute(f"DELETE FROM {table}")
+            db.executemany(
+                f"INSERT INTO {table} VALUES (?, ?)",
+                [(f"{k:016x}", v) for k, v in self._durable[table].items()],
+            )
 
     def _call_back(self, done: Done, error: BaseException | None) -> None:
         loop = self._loop
@@ -203,25 +198,32 @@ def _inode(path: Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
-def _lock(path: Path) -> IO[str]:
-    """Hold ``PATH.lock`` exclusively, or fail naming the process that holds it."""
+def _lock(path: Path) -> int:
+    """Hold ``PATH.lock`` exclusively (through a descriptor open for reading only, so the disk
+    can still be remounted), or fail naming the process that holds it."""
+    lock_path = Path(f"{path}.lock")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle = open(f"{path}.lock", "a+")  # noqa: SIM115 - held for the store's life
+        fd = os.open(lock_path, os.O_RDONLY | os.O_CREAT, 0o644)
     except OSError as exc:
         raise ConfigError(f"cannot use the CAN-ECB database {path}: {exc}") from exc
     try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
-        handle.seek(0)
-        holder = handle.read().strip() or "another process"
-        handle.close()
+        holder = _lock_holder(os.fstat(fd).st_ino)
+        os.close(fd)
         raise ConfigError(
             f"the CAN-ECB database {path} is in use by {holder}: one CAN-ECB per bus, and each "
             "bus its own --db"
         ) from None
-    handle.seek(0)
-    handle.truncate()
-    handle.write(f"process {os.getpid()}\n")
-    handle.flush()
-    return handle
+    return fd
+
+
+def _lock_holder(inode: int) -> str:
+    """The process holding a flock on ``inode``, as /proc/locks says."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/locks").read_text().splitlines():
+            fields = line.split()
+            if len(fields) > 5 and fields[1] == "FLOCK" and fields[5].endswith(f":{inode}"):
+                return f"process {fields[4]}"
+    return "another process"

@@ -42,6 +42,7 @@ log = logging.getLogger("ups.can_ecb")
 RECOVERY = 2.0  #: seconds after Hello during which the CAN-ECB only listens and adopts (longer
 #: than the nodes' Hello answer gap of 1 s, so that every node answers within it)
 GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
+OFFER_TIMEOUT = 1.0  #: an offered TxNode not claimed within this time is free again
 HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
 LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
 MAX_CHANNELS = 1024  #: channels one TxNode may subscribe to or publish on
@@ -86,6 +87,7 @@ class CanEcb:
         self._node_at = {t: n for n, t in self._store.txnodes.items()}  # TxNode -> node id
         self._uid_at = {e: u for u, e in self._store.etags.items()}  # etag -> UID
         self._pending_tx: dict[int, int] = {}  # node id -> TxNode being written
+        self._offered: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
         self._pending_etag: dict[int, tuple[int, list[tuple[int, int]]]] = {}  # uid -> etag, asks
         now = time.monotonic()
         self._seen_tx = dict.fromkeys(range(p.TXNODE_COUNT), now)  # TxNode -> last frame
@@ -109,7 +111,7 @@ class CanEcb:
             (
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
                 "adopted", "conflicts", "foreign_ecb_frames", "unassigned", "deferred",
-                "limited", "reclaimed", "storage_errors", "handler_errors",
+                "limited", "reclaimed", "storage_errors", "handler_errors", "offers_withdrawn",
             ),
             0,
         )  # fmt: skip
@@ -173,6 +175,9 @@ class CanEcb:
     def close(self) -> None:
         """Stop serving the bus (the link stays open). Safe to call twice."""
         self._census.close()
+        for _, timer in self._offered.values():
+            timer.cancel()
+        self._offered.clear()
         if self._recovery_timer is not None:
             self._recovery_timer.cancel()
             self._recovery_timer = None
@@ -314,25 +319,55 @@ class CanEcb:
     # --- joining -----------------------------------------------------------------------------
 
     def _found(self, node_ids: list[int]) -> None:
+        """The census found these ids: offer each a TxNode, which its node must claim."""
         for node_id in node_ids:
-            self._assign(node_id)
+            if self.standby or node_id in self._pending_tx:
+                continue
+            offer = self._offered.get(node_id)
+            txnode = offer[0] if offer else self._store.txnodes.get(node_id)
+            if txnode is None:
+                writes: list[Write] = []
+                txnode = self._free_txnode(writes)
+                if txnode is None:
+                    self.counters["refused"] += 1
+                    log.warning("no TxNode left for node %016x", node_id)
+                    self._send(p.TxNodesFull(node_id))
+                    continue
+                if writes:  # a TxNode reclaimed: its old owner is forgotten for good
+                    self._store.submit(writes, self._adopt_done(node_id))
+            if offer:
+                offer[1].cancel()
+            timer = asyncio.get_running_loop().call_later(OFFER_TIMEOUT, self._withdraw, node_id)
+            self._offered[node_id] = (txnode, timer)
+            self._send(p.Offer(txnode, node_id))
 
-    def _assign(self, node_id: int) -> None:
+    def _move(self, node_id: int) -> None:
+        """Give a joined node whose TxNode another holds a TxNode of its own (Assign)."""
+        txnode = self._store.txnodes.get(node_id)
+        if txnode is None:
+            writes: list[Write] = []
+            txnode = self._free_txnode(writes)
+            if txnode is None:
+                self.counters["refused"] += 1
+                self._send(p.TxNodesFull(node_id))
+                return
+            if writes:
+                self._store.submit(writes, self._adopt_done(node_id))
+        self._assign(node_id, txnode)
+
+    def _withdraw(self, node_id: int) -> None:
+        """Nobody claimed the offer: the id was not a node's (frames were lost or late)."""
+        if self._offered.pop(node_id, None) is not None:
+            self.counters["offers_withdrawn"] += 1
+
+    def _assign(self, node_id: int, txnode: int) -> None:
+        """The node claimed the TxNode offered to it: store the assignment, then announce it."""
         if self.standby or node_id in self._pending_tx:
             return
-        txnode = self._store.txnodes.get(node_id)
-        if txnode is not None:
+        if self._store.txnodes.get(node_id) == txnode:
             self._assigned(node_id, txnode)
             return
-        writes: list[Write] = []
-        txnode = self._free_txnode(writes)
-        if txnode is None:
-            self.counters["refused"] += 1
-            log.warning("no TxNode left for node %016x", node_id)
-            self._send(p.TxNodesFull(node_id))
-            return
         self._pending_tx[node_id] = txnode
-        writes.append(("txnodes", node_id, txnode))
 
         def done(error: BaseException | None) -> None:
             del self._pending_tx[node_id]
@@ -340,7 +375,7 @@ class CanEcb:
                 self._hold_txnode(node_id, txnode)
                 self._assigned(node_id, txnode)
 
-        self._store.submit(writes, done)
+        self._store.submit([("txnodes", node_id, txnode)], done)
 
     def _assigned(self, node_id: int, txnode: int) -> None:
         self.counters["joined"] += 1
@@ -350,12 +385,13 @@ class CanEcb:
         self._send(p.Assign(txnode, node_id))
 
     def _free_txnode(self, writes: list[Write]) -> int | None:
-        taken = set(self._node_at) | set(self._pending_tx.values())
+        offered = {t for t, _ in self._offered.values()}
+        taken = set(self._node_at) | set(self._pending_tx.values()) | offered
         free = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
         if free is not None:
             return free
         now = time.monotonic()
-        idle = [t for t in self._node_at if t not in self._pending_tx.values()]
+        idle = [t for t in self._node_at if t not in taken - set(self._node_at)]
         oldest = min(idle, key=lambda t: self._seen_tx[t], default=None)
         if oldest is None or now - self._seen_tx[oldest] < self._lease:
             return None
@@ -373,6 +409,12 @@ class CanEcb:
         self._node_at[txnode] = node_id
 
     def _on_claim(self, txnode: int, node_id: int) -> None:
+        offer = self._offered.get(node_id)
+        if offer is not None and offer[0] == txnode:  # a joiner takes the TxNode offered
+            offer[1].cancel()
+            del self._offered[node_id]
+            self._assign(node_id, txnode)
+            return
         known = self._store.txnodes.get(node_id)
         if known == txnode:
             return
@@ -391,9 +433,9 @@ class CanEcb:
             self._store.submit([("txnodes", node_id, txnode)], self._adopt_done(node_id))
             return
         self.counters["conflicts"] += 1
-        log.warning("node %016x claims TxNode %d held by another node: reassigning",
+        log.warning("node %016x claims TxNode %d held by another node: moving it",
                     node_id, txnode)  # fmt: skip
-        self._assign(node_id)  # the holder of ``txnode`` keeps it and its channels
+        self._move(node_id)  # the holder of ``txnode`` keeps it and its channels
 
     def _adopt_done(self, value: int) -> Callable[[BaseException | None], None]:
         def done(error: BaseException | None) -> None:

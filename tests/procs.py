@@ -21,15 +21,24 @@ ROOT = Path(__file__).resolve().parent.parent
 class Proc:
     """A child process whose stderr lines are collected as they come."""
 
-    def __init__(self, *args: str) -> None:
+    def __init__(
+        self,
+        *args: str,
+        prefix: tuple[str, ...] = (),
+        env: dict[str, str] | None = None,
+        cwd: Path = ROOT,
+    ) -> None:
+        """``ups ARGS...``; ``prefix`` runs it under another command (say ``unshare``), ``env``
+        adds to the environment."""
         self.args = args
         self.popen = subprocess.Popen(
-            [sys.executable, "-m", "ups.cli", *args],
+            [*prefix, sys.executable, "-m", "ups.cli", *args],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
-            cwd=ROOT,
+            cwd=cwd,
+            env=None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env},
         )
         self.stderr_lines: list[str] = []
         self.stdout_lines: list[str] = []

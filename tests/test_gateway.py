@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -310,3 +311,35 @@ async def test_bad_gateway_options(tcp_ecb: TcpEcb) -> None:
         Gateway("virtual:x", addr(tcp_ecb), can_queue=0)
     with pytest.raises(ConfigError, match="bitrate"):
         Gateway("virtual:x", addr(tcp_ecb), bitrate=0)
+
+
+async def test_a_forged_bind_never_stops_tcp_to_can(
+    bus: str, raw_bus: can.BusABC, tcp_ecb: TcpEcb, tmp_path: Path
+) -> None:
+    """A stray Bind that moves the forwarded channel's etag: the gateway's CAN node binds it
+    again and forwarding goes on; nothing is sent on an etag it no longer relies on."""
+    async with (
+        gateway(bus, tcp_ecb, tmp_path / "gw.db") as gw,
+        can_node(bus, 0xC3) as csub_node,
+        tcp_node(tcp_ecb, 0x73) as tpub,
+    ):
+        sub = await csub_node.subscribe("cmd")
+        await eventually(lambda: forwarding(gw, "cmd", "can"))
+        await tpub.publish("cmd", b"\x01")
+        assert (await sub.get_msg(timeout=5)).data == b"\x01"
+        etag = csub_node.face._bound[name_to_uid("cmd")]  # type: ignore[attr-defined]
+        can_id, data = p.encode(p.Bind(etag, name_to_uid("not/cmd")))
+        raw_bus.send(can.Message(arbitration_id=can_id, data=data))
+        await eventually(lambda: gw.can.stats()["rebinds"] >= 1)  # type: ignore[union-attr]
+        for i in range(2, 40):  # TCP->CAN goes on through the re-binding
+            await tpub.publish("cmd", bytes([i]))
+            await asyncio.sleep(0.005)
+        await eventually(lambda: gw.can.stats()["bindings"] >= 1)  # type: ignore[union-attr]
+        await tpub.publish("cmd", b"\xff")
+        got = []
+        while (msg := await sub.get_msg(timeout=5)).data != b"\xff":
+            got.append(msg.data)
+        assert all(len(d) == 1 and 2 <= d[0] < 40 for d in got)
+        stats = gw.stats()
+        assert stats["pacer_errors"] == 0 and stats["reconcile_errors"] == 0
+        assert gw._ecb is not None and gw._ecb.stats()["conflicts"] >= 1

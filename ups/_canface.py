@@ -30,6 +30,8 @@ _BIND_TIMEOUT = 5.0
 _ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
 _HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
 _LOG_GAP = 10.0
+_STAGE_MASK = p.make_id(0xFF, 0x7F, 0x3000)
+_STAGE_ID = p.make_id(p.CONFIG_PRIORITY, p.MGMT_TXNODE, 0)
 _MGMT_FILTER = {
     "can_id": p.MGMT_TXNODE << p.TXNODE_SHIFT,
     "can_mask": p.TXNODE_MASK << p.TXNODE_SHIFT,
@@ -159,7 +161,10 @@ class CanFace:
         etag = can_id & p.ETAG_MASK
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
         if txnode == p.MGMT_TXNODE or etag < p.FIRST_ETAG or can_id >> p.PRIORITY_SHIFT < 2:
-            self._on_management(can_id, bytes(frame.data))
+            if can_id & _STAGE_MASK != _STAGE_ID:
+                self._on_management(can_id, bytes(frame.data))
+            elif self.txnode is None:  # another joiner's Stage: ours would be the same frame
+                self._joiner.heard_stage(can_id & 0xFFF)
             return
         state = self._rx.get(etag)
         if state is None:

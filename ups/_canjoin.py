@@ -2,13 +2,19 @@
 
 The node sends Knock. To the CAN-ECB's Census it answers with all 16 nibbles of its id, one
 data-less Stage frame each; to a Query whose prefix its id starts with, with the nibbles after
-the prefix. It is joined when an Assign names its id. It knocks again when it has heard no
-Census or Query for a while (50 ms, doubling to 1 s), and gives up after ``timeout``.
+the prefix. When the CAN-ECB offers it a TxNode (Offer), it claims it (CLAIM from that TxNode)
+and is joined when an Assign names its id.
+
+A Stage frame it already heard from another joiner in answer to the same query is left out:
+on a real bus identical frames merge, and this does the same on buses that do not (emulated
+ones, or several nodes of one process). It knocks again when it has heard no Census, Query or
+Offer for a while (at least 0.3 s; 50 ms doubling to 1 s), and gives up after ``timeout``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Callable
 
 from . import _canproto as p
@@ -16,6 +22,10 @@ from ._errors import BrokerUnavailable, Exhausted
 
 RETRY_FIRST = 0.05  #: seconds of silence before knocking again ...
 RETRY_MAX = 1.0  #: ... doubling up to this
+KNOCK_SILENCE = 0.3  #: but never while a Census, Query or Offer came this recently
+#: Stage frames heard this recently belong to the current query of their epoch (the CAN-ECB
+#: does not reuse an epoch within 250 ms)
+_FRESH = 0.1
 
 
 class Joiner:
@@ -31,6 +41,8 @@ class Joiner:
         self._timeout = timeout
         self._result: asyncio.Future[int] | None = None
         self._heard = 0.0  # when the last Census or Query was heard
+        #: epoch -> (when last heard, {stage << 4 | nibble}): Stage frames of other joiners
+        self._sent_by_others: dict[int, tuple[float, set[int]]] = {}
         self.stages_sent = 0
 
     async def run(self) -> int:
@@ -38,6 +50,7 @@ class Joiner:
         self._result = result = loop.create_future()
         deadline = None if self._timeout is None else loop.time() + self._timeout
         delay = RETRY_FIRST
+        self._heard = loop.time()  # as if the Knock had been answered: wait before the next
         self._send(p.Knock())
         while True:
             try:
@@ -51,7 +64,7 @@ class Joiner:
                     f"no CAN-ECB gave this node a TxNode on {self._bus} within "
                     f"{self._timeout:g} s; start one with 'ups can-broker --can ...' or a gateway"
                 )
-            if now - self._heard >= delay:  # a census may be running for others: let it end
+            if now - self._heard >= max(delay, KNOCK_SILENCE):  # let a running census end
                 self._send(p.Knock())
                 delay = min(delay * 2, RETRY_MAX)
 
@@ -66,6 +79,9 @@ class Joiner:
             self._heard = asyncio.get_running_loop().time()
             if self._nibbles[: len(msg.prefix)] == msg.prefix:
                 self._burst(msg.epoch, len(msg.prefix))
+        elif isinstance(msg, p.Offer) and msg.node_id == self.node_id:
+            self._heard = asyncio.get_running_loop().time()
+            self._send(p.Request(p.CLAIM, msg.txnode, self.node_id))
         elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
             result.set_result(msg.txnode)
         elif isinstance(msg, p.TxNodesFull) and msg.node_id == self.node_id:
@@ -80,7 +96,22 @@ class Joiner:
                 )
             )
 
+    def heard_stage(self, arg: int) -> None:
+        """Another joiner sent Stage with this 12-bit argument (epoch, stage, nibble). It may
+        come before this node saw the query itself (another node of the process answered
+        first)."""
+        now = time.monotonic()
+        epoch = arg >> 8
+        seen = self._sent_by_others.get(epoch)
+        if seen is None or now - seen[0] > _FRESH:
+            seen = self._sent_by_others[epoch] = (now, set())
+        seen[1].add(arg & 0xFF)
+
     def _burst(self, epoch: int, start: int) -> None:
+        seen = self._sent_by_others.get(epoch)
+        fresh = seen is not None and time.monotonic() - seen[0] <= _FRESH
+        heard = seen[1] if seen is not None and fresh else set()
         for stage in range(start, p.NIBBLES):
-            self._send(p.Stage(epoch, stage, self._nibbles[stage]))
-        self.stages_sent += p.NIBBLES - start
+            if (stage << 4 | self._nibbles[stage]) not in heard:
+                self._send(p.Stage(epoch, stage, self._nibbles[stage]))
+                self.stages_sent += 1

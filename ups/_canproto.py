@@ -76,6 +76,7 @@ _OP_STAGE, _OP_QUERY, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
 _ST_CENSUS, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO, _ST_GRANT, _ST_REFUSE = range(6)
 _ST_SERVING, _ST_FAILED, _ST_LIMIT = 6, 7, 8
 _ST_KNOCK = 0xF
+_OFFER = 0x80  #: in an Assign frame's argument: only an offer
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,6 +107,15 @@ class Stage:
     epoch: int
     stage: int
     nibble: int
+
+
+@dataclass(frozen=True, slots=True)
+class Offer:
+    """The CAN-ECB found ``node_id`` in a census and offers it ``txnode``: the node claims it
+    (CLAIM from ``txnode``) before it is assigned, so no TxNode goes to an id nobody has."""
+
+    txnode: int
+    node_id: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -246,6 +256,7 @@ Management = (
     | Census
     | Query
     | Stage
+    | Offer
     | Assign
     | Hello
     | Serving
@@ -264,8 +275,8 @@ Management = (
 #: The frames only a CAN-ECB sends (a CAN-ECB that hears one it did not send knows that
 #: another CAN-ECB, or a forger, is on the bus).
 ECB_FRAMES = (
-    Census, Query, Assign, Hello, Serving, TxNodesFull, EtagsFull, Failed, Limit, Grant, Refuse,
-    Bind,
+    Census, Query, Offer, Assign, Hello, Serving, TxNodesFull, EtagsFull, Failed, Limit, Grant,
+    Refuse, Bind,
 )  # fmt: skip
 
 
@@ -281,6 +292,8 @@ def encode(msg: Management) -> tuple[int, bytes]:
         return _config_id(_OP_QUERY, arg), value.to_bytes(8, "big")
     if isinstance(msg, Assign):
         return _config_id(_OP_ASSIGN, msg.txnode), msg.node_id.to_bytes(8, "big")
+    if isinstance(msg, Offer):
+        return _config_id(_OP_ASSIGN, _OFFER | msg.txnode), msg.node_id.to_bytes(8, "big")
     if isinstance(msg, Census):
         return _config_id(_OP_STATUS, (_ST_CENSUS << 8) | msg.epoch), b""
     if isinstance(msg, Knock):
@@ -348,8 +361,10 @@ def decode(can_id: int, data: bytes) -> Management:
             raise DecodeError(f"inconsistent query {can_id:#010x} {data.hex()}")
         return Query(epoch, prefix)
     if op == _OP_ASSIGN:
-        if arg >= TXNODE_COUNT:
+        if arg & ~_OFFER >= TXNODE_COUNT:
             raise DecodeError(f"assignment of reserved TxNode {arg:#x}")
+        if arg & _OFFER:
+            return Offer(arg & ~_OFFER, _u64(data, can_id))
         return Assign(arg, _u64(data, can_id))
     return _decode_status(arg >> 8, arg & 0xFF, data, can_id)
 
