@@ -6,9 +6,9 @@ back on the loop, with None or the error. The CAN-ECB announces an assignment or
 only after its callback said it is durable.
 
 A file is used by one CAN-ECB at a time: ``Store`` holds an exclusive lock on ``FILE.lock``
-and refuses to open a file another process holds. The file is opened for each batch
-and closed after it; if it was deleted or replaced in between, the writer writes the whole
-table into a new file at the same path.
+and refuses to open a file another process holds. The file is open only while writes are
+queued; if it was deleted or replaced, the writer writes the whole table into a new file at
+the same path.
 """
 
 from __future__ import annotations
@@ -79,6 +79,7 @@ class Store:
             os.close(self._lock)
             raise ConfigError(f"cannot use the CAN-ECB database {self.path}: {exc}") from exc
         self._inode = _inode(self.path)
+        self._db: sqlite3.Connection | None = None  # open while writes are queued
         #: what the file holds, as the writer thread knows it (to rewrite a deleted file)
         self._durable = {"txnodes": dict(self.txnodes), "etags": dict(self.etags)}
         self._queue: queue.SimpleQueue[tuple[list[Write], Done] | None] = queue.SimpleQueue()
@@ -134,33 +135,36 @@ class Store:
             error = self._commit([w for writes, _ in batch for w in writes])
             for _, done in batch:
                 self._call_back(done, error)
+            if self._queue.empty():  # idle: hold no descriptor open for writing
+                self._close_db()
 
     def _commit(self, writes: list[Write]) -> BaseException | None:
-        """Write one batch. The file is opened for each batch and closed after it, so that no
-        descriptor stays open for writing between batches (a disk can be remounted)."""
+        """Write one batch. The file stays open while batches follow each other and is closed
+        when none waits, so no descriptor stays open for writing while the CAN-ECB is idle
+        (a disk can be remounted)."""
         try:
             inode = _inode(self.path)
-            db = self._connect()
-            try:
-                with db:
-                    if inode != self._inode:  # deleted or replaced: write it all anew
-                        log.error(
-                            "CAN-ECB database %s was deleted or replaced: writing it anew",
-                            self.path,
-                        )
-                        self._write_all(db)
-                    for table, key, value in writes:
-                        key_col, value_col = _COLUMNS[table]
-                        db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
-                        if value is not None:
-                            db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
-                            db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
-            finally:
-                db.close()
+            if self._db is None or inode != self._inode:
+                self._close_db()
+                self._db = self._connect()
+            db = self._db
+            with db:
+                if inode != self._inode:  # deleted or replaced: write it all anew
+                    log.error(
+                        "CAN-ECB database %s was deleted or replaced: writing it anew", self.path
+                    )
+                    self._write_all(db)
+                for table, key, value in writes:
+                    key_col, value_col = _COLUMNS[table]
+                    db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
+                    if value is not None:
+                        db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
+                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
             self._inode = _inode(self.path)
         except (sqlite3.Error, OSError) as exc:
             self.errors += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
+            self._close_db()  # open afresh next time: the disk may have come back
             return exc
         self.batches += 1
         self.last_error = None
@@ -170,6 +174,12 @@ class Store:
             else:
                 self._durable[table][key] = value
         return None
+
+    def _close_db(self) -> None:
+        if self._db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                self._db.close()
+            self._db = None
 
     def _write_all(self, db: sqlite3.Connection) -> None:
         for table in _COLUMNS:

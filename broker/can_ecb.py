@@ -45,10 +45,11 @@ GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
 OFFER_TIMEOUT = 1.0  #: an offered TxNode not claimed within this time is free again
 HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
 LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
-MAX_CHANNELS = 1024  #: channels one TxNode may subscribe to or publish on
+MAX_CHANNELS = 8192  #: channels one TxNode may subscribe to or publish on (half the etags)
 MAX_DEFERRED = 4096  #: binding requests held during the recovery window
 DECLARE_RATE = 10.0  #: admission analyses per second and TxNode (a burst of twice that)
 LOG_GAP = 10.0  #: a repeated warning is logged at most this often
+SERVING_GAP = 1.0  #: at most one Serving per this many seconds
 
 
 class CanEcb:
@@ -89,6 +90,8 @@ class CanEcb:
         self._pending_tx: dict[int, int] = {}  # node id -> TxNode being written
         self._offered: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
         self._pending_etag: dict[int, tuple[int, list[tuple[int, int]]]] = {}  # uid -> etag, asks
+        self._pending_etags: set[int] = set()  # the etags of _pending_etag
+        self._free_from = p.FIRST_ETAG  # no etag below it is free
         now = time.monotonic()
         self._seen_tx = dict.fromkeys(range(p.TXNODE_COUNT), now)  # TxNode -> last frame
         self._seen_etag: dict[int, float] = {}  # etag -> last event (default: start time)
@@ -96,8 +99,11 @@ class CanEcb:
         self._deferred: dict[tuple[int, int, int], None] = {}
         self._knocked = False
         self._recovery_timer: asyncio.TimerHandle | None = None
-        self._last_hello = -HELLO_GAP
+        self._last_unknown_hello = -HELLO_GAP  # the last Hello sent for an unknown TxNode
+        self._strays: set[int] = set()  # TxNodes heard asking while unknown, since that Hello
+        self._started_up = False  # the first recovery (after start) is over
         self._logged: dict[str, float] = {}
+        self._last_serving = -1.0
         self._declare_tokens: dict[int, tuple[float, float]] = {}
         self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
         self.publishers: defaultdict[int, set[int]] = defaultdict(set)
@@ -187,7 +193,7 @@ class CanEcb:
         self._store.close()
 
     def _hello(self) -> None:
-        self._last_hello = time.monotonic()
+        """Say Hello and listen for ``recovery`` s (at start, and when the tables are behind)."""
         self.recovering = True
         if self._recovery_timer is not None:
             self._recovery_timer.cancel()
@@ -198,6 +204,8 @@ class CanEcb:
     def _recovered(self) -> None:
         self._recovery_timer = None
         self.recovering = False
+        self._started_up = True
+        self._strays.clear()
         if self.standby:
             return
         deferred, self._deferred = list(self._deferred), {}
@@ -210,7 +218,7 @@ class CanEcb:
     # --- frames ----------------------------------------------------------------------------
 
     def _on_frame(self, frame: can.Message) -> None:
-        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
+        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame or frame.is_fd:
             self.counters["foreign"] += 1
             return
         can_id = frame.arbitration_id
@@ -265,7 +273,9 @@ class CanEcb:
         (or someone forges frames). Say Hello again, so that nodes claim (rate-limited)."""
         self.counters["unassigned"] += 1
         self._warn("unassigned", "request from TxNode %d, which no node holds", txnode)
-        if not self.recovering and time.monotonic() - self._last_hello >= HELLO_GAP:
+        self._strays.add(txnode)
+        if not self.recovering and time.monotonic() - self._last_unknown_hello >= HELLO_GAP:
+            self._last_unknown_hello = time.monotonic()
             self._hello()
 
     # --- another CAN-ECB, or forged frames ---------------------------------------------------
@@ -285,21 +295,23 @@ class CanEcb:
                 return
             self._warn("ecb", "another CAN-ECB (%016x) on this bus: telling it to stand by",
                        msg.instance)  # fmt: skip
-            self._send(p.Serving(self.instance))
+            self._serving()
             return
-        if isinstance(msg, p.Bind):
-            mine = self._uid_at.get(msg.etag)
-            if mine == msg.uid:
-                return
+        if isinstance(msg, p.Bind) and self._uid_at.get(msg.etag) != msg.uid:
             self.counters["conflicts"] += 1
             self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
                        msg.etag, msg.uid)  # fmt: skip
             self._correct(msg.etag, msg.uid)
-            return
-        self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a forger",
-                   type(msg).__name__)  # fmt: skip
-        if time.monotonic() - self._logged.get("serving", -LOG_GAP) >= 1.0:
-            self._logged["serving"] = time.monotonic()
+        else:
+            self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a "
+                       "forger", type(msg).__name__)  # fmt: skip
+        self._serving()
+
+    def _serving(self) -> None:
+        """Tell whoever sends CAN-ECB frames that this one serves the bus (at most 1/s)."""
+        now = time.monotonic()
+        if now - self._last_serving >= SERVING_GAP:
+            self._last_serving = now
             self._send(p.Serving(self.instance))
 
     def _stand_by(self, reason: str) -> None:
@@ -426,6 +438,11 @@ class CanEcb:
             if holder is None and known is None:
                 self._unassigned(txnode)
             return
+        if self._started_up and txnode not in self._strays:  # a later window is for strays only
+            self.counters["conflicts"] += 1
+            self._warn("claim", "ignored CLAIM of TxNode %d by node %016x: it asked nothing",
+                       txnode, node_id)  # fmt: skip
+            return
         if known is None and holder is None and txnode not in self._pending_tx.values():
             self.counters["adopted"] += 1
             log.info("adopting TxNode %d of node %016x", txnode, node_id)
@@ -471,6 +488,7 @@ class CanEcb:
             self._send(p.EtagsFull(uid))
             return
         self._pending_etag[uid] = (etag, [(msg.kind, txnode)])
+        self._pending_etags.add(etag)
         self._asking[txnode].add(uid)
         writes.append(("etags", uid, etag))
         self._store.submit(writes, self._bind_done(uid, etag))
@@ -478,11 +496,13 @@ class CanEcb:
     def _bind_done(self, uid: int, etag: int) -> Callable[[BaseException | None], None]:
         def done(error: BaseException | None) -> None:
             _, asks = self._pending_etag.pop(uid)
+            self._pending_etags.discard(etag)
             for _, txnode in asks:
                 self._asking[txnode].discard(uid)
                 if not self._asking[txnode]:
                     del self._asking[txnode]
             if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
+                self._free_from = min(self._free_from, etag)
                 return
             self.counters["bound"] += 1
             self._hold_etag(uid, etag)
@@ -510,10 +530,13 @@ class CanEcb:
         self._send(p.Bind(etag, uid))
 
     def _free_etag(self, writes: list[Write]) -> int | None:
-        pending = {e for e, _ in self._pending_etag.values()}
-        for etag in range(p.FIRST_ETAG, p.LAST_ETAG + 1):
-            if etag not in self._uid_at and etag not in pending:
-                return etag
+        pending = self._pending_etags
+        etag = self._free_from  # no etag below it is free
+        while etag <= p.LAST_ETAG and (etag in self._uid_at or etag in pending):
+            etag += 1
+        self._free_from = etag
+        if etag <= p.LAST_ETAG:
+            return etag
         now = time.monotonic()
         idle = [
             e for e, u in self._uid_at.items()
@@ -544,11 +567,10 @@ class CanEcb:
                 self._update(self.publishers if msg.publish else self.subscribers, uid,
                              msg.txnode, add=True)  # fmt: skip
             return
-        pending = {e for e, _ in self._pending_etag.values()}
         if (
             known is None
             and holder is None
-            and etag not in pending
+            and etag not in self._pending_etags
             and uid not in self._pending_etag
         ):
             if not self._within_limit(msg.txnode, uid):
@@ -568,9 +590,9 @@ class CanEcb:
             self._on_bind_request(p.Request(kind, msg.txnode, uid))
 
     def _within_limit(self, txnode: int, uid: int) -> bool:
-        channels = self._channels_of.get(txnode, set())
-        asking = self._asking.get(txnode, set())
-        if uid in channels or uid in asking or len(channels | asking) < self._max_channels:
+        channels = self._channels_of.get(txnode, ())
+        asking = self._asking.get(txnode, ())
+        if uid in channels or uid in asking or len(channels) + len(asking) < self._max_channels:
             return True
         self.counters["limited"] += 1
         self._warn("limit", "TxNode %d uses %d channels already: refused %016x", txnode,
@@ -614,9 +636,11 @@ class CanEcb:
 
     def _on_declare(self, msg: p.Declare) -> None:
         """Admit a stream if every declared stream of the bus stays schedulable, else refuse."""
-        if msg.etag not in self._uid_at:
+        uid = self._uid_at.get(msg.etag)
+        if uid is None or msg.txnode not in self.publishers.get(uid, ()):
             self.counters["malformed"] += 1
-            log.warning("TxNode %d declared unbound etag %#x", msg.txnode, msg.etag)
+            self._warn("declare-unbound", "TxNode %d declared etag %#x, which it does not "
+                       "publish on", msg.txnode, msg.etag)  # fmt: skip
             return
         repeat = self._admission.repeat(msg)
         if repeat is not None:

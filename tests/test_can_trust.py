@@ -301,3 +301,29 @@ def test_each_bus_has_its_own_default_database(monkeypatch: pytest.MonkeyPatch) 
     c = broker._store.default_db("socketcan:vcan0")
     assert len({a, b, c}) == 3 and all(str(x).startswith("/state/can-ecb-") for x in (a, b, c))
     assert a == broker._store.default_db("udp_multicast:239.74.163.2,bitrate=250000,port=7000")
+
+
+async def test_a_node_the_can_ecb_missed_is_let_back_in_and_only_it(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    """A node the CAN-ECB does not know asks for a binding (it missed the recovery window):
+    the CAN-ECB says Hello again; that node's claim is adopted, a claim nobody backed is not."""
+    async with running_ecb(bus, tmp_path / "ecb.db", recovery=0.3) as ecb:
+        await eventually(lambda: not ecb.recovering)
+        while raw_bus.recv(0) is not None:
+            pass
+        send(raw_bus, p.Request(p.SUB_BIND, 9, 0x5EED))  # TxNode 9: nobody's, as far as it knows
+        hello = None
+        while hello is None:
+            frame = await asyncio.to_thread(raw_bus.recv, 5.0)
+            assert frame is not None, "no Hello"
+            if p.is_management(frame.arbitration_id):
+                msg = p.decode(frame.arbitration_id, bytes(frame.data))
+                hello = msg if isinstance(msg, p.Hello) else None
+        send(raw_bus, p.Request(p.CLAIM, 9, 0x9999))  # the stray claims its TxNode
+        send(raw_bus, p.Request(p.CLAIM, 10, 0xF00D))  # a claim no request came from
+        await eventually(lambda: ecb.txnodes.get(0x9999) == 9)
+        await eventually(lambda: not ecb.recovering)
+        assert 0xF00D not in ecb.txnodes and ecb.stats()["unassigned"] == 1
+        send(raw_bus, p.Request(p.SUB_BIND, 9, 0x5EED))  # now served
+        await eventually(lambda: 0x5EED in ecb.etags)

@@ -27,6 +27,7 @@ log = logging.getLogger("ups.can")
 _RETRY_FIRST = 0.05  # seconds before asking the CAN-ECB again
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
+_IN_FLIGHT = 128  # binding requests a node has outstanding at once (the rest wait their turn)
 _ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
 _HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
 _LOG_GAP = 10.0
@@ -76,7 +77,10 @@ class CanFace:
         self._uid_at: dict[int, int] = {}  # etag -> uid, the same, inverted
         self._heard: dict[int, int] = {}  # etag -> uid, every Bind heard (for the counters)
         self._rx: dict[int, ChannelState] = {}  # etag -> channel with local subscribers
+        self._suspended: set[int] = set()  # etags received but no longer relied on: counted
+        self._wants_rx: dict[int, ChannelState] = {}  # uid -> subscribed channel being bound
         self._pending: dict[int, asyncio.Future[int]] = {}  # uid -> etag awaited
+        self._in_flight = asyncio.Semaphore(_IN_FLIGHT)
         self._rebinding: dict[int, asyncio.Task[None]] = {}
         self._announcer: asyncio.Task[None] | None = None
         self._last_announce = -_HELLO_GAP
@@ -126,12 +130,16 @@ class CanFace:
         uid = state.channel.uid
         etag = self._bound.get(uid)
         if etag is None:
-            etag = await self._request_etag(p.SUB_BIND if subscribe else p.PUB_BIND, uid)
+            if subscribe:  # receive from the moment the Bind is handled, not a loop pass later
+                self._wants_rx[uid] = state
+            try:
+                etag = await self._request_etag(p.SUB_BIND if subscribe else p.PUB_BIND, uid)
+            finally:
+                self._wants_rx.pop(uid, None)
         else:  # confirmed already: tell the CAN-ECB our role; it corrects us if need be
             self._send(p.Holds(not subscribe, self._my_txnode(), etag, uid))
         if subscribe:
-            self._rx[etag] = state
-            self._update_filters()
+            self._receive(etag, state)
 
     async def unsubscribe(self, state: ChannelState) -> None:
         uid = state.channel.uid
@@ -168,7 +176,10 @@ class CanFace:
             return
         state = self._rx.get(etag)
         if state is None:
-            self.counters["filtered" if etag in self._heard else "unknown"] += 1
+            if etag in self._suspended:  # maybe ours, maybe not: delivered as nothing, counted
+                self.counters["unbound_dropped"] += 1
+            else:
+                self.counters["filtered" if etag in self._heard else "unknown"] += 1
         elif txnode == self.txnode:
             self.counters["own_echo"] += 1
         else:
@@ -231,6 +242,9 @@ class CanFace:
         if fut is not None and not fut.done():
             self._bound[uid] = etag
             self._uid_at[etag] = uid
+            state = self._wants_rx.get(uid)
+            if state is not None:
+                self._receive(etag, state)
             fut.set_result(etag)
 
     def _fail(self, uid: int, exc: Exception) -> None:
@@ -240,13 +254,19 @@ class CanFace:
 
     # --- re-binding after a contradiction ---------------------------------------------------
 
+    def _receive(self, etag: int, state: ChannelState) -> None:
+        self._rx[etag] = state
+        self._suspended.discard(etag)
+        self._update_filters()
+
     def _suspend(self, uid: int) -> None:
-        """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again."""
+        """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again.
+        Frames still arriving on its old etag are counted (``unbound_dropped``)."""
         etag = self._bound.pop(uid, None)
         if etag is not None:
             self._uid_at.pop(etag, None)
             if self._rx.pop(etag, None) is not None:
-                self._update_filters()
+                self._suspended.add(etag)
         state = self._channels.get(uid)
         if state is None or not (state.subs or state.published) or uid in self._rebinding:
             return
@@ -256,14 +276,17 @@ class CanFace:
 
     async def _rebind(self, uid: int, state: ChannelState) -> None:
         while True:
+            if state.subs:
+                self._wants_rx[uid] = state
             try:
                 etag = await self._request_etag(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
                 break
             except BrokerUnavailable as exc:
                 self._warn("rebind-wait", "still binding %016x again: %s", uid, exc)
+            finally:
+                self._wants_rx.pop(uid, None)
         if state.subs:
-            self._rx[etag] = state
-            self._update_filters()
+            self._receive(etag, state)
             if state.published:
                 self._send(p.Holds(True, self._my_txnode(), etag, uid))
         log.info("channel %s bound again, to etag %#x", state.channel, etag)
@@ -341,9 +364,12 @@ class CanFace:
         if fut is None:
             fut = self._pending[uid] = asyncio.get_running_loop().create_future()
         try:
-            return await self._ask(
-                p.Request(kind, self._my_txnode(), uid), fut, f"bind {uid:#018x}"
-            )
+            async with self._in_flight:
+                if fut.done():  # answered while this request waited its turn
+                    return fut.result()
+                return await self._ask(
+                    p.Request(kind, self._my_txnode(), uid), fut, f"bind {uid:#018x}"
+                )
         finally:
             if self._pending.get(uid) is fut:
                 del self._pending[uid]
@@ -383,19 +409,20 @@ class CanFace:
         self._send(p.Request(p.CLAIM, txnode, self.node_id))
         for state in list(self._channels.values()):
             uid = state.channel.uid
-            etag = self._bound.get(uid)
-            if etag is None:
-                continue
-            if state.subs:
-                await asyncio.sleep(_ANNOUNCE_GAP)
-                self._send(p.Holds(False, txnode, etag, uid))
+            roles = [False] if state.subs else []
             if state.published:
+                roles.append(True)
+            for publish in roles:
                 await asyncio.sleep(_ANNOUNCE_GAP)
-                self._send(p.Holds(True, txnode, etag, uid))
-            if uid in self._declared:
+                etag = self._bound.get(uid)  # now: a contradiction may have come meanwhile
+                if etag is not None and txnode == self.txnode:
+                    self._send(p.Holds(publish, txnode, etag, uid))
+            if uid in self._declared and state.published:
                 await asyncio.sleep(_ANNOUNCE_GAP)
-                size, period, deadline, jitter = self._declared[uid]
-                self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
+                etag = self._bound.get(uid)
+                if etag is not None and txnode == self.txnode:
+                    size, period, deadline, jitter = self._declared[uid]
+                    self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
 
     def _task_done(self, task: asyncio.Task[None]) -> None:
         if not task.cancelled() and task.exception() is not None:
@@ -421,9 +448,10 @@ class CanFace:
 
     def _update_filters(self) -> None:
         filters: list[dict[str, Any]] | None = None
-        if len(self._rx) <= self._filter_limit:
+        etags = self._rx.keys() | self._suspended
+        if len(etags) <= self._filter_limit:
             filters = [_MGMT_FILTER]
             filters += [
-                {"can_id": etag, "can_mask": p.ETAG_MASK, "extended": True} for etag in self._rx
+                {"can_id": etag, "can_mask": p.ETAG_MASK, "extended": True} for etag in etags
             ]
         self.link.set_filters(self._handler, filters)

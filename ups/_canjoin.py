@@ -7,8 +7,9 @@ and is joined when an Assign names its id.
 
 A Stage frame it already heard from another joiner in answer to the same query is left out:
 on a real bus identical frames merge, and this does the same on buses that do not (emulated
-ones, or several nodes of one process). It knocks again when it has heard no Census, Query or
-Offer for a while (at least 0.3 s; 50 ms doubling to 1 s), and gives up after ``timeout``.
+ones, or several nodes of one process). It knocks again when, for 0.3 s (doubling with each
+Knock up to 2 s), it has neither knocked nor heard a Census, Query or Offer; at once when a
+CAN-ECB says Hello; and it gives up after ``timeout``.
 """
 
 from __future__ import annotations
@@ -20,9 +21,8 @@ from collections.abc import Callable
 from . import _canproto as p
 from ._errors import BrokerUnavailable, Exhausted
 
-RETRY_FIRST = 0.05  #: seconds of silence before knocking again ...
-RETRY_MAX = 1.0  #: ... doubling up to this
-KNOCK_SILENCE = 0.3  #: but never while a Census, Query or Offer came this recently
+KNOCK_FIRST = 0.3  #: seconds without a Knock sent or a Census, Query or Offer heard ...
+KNOCK_MAX = 2.0  #: ... before knocking again; doubling with each Knock up to this
 #: Stage frames heard this recently belong to the current query of their epoch (the CAN-ECB
 #: does not reuse an epoch within 250 ms)
 _FRESH = 0.1
@@ -40,7 +40,8 @@ class Joiner:
         self._bus = bus
         self._timeout = timeout
         self._result: asyncio.Future[int] | None = None
-        self._heard = 0.0  # when the last Census or Query was heard
+        self._delay = KNOCK_FIRST
+        self._quiet_since = 0.0  # when this node last knocked or heard Census, Query or Offer
         #: epoch -> (when last heard, {stage << 4 | nibble}): Stage frames of other joiners
         self._sent_by_others: dict[int, tuple[float, set[int]]] = {}
         self.stages_sent = 0
@@ -49,12 +50,14 @@ class Joiner:
         loop = asyncio.get_running_loop()
         self._result = result = loop.create_future()
         deadline = None if self._timeout is None else loop.time() + self._timeout
-        delay = RETRY_FIRST
-        self._heard = loop.time()  # as if the Knock had been answered: wait before the next
-        self._send(p.Knock())
+        self._delay = KNOCK_FIRST
+        self._knock()
         while True:
+            wait = max(0.005, self._quiet_since + self._delay - loop.time())
+            if deadline is not None:
+                wait = min(wait, max(0.0, deadline - loop.time()))
             try:
-                return await asyncio.wait_for(asyncio.shield(result), delay)
+                return await asyncio.wait_for(asyncio.shield(result), wait)
             except TimeoutError:
                 if result.done():  # the answer was an error (BrokerUnavailable is a TimeoutError)
                     return int(result.result())
@@ -64,23 +67,29 @@ class Joiner:
                     f"no CAN-ECB gave this node a TxNode on {self._bus} within "
                     f"{self._timeout:g} s; start one with 'ups can-broker --can ...' or a gateway"
                 )
-            if now - self._heard >= max(delay, KNOCK_SILENCE):  # let a running census end
-                self._send(p.Knock())
-                delay = min(delay * 2, RETRY_MAX)
+            if now - self._quiet_since >= self._delay:  # nothing for a while: knock again
+                self._knock()
+                self._delay = min(self._delay * 2, KNOCK_MAX)
+
+    def _knock(self) -> None:
+        self._quiet_since = asyncio.get_running_loop().time()
+        self._send(p.Knock())
 
     def on_frame(self, msg: p.Management) -> None:
         result = self._result
         if result is None or result.done():
             return
         if isinstance(msg, p.Census):
-            self._heard = asyncio.get_running_loop().time()
+            self._heard()
             self._burst(msg.epoch, 0)
+        elif isinstance(msg, p.Hello):  # a CAN-ECB has just started: it takes knocks at once
+            self._knock()
         elif isinstance(msg, p.Query):
-            self._heard = asyncio.get_running_loop().time()
+            self._heard()
             if self._nibbles[: len(msg.prefix)] == msg.prefix:
                 self._burst(msg.epoch, len(msg.prefix))
         elif isinstance(msg, p.Offer) and msg.node_id == self.node_id:
-            self._heard = asyncio.get_running_loop().time()
+            self._heard()
             self._send(p.Request(p.CLAIM, msg.txnode, self.node_id))
         elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
             result.set_result(msg.txnode)
@@ -95,6 +104,11 @@ class Joiner:
                     "database fails (see its log and 'ups status')"
                 )
             )
+
+    def _heard(self) -> None:
+        """The CAN-ECB is at work on the census: no knock needed for a while."""
+        self._quiet_since = asyncio.get_running_loop().time()
+        self._delay = KNOCK_FIRST
 
     def heard_stage(self, arg: int) -> None:
         """Another joiner sent Stage with this 12-bit argument (epoch, stage, nibble). It may

@@ -61,6 +61,10 @@ def _parser() -> argparse.ArgumentParser:
         help="seconds after start spent relearning the bus before answering (default 2)",
     )  # fmt: skip
     cmd.add_argument(
+        "--max-channels", type=_positive_int, default=8192,
+        help="channels one node may subscribe to or publish on (default 8192)",
+    )  # fmt: skip
+    cmd.add_argument(
         "--lease", type=_positive_float, default=86_400.0,
         help="seconds after which a silent node's TxNode, or an unused etag, may be given to "
         "another when none is free (default 86400)",
@@ -252,7 +256,10 @@ def _run_can_broker(args: argparse.Namespace) -> int:
     db = args.db if args.db is not None else default_db(args.can)
 
     async def run() -> int:
-        return await serve(args.can, db, args.bitrate, recovery=args.recovery, lease=args.lease)
+        return await serve(
+            args.can, db, args.bitrate,
+            recovery=args.recovery, lease=args.lease, max_channels=args.max_channels,
+        )  # fmt: skip
 
     return _run_until_signal(run())
 
