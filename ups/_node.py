@@ -378,7 +378,8 @@ class Node:
         """Set the priority this node publishes ``channel`` with (0 highest .. 255 lowest).
 
         Declared real-time channels get theirs from the CAN-ECB; best-effort channels should
-        stay in 0x80..0xFF, below every declared one (0x02..0x7F).
+        stay in 0x80..0xFF, below every declared one (0x02..0x7F). On CAN, 0x00 and 0x01
+        belong to management frames: an event asking for them is sent at 0x02.
         """
         if not 0 <= priority <= 0xFF:
             raise ConfigError(f"priority must be 0..255, got {priority}")
