@@ -148,7 +148,7 @@ class TcpEcb:
         self._links.add(link)
         return link
 
-    def _on_event(self, link: Link, uid: int, data: bytes, priority: int) -> None:
+    def _on_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
         self.counters["malformed"] += 1
         log.warning("closed the link from %s: events do not go through the ECB", link.name)
         link.abort("sent an event to the ECB")
@@ -156,7 +156,7 @@ class TcpEcb:
     def _on_frame(self, link: Link, frame: w.Frame) -> None:
         member: _Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
-            link.send(w.encode(w.Status(self.status())))
+            link.send_control(w.encode(w.Status(self.status())))
             return
         if member is None:
             if isinstance(frame, w.Hello):
@@ -172,7 +172,7 @@ class TcpEcb:
         elif isinstance(frame, w.Ping):
             if member.stale is not None:
                 self._forget_stale(member)
-            link.send(w.encode(w.Pong()))
+            link.send_control(w.encode(w.Pong()))
         elif not isinstance(frame, w.Pong):
             self.counters["malformed"] += 1
             log.warning("closed the link from %s: unexpected %s", link.name, frame)
@@ -230,7 +230,7 @@ class TcpEcb:
                 "node %016x (%s) is back from %s:%d", hello.node_id, hello.name, *member.address
             )
         link.peer = member
-        link.send(w.encode(w.Hello(0, "ups-broker", self.host, self.port)))
+        link.send_control(w.encode(w.Hello(0, "ups-broker", self.host, self.port)))
 
     def _register(
         self, member: _Member, frame: w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise
@@ -292,10 +292,8 @@ class TcpEcb:
         if self._recovering:
             self._waiting.setdefault(uid, set()).add(member.node_id)
         elif member.link is not None:
-            member.link.send(self._subscribers_frame(uid))
-            if member.link.dropped:  # a list lost would leave it wrong for good: cut it off
-                log.warning("node %016x does not read its link; cut off", member.node_id)
-                member.link.abort("not reading")
+            member.link.send_control(self._subscribers_frame(uid))  # never dropped: a node
+            # that leaves too many unread is cut off by its link
 
     def _push(self, uid: int, skip: int | None = None) -> None:
         """Tell the publishers of ``uid`` its new subscriber list."""

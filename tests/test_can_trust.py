@@ -164,6 +164,8 @@ async def test_forged_claims_and_requests_take_nothing(
         for i in range(10_000):  # unsubscriptions of channels nobody has
             send(raw_bus, p.Request(p.UNSUB, me, 0xC0DE_0000 + i))
         await eventually(lambda: ecb.stats()["requests"] >= 10_000 + 377, timeout=30)
+        # the unknown TxNodes made it say Hello and listen again: held requests come after
+        await eventually(lambda: not ecb.recovering and ecb.stats()["limited"] >= 42)
         assert ecb.txnodes == {0x42: me}
         assert len(ecb.etags) <= 8 and ecb.stats()["limited"] >= 42
         assert ecb.stats()["unassigned"] >= 200

@@ -265,7 +265,8 @@ async def test_a_restarted_gateway_keeps_bindings_and_forwards_again(
             etag = cpub.face._bound[name_to_uid("speed")]  # type: ignore[attr-defined]
             await first.close()
             async with gateway(bus, tcp_ecb, db) as second:
-                await eventually(lambda: forwarding(second, "speed", "tcp"))  # relearnt the bus
+                # it relearns the bus during its recovery window (2 s) and then forwards
+                await eventually(lambda: forwarding(second, "speed", "tcp"), timeout=15)
                 await cpub.publish("speed", b"\x01")
                 assert await _next_not_zero(sub) == b"\x01"
                 assert cpub.stats()["txnode"] == txnode

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import socket
 import time
 
@@ -187,7 +188,7 @@ def test_bad_bytes_leave_the_daemons_serving() -> None:
         oversized = (w.VERSION << 24 | w.MAX_BODY).to_bytes(4, "big") + bytes(100)
         wrong_version = (9 << 24 | 1).to_bytes(4, "big") + b"\x90"
         not_msgpack = (w.VERSION << 24 | 1).to_bytes(4, "big") + b"\xc1"
-        event = w.encode(w.Event(1, b"x", 0))
+        event = w.encode(w.Event(1, b"x", 0, 1))
         hello = w.encode(w.Hello(0xBAD, "bad", "127.0.0.1", 9))
         for daemon in (address, sub_address):
             for junk in (oversized, wrong_version, not_msgpack, event, hello + b"\x00\x00"):
@@ -236,3 +237,33 @@ def test_cli_errors_are_clear() -> None:
     with Proc("broker", "--listen", "127.0.0.1:http") as bad:
         assert bad.finish()[0] == 2
         assert any("HOST:PORT" in line for line in bad.stderr_lines)
+
+
+def test_every_event_is_printed_or_reported_lost() -> None:
+    """A subscriber frozen while 20,000 events fly: the events its full queue lost, `ups pub`
+    reports as dropped and `ups sub`, once it runs again, as missing (sequence gaps); both
+    exit 1, and what was printed plus what was reported lost is every event."""
+    broker, address = start_tcp_broker("--recovery", "0")
+    count = 20_000
+    data = "ab" * 500
+    with broker:
+        args = ["sub", "bulk", "--broker", address, "--node-id", hex(SUB_ID), "--timeout", "8"]
+        with Proc(*args) as sub:
+            sub.wait_for_line("subscribed to")
+            sub.pause()
+            with pub_proc(address, "bulk", data, count=count, rate=20_000) as pub:
+                pub.wait_for_line(r"dropped \d+ events for subscriber")
+                sub.resume()  # while the publisher still runs: its queue drains to us
+                code, _ = pub.finish(timeout=60)
+            code_sub, out = sub.finish(timeout=30)
+    assert code == 1, "".join(pub.stderr_lines)
+    dropped = [line for line in pub.stderr_lines if "events were dropped" in line]
+    assert dropped, "".join(pub.stderr_lines)
+    at_pub = int(dropped[0].split("ups pub: ")[1].split()[0])
+    lost = re.search(
+        r"lost (\d+) events: (\d+) dropped .*, (\d+) missing", "".join(sub.stderr_lines)
+    )
+    assert code_sub == 1 and lost, "".join(sub.stderr_lines)
+    total, _in_queue, skipped = (int(x) for x in lost.groups())
+    assert skipped == at_pub  # each event the publisher dropped, the subscriber counted
+    assert len(out.splitlines()) + total == count  # nothing vanished uncounted

@@ -15,7 +15,8 @@ port = st.integers(0, 0xFFFF)
 peer = st.builds(w.Peer, u64, st.text(max_size=40), port)
 frames = st.one_of(
     st.builds(w.Hello, u64, st.text(max_size=40), st.text(max_size=40), port),
-    st.builds(w.Event, u64, st.binary(max_size=300), st.integers(0, 255)),
+    st.builds(w.Event, u64, st.binary(max_size=300), st.integers(0, 255), u64),
+    st.builds(w.Start, u64, u64),
     st.builds(w.Subscribe, u64),
     st.builds(w.Unsubscribe, u64),
     st.builds(w.Advertise, u64),
@@ -38,7 +39,7 @@ def test_stream_round_trip_cut_anywhere(sent: list[w.Frame], data: st.DataObject
 
 
 def test_event_fast_path_is_the_same_bytes() -> None:
-    assert w.encode_event(7, b"\x01\x02", 0x20) == w.encode(w.Event(7, b"\x01\x02", 0x20))
+    assert w.encode_event(7, b"\x01\x02", 0x20, 3) == w.encode(w.Event(7, b"\x01\x02", 0x20, 3))
 
 
 def test_header_layout() -> None:
@@ -67,9 +68,13 @@ def _raw(body: bytes, version: int = 1) -> bytes:
         (_raw(b"\xc1"), "not msgpack"),
         (_raw(b"\x07"), "array starting with its kind"),
         (_raw(msgpack.packb([99])), "unknown frame kind 99"),
-        (_raw(msgpack.packb([1, -1, b"", 0])), "64-bit"),
-        (_raw(msgpack.packb([1, 1, "x", 0])), "binary"),
-        (_raw(msgpack.packb([1, 1, b"", 256])), "0..255"),
+        (_raw(msgpack.packb([1, -1, b"", 0, 1])), "64-bit"),
+        (_raw(msgpack.packb([1, 1, "x", 0, 1])), "binary"),
+        (_raw(msgpack.packb([1, 1, b"", 256, 1])), "0..255"),
+        (_raw(msgpack.packb([1, 1, b"", 0, -1])), "64-bit"),
+        (_raw(msgpack.packb([1, 1, b"", 0])), "bad frame"),
+        (_raw(msgpack.packb([11, 1])), "bad frame"),
+        (_raw(b"\x91" * 5000 + b"\x01"), "not msgpack|nested|bad frame|kind"),
         (_raw(msgpack.packb([2, 1, 2])), "bad frame"),
         (_raw(msgpack.packb([6, 1, [[1, "h"]]])), "bad frame"),
     ],
@@ -81,6 +86,6 @@ def test_bad_frames_are_decode_errors(raw: bytes, why: str) -> None:
 
 def test_oversized_event_is_refused_before_its_body_arrives() -> None:
     decoder = w.Decoder(max_frame=100)
-    big = w.encode(w.Event(1, bytes(200), 0))
+    big = w.encode(w.Event(1, bytes(200), 0, 1))
     with pytest.raises(DecodeError, match="exceeds the limit of 100"):
         decoder.feed(big[:4])

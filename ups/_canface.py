@@ -159,6 +159,9 @@ class CanFace:
         if self.link.send(can_id, data, self._handler):
             self.counters["sent"] += 1
 
+    async def room(self, state: ChannelState) -> None:
+        """The interface takes frames or refuses them (counted): nothing to wait for."""
+
     # --- receiving -------------------------------------------------------------------------
 
     def _on_frame(self, frame: can.Message) -> None:

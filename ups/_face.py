@@ -54,4 +54,7 @@ class Face(Protocol):
     def send(self, state: ChannelState, data: bytes, priority: int) -> None:
         """Publish ``data`` on the network; never blocks, counts what it must drop."""
 
+    async def room(self, state: ChannelState) -> None:
+        """Wait until ``send`` on this channel would drop nothing (backpressure)."""
+
     def stats(self) -> dict[str, int]: ...

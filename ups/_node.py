@@ -31,6 +31,9 @@ from ._tcplink import OVERFLOWS, Overflow
 log = logging.getLogger("ups")
 
 DEFAULT_QUEUE = 1024
+#: ``get_msg`` gives the event loop a turn every this many events, even when events are queued:
+#: a consumer draining a deep queue must not starve the node's own heartbeats and reads
+YIELD_EVERY = 64
 
 
 class Subscription:
@@ -54,6 +57,7 @@ class Subscription:
         self._loop = asyncio.get_running_loop()
         self._waiter: asyncio.Future[None] | None = None
         self._closed = False
+        self._served = 0
 
     def __repr__(self) -> str:
         names = ", ".join(str(c) for c in self.channels)
@@ -80,6 +84,10 @@ class Subscription:
 
     async def get_msg(self, timeout: float | None = None) -> Message:
         """The next event; raises ``TimeoutError`` after ``timeout`` s, ``Closed`` once closed."""
+        self._served += 1
+        if self._served >= YIELD_EVERY:  # draining a deep queue still lets the loop run
+            self._served = 0
+            await asyncio.sleep(0)
         while not self._queue:
             if self._closed:
                 raise Closed("subscription closed")
@@ -177,6 +185,7 @@ class Node:
         self._closed = False
         self.published = 0
         self.delivered = 0
+        self._served = 0
 
     # --- life cycle ------------------------------------------------------------------------
 
@@ -219,9 +228,12 @@ class Node:
         else:
             assert self._broker is not None
             face = TcpFace(
-                self,
                 self._broker,
                 self._node_id,
+                name=self.name,
+                deliver=self._deliver,
+                channels=self._states,
+                node_stats=self.stats,
                 listen=self._listen,
                 join_timeout=self._join_timeout,
                 peer_queue=self._peer_queue,
@@ -262,9 +274,14 @@ class Node:
 
     # --- the four primitives -------------------------------------------------------------
 
-    async def publish(self, channel: ChannelLike, data: bytes | bytearray | memoryview) -> None:
+    async def publish(
+        self, channel: ChannelLike, data: bytes | bytearray | memoryview, *, wait: bool = False
+    ) -> None:
         """Publish ``data`` on ``channel``: to local subscribers at once, and on the network.
 
+        Never blocks by default: what a subscriber cannot take is dropped and counted. With
+        ``wait=True`` it first waits until every subscriber's queue has room (backpressure, on
+        TCP/IP: a publisher that outpaces its subscribers slows down instead of dropping).
         Raises ``PayloadTooLarge`` when ``data`` does not fit one frame of the network.
         """
         if self._closed:
@@ -280,6 +297,8 @@ class Node:
                 f"{len(payload)} bytes do not fit one frame on {state.channel} "
                 f"(at most {face.max_payload}); split the data or use a TCP/IP channel"
             )
+        if wait:
+            await face.room(state)
         self.published += 1
         if state.subs:
             self._deliver(state, payload, state.priority, None, time.time())
@@ -327,6 +346,10 @@ class Node:
 
         Raises ``TimeoutError`` after ``timeout`` seconds and ``Closed`` once the node closed.
         """
+        self._served += 1
+        if self._served >= YIELD_EVERY:  # draining deep queues still lets the loop run
+            self._served = 0
+            await asyncio.sleep(0)
         while True:
             oldest: Subscription | None = None
             for sub in self._subs:

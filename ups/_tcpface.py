@@ -20,8 +20,7 @@ from ._errors import BrokerUnavailable, ConfigError, UpsError
 from ._tcplink import OVERFLOWS, Link, Overflow
 
 if TYPE_CHECKING:
-    from ._face import ChannelState
-    from ._node import Node
+    from ._face import ChannelState, Deliver
 
 log = logging.getLogger("ups.tcp")
 
@@ -79,10 +78,13 @@ class TcpFace:
 
     def __init__(
         self,
-        node: Node,
         broker: str,
         node_id: int,
         *,
+        name: str,
+        deliver: Deliver,
+        channels: dict[int, ChannelState],
+        node_stats: Callable[[], dict[str, int]],
         listen: str | None,
         join_timeout: float | None,
         peer_queue: int,
@@ -92,7 +94,10 @@ class TcpFace:
             raise ConfigError(f"peer_queue must be at least 1, got {peer_queue}")
         if peer_overflow not in OVERFLOWS:
             raise ConfigError(f"peer_overflow must be one of {OVERFLOWS}, got {peer_overflow!r}")
-        self._node = node
+        self.name = name
+        self._deliver = deliver
+        self._channels = channels
+        self._node_stats = node_stats
         self.broker = parse_address(broker)
         self._listen = parse_address(listen, "") if listen is not None else None
         self.node_id = node_id
@@ -118,8 +123,10 @@ class TcpFace:
         self.on_targets: Callable[[int], None] | None = None
         #: more tables for ``ups status`` (the gateway's)
         self.extra_status: Callable[[], dict[str, Any]] | None = None
+        self._seq: dict[int, int] = {}  # uid -> number of the last event published
+        self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
         self.counters = dict.fromkeys(
-            ("sent", "received", "unsubscribed", "malformed", "reconnects"), 0
+            ("sent", "received", "lost", "unsubscribed", "malformed", "reconnects"), 0
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -159,7 +166,7 @@ class TcpFace:
                 await self._runner
         if self._ecb is not None:
             for uid in self._advertised:
-                self._ecb.send(w.encode(w.Unadvertise(uid)))
+                self._ecb.send_control(w.encode(w.Unadvertise(uid)))
             self._ecb.close()
         peers = list(self._peers.values())
         self._peers.clear()
@@ -186,9 +193,9 @@ class TcpFace:
         """What a StatusRequest on our listening port is answered with."""
         return {
             "node_id": _hex(self.node_id),
-            "name": self._node.name,
+            "name": self.name,
             "address": "{}:{}".format(*self._my_address()),
-            "stats": self._node.stats(),
+            "stats": self._node_stats(),
             "subscribed": [_hex(uid) for uid in sorted(self._subscribed)],
             "published": [_hex(uid) for uid in sorted(self._advertised)],
             "peers": [
@@ -219,15 +226,25 @@ class TcpFace:
         uid = state.channel.uid
         self._subscribed.discard(uid)
         self._to_ecb(w.Unsubscribe(uid))
+        for key in [k for k in self._expected if k[1] == uid]:  # what comes later is news
+            del self._expected[key]
 
     def send(self, state: ChannelState, data: bytes, priority: int) -> None:
-        peers = self._targets.get(state.channel.uid)
+        uid = state.channel.uid
+        seq = self._seq[uid] = self._seq.get(uid, 0) + 1  # numbered even with nobody to hear
+        peers = self._targets.get(uid)
         if peers:
-            frame = w.encode_event(state.channel.uid, data, priority)
+            frame = w.encode_event(uid, data, priority, seq)
             for peer in peers:
                 assert peer.link is not None
                 peer.link.send(frame)
             self.counters["sent"] += len(peers)
+
+    async def room(self, state: ChannelState) -> None:
+        """Wait until every subscriber of the channel has room in its queue."""
+        for peer in list(self._targets.get(state.channel.uid, ())):
+            if peer.link is not None:
+                await peer.link.room()
 
     # --- the ECB link ----------------------------------------------------------------------
 
@@ -240,7 +257,7 @@ class TcpFace:
             try:
                 if self._server is None:
                     await self._listen_for_peers(link)
-                link.send(w.encode(w.Hello(self.node_id, self._node.name, *self._my_address())))
+                link.send_control(w.encode(w.Hello(self.node_id, self.name, *self._my_address())))
                 await self._welcome
             except BaseException:
                 link.abort("no welcome")
@@ -248,10 +265,10 @@ class TcpFace:
         self._ecb = link
         self._ecb_heard = loop.time()
         for uid in self._subscribed:  # after a reconnect: register everything again
-            link.send(w.encode(w.Subscribe(uid)))
+            link.send_control(w.encode(w.Subscribe(uid)))
         for uid in self._advertised:
-            link.send(w.encode(w.Advertise(uid)))
-        link.send(w.encode(w.Ping()))  # ends the registration: the ECB forgets the rest
+            link.send_control(w.encode(w.Advertise(uid)))
+        link.send_control(w.encode(w.Ping()))  # ends the registration: the ECB forgets the rest
 
     def _new_ecb_link(self) -> Link:
         return Link(self._ecb_event, self._ecb_frame, self._ecb_lost)
@@ -283,7 +300,7 @@ class TcpFace:
                     if loop.time() - self._ecb_heard > SILENCE:
                         ecb.abort(f"the TCP-ECB said nothing for {SILENCE:g} s")
                     else:
-                        ecb.send(w.encode(w.Ping()))
+                        ecb.send_control(w.encode(w.Ping()))
                     continue
             self._ecb = None
             await self._reconnect_ecb()
@@ -307,7 +324,7 @@ class TcpFace:
 
     def _to_ecb(self, frame: w.Frame) -> None:
         if self._ecb is not None and not self._ecb.lost.done():
-            self._ecb.send(w.encode(frame))
+            self._ecb.send_control(w.encode(frame))
 
     async def _ask(self, frame: w.Subscribe | w.Advertise, uid: int) -> None:
         """Register with the ECB and wait for its answer (the channel's subscribers).
@@ -321,7 +338,7 @@ class TcpFace:
         fut = self._acks.get(uid)
         if fut is None:
             fut = self._acks[uid] = asyncio.get_running_loop().create_future()
-        self._ecb.send(w.encode(frame))
+        self._ecb.send_control(w.encode(frame))
         try:
             await asyncio.wait_for(asyncio.shield(fut), _BIND_TIMEOUT)
         except TimeoutError:
@@ -330,7 +347,7 @@ class TcpFace:
             if self._acks.get(uid) is fut:
                 del self._acks[uid]
 
-    def _ecb_event(self, link: Link, uid: int, data: bytes, priority: int) -> None:
+    def _ecb_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
         link.abort("the TCP-ECB sent an event")
 
     def _ecb_frame(self, link: Link, frame: w.Frame) -> None:
@@ -341,7 +358,7 @@ class TcpFace:
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_result(None)
         elif isinstance(frame, w.StatusRequest):
-            link.send(w.encode(w.Status(self.status())))
+            link.send_control(w.encode(w.Status(self.status())))
 
     def _ecb_lost(self, link: Link, reason: str | None) -> None:
         if reason is not None and self._welcome is not None and not self._welcome.done():
@@ -366,7 +383,10 @@ class TcpFace:
             if peer is None:
                 peer = self._peers[node_id] = _Peer(node_id, addr)
                 self._connect_peer(peer)
-            peer.uids.add(uid)
+            if uid not in peer.uids:  # its events of uid start with the next one published
+                peer.uids.add(uid)
+                assert peer.link is not None
+                peer.link.send_control(w.encode(w.Start(uid, self._seq.get(uid, 0) + 1)))
             targets.append(peer)
         for peer in self._targets.get(uid, ()):
             if peer.node_id not in wanted:
@@ -395,7 +415,7 @@ class TcpFace:
             overflow=self._peer_overflow,
         )
         link.peer = peer
-        link.send(w.encode(w.Hello(self.node_id, self._node.name, *self._my_address())))
+        link.send_control(w.encode(w.Hello(self.node_id, self.name, *self._my_address())))
         delay = 0.0
         if lost is not None:
             link.adopt(lost)
@@ -450,11 +470,10 @@ class TcpFace:
                     await asyncio.wait_for(asyncio.shield(task), max(0.0, deadline - loop.time()))
             if task is not None:
                 task.cancel()
-            hello_unsent = link.transport is None
             link.close()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(asyncio.shield(link.lost), max(0.0, deadline - loop.time()))
-            unsent = link.queued - hello_unsent
+            unsent = link.queued
             if not link.lost.done():
                 link.abort("closing")
             peer.dropped += link.dropped + unsent
@@ -483,13 +502,13 @@ class TcpFace:
         )
         peer.reported = total
 
-    def _peer_event(self, link: Link, uid: int, data: bytes, priority: int) -> None:
+    def _peer_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
         self.counters["malformed"] += 1  # subscribers do not send events back
         link.abort("a subscriber sent an event")
 
     def _peer_frame(self, link: Link, frame: w.Frame) -> None:
         if isinstance(frame, w.StatusRequest):
-            link.send(w.encode(w.Status(self.status())))
+            link.send_control(w.encode(w.Status(self.status())))
 
     # --- publishers that deliver to us -----------------------------------------------------
 
@@ -498,25 +517,49 @@ class TcpFace:
         self._incoming.add(link)
         return link
 
-    def _incoming_event(self, link: Link, uid: int, data: bytes, priority: int) -> None:
+    def _incoming_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
         if link.peer is None:
             self.counters["malformed"] += 1
             link.abort("event before Hello")
             return
-        state = self._node._states.get(uid)
+        state = self._channels.get(uid)
         if state is None or not state.subs:  # we unsubscribed; the publisher will hear of it
             self.counters["unsubscribed"] += 1
             return
+        key = (link.peer, uid)
+        expected = self._expected.get(key)
+        if expected is not None and seq > expected:  # numbers skipped: events lost on the way
+            self.counters["lost"] += seq - expected
+            self._lost_from(link.peer, uid, seq - expected)
+        self._expected[key] = seq + 1  # (a lower number: the publisher started again)
         self.counters["received"] += 1
-        self._node._deliver(state, data, priority, link.peer, time.time())
+        self._deliver(state, data, priority, link.peer, time.time())
+
+    def _lost_from(self, publisher: int, uid: int, count: int) -> None:
+        log.warning(
+            "lost %d events of %016x from publisher %016x (numbers skipped)", count, uid, publisher
+        )
 
     def _incoming_frame(self, link: Link, frame: w.Frame) -> None:
         if isinstance(frame, w.Hello):
             link.peer = frame.node_id
+        elif isinstance(frame, w.Start):
+            if link.peer is None:
+                self.counters["malformed"] += 1
+                link.abort("Start before Hello")
+                return
+            key = (link.peer, frame.uid)
+            expected = self._expected.get(key)
+            state = self._channels.get(frame.uid)
+            if expected is not None and frame.seq > expected and state is not None and state.subs:
+                self.counters["lost"] += frame.seq - expected  # published while we were away
+                self._lost_from(link.peer, frame.uid, frame.seq - expected)
+            if expected is None or frame.seq > expected:
+                self._expected[key] = frame.seq
         elif isinstance(frame, w.StatusRequest):
-            link.send(w.encode(w.Status(self.status())))
+            link.send_control(w.encode(w.Status(self.status())))
         elif isinstance(frame, w.Ping):
-            link.send(w.encode(w.Pong()))
+            link.send_control(w.encode(w.Pong()))
 
     def _incoming_lost(self, link: Link, reason: str | None) -> None:
         self._incoming.discard(link)

@@ -5,8 +5,11 @@ decoded in place (``_tcpwire.parse``), events without building a frame object. B
 this connection only. Sending: the first frame of an event-loop iteration is written at once;
 the frames that follow it in the same iteration are queued and written together at its end
 (or as soon as ``limit`` of them are waiting), so a burst costs two system calls, not one each. The
-queue is bounded: while the peer does not read (the transport paused us) it fills up to
-``limit`` frames, then ``overflow`` decides which frame is lost, and ``dropped`` counts it.
+event queue is bounded: while the peer does not read (the transport paused us) it fills up to
+``limit`` frames, then ``overflow`` decides which event is lost, and ``dropped`` counts it.
+Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of
+their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them
+unread is cut off.
 """
 
 from __future__ import annotations
@@ -27,16 +30,17 @@ Overflow = Literal["drop_oldest", "drop_newest"]
 OVERFLOWS: tuple[Overflow, ...] = ("drop_oldest", "drop_newest")
 _BUFFER = 1 << 18  # receive buffer; grown for frames bigger than this
 _WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us
+CONTROL_LIMIT = 1 << 14  #: control frames queued for a peer that does not read: then cut off
 
 
 class Link(asyncio.BufferedProtocol):
-    """A connection: ``on_event(link, uid, data, priority)`` and ``on_frame(link, frame)`` get
+    """A connection: ``on_event(link, uid, data, priority, seq)`` and ``on_frame(link, frame)`` get
     what arrives, ``on_lost(link, reason)`` is called once when it ends (reason None: we closed
     it). ``peer`` is whatever the owner wants to remember about the other side."""
 
     def __init__(
         self,
-        on_event: Callable[[Link, int, bytes, int], None],
+        on_event: Callable[[Link, int, bytes, int, int], None],
         on_frame: Callable[[Link, w.Frame], None],
         on_lost: Callable[[Link, str | None], None],
         *,
@@ -56,7 +60,9 @@ class Link(asyncio.BufferedProtocol):
         self._buf = bytearray(_BUFFER)
         self._start = 0
         self._end = 0
-        self._out: collections.deque[bytes] = collections.deque()
+        self._out: collections.deque[bytes] = collections.deque()  # events
+        self._control: list[bytes] = []  # control frames, written before the events
+        self._room: asyncio.Future[None] | None = None  # awaited by a publisher for room
         self._flush_pending = False
         self._paused = False
         self._closing = False
@@ -75,7 +81,28 @@ class Link(asyncio.BufferedProtocol):
 
     @property
     def queued(self) -> int:
+        """Events waiting to be written."""
         return len(self._out)
+
+    def send_control(self, frame: bytes) -> None:
+        """Queue a frame that must not be lost (anything but an event), ahead of the events."""
+        if self._closing:
+            return
+        if len(self._control) >= CONTROL_LIMIT:
+            self.abort(f"{CONTROL_LIMIT} control frames left unread")
+            return
+        self._control.append(frame)
+        if not self._flush_pending and self._writable():
+            self._flush_pending = True
+            self._loop.call_soon(self._flush)
+
+    async def room(self) -> None:
+        """Wait until the event queue has room (or the link is gone): backpressure."""
+        while len(self._out) >= self.limit and not self._closing and not self.lost.done():
+            if self._room is None or self._room.done():
+                self._room = self._loop.create_future()
+            waiters: set[asyncio.Future[Any]] = {self._room, self.lost}
+            await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
 
     # --- sending ---------------------------------------------------------------------------
 
@@ -97,7 +124,7 @@ class Link(asyncio.BufferedProtocol):
         if not self._flush_pending and self._writable():
             self._flush_pending = True  # frames sent later in this loop iteration are batched
             self._loop.call_soon(self._flush)
-            if not out:  # the first frame of this iteration goes out at once: no added latency
+            if not out and not self._control:  # the first frame goes out at once: no delay
                 self.transport.write(frame)  # type: ignore[union-attr]
                 return True
         out.append(frame)
@@ -119,11 +146,17 @@ class Link(asyncio.BufferedProtocol):
     def _flush(self) -> None:
         self._flush_pending = False
         out = self._out
-        if out and self._writable():
+        if (out or self._control) and self._writable():
             assert self.transport is not None
-            self.transport.write(out[0] if len(out) == 1 else b"".join(out))
-            out.clear()
-        if self._closing and not out and self.transport is not None:
+            if self._control:
+                self.transport.write(b"".join(self._control))
+                self._control.clear()
+            if out:
+                self.transport.write(out[0] if len(out) == 1 else b"".join(out))
+                out.clear()
+            if self._room is not None and not self._room.done():
+                self._room.set_result(None)
+        if self._closing and not out and not self._control and self.transport is not None:
             self.transport.close()  # writes what the transport holds, then closes
 
     def pause_writing(self) -> None:

@@ -7,6 +7,7 @@ Decoding bad bytes raises ``DecodeError``; whoever reads a link closes that link
 
 from __future__ import annotations
 
+import reprlib
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,8 +24,9 @@ DEFAULT_MAX_FRAME = 1 << 20  #: what a receiver accepts unless told otherwise
 
 (
     _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
-    _STATUS_REQUEST, _STATUS,
-) = range(11)  # fmt: skip
+    _STATUS_REQUEST, _STATUS, _START,
+) = range(12)  # fmt: skip
+MAX_SEQ = (1 << 64) - 1
 _HEAD = struct.Struct(">I")
 
 
@@ -40,9 +42,22 @@ class Hello:
 
 @dataclass(frozen=True, slots=True)
 class Event:
+    """``seq`` numbers the events of one publisher on one channel, 1, 2, 3, ... for all its
+    subscribers alike: a subscriber that sees a number skipped knows it lost events."""
+
     uid: int
     data: bytes
     priority: int
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
+class Start:
+    """Publisher -> subscriber: your events of ``uid`` start at ``seq`` (sent when the
+    subscriber becomes one of the channel's targets, before its first event)."""
+
+    uid: int
+    seq: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,6 +138,7 @@ Frame = (
     | Pong
     | StatusRequest
     | Status
+    | Start
 )
 
 _packer = msgpack.Packer(use_bin_type=True)
@@ -136,15 +152,17 @@ def encode(frame: Frame) -> bytes:
     return (VERSION << 24 | len(body)).to_bytes(HEADER, "big") + body
 
 
-def encode_event(uid: int, data: bytes, priority: int) -> bytes:
+def encode_event(uid: int, data: bytes, priority: int, seq: int) -> bytes:
     """``encode(Event(...))`` without building the dataclass: the publish hot path."""
-    body: bytes = _packer.pack((_EVENT, uid, data, priority))
+    body: bytes = _packer.pack((_EVENT, uid, data, priority, seq))
     return (VERSION << 24 | len(body)).to_bytes(HEADER, "big") + body
 
 
 def _fields(frame: Frame) -> tuple[Any, ...]:
     if isinstance(frame, Event):
-        return (_EVENT, frame.uid, frame.data, frame.priority)
+        return (_EVENT, frame.uid, frame.data, frame.priority, frame.seq)
+    if isinstance(frame, Start):
+        return (_START, frame.uid, frame.seq)
     if isinstance(frame, Hello):
         return (_HELLO, frame.node_id, frame.name, frame.host, frame.port)
     if isinstance(frame, Subscribe):
@@ -181,8 +199,8 @@ class Decoder:
         buf += data
         frames: list[Frame] = []
 
-        def on_event(uid: int, data: bytes, priority: int) -> None:
-            frames.append(Event(uid, data, priority))
+        def on_event(uid: int, data: bytes, priority: int, seq: int) -> None:
+            frames.append(Event(uid, data, priority, seq))
 
         pos = parse(buf, 0, len(buf), self.max_frame, on_event, frames.append)
         if pos:
@@ -195,14 +213,14 @@ def parse(
     pos: int,
     end: int,
     max_frame: int,
-    on_event: Callable[[int, bytes, int], None],
+    on_event: Callable[[int, bytes, int, int], None],
     on_frame: Callable[[Frame], None],
 ) -> int:
     """Decode the whole frames in ``buf[pos:end]``; return where the first incomplete one starts.
 
-    Events go to ``on_event(uid, data, priority)`` without building an ``Event`` (the hot path),
-    every other frame to ``on_frame``. Raises ``DecodeError`` as ``Decoder.feed`` does; frames
-    before the bad one have been handed over by then.
+    Events go to ``on_event(uid, data, priority, seq)`` without building an ``Event`` (the hot
+    path), every other frame to ``on_frame``. Raises ``DecodeError`` as ``Decoder.feed`` does;
+    frames before the bad one have been handed over by then.
     """
     view = memoryview(buf)
     try:
@@ -218,16 +236,18 @@ def parse(
                 break
             pos = start + length
             fields = _unpack(view[start:pos])
-            if fields[0] == _EVENT and len(fields) == 4:
-                _, uid, data, priority = fields
+            if fields[0] == _EVENT and len(fields) == 5:
+                _, uid, data, priority, seq = fields
                 if (
                     type(uid) is int
                     and 0 <= uid < 1 << 64
                     and type(data) is bytes
                     and type(priority) is int
                     and 0 <= priority <= 0xFF
+                    and type(seq) is int
+                    and 0 <= seq <= MAX_SEQ
                 ):
-                    on_event(uid, data, priority)
+                    on_event(uid, data, priority, seq)
                     continue
             on_frame(_checked(fields))
     finally:
@@ -241,7 +261,7 @@ def _unpack(body: bytes | memoryview) -> tuple[Any, ...]:
     except Exception as exc:  # msgpack raises a variety of types for bad input
         raise DecodeError(f"frame body is not msgpack: {exc}") from None
     if not isinstance(fields, tuple) or not fields or type(fields[0]) is not int:
-        raise DecodeError(f"frame body must be an array starting with its kind: {fields!r:.60}")
+        raise DecodeError(f"frame body must be an array starting with its kind: {_short(fields)}")
     return fields
 
 
@@ -249,7 +269,15 @@ def _checked(fields: tuple[Any, ...]) -> Frame:
     try:
         return _frame(fields)
     except (TypeError, ValueError) as exc:
-        raise DecodeError(f"bad frame {fields!r:.80}: {exc}") from None
+        raise DecodeError(f"bad frame {_short(fields)}: {exc}") from None
+
+
+def _short(value: Any) -> str:
+    """A short description of decoded junk, safe for any depth of nesting."""
+    try:
+        return reprlib.repr(value)
+    except RecursionError:
+        return f"<{type(value).__name__} nested too deep>"
 
 
 def decode_body(body: bytes) -> Frame:
@@ -260,8 +288,11 @@ def decode_body(body: bytes) -> Frame:
 def _frame(f: tuple[Any, ...]) -> Frame:
     kind = f[0]
     if kind == _EVENT:
-        _, uid, data, priority = f
-        return Event(_uid(uid), _bytes(data), _int(priority, 0xFF))
+        _, uid, data, priority, seq = f
+        return Event(_uid(uid), _bytes(data), _int(priority, 0xFF), _uid(seq))
+    if kind == _START:
+        _, uid, seq = f
+        return Start(_uid(uid), _uid(seq))
     if kind == _HELLO:
         _, node_id, name, host, port = f
         return Hello(_uid(node_id), _str(name), _str(host), _int(port, 0xFFFF))

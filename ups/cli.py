@@ -18,11 +18,13 @@ from typing import Any
 
 from ._channel import Channel, parse_channel
 from ._errors import ConfigError, UpsError
+from ._message import Message
 from ._node import Node
 from ._tcpface import DEFAULT_PORT, query_status
 from .rt import cli as rt_cli
 
 EXIT_TIMEOUT = 1
+EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
 EXIT_USAGE = 2
 
 
@@ -128,6 +130,10 @@ def _parser() -> argparse.ArgumentParser:
         "--rate", type=float, default=10.0, help="events per second (0: as fast as possible)"
     )
     cmd.add_argument("--priority", type=_priority_arg, default=None, help="0 (highest)..255")
+    cmd.add_argument(
+        "--wait", action="store_true",
+        help="wait for room at slow subscribers instead of dropping (TCP/IP backpressure)",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_pub)
 
     cmd = commands.add_parser("sub", help="print the events of channels")
@@ -136,6 +142,10 @@ def _parser() -> argparse.ArgumentParser:
     cmd.add_argument("--count", type=_positive_int, default=None, help="exit 0 after N events")
     cmd.add_argument("--timeout", type=float, default=None, help="exit 1 if this many s pass")
     cmd.add_argument("--json", action="store_true", help="one JSON object per line")
+    cmd.add_argument(
+        "--queue", type=_positive_int, default=1024,
+        help="events held while the output is slow (default 1024); beyond, the oldest are lost",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_sub)
 
     cmd = commands.add_parser("analyze", help="CAN response-time analysis of a message set")
@@ -315,7 +325,7 @@ def _run_pub(args: argparse.Namespace) -> int:
                     await asyncio.sleep(0)  # flat out, but let the writes drain
                 elif i:
                     await asyncio.sleep(max(0.0, start + i / args.rate - loop.time()))
-                await node.publish(args.channel, args.data)
+                await node.publish(args.channel, args.data, wait=args.wait)
         stats = node.stats()  # after closing: what could not be delivered is counted by now
         if stats.get("tx_failed"):
             print(f"ups pub: {stats['tx_failed']} frames could not be sent", file=sys.stderr)
@@ -331,37 +341,52 @@ def _run_pub(args: argparse.Namespace) -> int:
 def _run_sub(args: argparse.Namespace) -> int:
     async def run() -> int:
         got = 0
+        code = 0
         async with _node(args) as node:
-            sub = await node.subscribe(*args.channels)
+            sub = await node.subscribe(*args.channels, maxlen=args.queue)
             names = ", ".join(str(c) for c in args.channels)
             logging.getLogger("ups").info("subscribed to %s", names)
             loop = asyncio.get_running_loop()
             deadline = None if args.timeout is None else loop.time() + args.timeout
-            while args.count is None or got < args.count:
-                left = None if deadline is None else max(0.0, deadline - loop.time())
-                try:
-                    msg = await sub.get_msg(timeout=left)
-                except TimeoutError:
-                    print(f"ups sub: timeout after {got} events", file=sys.stderr)
-                    return EXIT_TIMEOUT
-                got += 1
-                if args.json:
-                    line = json.dumps(
-                        {
-                            "uid": f"0x{msg.uid:016x}",
-                            "channel": msg.channel.name,
-                            "data": msg.data.hex(),
-                            "timestamp": msg.timestamp,
-                            "priority": msg.priority,
-                            "source": msg.source,
-                        }
-                    )
-                else:
-                    line = f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}"
-                print(line, flush=True)
-        return 0
+            try:
+                while args.count is None or got < args.count:
+                    left = None if deadline is None else max(0.0, deadline - loop.time())
+                    try:
+                        msg = await sub.get_msg(timeout=left)
+                    except TimeoutError:
+                        print(f"ups sub: timeout after {got} events", file=sys.stderr)
+                        code = EXIT_TIMEOUT
+                        break
+                    got += 1
+                    print(_event_line(msg, args.json), flush=True)
+            except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
+                pass
+            dropped, skipped = sub.dropped, node.stats().get("lost", 0)
+        if dropped or skipped:  # every loss is reported, however the run ended
+            print(
+                f"ups sub: lost {dropped + skipped} events: {dropped} dropped from its full "
+                f"queue (--queue {args.queue}), {skipped} missing on the way (sequence gaps)",
+                file=sys.stderr,
+            )
+            return code or EXIT_LOST
+        return code
 
     return _run_until_signal(run())
+
+
+def _event_line(msg: Message, as_json: bool) -> str:
+    if as_json:
+        return json.dumps(
+            {
+                "uid": f"0x{msg.uid:016x}",
+                "channel": msg.channel.name,
+                "data": msg.data.hex(),
+                "timestamp": msg.timestamp,
+                "priority": msg.priority,
+                "source": msg.source,
+            }
+        )
+    return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}"
 
 
 def _run_demo(args: argparse.Namespace) -> int:
