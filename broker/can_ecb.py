@@ -50,6 +50,7 @@ MAX_DEFERRED = 4096  #: binding requests held during the recovery window
 DECLARE_RATE = 10.0  #: admission analyses per second and TxNode (a burst of twice that)
 LOG_GAP = 10.0  #: a repeated warning is logged at most this often
 SERVING_GAP = 1.0  #: at most one Serving per this many seconds
+STANDBY_PROBE = 2.0  #: a standing-by CAN-ECB asks this often whether the other still serves
 
 
 class CanEcb:
@@ -104,6 +105,8 @@ class CanEcb:
         self._started_up = False  # the first recovery (after start) is over
         self._logged: dict[str, float] = {}
         self._last_serving = -1.0
+        self._other_heard = 0.0  # in standby: when the serving CAN-ECB was last heard
+        self._probe_timer: asyncio.TimerHandle | None = None
         self._declare_tokens: dict[int, tuple[float, float]] = {}
         self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
         self.publishers: defaultdict[int, set[int]] = defaultdict(set)
@@ -181,12 +184,14 @@ class CanEcb:
     def close(self) -> None:
         """Stop serving the bus (the link stays open). Safe to call twice."""
         self._census.close()
-        for _, timer in self._offered.values():
-            timer.cancel()
+        for _, offer_timer in self._offered.values():
+            offer_timer.cancel()
         self._offered.clear()
-        if self._recovery_timer is not None:
-            self._recovery_timer.cancel()
-            self._recovery_timer = None
+        for timer in (self._recovery_timer, self._probe_timer):
+            if timer is not None:
+                timer.cancel()
+        self._recovery_timer = None
+        self._probe_timer = None
         for task in self._gated:
             task.cancel()
         self.link.remove_handler(self._handler)
@@ -283,6 +288,8 @@ class CanEcb:
     def _on_foreign_ecb(self, msg: p.Management) -> None:
         self.counters["foreign_ecb_frames"] += 1
         if self.standby:
+            if isinstance(msg, p.Hello | p.Serving) and msg.instance != self.instance:
+                self._other_heard = time.monotonic()  # the one serving is still there
             return
         if isinstance(msg, p.Hello | p.Serving):
             if msg.instance == self.instance:
@@ -302,6 +309,13 @@ class CanEcb:
             self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
                        msg.etag, msg.uid)  # fmt: skip
             self._correct(msg.etag, msg.uid)
+        elif isinstance(msg, p.Assign) and self._store.txnodes.get(msg.node_id) not in (
+            None, msg.txnode,
+        ):  # fmt: skip
+            self.counters["conflicts"] += 1  # a node told to move where its table does not say
+            self._warn("assign", "an Assign(%d, %016x) that this CAN-ECB did not send: "
+                       "correcting", msg.txnode, msg.node_id)  # fmt: skip
+            self._send(p.Assign(self._store.txnodes[msg.node_id], msg.node_id))
         else:
             self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a "
                        "forger", type(msg).__name__)  # fmt: skip
@@ -315,11 +329,27 @@ class CanEcb:
             self._send(p.Serving(self.instance))
 
     def _stand_by(self, reason: str) -> None:
+        """Another CAN-ECB serves the bus: answer nothing, but check now and then that it is
+        still there (it answers our Serving with its own); take over when it is not."""
         self.standby = True
         self._census.close()
+        self._other_heard = time.monotonic()
         log.error("%s: this CAN-ECB stands by and answers nothing", reason)
         if self.on_standby is not None:
             self.on_standby(reason)
+        self._probe_timer = asyncio.get_running_loop().call_later(STANDBY_PROBE, self._probe)
+
+    def _probe(self) -> None:
+        self._probe_timer = None
+        if not self.standby:
+            return
+        if time.monotonic() - self._other_heard > 2 * STANDBY_PROBE:
+            log.warning("the other CAN-ECB is silent: this one serves the bus again")
+            self.standby = False
+            self._hello()
+            return
+        self._send(p.Serving(self.instance))  # a CAN-ECB that serves answers with its own
+        self._probe_timer = asyncio.get_running_loop().call_later(STANDBY_PROBE, self._probe)
 
     def _correct(self, etag: int, uid: int) -> None:
         """Repeat the tables' truth about ``etag`` and ``uid``."""
@@ -435,7 +465,9 @@ class CanEcb:
             self.counters["conflicts"] += 1
             self._warn("claim", "ignored CLAIM of TxNode %d by node %016x outside recovery",
                        txnode, node_id)  # fmt: skip
-            if holder is None and known is None:
+            if known is not None and holder is None:  # it was told to move: tell it the truth
+                self._send(p.Assign(known, node_id))
+            elif holder is None and known is None:
                 self._unassigned(txnode)
             return
         if self._started_up and txnode not in self._strays:  # a later window is for strays only
@@ -693,9 +725,10 @@ class CanEcb:
 async def serve(
     bus: str, db_path: str | Path, bitrate: int = 500_000, **options: float | int
 ) -> int:
-    """Run a standalone CAN-ECB on ``bus`` until cancelled or stood down.
+    """Run a standalone CAN-ECB on ``bus`` until cancelled.
 
-    Returns 1 if another CAN-ECB serves the bus or the database failed during the run, else 0.
+    Returns 1 if the database failed during the run, else 0. Standing by for another CAN-ECB
+    is logged; it serves again when the other goes silent.
     """
     link = CanLink.open(bus)
     try:
@@ -703,12 +736,10 @@ async def serve(
     except BaseException:
         link.close()
         raise
-    stood_down = asyncio.Event()
-    ecb.on_standby = lambda _reason: stood_down.set()
     try:
         await ecb.start()
-        await stood_down.wait()
-        return 1
+        await asyncio.Event().wait()
+        return 0
     except asyncio.CancelledError:
         return 1 if ecb.counters["storage_errors"] else 0
     finally:

@@ -100,18 +100,26 @@ async def test_two_buses_served_from_one_directory_keep_their_own_files(tmp_path
     assert len(list((tmp_path / "state").glob("can-ecb-*.db"))) == 2
 
 
-async def test_a_second_can_ecb_on_a_bus_stands_by_and_exits(tmp_path: Path) -> None:
+async def test_a_second_can_ecb_stands_by_and_takes_over_when_the_first_goes(
+    tmp_path: Path,
+) -> None:
     bus = private_multicast_bus()
-    with Proc("can-broker", "--can", bus, "--db", str(tmp_path / "a.db"), "--recovery", "0.2") as a:
+    db_a, db_b = str(tmp_path / "a.db"), str(tmp_path / "b.db")
+    with Proc("can-broker", "--can", bus, "--db", db_a, "--recovery", "0.2") as a:
         a.wait_for_line("CAN-ECB on")
         async with Node(can=bus, node_id=0x81, join_timeout=20) as node:
             sub = await node.subscribe("kept")
-            second = Proc("can-broker", "--can", bus, "--db", str(tmp_path / "b.db"))
-            code, _ = await asyncio.to_thread(second.finish)
-            assert code == 1 and "already serves this bus" in "".join(second.stderr_lines)
-            await node.publish("kept", b"1")  # the first CAN-ECB and its bindings carry on
-            assert (await sub.get_msg(timeout=5)).data == b"1"
-            async with Node(can=bus, node_id=0x82, join_timeout=20) as late:
-                await late.subscribe("new/after")
-        assert a.stop() == 0
-    assert any("another CAN-ECB" in line for line in a.stderr_lines)
+            with Proc("can-broker", "--can", bus, "--db", db_b, "--recovery", "1.5") as b:
+                await asyncio.to_thread(b.wait_for_line, "already serves this bus")
+                await node.publish("kept", b"1")  # the first CAN-ECB and its bindings carry on
+                assert (await sub.get_msg(timeout=5)).data == b"1"
+                async with Node(can=bus, node_id=0x82, join_timeout=20) as late:
+                    await late.subscribe("new/while/two")
+                assert a.stop() == 0
+                # the first is gone: the second notices, says Hello, relearns the bus and serves
+                await asyncio.to_thread(b.wait_for_line, "serves the bus again", 20)
+                async with Node(can=bus, node_id=0x83, join_timeout=20) as third:
+                    await third.subscribe("new/after")
+                    await third.publish("kept", b"2")
+                    assert (await sub.get_msg(timeout=5)).data == b"2"
+        assert any("another CAN-ECB" in line for line in a.stderr_lines)

@@ -27,6 +27,7 @@ log = logging.getLogger("ups.can")
 _RETRY_FIRST = 0.05  # seconds before asking the CAN-ECB again
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
+_REBIND_MAX = 5.0  # a refused re-binding is asked again at most this far apart
 _IN_FLIGHT = 128  # binding requests a node has outstanding at once (the rest wait their turn)
 _ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
 _HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
@@ -129,15 +130,15 @@ class CanFace:
     async def bind(self, state: ChannelState, subscribe: bool) -> None:
         uid = state.channel.uid
         etag = self._bound.get(uid)
-        if etag is None:
+        if etag is not None:  # confirmed already: tell the CAN-ECB our role; it corrects us
+            self._send(p.Holds(not subscribe, self._my_txnode(), etag, uid))
+        while etag is None or self._bound.get(uid) != etag:  # a contradiction came meanwhile
             if subscribe:  # receive from the moment the Bind is handled, not a loop pass later
                 self._wants_rx[uid] = state
             try:
                 etag = await self._request_etag(p.SUB_BIND if subscribe else p.PUB_BIND, uid)
             finally:
                 self._wants_rx.pop(uid, None)
-        else:  # confirmed already: tell the CAN-ECB our role; it corrects us if need be
-            self._send(p.Holds(not subscribe, self._my_txnode(), etag, uid))
         if subscribe:
             self._receive(etag, state)
 
@@ -230,6 +231,7 @@ class CanFace:
             self._announce_all()  # our channels, under the new TxNode
 
     def _on_bind(self, etag: int, uid: int) -> None:
+        heard = self._heard.get(etag)
         self._heard[etag] = uid
         old_uid = self._uid_at.get(etag)
         old_etag = self._bound.get(uid)
@@ -243,6 +245,11 @@ class CanFace:
             return
         fut = self._pending.get(uid)
         if fut is not None and not fut.done():
+            if heard is not None and heard != uid:  # last heard as another channel's etag:
+                self.counters["rebinds"] += 1  # doubt it; adopt it when it comes again
+                self._warn("doubt", "Bind(%#x, %016x) names an etag last heard bound to "
+                           "%016x: asking again", etag, uid, heard)  # fmt: skip
+                return
             self._bound[uid] = etag
             self._uid_at[etag] = uid
             state = self._wants_rx.get(uid)
@@ -271,21 +278,32 @@ class CanFace:
             if self._rx.pop(etag, None) is not None:
                 self._suspended.add(etag)
         state = self._channels.get(uid)
-        if state is None or not (state.subs or state.published) or uid in self._rebinding:
+        running = self._rebinding.get(uid)
+        if state is None or not (state.subs or state.published):
+            return
+        if running is not None and not running.done():  # it checks its answer before it ends
             return
         task = asyncio.get_running_loop().create_task(self._rebind(uid, state))
         self._rebinding[uid] = task
         task.add_done_callback(self._rebind_done)
 
     async def _rebind(self, uid: int, state: ChannelState) -> None:
-        while True:
+        """Bind ``uid`` again until it holds: refusals may be stray or forged frames too, and
+        another contradiction may come right after the answer."""
+        delay = _RETRY_FIRST
+        etag: int | None = None
+        while etag is None or self._bound.get(uid) != etag:
+            if not (state.subs or state.published):
+                return  # nobody uses the channel any more
             if state.subs:
                 self._wants_rx[uid] = state
             try:
                 etag = await self._request_etag(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
-                break
-            except BrokerUnavailable as exc:
+            except (BrokerUnavailable, Exhausted) as exc:
+                etag = None
                 self._warn("rebind-wait", "still binding %016x again: %s", uid, exc)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, _REBIND_MAX)
             finally:
                 self._wants_rx.pop(uid, None)
         if state.subs:
