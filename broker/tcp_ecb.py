@@ -25,13 +25,16 @@ from typing import Any
 from ups import _tcpwire as w
 from ups._errors import ConfigError
 from ups._tcpface import DEFAULT_PORT, HEARTBEAT, parse_address
-from ups._tcplink import Link
+from ups._tcplink import Doorman, Link, link_budget
 
 log = logging.getLogger("ups.tcp_ecb")
 
 DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
+MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
+STATUS_LIST = 1000  #: nodes and channels listed in a Status at most (the rest are counted)
+_REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
 
 class _Member:
@@ -63,6 +66,8 @@ class TcpEcb:
         *,
         liveness: float = DEFAULT_LIVENESS,
         recovery: float = DEFAULT_RECOVERY,
+        max_links: int | None = None,
+        hello_timeout: float = 5.0,
     ) -> None:
         if liveness < 2 * HEARTBEAT:
             raise ConfigError(
@@ -80,7 +85,10 @@ class TcpEcb:
         self._recovering = False
         self._waiting: dict[int, set[int]] = {}  # uid -> node ids owed an answer after recovery
         self._tasks: list[asyncio.Task[None]] = []
-        self.counters = dict.fromkeys(("joined", "left", "malformed", "pushes"), 0)
+        self._doorman = Doorman(
+            link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
+        )
+        self.counters = dict.fromkeys(("joined", "left", "malformed", "pushes", "limited"), 0)
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -112,14 +120,26 @@ class TcpEcb:
             self._server = None
         for link in list(self._links):
             link.close()
+        self._doorman.close()
+
+    def stats(self) -> dict[str, int]:
+        return {
+            **self.counters,
+            **self._doorman.counters,
+            "nodes": len(self._members),
+            "channels": len(set(self._subscribers) | set(self._publishers)),
+            "links": self._doorman.links,
+        }
 
     def status(self) -> dict[str, Any]:
         """The registry, as ``ups status`` prints it."""
-        channels = sorted(set(self._subscribers) | set(self._publishers))
+        channels = sorted(set(self._subscribers) | set(self._publishers))[:STATUS_LIST]
+        members = list(self._members.values())[:STATUS_LIST]
         return {
             "node_id": _hex(0),
             "name": "ups-broker",
-            "stats": {**self.counters, "nodes": len(self._members)},
+            "stats": self.stats(),
+            "listed": {"nodes": len(members), "channels": len(channels), "at_most": STATUS_LIST},
             "nodes": [
                 {
                     "node_id": _hex(m.node_id),
@@ -129,7 +149,7 @@ class TcpEcb:
                     "subscribed": [_hex(uid) for uid in sorted(m.subs)],
                     "published": [_hex(uid) for uid in sorted(m.pubs)],
                 }
-                for m in self._members.values()
+                for m in members
             ],
             "channels": [
                 {
@@ -144,8 +164,12 @@ class TcpEcb:
     # --- links -----------------------------------------------------------------------------
 
     def _new_link(self) -> Link:
-        link = Link(self._on_event, self._on_frame, self._on_lost, limit=_LINK_LIMIT)
+        link = Link(
+            self._on_event, self._on_frame, self._on_lost, limit=_LINK_LIMIT,
+            max_frame=_REGISTERED_FRAME,
+        )  # fmt: skip
         self._links.add(link)
+        self._doorman.admit(link)
         return link
 
     def _on_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
@@ -160,6 +184,7 @@ class TcpEcb:
             return
         if member is None:
             if isinstance(frame, w.Hello):
+                self._doorman.greeted(link)
                 self._hello(link, frame)
             else:
                 self.counters["malformed"] += 1
@@ -180,6 +205,7 @@ class TcpEcb:
 
     def _on_lost(self, link: Link, reason: str | None) -> None:
         self._links.discard(link)
+        self._doorman.gone(link)
         if reason is not None and reason.startswith("bad frame"):
             self.counters["malformed"] += 1
         member: _Member | None = link.peer
@@ -244,6 +270,11 @@ class TcpEcb:
             member.stale.discard((subscribe, uid))
         if adding:
             new = uid not in mine
+            if new and len(member.subs) + len(member.pubs) >= MAX_CHANNELS:
+                self.counters["limited"] += 1  # unanswered: the node logs that it got no answer
+                log.warning("node %016x registers more than %d channels: %016x refused",
+                            member.node_id, MAX_CHANNELS, uid)  # fmt: skip
+                return
             mine.add(uid)
             table.setdefault(uid, set()).add(member.node_id)
             self._answer(member, uid)

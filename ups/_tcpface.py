@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
 from ._errors import BrokerUnavailable, ConfigError, UpsError
-from ._tcplink import OVERFLOWS, Link, Overflow
+from ._tcplink import OVERFLOWS, Doorman, Link, Overflow
 
 if TYPE_CHECKING:
     from ._face import ChannelState, Deliver
@@ -31,7 +31,8 @@ _RETRY_FIRST = 0.05
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
 _CLOSE_TIMEOUT = 2.0  # at close, how long queued events may take to reach their peers
-_EVENT_OVERHEAD = 24  # frame header + msgpack array, kind, uid, bin header and priority
+_EVENT_OVERHEAD = 32  # frame header + msgpack array, kind, uid, bin header, priority, seq
+MAX_PUBLISHERS = 1024  #: links from publishers a node accepts at once
 
 
 def _hex(value: int) -> str:
@@ -116,6 +117,7 @@ class TcpFace:
         self._peers: dict[int, _Peer] = {}
         self._targets: dict[int, list[_Peer]] = {}  # uid -> peers subscribed to it
         self._incoming: set[Link] = set()
+        self._doorman = Doorman(MAX_PUBLISHERS)  # links from publishers, bounded
         self._gone_dropped = 0  # events dropped for peers that are no longer subscribers
         self._closing: set[asyncio.Task[None]] = set()  # links to former subscribers
         self._closed = False
@@ -176,6 +178,7 @@ class TcpFace:
             link.close()
         if self._server is not None:
             self._server.close()
+        self._doorman.close()
         for fut in self._acks.values():
             fut.cancel()
 
@@ -515,6 +518,7 @@ class TcpFace:
     def _new_incoming(self) -> Link:
         link = Link(self._incoming_event, self._incoming_frame, self._incoming_lost)
         self._incoming.add(link)
+        self._doorman.admit(link)
         return link
 
     def _incoming_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
@@ -543,6 +547,7 @@ class TcpFace:
     def _incoming_frame(self, link: Link, frame: w.Frame) -> None:
         if isinstance(frame, w.Hello):
             link.peer = frame.node_id
+            self._doorman.greeted(link)
         elif isinstance(frame, w.Start):
             if link.peer is None:
                 self.counters["malformed"] += 1
@@ -563,6 +568,7 @@ class TcpFace:
 
     def _incoming_lost(self, link: Link, reason: str | None) -> None:
         self._incoming.discard(link)
+        self._doorman.gone(link)
         if reason is not None and reason.startswith("bad frame"):
             self.counters["malformed"] += 1
 

@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import functools
 import logging
+import resource
 from collections.abc import Callable
 from typing import Any, Literal, cast
 
@@ -28,7 +30,8 @@ log = logging.getLogger("ups.tcp")
 
 Overflow = Literal["drop_oldest", "drop_newest"]
 OVERFLOWS: tuple[Overflow, ...] = ("drop_oldest", "drop_newest")
-_BUFFER = 1 << 18  # receive buffer; grown for frames bigger than this
+_BUFFER = 1 << 14  # receive buffer to begin with; grown for bigger frames ...
+_BUFFER_KEEP = 1 << 18  # ... and given back once empty, when it grew past this
 _WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us
 CONTROL_LIMIT = 1 << 14  #: control frames queued for a peer that does not read: then cut off
 
@@ -56,7 +59,7 @@ class Link(asyncio.BufferedProtocol):
         self._event = functools.partial(on_event, self)  # made once: no per-event trampoline
         self._frame = functools.partial(on_frame, self)
         self._on_lost = on_lost
-        self._max_frame = max_frame
+        self.max_frame = max_frame  #: the longest frame accepted (an owner may change it)
         self._buf = bytearray(_BUFFER)
         self._start = 0
         self._end = 0
@@ -68,6 +71,7 @@ class Link(asyncio.BufferedProtocol):
         self._closing = False
         self._loop = asyncio.get_running_loop()
         self.lost: asyncio.Future[str | None] = self._loop.create_future()
+        self.full_frame = max_frame  # what max_frame becomes once a Doorman lets it in
 
     def __repr__(self) -> str:
         return f"<Link {self.name} queued={len(self._out)} dropped={self.dropped}>"
@@ -190,6 +194,9 @@ class Link(asyncio.BufferedProtocol):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = cast(asyncio.Transport, transport)  # uvloop's is no subclass
+        if self._closing:  # refused before it was even connected (see Doorman)
+            self.transport.abort()
+            return
         self.transport.set_write_buffer_limits(high=_WRITE_HIGH)
         self._flush()
 
@@ -207,15 +214,23 @@ class Link(asyncio.BufferedProtocol):
     def buffer_updated(self, nbytes: int) -> None:
         self._end += nbytes
         try:
-            pos = w.parse(
-                self._buf, self._start, self._end, self._max_frame, self._event, self._frame
-            )
+            pos = self._start
+            while True:  # frame by frame while a Doorman limits it: a Hello lifts the limit
+                limited = self.max_frame != self.full_frame
+                start = pos
+                pos = w.parse(
+                    self._buf, pos, self._end, self.max_frame, self._event, self._frame, limited
+                )
+                if not limited or pos in (start, self._end) or self._closing:
+                    break
         except DecodeError as exc:
             log.warning("closed the link from %s: %s", self.name, exc)
             self.abort(f"bad frame: {exc}")
             return
         if pos == self._end:
             self._start = self._end = 0
+            if len(self._buf) > _BUFFER_KEEP:  # a big frame is through: give the memory back
+                self._buf = bytearray(_BUFFER)
         else:
             self._start = pos
 
@@ -230,3 +245,85 @@ class Link(asyncio.BufferedProtocol):
     def _lost(self, reason: str | None) -> None:
         self.lost.set_result(reason)
         self._on_lost(self, reason)
+
+
+class Doorman:
+    """Bounds the connections one listening socket accepts, and counts what it turns away.
+
+    At most ``max_links`` connections in all (a new one beyond is closed at once: counted in
+    ``refused``). Of those, at most ``max_waiting`` may not have said Hello yet: when another
+    comes, the oldest waiting one is closed (``evicted``). A connection that has not said Hello
+    within ``hello_timeout`` seconds is closed (``timed_out``). Until its Hello, a connection
+    may send frames of at most ``first_frame`` bytes.
+    """
+
+    def __init__(
+        self,
+        max_links: int,
+        *,
+        max_waiting: int = 256,
+        hello_timeout: float = 5.0,
+        first_frame: int = 4096,
+    ) -> None:
+        self.max_links = max_links
+        self.max_waiting = max_waiting
+        self.hello_timeout = hello_timeout
+        self.first_frame = first_frame
+        self.links = 0
+        self._waiting: dict[Link, asyncio.TimerHandle] = {}  # oldest first
+        self.counters = dict.fromkeys(("refused", "evicted", "timed_out"), 0)
+
+    def admit(self, link: Link) -> None:
+        """A new connection (call from the protocol factory)."""
+        self.links += 1
+        if self.links > self.max_links:
+            self.counters["refused"] += 1
+            link.abort(f"more than {self.max_links} connections")
+            return
+        if len(self._waiting) >= self.max_waiting:
+            oldest = next(iter(self._waiting))
+            self.counters["evicted"] += 1
+            oldest.abort(f"more than {self.max_waiting} connections without Hello")
+        link.max_frame, link.full_frame = self.first_frame, link.max_frame
+        loop = asyncio.get_running_loop()
+        self._waiting[link] = loop.call_later(self.hello_timeout, self._time_out, link)
+
+    def greeted(self, link: Link) -> None:
+        """``link`` said Hello: it may stay, and send full-sized frames."""
+        timer = self._waiting.pop(link, None)
+        if timer is not None:
+            timer.cancel()
+            link.max_frame = link.full_frame
+
+    def gone(self, link: Link) -> None:
+        """``link`` ended (call from its on_lost)."""
+        self.links -= 1
+        timer = self._waiting.pop(link, None)
+        if timer is not None:
+            timer.cancel()
+
+    def _time_out(self, link: Link) -> None:
+        if link in self._waiting:
+            self.counters["timed_out"] += 1
+            link.abort(f"no Hello within {self.hello_timeout:g} s")
+
+    def close(self) -> None:
+        for timer in self._waiting.values():
+            timer.cancel()
+        self._waiting.clear()
+
+
+def link_budget(ceiling: int = 4096, reserve: int = 64) -> int:
+    """How many connections a daemon may hold: ``ceiling``, or fewer if the process's limit on
+    open files (raised to its hard limit first) leaves less, ``reserve`` kept for the rest."""
+    try:
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if soft != hard:
+            with contextlib.suppress(ValueError, OSError):
+                resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+                soft = hard
+    except (ValueError, OSError):
+        return ceiling
+    if soft == resource.RLIM_INFINITY:
+        return ceiling
+    return max(16, min(ceiling, soft - reserve))

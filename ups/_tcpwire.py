@@ -215,12 +215,14 @@ def parse(
     max_frame: int,
     on_event: Callable[[int, bytes, int, int], None],
     on_frame: Callable[[Frame], None],
+    one_frame: bool = False,
 ) -> int:
     """Decode the whole frames in ``buf[pos:end]``; return where the first incomplete one starts.
 
     Events go to ``on_event(uid, data, priority, seq)`` without building an ``Event`` (the hot
-    path), every other frame to ``on_frame``. Raises ``DecodeError`` as ``Decoder.feed`` does;
-    frames before the bad one have been handed over by then.
+    path), every other frame to ``on_frame``; with ``one_frame``, decoding stops after the first
+    frame that is not an event (the caller may change ``max_frame`` in between). Raises
+    ``DecodeError`` as ``Decoder.feed`` does; frames before the bad one have been handed over.
     """
     view = memoryview(buf)
     try:
@@ -250,6 +252,8 @@ def parse(
                     on_event(uid, data, priority, seq)
                     continue
             on_frame(_checked(fields))
+            if one_frame:
+                break
     finally:
         view.release()
     return pos
