@@ -347,8 +347,9 @@ class Gateway:
 
         if can_subs and uid not in self._to_can_sinks:  # TCP -> CAN
             can_state = await self.can._publishing_state(channel)
-            sink = self._to_can_sinks[uid] = _Forward(self._to_can, can_state)
+            sink = _Forward(self._to_can, can_state)
             await self.tcp._attach(channel, sink)
+            self._to_can_sinks[uid] = sink  # listed once it works
             log.info("forwarding %016x from TCP to CAN", uid)
         elif not can_subs and uid in self._to_can_sinks:
             await self.tcp._detach(channel, self._to_can_sinks.pop(uid))
@@ -360,8 +361,9 @@ class Gateway:
         wanted = can_pubs and self._tcp_face().subscribed_elsewhere(uid)
         if wanted and uid not in self._to_tcp_sinks:  # CAN -> TCP
             assert tcp_state is not None
-            sink_tcp = self._to_tcp_sinks[uid] = _Forward(self._to_tcp, tcp_state)
+            sink_tcp = _Forward(self._to_tcp, tcp_state)
             await self.can._attach(channel, sink_tcp)
+            self._to_tcp_sinks[uid] = sink_tcp  # listed once it works
             log.info("forwarding %016x from CAN to TCP", uid)
         elif not wanted and uid in self._to_tcp_sinks:
             await self.can._detach(channel, self._to_tcp_sinks.pop(uid))
