@@ -15,7 +15,7 @@ import pytest
 
 from ups import BrokerUnavailable, Node
 
-from .procs import Proc, private_multicast_bus
+from .procs import Proc, private_multicast_bus, start_tcp_broker
 
 pytestmark = pytest.mark.netns
 
@@ -123,3 +123,22 @@ async def test_a_second_can_ecb_stands_by_and_takes_over_when_the_first_goes(
                     await third.publish("kept", b"2")
                     assert (await sub.get_msg(timeout=5)).data == b"2"
         assert any("another CAN-ECB" in line for line in a.stderr_lines)
+
+
+async def test_two_gateways_for_two_buses_from_one_directory(tmp_path: Path) -> None:
+    """The gateway hosts the bus's CAN-ECB with the same per-bus default file."""
+    a, b = private_multicast_bus(), private_multicast_bus()
+    env = {"UPS_STATE_DIR": str(tmp_path / "state")}
+    tcp, address = start_tcp_broker("--recovery", "0")
+    with (
+        tcp,
+        Proc("gateway", "--can", a, "--broker", address, env=env, cwd=tmp_path) as gw_a,
+        Proc("gateway", "--can", b, "--broker", address, env=env, cwd=tmp_path) as gw_b,
+    ):
+        gw_a.wait_for_line("gateway .* between")
+        gw_b.wait_for_line("gateway .* between")
+        for bus in (a, b):
+            async with Node(can=bus, node_id=0x91, join_timeout=20) as node:
+                await node.subscribe(f"gw/{bus}")
+        assert gw_a.popen.poll() is None and gw_b.popen.poll() is None
+    assert len(list((tmp_path / "state").glob("can-ecb-*.db"))) == 2

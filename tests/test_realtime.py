@@ -71,7 +71,9 @@ async def test_a_tighter_stream_moves_an_admitted_one(bus: str, slow_ecb: CanEcb
         assert await a.declare("odometry", period_ms=20, deadline_ms=20) == RT_FIRST
         # 'estop' needs the top priority: below 'odometry' it would wait 3 frames (3.84 ms)
         assert await b.declare("estop", period_ms=50, deadline_ms=3) == RT_FIRST
-        await a.publish("odometry", b"\x00")  # the CAN-ECB told node a its new priority
+        # the CAN-ECB tells node a its new priority (a's link may hear it a moment after b's)
+        await eventually(lambda: a._states[name_to_uid("odometry")].priority == RT_FIRST + 1)
+        await a.publish("odometry", b"\x00")
         assert (await s.get_msg(timeout=5)).priority == RT_FIRST + 1
 
 
