@@ -26,6 +26,7 @@ from ups import _tcpwire as w
 from ups._errors import ConfigError
 from ups._tcpface import DEFAULT_PORT, HEARTBEAT, parse_address
 from ups._tcplink import Doorman, Link, link_budget
+from ups._tls import Tls, identity
 
 log = logging.getLogger("ups.tcp_ecb")
 
@@ -68,6 +69,7 @@ class TcpEcb:
         recovery: float = DEFAULT_RECOVERY,
         max_links: int | None = None,
         hello_timeout: float = 5.0,
+        tls: Tls | None = None,
     ) -> None:
         if liveness < 2 * HEARTBEAT:
             raise ConfigError(
@@ -85,15 +87,23 @@ class TcpEcb:
         self._recovering = False
         self._waiting: dict[int, set[int]] = {}  # uid -> node ids owed an answer after recovery
         self._tasks: list[asyncio.Task[None]] = []
+        self._tls = tls
+        self._owners: dict[int, str] = {}  # node id -> the identity that registered it
         self._doorman = Doorman(
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
         )
-        self.counters = dict.fromkeys(("joined", "left", "malformed", "pushes", "limited"), 0)
+        self.counters = dict.fromkeys(
+            ("joined", "left", "malformed", "pushes", "limited", "impostors"), 0
+        )
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
         self._server = await loop.create_server(
-            self._new_link, self.host, self.port, reuse_address=True
+            self._new_link,
+            self.host,
+            self.port,
+            reuse_address=True,
+            ssl=self._tls.server() if self._tls else None,
         )
         self.port = self._server.sockets[0].getsockname()[1]
         self._recovering = self.recovery > 0
@@ -184,6 +194,8 @@ class TcpEcb:
             return
         if member is None:
             if isinstance(frame, w.Hello):
+                if not self._owned_by(link, frame.node_id):
+                    return
                 self._doorman.greeted(link)
                 self._hello(link, frame)
             else:
@@ -202,6 +214,20 @@ class TcpEcb:
             self.counters["malformed"] += 1
             log.warning("closed the link from %s: unexpected %s", link.name, frame)
             link.abort("unexpected frame")
+
+    def _owned_by(self, link: Link, node_id: int) -> bool:
+        """With TLS, a node id belongs to the identity that first registered it: another
+        identity saying Hello with it is refused (no takeover)."""
+        name = identity(link.transport)
+        if name is None:
+            return True
+        owner = self._owners.setdefault(node_id, name)
+        if owner == name:
+            return True
+        self.counters["impostors"] += 1
+        log.warning("refused %s: node id %016x belongs to %s", name, node_id, owner)
+        link.abort(f"node id {node_id:016x} belongs to another identity")
+        return False
 
     def _on_lost(self, link: Link, reason: str | None) -> None:
         self._links.discard(link)
@@ -358,10 +384,10 @@ def _hex(value: int) -> str:
     return f"0x{value:016x}"
 
 
-async def serve(listen: str, liveness: float, recovery: float) -> None:
+async def serve(listen: str, liveness: float, recovery: float, tls: Tls | None = None) -> None:
     """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled."""
     host, port = parse_address(listen)
-    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery)
+    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls)
     await ecb.start()
     try:
         await asyncio.Event().wait()

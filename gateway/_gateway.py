@@ -40,6 +40,7 @@ from ups._message import Message
 from ups._node import Node
 from ups._nodeid import claim_node_id
 from ups._tcpface import TcpFace
+from ups._tls import Tls
 from ups.rt import frame_bits
 
 log = logging.getLogger("ups.gateway")
@@ -135,12 +136,14 @@ class Gateway:
         listen: str | None = None,
         join_timeout: float | None = 30.0,
         can_queue: int = 256,
+        tls: Tls | None = None,
     ) -> None:
         if can_queue < 1:
             raise ConfigError(f"can_queue must be at least 1, got {can_queue}")
         if bitrate <= 0:
             raise ConfigError(f"bitrate must be positive, got {bitrate}")
         self._can_spec = can
+        self._tls = tls
         self._broker = broker
         self._db = db
         self._host_can_ecb = host_can_ecb
@@ -224,6 +227,7 @@ class Gateway:
             name=self.name,
             listen=self._listen,
             join_timeout=self._join_timeout,
+            tls=self._tls,
         )
         await self.tcp.start()
         tcp_face = self._tcp_face()

@@ -18,6 +18,7 @@ from ._errors import (
 from ._message import Message
 from ._node import Node, Subscription
 from ._tcplink import Overflow
+from ._tls import Tls
 
 __all__ = [
     "BlockingNode",
@@ -34,6 +35,7 @@ __all__ = [
     "Overflow",
     "PayloadTooLarge",
     "Subscription",
+    "Tls",
     "Unschedulable",
     "UpsError",
     "name_to_uid",

@@ -27,6 +27,7 @@ from ._message import Message
 from ._nodeid import claim_node_id
 from ._tcpface import TcpFace
 from ._tcplink import OVERFLOWS, Overflow
+from ._tls import Tls
 
 log = logging.getLogger("ups")
 
@@ -143,7 +144,8 @@ class Node:
     ``peer_queue`` events that the peer has not read yet; when it is full, ``peer_overflow``
     (``"drop_oldest"`` or ``"drop_newest"``) decides what is dropped, and
     ``stats()["peer_dropped"]`` counts it: a stalled subscriber never holds up the publisher
-    or the other subscribers.
+    or the other subscribers. ``tls`` (``ups.Tls(ca, cert, key)``) runs every link over TLS
+    with the fleet's certificates, both sides authenticated.
     """
 
     def __init__(
@@ -158,6 +160,7 @@ class Node:
         listen: str | None = None,
         peer_queue: int = DEFAULT_QUEUE,
         peer_overflow: Overflow = "drop_oldest",
+        tls: Tls | None = None,
     ) -> None:
         if (can is None) == (broker is None):
             raise ConfigError(
@@ -176,6 +179,7 @@ class Node:
         self._listen = listen
         self._peer_queue = peer_queue
         self._peer_overflow: Overflow = peer_overflow
+        self._tls = tls
         self._face: Face | None = None
         self._states: dict[int, ChannelState] = {}
         self._publishing: dict[ChannelLike, ChannelState] = {}
@@ -238,6 +242,7 @@ class Node:
                 join_timeout=self._join_timeout,
                 peer_queue=self._peer_queue,
                 peer_overflow=self._peer_overflow,
+                tls=self._tls,
             )
         try:
             await face.start()

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from . import _tcpwire as w
 from ._errors import BrokerUnavailable, ConfigError, UpsError
 from ._tcplink import OVERFLOWS, Doorman, Link, Overflow
+from ._tls import Tls
 
 if TYPE_CHECKING:
     from ._face import ChannelState, Deliver
@@ -90,12 +91,15 @@ class TcpFace:
         join_timeout: float | None,
         peer_queue: int,
         peer_overflow: Overflow,
+        tls: Tls | None = None,
     ) -> None:
         if peer_queue < 1:
             raise ConfigError(f"peer_queue must be at least 1, got {peer_queue}")
         if peer_overflow not in OVERFLOWS:
             raise ConfigError(f"peer_overflow must be one of {OVERFLOWS}, got {peer_overflow!r}")
         self.name = name
+        self._tls = tls
+        self._client_tls = tls.client() if tls else None
         self._deliver = deliver
         self._channels = channels
         self._node_stats = node_stats
@@ -256,7 +260,9 @@ class TcpFace:
         self._welcome = loop.create_future()
         host, port = self.broker
         async with asyncio.timeout(_BIND_TIMEOUT):  # not wait_for: 3.11's can swallow a cancel
-            _, link = await loop.create_connection(self._new_ecb_link, host, port)
+            _, link = await loop.create_connection(
+                self._new_ecb_link, host, port, ssl=self._client_tls
+            )
             try:
                 if self._server is None:
                     await self._listen_for_peers(link)
@@ -281,7 +287,11 @@ class TcpFace:
         local_host = ecb.transport.get_extra_info("sockname")[0]
         host, port = self._listen or (local_host, 0)
         self._server = await asyncio.get_running_loop().create_server(
-            self._new_incoming, host or None, port, reuse_address=True
+            self._new_incoming,
+            host or None,
+            port,
+            reuse_address=True,
+            ssl=self._tls.server() if self._tls else None,
         )
         bound = self._server.sockets[0].getsockname()
         self.address = (local_host if host in ("", "0.0.0.0", "::") else bound[0], bound[1])
@@ -434,7 +444,7 @@ class TcpFace:
                 await asyncio.sleep(delay)
             try:
                 async with asyncio.timeout(_BIND_TIMEOUT):
-                    await loop.create_connection(lambda: link, *peer.addr)
+                    await loop.create_connection(lambda: link, *peer.addr, ssl=self._client_tls)
                 return
             except (OSError, TimeoutError) as exc:
                 delay = min(max(delay * 2, _RETRY_FIRST), _RETRY_MAX)
@@ -468,7 +478,7 @@ class TcpFace:
             link, task = peer.link, peer.task
             if link is None:
                 continue
-            if task is not None and not task.done() and link.queued > 1:
+            if task is not None and not task.done() and link.queued:
                 with contextlib.suppress(TimeoutError, asyncio.CancelledError):
                     await asyncio.wait_for(asyncio.shield(task), max(0.0, deadline - loop.time()))
             if task is not None:
@@ -573,12 +583,16 @@ class TcpFace:
             self.counters["malformed"] += 1
 
 
-async def query_status(address: str, timeout: float = 5.0) -> dict[str, Any]:
+async def query_status(
+    address: str, timeout: float = 5.0, tls: Tls | None = None
+) -> dict[str, Any]:
     """Ask the TCP-ECB, gateway or node listening at ``address`` for its tables and counters."""
     host, port = parse_address(address)
     try:
         async with asyncio.timeout(timeout):
-            reader, writer = await asyncio.open_connection(host, port)
+            reader, writer = await asyncio.open_connection(
+                host, port, ssl=tls.client() if tls else None
+            )
             try:
                 writer.write(w.encode(w.StatusRequest()))
                 decoder = w.Decoder(max_frame=w.MAX_BODY)

@@ -21,6 +21,7 @@ from ._errors import ConfigError, UpsError
 from ._message import Message
 from ._node import Node
 from ._tcpface import DEFAULT_PORT, query_status
+from ._tls import Tls
 from .rt import cli as rt_cli
 
 EXIT_TIMEOUT = 1
@@ -90,6 +91,7 @@ def _parser() -> argparse.ArgumentParser:
         "--recovery", type=float, default=1.5,
         help="seconds after start to collect re-registrations before answering (default 1.5)",
     )  # fmt: skip
+    _add_tls(cmd)
     cmd.set_defaults(run=_run_broker)
 
     cmd = commands.add_parser(
@@ -114,12 +116,23 @@ def _parser() -> argparse.ArgumentParser:
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    _add_tls(cmd)
     cmd.set_defaults(run=_run_gateway)
 
     cmd = commands.add_parser("status", help="print the tables and counters of a TCP daemon")
     cmd.add_argument("address", metavar="HOST:PORT", help="a TCP-ECB, gateway or node")
     cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
+    _add_tls(cmd)
     cmd.set_defaults(run=_run_status)
+
+    cmd = commands.add_parser("certs", help="make the fleet CA and certificates for TLS")
+    certs = cmd.add_subparsers(dest="certs_command", required=True, metavar="ACTION")
+    act = certs.add_parser("ca", help="make DIR/ca.crt and DIR/ca.key")
+    act.add_argument("dir", metavar="DIR")
+    act = certs.add_parser("issue", help="make DIR/NAME.crt and DIR/NAME.key, signed by DIR's CA")
+    act.add_argument("dir", metavar="DIR")
+    act.add_argument("name", metavar="NAME", help="the identity (the certificate's common name)")
+    cmd.set_defaults(run=_run_certs)
 
     cmd = commands.add_parser("pub", help="publish events on a channel")
     cmd.add_argument("channel", type=_channel_arg, help="channel name, or UID as 0x + hex")
@@ -187,6 +200,18 @@ def _add_node_options(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument(
         "--join-timeout", type=float, default=30.0, help="seconds to wait for the broker"
     )
+    _add_tls(cmd)
+
+
+def _add_tls(cmd: argparse.ArgumentParser) -> None:
+    tls = cmd.add_argument_group("TLS (TCP/IP; all three, from 'ups certs')")
+    tls.add_argument("--tls-ca", metavar="FILE", help="the fleet CA's certificate")
+    tls.add_argument("--tls-cert", metavar="FILE", help="this participant's certificate")
+    tls.add_argument("--tls-key", metavar="FILE", help="this participant's private key")
+
+
+def _tls(args: argparse.Namespace) -> Tls | None:
+    return Tls.from_files(args.tls_ca, args.tls_cert, args.tls_key)
 
 
 def _channel_arg(text: str) -> Channel:
@@ -256,6 +281,7 @@ def _node(args: argparse.Namespace) -> Node:
         node_id=args.node_id,
         name=f"ups-{args.command}",
         join_timeout=args.join_timeout,
+        tls=_tls(args),
     )
 
 
@@ -277,8 +303,10 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 def _run_broker(args: argparse.Namespace) -> int:
     from broker.tcp_ecb import serve
 
+    tls = _tls(args)
+
     async def run() -> int:
-        await serve(args.listen, args.liveness, args.recovery)
+        await serve(args.listen, args.liveness, args.recovery, tls)
         return 0
 
     return _run_until_signal(run())
@@ -295,6 +323,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         bitrate=args.bitrate,
         node_id=args.node_id,
         listen=args.listen,
+        tls=_tls(args),
     )
 
     async def run() -> int:
@@ -304,9 +333,20 @@ def _run_gateway(args: argparse.Namespace) -> int:
     return _run_until_signal(run())
 
 
+def _run_certs(args: argparse.Namespace) -> int:
+    from ._tls import issue, make_ca
+
+    if args.certs_command == "ca":
+        crt, key = make_ca(args.dir)
+    else:
+        crt, key = issue(args.dir, args.name)
+    print(f"{crt}\n{key}")
+    return 0
+
+
 def _run_status(args: argparse.Namespace) -> int:
     async def run() -> int:
-        info = await query_status(args.address, args.timeout)
+        info = await query_status(args.address, args.timeout, _tls(args))
         print(json.dumps(info, indent=2))
         return 0
 

@@ -1,0 +1,109 @@
+"""TLS on every TCP link: certificates from `ups certs`, both sides authenticated, node ids
+bound to identities. Real sockets on loopback; the certificates are made by the CLI."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from broker.tcp_ecb import TcpEcb
+from ups import BrokerUnavailable, Node, Tls
+from ups._tcpface import query_status
+
+from .conftest import eventually
+from .procs import ROOT, Proc
+
+
+def certs(folder: Path, *args: str) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "ups.cli", "certs", *args], cwd=ROOT, capture_output=True,
+        text=True, check=False, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("fleet")
+    certs(folder, "ca", str(folder))
+    for name in ("broker", "alice", "bob", "mallory"):
+        certs(folder, "issue", str(folder), name)
+    return folder
+
+
+def tls(folder: Path, name: str) -> Tls:
+    return Tls(folder / "ca.crt", folder / f"{name}.crt", folder / f"{name}.key")
+
+
+@pytest.fixture
+async def ecb(fleet: Path) -> AsyncIterator[TcpEcb]:
+    broker = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls(fleet, "broker"))
+    await broker.start()
+    try:
+        yield broker
+    finally:
+        await broker.close()
+
+
+async def test_nodes_of_the_fleet_exchange_events_over_tls(fleet: Path, ecb: TcpEcb) -> None:
+    address = f"127.0.0.1:{ecb.port}"
+    async with (
+        Node(broker=address, node_id=0xA1, tls=tls(fleet, "alice")) as alice,
+        Node(broker=address, node_id=0xB0, tls=tls(fleet, "bob")) as bob,
+    ):
+        sub = await alice.subscribe("secure/speed")
+        await bob.publish("secure/speed", b"\x01")
+        assert (await sub.get_msg(timeout=5)).data == b"\x01"
+        status = await query_status(address, tls=tls(fleet, "alice"))
+        assert status["stats"]["nodes"] == 2
+
+
+async def test_a_client_without_a_fleet_certificate_is_refused(
+    fleet: Path, ecb: TcpEcb, tmp_path: Path
+) -> None:
+    address = f"127.0.0.1:{ecb.port}"
+    with pytest.raises(BrokerUnavailable):  # plain TCP
+        await Node(broker=address, node_id=0xC1, join_timeout=1).start()
+    certs(tmp_path, "ca", str(tmp_path))  # another CA, and a certificate from it
+    certs(tmp_path, "issue", str(tmp_path), "alice")
+    with pytest.raises(BrokerUnavailable):
+        await Node(broker=address, node_id=0xC2, join_timeout=1, tls=tls(tmp_path, "alice")).start()
+    assert ecb.stats()["nodes"] == 0
+
+
+async def test_a_node_id_cannot_be_taken_by_another_identity(fleet: Path, ecb: TcpEcb) -> None:
+    address = f"127.0.0.1:{ecb.port}"
+    async with Node(broker=address, node_id=0xA1, tls=tls(fleet, "alice")) as alice:
+        await alice.subscribe("mine")
+        with pytest.raises(BrokerUnavailable):
+            await Node(
+                broker=address, node_id=0xA1, join_timeout=1, tls=tls(fleet, "mallory")
+            ).start()
+        await eventually(lambda: ecb.stats()["impostors"] >= 1)
+        assert ecb.stats()["nodes"] == 1
+
+
+def test_the_command_line_over_tls(fleet: Path) -> None:
+    def opts(name: str) -> list[str]:
+        return ["--tls-ca", str(fleet / "ca.crt"), "--tls-cert", str(fleet / f"{name}.crt"),
+                "--tls-key", str(fleet / f"{name}.key")]  # fmt: skip
+
+    with Proc("broker", "--listen", "127.0.0.1:0", "--recovery", "0", *opts("broker")) as broker:
+        line = broker.wait_for_line(r"TCP-ECB on 127\.0\.0\.1:\d+")
+        address = line.split("TCP-ECB on ")[1].split()[0]
+        with Proc("sub", "cli/tls", "--broker", address, "--count", "1", "--timeout", "20",
+                  *opts("alice")) as sub:  # fmt: skip
+            sub.wait_for_line("subscribed to")
+            pub = Proc("pub", "cli/tls", "07", "--broker", address, *opts("bob"))
+            assert pub.finish()[0] == 0, pub.stderr_lines
+            code, out = sub.finish()
+            assert code == 0 and "07" in out, sub.stderr_lines
+        bad = Proc("pub", "cli/tls", "07", "--broker", address, "--tls-ca", str(fleet / "ca.crt"))
+        code, _ = bad.finish()
+        assert code == 2 and "all of --tls-ca, --tls-cert and --tls-key" in "".join(
+            bad.stderr_lines
+        )
