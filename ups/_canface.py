@@ -27,6 +27,7 @@ log = logging.getLogger("ups.can")
 _RETRY_FIRST = 0.05  # seconds before asking the CAN-ECB again
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
+_SETTLE = 0.05  # an answer to a re-binding must stand this long before it is relied on
 _REBIND_MAX = 5.0  # a refused re-binding is asked again at most this far apart
 _IN_FLIGHT = 128  # binding requests a node has outstanding at once (the rest wait their turn)
 _ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
@@ -80,6 +81,9 @@ class CanFace:
         self._rx: dict[int, ChannelState] = {}  # etag -> channel with local subscribers
         self._suspended: set[int] = set()  # etags received but no longer relied on: counted
         self._wants_rx: dict[int, ChannelState] = {}  # uid -> subscribed channel being bound
+        #: uid being bound again -> the etag an answer gave, adopted if nothing contradicts it
+        #: within _SETTLE (the CAN-ECB corrects a forged Bind at once)
+        self._candidates: dict[int, tuple[int, asyncio.TimerHandle]] = {}
         self._pending: dict[int, asyncio.Future[int]] = {}  # uid -> etag awaited
         self._in_flight = asyncio.Semaphore(_IN_FLIGHT)
         self._rebinding: dict[int, asyncio.Task[None]] = {}
@@ -113,6 +117,9 @@ class CanFace:
                 await task
         for fut in [*self._pending.values(), *self._verdicts.values()]:
             fut.cancel()
+        for _, timer in self._candidates.values():
+            timer.cancel()
+        self._candidates.clear()
         self.link.remove_handler(self._handler)
         if self._owns_link:
             self.link.close()
@@ -233,6 +240,7 @@ class CanFace:
     def _on_bind(self, etag: int, uid: int) -> None:
         heard = self._heard.get(etag)
         self._heard[etag] = uid
+        self._spoil(etag, uid)  # a candidate this Bind contradicts is not adopted
         old_uid = self._uid_at.get(etag)
         old_etag = self._bound.get(uid)
         if (old_uid is not None and old_uid != uid) or (old_etag is not None and old_etag != etag):
@@ -250,12 +258,36 @@ class CanFace:
                 self._warn("doubt", "Bind(%#x, %016x) names an etag last heard bound to "
                            "%016x: asking again", etag, uid, heard)  # fmt: skip
                 return
-            self._bound[uid] = etag
-            self._uid_at[etag] = uid
-            state = self._wants_rx.get(uid)
-            if state is not None:
-                self._receive(etag, state)
-            fut.set_result(etag)
+            if uid in self._rebinding:  # after a contradiction: adopt only an answer that no
+                if uid not in self._candidates:  # Bind contradicts for a moment
+                    loop = asyncio.get_running_loop()
+                    timer = loop.call_later(_SETTLE, self._settled, uid, etag)
+                    self._candidates[uid] = (etag, timer)
+                return
+            self._adopt(etag, uid)
+
+    def _adopt(self, etag: int, uid: int) -> None:
+        fut = self._pending.get(uid)
+        if fut is None or fut.done() or self._uid_at.get(etag, uid) != uid:
+            return
+        self._bound[uid] = etag
+        self._uid_at[etag] = uid
+        state = self._wants_rx.get(uid)
+        if state is not None:
+            self._receive(etag, state)
+        fut.set_result(etag)
+
+    def _spoil(self, etag: int, uid: int) -> None:
+        """Drop the candidates a Bind(etag, uid) contradicts."""
+        for other, (candidate, timer) in list(self._candidates.items()):
+            if (candidate == etag) != (other == uid):
+                timer.cancel()
+                del self._candidates[other]
+
+    def _settled(self, uid: int, etag: int) -> None:
+        candidate = self._candidates.pop(uid, None)
+        if candidate is not None and candidate[0] == etag:
+            self._adopt(etag, uid)
 
     def _fail(self, uid: int, exc: Exception) -> None:
         fut = self._pending.pop(uid, None)
