@@ -228,10 +228,11 @@ class CanEcb:
             return
         can_id = frame.arbitration_id
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
+        now = time.monotonic()
         if txnode != p.MGMT_TXNODE:
-            self._seen_tx[txnode] = time.monotonic()
+            self._seen_tx[txnode] = now
         if not p.is_management(can_id):
-            self._seen_etag[can_id & p.ETAG_MASK] = time.monotonic()
+            self._seen_etag[can_id & p.ETAG_MASK] = now
             return
         try:
             msg = p.decode(can_id, bytes(frame.data))
@@ -366,17 +367,9 @@ class CanEcb:
             if self.standby or node_id in self._pending_tx:
                 continue
             offer = self._offered.get(node_id)
-            txnode = offer[0] if offer else self._store.txnodes.get(node_id)
+            txnode = offer[0] if offer else self._txnode_for(node_id)
             if txnode is None:
-                writes: list[Write] = []
-                txnode = self._free_txnode(writes)
-                if txnode is None:
-                    self.counters["refused"] += 1
-                    log.warning("no TxNode left for node %016x", node_id)
-                    self._send(p.TxNodesFull(node_id))
-                    continue
-                if writes:  # a TxNode reclaimed: its old owner is forgotten for good
-                    self._store.submit(writes, self._adopt_done(node_id))
+                continue
             if offer:
                 offer[1].cancel()
             timer = asyncio.get_running_loop().call_later(OFFER_TIMEOUT, self._withdraw, node_id)
@@ -385,17 +378,25 @@ class CanEcb:
 
     def _move(self, node_id: int) -> None:
         """Give a joined node whose TxNode another holds a TxNode of its own (Assign)."""
+        txnode = self._txnode_for(node_id)
+        if txnode is not None:
+            self._assign(node_id, txnode)
+
+    def _txnode_for(self, node_id: int) -> int | None:
+        """The TxNode ``node_id`` holds, else a free one (reclaiming the one silent longest,
+        past the lease), else None and TxNodesFull."""
         txnode = self._store.txnodes.get(node_id)
+        if txnode is not None:
+            return txnode
+        writes: list[Write] = []
+        txnode = self._free_txnode(writes)
         if txnode is None:
-            writes: list[Write] = []
-            txnode = self._free_txnode(writes)
-            if txnode is None:
-                self.counters["refused"] += 1
-                self._send(p.TxNodesFull(node_id))
-                return
-            if writes:
-                self._store.submit(writes, self._adopt_done(node_id))
-        self._assign(node_id, txnode)
+            self.counters["refused"] += 1
+            log.warning("no TxNode left for node %016x", node_id)
+            self._send(p.TxNodesFull(node_id))
+        elif writes:  # reclaimed: its old owner is forgotten for good
+            self._store.submit(writes, self._log_failure(f"the reclaim of TxNode {txnode}"))
+        return txnode
 
     def _withdraw(self, node_id: int) -> None:
         """Nobody claimed the offer: the id was not a node's (frames were lost or late)."""
@@ -433,7 +434,7 @@ class CanEcb:
         if free is not None:
             return free
         now = time.monotonic()
-        idle = [t for t in self._node_at if t not in taken - set(self._node_at)]
+        idle = [t for t in self._node_at if t not in offered]  # offered: a node's own, in use
         oldest = min(idle, key=lambda t: self._seen_tx[t], default=None)
         if oldest is None or now - self._seen_tx[oldest] < self._lease:
             return None
@@ -479,16 +480,20 @@ class CanEcb:
             self.counters["adopted"] += 1
             log.info("adopting TxNode %d of node %016x", txnode, node_id)
             self._hold_txnode(node_id, txnode)
-            self._store.submit([("txnodes", node_id, txnode)], self._adopt_done(node_id))
+            self._store.submit(
+                [("txnodes", node_id, txnode)], self._log_failure(f"adopted TxNode {txnode}")
+            )
             return
         self.counters["conflicts"] += 1
         log.warning("node %016x claims TxNode %d held by another node: moving it",
                     node_id, txnode)  # fmt: skip
         self._move(node_id)  # the holder of ``txnode`` keeps it and its channels
 
-    def _adopt_done(self, value: int) -> Callable[[BaseException | None], None]:
+    def _log_failure(self, what: str) -> Callable[[BaseException | None], None]:
+        """A write's callback when nobody waits for it: a failure is only counted and logged."""
+
         def done(error: BaseException | None) -> None:
-            self._stored(error, f"adopted entry {value:016x}", None)
+            self._stored(error, what, None)
 
         return done
 
@@ -610,7 +615,7 @@ class CanEcb:
             self.counters["adopted"] += 1
             log.info("adopting etag %#x of channel %016x from TxNode %d", etag, uid, msg.txnode)
             self._hold_etag(uid, etag)
-            self._store.submit([("etags", uid, etag)], self._adopt_done(uid))
+            self._store.submit([("etags", uid, etag)], self._log_failure(f"adopted etag {etag:#x}"))
             self._update(self.publishers if msg.publish else self.subscribers, uid,
                          msg.txnode, add=True)  # fmt: skip
             return

@@ -131,6 +131,7 @@ class TcpFace:
         self.extra_status: Callable[[], dict[str, Any]] | None = None
         self._seq: dict[int, int] = {}  # uid -> number of the last event published
         self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
+        self._unreported_lost: dict[int, int] = {}  # publisher -> events lost, not logged yet
         self.counters = dict.fromkeys(
             ("sent", "received", "lost", "unsubscribed", "malformed", "reconnects"), 0
         )
@@ -185,6 +186,7 @@ class TcpFace:
         self._doorman.close()
         for fut in self._acks.values():
             fut.cancel()
+        self._report_drops()  # what was lost since the last report
 
     def stats(self) -> dict[str, int]:
         peers = self._peers.values()
@@ -500,6 +502,9 @@ class TcpFace:
         for peer in self._peers.values():
             if peer.total_dropped() > peer.reported:
                 self._report(peer)
+        for publisher, count in self._unreported_lost.items():
+            log.warning("lost %d events from publisher %016x (numbers skipped)", count, publisher)
+        self._unreported_lost.clear()
 
     def _report(self, peer: _Peer) -> None:
         total = peer.total_dropped()
@@ -543,16 +548,15 @@ class TcpFace:
         key = (link.peer, uid)
         expected = self._expected.get(key)
         if expected is not None and seq > expected:  # numbers skipped: events lost on the way
-            self.counters["lost"] += seq - expected
-            self._lost_from(link.peer, uid, seq - expected)
+            self._lost_from(link.peer, seq - expected)
         self._expected[key] = seq + 1  # (a lower number: the publisher started again)
         self.counters["received"] += 1
         self._deliver(state, data, priority, link.peer, time.time())
 
-    def _lost_from(self, publisher: int, uid: int, count: int) -> None:
-        log.warning(
-            "lost %d events of %016x from publisher %016x (numbers skipped)", count, uid, publisher
-        )
+    def _lost_from(self, publisher: int, count: int) -> None:
+        """Count events of ``publisher`` that never came; logged once a second (_report_drops)."""
+        self.counters["lost"] += count
+        self._unreported_lost[publisher] = self._unreported_lost.get(publisher, 0) + count
 
     def _incoming_frame(self, link: Link, frame: w.Frame) -> None:
         if isinstance(frame, w.Hello):
@@ -567,8 +571,7 @@ class TcpFace:
             expected = self._expected.get(key)
             state = self._channels.get(frame.uid)
             if expected is not None and frame.seq > expected and state is not None and state.subs:
-                self.counters["lost"] += frame.seq - expected  # published while we were away
-                self._lost_from(link.peer, frame.uid, frame.seq - expected)
+                self._lost_from(link.peer, frame.seq - expected)  # published while we were away
             if expected is None or frame.seq > expected:
                 self._expected[key] = frame.seq
         elif isinstance(frame, w.StatusRequest):
