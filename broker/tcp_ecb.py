@@ -9,6 +9,12 @@ Liveness: every frame from a node counts as a sign of life (nodes Ping once a se
 silent for ``liveness`` seconds, or whose link ended and did not come back within that time,
 leaves every list. A node that closed its link after withdrawing everything leaves at once.
 
+Access control (with TLS): a node's identity is its certificate's common name; with an ACL
+(``broker/_acl.py``) the ECB refuses, with a ``Refused`` frame, what the identity may not do.
+It tells each subscriber which identities publish on its channels (``Publishers``), so the
+subscriber accepts events only from those, and each publisher the identity of each subscriber
+(in ``Subscribers``), so it sends events only to those.
+
 Recovery: an ECB that just started knows nothing, and nodes reconnect with backoff. For its
 first ``recovery`` seconds it collects registrations and answers none, so no publisher is told
 a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
@@ -23,10 +29,13 @@ import time
 from typing import Any
 
 from ups import _tcpwire as w
+from ups._channel import name_to_uid
 from ups._errors import ConfigError
 from ups._tcpface import DEFAULT_PORT, HEARTBEAT, parse_address
 from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
+
+from ._acl import Acl
 
 log = logging.getLogger("ups.tcp_ecb")
 
@@ -41,11 +50,14 @@ _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TC
 class _Member:
     """A registered node."""
 
-    __slots__ = ("address", "heard", "link", "name", "node_id", "pubs", "stale", "subs")
+    __slots__ = (
+        "address", "heard", "identity", "link", "name", "node_id", "pubs", "stale", "subs",
+    )  # fmt: skip
 
     def __init__(self, hello: w.Hello, link: Link) -> None:
         self.node_id = hello.node_id
         self.name = hello.name
+        self.identity = identity(link.transport)  # None without TLS
         self.address = (hello.host, hello.port)
         self.link: Link | None = link
         self.subs: set[int] = set()
@@ -54,7 +66,7 @@ class _Member:
         self.heard = time.monotonic()
 
     def peer(self) -> w.Peer:
-        return w.Peer(self.node_id, *self.address)
+        return w.Peer(self.node_id, *self.address, self.identity)
 
 
 class TcpEcb:
@@ -70,7 +82,13 @@ class TcpEcb:
         max_links: int | None = None,
         hello_timeout: float = 5.0,
         tls: Tls | None = None,
+        acl: Acl | None = None,
     ) -> None:
+        if acl is not None and tls is None:
+            raise ConfigError(
+                "an ACL needs TLS (identities are certificate names): give --tls-ca, --tls-cert "
+                "and --tls-key too"
+            )
         if liveness < 2 * HEARTBEAT:
             raise ConfigError(
                 f"liveness must be at least {2 * HEARTBEAT:g} s (nodes ping every {HEARTBEAT:g} s)"
@@ -85,15 +103,19 @@ class TcpEcb:
         self._publishers: dict[int, set[int]] = {}  # uid -> node ids
         self._links: set[Link] = set()
         self._recovering = False
-        self._waiting: dict[int, set[int]] = {}  # uid -> node ids owed an answer after recovery
+        self._waiting: dict[tuple[int, bool], set[int]] = {}  # owed after recovery:
+        # (uid, subscribe) -> node ids
         self._tasks: list[asyncio.Task[None]] = []
         self._tls = tls
+        self._acl = acl
+        self._names: dict[int, str] = {}  # uid -> its name, checked against the UID
+        self._refusals_logged: set[tuple[str | None, str, int]] = set()
         self._owners: dict[int, str] = {}  # node id -> the identity that registered it
         self._doorman = Doorman(
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
         )
         self.counters = dict.fromkeys(
-            ("joined", "left", "malformed", "pushes", "limited", "impostors"), 0
+            ("joined", "left", "malformed", "pushes", "limited", "impostors", "denied"), 0
         )
 
     async def start(self) -> None:
@@ -111,11 +133,13 @@ class TcpEcb:
             self._tasks.append(loop.create_task(self._end_recovery()))
         self._tasks.append(loop.create_task(self._sweep()))
         log.info(
-            "TCP-ECB on %s:%d (liveness %g s, recovery %g s)",
+            "TCP-ECB on %s:%d (liveness %g s, recovery %g s%s%s)",
             self.host,
             self.port,
             self.liveness,
             self.recovery,
+            ", TLS" if self._tls else "",
+            f", ACL {self._acl.source}: {len(self._acl)} identities" if self._acl else "",
         )
 
     async def close(self) -> None:
@@ -154,6 +178,7 @@ class TcpEcb:
                 {
                     "node_id": _hex(m.node_id),
                     "name": m.name,
+                    "identity": m.identity,
                     "address": f"{m.address[0]}:{m.address[1]}",
                     "connected": m.link is not None,
                     "subscribed": [_hex(uid) for uid in sorted(m.subs)],
@@ -164,6 +189,7 @@ class TcpEcb:
             "channels": [
                 {
                     "uid": _hex(uid),
+                    "name": self._names.get(uid),
                     "subscribers": [_hex(n) for n in sorted(self._subscribers.get(uid, ()))],
                     "publishers": [_hex(n) for n in sorted(self._publishers.get(uid, ()))],
                 }
@@ -190,10 +216,18 @@ class TcpEcb:
     def _on_frame(self, link: Link, frame: w.Frame) -> None:
         member: _Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
-            link.send_control(w.encode(w.Status(self.status())))
+            if self._acl is None or self._acl.may_status(identity(link.transport)):
+                link.send_control(w.encode(w.Status(self.status())))
+            else:
+                self._refuse(link, 0, "status", "its identity may not read the broker's tables")
             return
         if member is None:
             if isinstance(frame, w.Hello):
+                name = identity(link.transport)
+                if self._acl is not None and name not in self._acl:
+                    self._refuse(link, 0, "connect", f"identity {name!r} is not in the ACL")
+                    link.close()
+                    return
                 if not self._owned_by(link, frame.node_id):
                     return
                 self._doorman.greeted(link)
@@ -226,8 +260,20 @@ class TcpEcb:
             return True
         self.counters["impostors"] += 1
         log.warning("refused %s: node id %016x belongs to %s", name, node_id, owner)
-        link.abort(f"node id {node_id:016x} belongs to another identity")
+        link.send_control(w.encode(w.Refused(0, "connect", f"node id {node_id:016x} is taken "
+                                             "by another identity")))  # fmt: skip
+        link.close()
         return False
+
+    def _refuse(self, link: Link, uid: int, right: str, reason: str) -> None:
+        """Tell the node what it may not do, count it, and log it once per kind of refusal."""
+        self.counters["denied"] += 1
+        link.send_control(w.encode(w.Refused(uid, right, reason)))
+        who = identity(link.transport)
+        key = (who, right, uid)
+        if key not in self._refusals_logged and len(self._refusals_logged) < 4096:
+            self._refusals_logged.add(key)
+            log.warning("refused %s %s on %016x: %s", who or link.name, right, uid, reason)
 
     def _on_lost(self, link: Link, reason: str | None) -> None:
         self._links.discard(link)
@@ -295,22 +341,53 @@ class TcpEcb:
         if member.stale is not None:
             member.stale.discard((subscribe, uid))
         if adding:
+            assert isinstance(frame, w.Subscribe | w.Advertise)
             new = uid not in mine
-            if new and len(member.subs) + len(member.pubs) >= MAX_CHANNELS:
-                self.counters["limited"] += 1  # unanswered: the node logs that it got no answer
-                log.warning("node %016x registers more than %d channels: %016x refused",
-                            member.node_id, MAX_CHANNELS, uid)  # fmt: skip
+            if not self._admitted(member, frame, subscribe, new):
                 return
+            before = None if subscribe else self._identities(uid)
             mine.add(uid)
             table.setdefault(uid, set()).add(member.node_id)
-            self._answer(member, uid)
-            if subscribe and new:
-                self._push(uid, skip=member.node_id)
+            if frame.name is not None:
+                self._names[uid] = frame.name
+            if subscribe:
+                self._answer(member, uid, subscribe=True)
+                if new:
+                    self._push(uid, skip=member.node_id)
+            else:  # subscribers hear of a new publisher before it hears of them
+                self._vouch(uid, before)
+                self._answer(member, uid, subscribe=False)
         elif uid in mine:
+            before = None if subscribe else self._identities(uid)
             mine.discard(uid)
             self._discard(table, uid, member.node_id)
             if subscribe:
                 self._push(uid)
+            else:
+                self._vouch(uid, before)
+
+    def _admitted(
+        self, member: _Member, frame: w.Subscribe | w.Advertise, sub: bool, new: bool
+    ) -> bool:
+        """Whether the node may make (or renew) this registration; if not, it is told why."""
+        uid, right = frame.uid, "subscribe" if sub else "publish"
+        assert member.link is not None
+        if new and len(member.subs) + len(member.pubs) >= MAX_CHANNELS:
+            self.counters["limited"] += 1
+            self._refuse(member.link, uid, right,
+                         f"a node may register at most {MAX_CHANNELS} channels")  # fmt: skip
+            return False
+        if frame.name is not None and (theirs := _uid_of(frame.name)) != uid:
+            why = "not a channel name" if theirs is None else f"the name of {_hex(theirs)}"
+            self._refuse(member.link, uid, right, f"{frame.name!r} is {why}")
+            return False
+        name = frame.name if frame.name is not None else self._names.get(uid)
+        if self._acl is not None and not self._acl.allows(member.identity, right, uid, name):
+            channel = name if name is not None else _hex(uid)
+            self._refuse(member.link, uid, right,
+                         f"identity {member.identity!r} may not {right} {channel}")  # fmt: skip
+            return False
+        return True
 
     def _forget_stale(self, member: _Member) -> None:
         stale, member.stale = member.stale or set(), None
@@ -320,10 +397,13 @@ class TcpEcb:
 
     def _leave(self, member: _Member, why: str) -> None:
         del self._members[member.node_id]
+        self._owners.pop(member.node_id, None)  # the id is free again
         self.counters["left"] += 1
         log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
         for uid in member.pubs:
+            before = self._identities(uid)
             self._discard(self._publishers, uid, member.node_id)
+            self._vouch(uid, before)
         for uid in member.subs:
             self._discard(self._subscribers, uid, member.node_id)
             self._push(uid)
@@ -331,13 +411,14 @@ class TcpEcb:
         if link is not None:
             link.abort(why)
 
-    @staticmethod
-    def _discard(table: dict[int, set[int]], uid: int, node_id: int) -> None:
+    def _discard(self, table: dict[int, set[int]], uid: int, node_id: int) -> None:
         nodes = table.get(uid)
         if nodes is not None:
             nodes.discard(node_id)
             if not nodes:
                 del table[uid]
+                if uid not in self._subscribers and uid not in self._publishers:
+                    self._names.pop(uid, None)
 
     # --- telling nodes ---------------------------------------------------------------------
 
@@ -345,29 +426,48 @@ class TcpEcb:
         peers = tuple(self._members[n].peer() for n in sorted(self._subscribers.get(uid, ())))
         return w.encode(w.Subscribers(uid, peers))
 
-    def _answer(self, member: _Member, uid: int) -> None:
+    def _identities(self, uid: int) -> tuple[str, ...]:
+        """The identities that publish on ``uid`` (none without TLS)."""
+        members = (self._members[n] for n in self._publishers.get(uid, ()))
+        return tuple(sorted({m.identity for m in members if m.identity is not None}))
+
+    def _answer(self, member: _Member, uid: int, subscribe: bool) -> None:
+        """Send a subscriber the channel's Publishers, a publisher its Subscribers."""
         if self._recovering:
-            self._waiting.setdefault(uid, set()).add(member.node_id)
+            self._waiting.setdefault((uid, subscribe), set()).add(member.node_id)
         elif member.link is not None:
-            member.link.send_control(self._subscribers_frame(uid))  # never dropped: a node
-            # that leaves too many unread is cut off by its link
+            frame = (
+                w.encode(w.Publishers(uid, self._identities(uid)))
+                if subscribe
+                else self._subscribers_frame(uid)
+            )
+            member.link.send_control(frame)  # never dropped: a node that leaves too many
+            # unread is cut off by its link
 
     def _push(self, uid: int, skip: int | None = None) -> None:
         """Tell the publishers of ``uid`` its new subscriber list."""
         for node_id in self._publishers.get(uid, ()):
             if node_id != skip:
-                self._answer(self._members[node_id], uid)
+                self._answer(self._members[node_id], uid, subscribe=False)
                 self.counters["pushes"] += 1
+
+    def _vouch(self, uid: int, before: tuple[str, ...] | None) -> None:
+        """Tell the subscribers of ``uid`` its publishers' identities, if they changed."""
+        if before is None or self._identities(uid) == before:
+            return
+        for node_id in self._subscribers.get(uid, ()):
+            self._answer(self._members[node_id], uid, subscribe=True)
+            self.counters["pushes"] += 1
 
     async def _end_recovery(self) -> None:
         await asyncio.sleep(self.recovery)
         self._recovering = False
         waiting, self._waiting = self._waiting, {}
-        for uid, node_ids in waiting.items():
+        for (uid, subscribe), node_ids in waiting.items():
             for node_id in node_ids:
                 member = self._members.get(node_id)
                 if member is not None:
-                    self._answer(member, uid)
+                    self._answer(member, uid, subscribe)
         log.info("TCP-ECB recovered: %d nodes registered", len(self._members))
 
     async def _sweep(self) -> None:
@@ -384,10 +484,19 @@ def _hex(value: int) -> str:
     return f"0x{value:016x}"
 
 
-async def serve(listen: str, liveness: float, recovery: float, tls: Tls | None = None) -> None:
+def _uid_of(name: str) -> int | None:
+    try:
+        return name_to_uid(name)
+    except ConfigError:
+        return None
+
+
+async def serve(
+    listen: str, liveness: float, recovery: float, tls: Tls | None = None, acl: Acl | None = None
+) -> None:
     """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled."""
     host, port = parse_address(listen)
-    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls)
+    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl)
     await ecb.start()
     try:
         await asyncio.Event().wait()

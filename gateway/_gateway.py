@@ -34,7 +34,7 @@ from broker.can_ecb import CanEcb
 from ups import _canproto as p
 from ups._canlink import CanLink
 from ups._channel import Channel
-from ups._errors import ConfigError, DecodeError, UpsError
+from ups._errors import AccessDenied, ConfigError, DecodeError, UpsError
 from ups._face import ChannelState
 from ups._message import Message
 from ups._node import Node
@@ -177,6 +177,7 @@ class Gateway:
                 "too_large_for_can",
                 "reconcile_errors",
                 "pacer_errors",
+                "denied",
             ),
             0,
         )
@@ -352,17 +353,24 @@ class Gateway:
         if can_subs and uid not in self._to_can_sinks:  # TCP -> CAN
             can_state = await self.can._publishing_state(channel)
             sink = _Forward(self._to_can, can_state)
-            await self.tcp._attach(channel, sink)
-            self._to_can_sinks[uid] = sink  # listed once it works
-            log.info("forwarding %016x from TCP to CAN", uid)
+            try:
+                await self.tcp._attach(channel, sink)
+            except AccessDenied as exc:  # nothing the gateway may not receive reaches the bus
+                self._denied(uid, exc)
+            else:
+                self._to_can_sinks[uid] = sink  # listed once it works
+                log.info("forwarding %016x from TCP to CAN", uid)
         elif not can_subs and uid in self._to_can_sinks:
             await self.tcp._detach(channel, self._to_can_sinks.pop(uid))
             log.info("stopped forwarding %016x from TCP to CAN", uid)
 
         tcp_state = None
         if can_pubs:  # advertise it on TCP, to learn who subscribes
-            tcp_state = await self.tcp._publishing_state(channel)
-        wanted = can_pubs and self._tcp_face().subscribed_elsewhere(uid)
+            try:
+                tcp_state = await self.tcp._publishing_state(channel)
+            except AccessDenied as exc:
+                self._denied(uid, exc)
+        wanted = tcp_state is not None and self._tcp_face().subscribed_elsewhere(uid)
         if wanted and uid not in self._to_tcp_sinks:  # CAN -> TCP
             assert tcp_state is not None
             sink_tcp = _Forward(self._to_tcp, tcp_state)
@@ -372,6 +380,11 @@ class Gateway:
         elif not wanted and uid in self._to_tcp_sinks:
             await self.can._detach(channel, self._to_tcp_sinks.pop(uid))
             log.info("stopped forwarding %016x from CAN to TCP", uid)
+
+    def _denied(self, uid: int, exc: AccessDenied) -> None:
+        """The TCP-ECB's ACL does not let the gateway's identity carry ``uid`` this way."""
+        self.counters["denied"] += 1
+        log.warning("not forwarding %016x: %s", uid, exc)
 
     # --- forwarding ------------------------------------------------------------------------
 

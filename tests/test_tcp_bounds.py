@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from broker import tcp_ecb
-from ups import BrokerUnavailable, Node
+from ups import AccessDenied, BrokerUnavailable, Node
 from ups._tcpface import query_status
 
 from .conftest import eventually
@@ -102,7 +102,8 @@ async def test_channels_per_node_and_status_size_are_bounded(
         Node(broker=f"127.0.0.1:{ecb.port}", node_id=0xB2, join_timeout=5) as node,
     ):
         await node.subscribe(*(f"many/{i}" for i in range(40)))
-        await node.publish("one/more", b"")  # unanswered: refused and counted
+        with pytest.raises(AccessDenied, match="at most 40 channels"):  # refused, counted
+            await node.publish("one/more", b"")
         await eventually(lambda: ecb.stats()["limited"] == 1)
         status = await query_status(f"127.0.0.1:{ecb.port}")
         assert len(status["channels"]) == 25 and status["stats"]["channels"] == 40

@@ -266,7 +266,7 @@ async def test_a_peer_link_that_breaks_is_dialled_again(
         await sub.get_msg(timeout=5)
         (peer,) = pub.face._peers.values()  # type: ignore[attr-defined]
         old = peer.link
-        for link in list(node.face._incoming):  # type: ignore[attr-defined]
+        for link in list(node.face._inbox._links):  # type: ignore[attr-defined]
             link.abort("test")
         # Until the publisher sees the reset, what it writes is lost in the dead socket.
         await eventually(lambda: peer.link is not old and peer.link.transport is not None)

@@ -11,10 +11,9 @@ from pathlib import Path
 import pytest
 
 from broker.tcp_ecb import TcpEcb
-from ups import BrokerUnavailable, Node, Tls
+from ups import AccessDenied, BrokerUnavailable, Node, Tls
 from ups._tcpface import query_status
 
-from .conftest import eventually
 from .procs import ROOT, Proc
 
 
@@ -79,12 +78,27 @@ async def test_a_node_id_cannot_be_taken_by_another_identity(fleet: Path, ecb: T
     address = f"127.0.0.1:{ecb.port}"
     async with Node(broker=address, node_id=0xA1, tls=tls(fleet, "alice")) as alice:
         await alice.subscribe("mine")
-        with pytest.raises(BrokerUnavailable):
-            await Node(
-                broker=address, node_id=0xA1, join_timeout=1, tls=tls(fleet, "mallory")
-            ).start()
-        await eventually(lambda: ecb.stats()["impostors"] >= 1)
-        assert ecb.stats()["nodes"] == 1
+        thief = Node(broker=address, node_id=0xA1, join_timeout=5, tls=tls(fleet, "mallory"))
+        with pytest.raises(AccessDenied, match="node id 00000000000000a1 is taken"):
+            await thief.start()  # at once, with the reason
+        await thief.close()
+        assert ecb.stats()["impostors"] == 1 and ecb.stats()["nodes"] == 1
+    # Once alice is gone, the id is free: ids are bound to identities while they are in use.
+    async with Node(broker=address, node_id=0xA1, tls=tls(fleet, "mallory")):
+        pass
+
+
+async def test_one_program_run_by_two_identities_gets_two_node_ids(
+    fleet: Path, ecb: TcpEcb
+) -> None:
+    """Default ids hash the machine and the name, and with TLS the identity: alice's and then
+    bob's run of one program are two nodes, not one id claimed by two identities."""
+    ids = []
+    for who in ("alice", "bob"):
+        async with Node(broker=f"127.0.0.1:{ecb.port}", name="same", tls=tls(fleet, who)) as n:
+            await n.subscribe("x")
+            ids.append(n.node_id)
+    assert ids[0] != ids[1] and ecb.stats()["impostors"] == 0
 
 
 def test_the_command_line_over_tls(fleet: Path) -> None:

@@ -6,6 +6,7 @@ The whole public API is here; modules whose names start with ``_`` are internals
 from ._blocking import BlockingNode, BlockingSubscription
 from ._channel import Channel, ChannelLike, name_to_uid, parse_channel
 from ._errors import (
+    AccessDenied,
     BrokerUnavailable,
     Closed,
     ConfigError,
@@ -21,6 +22,7 @@ from ._tcplink import Overflow
 from ._tls import Tls
 
 __all__ = [
+    "AccessDenied",
     "BlockingNode",
     "BlockingSubscription",
     "BrokerUnavailable",

@@ -5,6 +5,7 @@ UpsError
  ├── PayloadTooLarge      more data than one frame of the network carries (ValueError)
  ├── BrokerUnavailable    no Event Channel Broker answered in time (TimeoutError)
  ├── Exhausted            the broker has no TxNode / etag left to give
+ ├── AccessDenied         the TCP-ECB refused: ACL, a wrong channel name, a bound
  ├── DecodeError          bytes on a link are not a valid UPS frame
  └── Closed               the node or subscription was closed
 """
@@ -30,6 +31,17 @@ class BrokerUnavailable(UpsError, TimeoutError):
 
 class Exhausted(UpsError):
     """The broker has no identifier left to give (all 127 TxNodes or all etags are bound)."""
+
+
+class AccessDenied(UpsError):
+    """The TCP-ECB refused a registration (or the connection itself): the identity of this
+    node's certificate lacks the right in the broker's access control list, the channel's name
+    is not the name of its UID, or the node registered as many channels as one node may."""
+
+    def __init__(self, message: str, channel: str = "", right: str = "") -> None:
+        super().__init__(message)
+        self.channel = channel  #: the channel refused (empty when the connection was)
+        self.right = right  #: "publish", "subscribe", "status" or "connect"
 
 
 class Unschedulable(UpsError):

@@ -218,7 +218,10 @@ class Node:
         if self._face is not None:
             return
         if self._node_id is None:
-            self._node_id, self._id_lock = claim_node_id(self.name)
+            # With TLS the identity is part of it: one program run by two identities on one
+            # machine gets two ids (the TCP-ECB binds each id to one identity).
+            key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
+            self._node_id, self._id_lock = claim_node_id(key)
         face: Face
         if self._can is not None:
             face = CanFace(
@@ -325,8 +328,16 @@ class Node:
             raise ConfigError(f"overflow must be one of {OVERFLOWS}, got {overflow!r}")
         chans = tuple(dict.fromkeys(as_channel(c) for c in channels))
         sub = Subscription(self, chans, maxlen, overflow)
-        for chan in chans:
-            await self._attach(chan, sub)
+        attached: list[Channel] = []
+        try:
+            for chan in chans:
+                await self._attach(chan, sub)
+                attached.append(chan)
+        except BaseException:  # e.g. AccessDenied for one of them: take back the others
+            sub._close()
+            for chan in attached:
+                await self._detach(chan, sub)
+            raise
         self._subs.append(sub)
         return sub
 

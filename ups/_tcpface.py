@@ -10,15 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
-from ._errors import BrokerUnavailable, ConfigError, UpsError
-from ._tcplink import OVERFLOWS, Doorman, Link, Overflow
-from ._tls import Tls
+from ._errors import AccessDenied, BrokerUnavailable, ConfigError, UpsError
+from ._tcpinbox import Inbox
+from ._tcplink import OVERFLOWS, Link, Overflow
+from ._tls import Tls, identity
 
 if TYPE_CHECKING:
     from ._face import ChannelState, Deliver
@@ -33,7 +34,6 @@ _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
 _CLOSE_TIMEOUT = 2.0  # at close, how long queued events may take to reach their peers
 _EVENT_OVERHEAD = 32  # frame header + msgpack array, kind, uid, bin header, priority, seq
-MAX_PUBLISHERS = 1024  #: links from publishers a node accepts at once
 
 
 def _hex(value: int) -> str:
@@ -58,11 +58,15 @@ def parse_address(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]
 class _Peer:
     """A node that subscribes to channels we publish, and our link to it."""
 
-    __slots__ = ("addr", "dropped", "link", "node_id", "reported", "task", "uids")
+    __slots__ = (
+        "addr", "dropped", "failures", "identity", "link", "node_id", "reported", "task", "uids",
+    )  # fmt: skip
 
-    def __init__(self, node_id: int, addr: tuple[str, int]) -> None:
+    def __init__(self, node_id: int, addr: tuple[str, int], identity: str | None) -> None:
         self.node_id = node_id
         self.addr = addr
+        self.identity = identity  # what its certificate must say (with TLS)
+        self.failures = 0  # dials in a row that did not give a usable link
         self.uids: set[int] = set()
         self.link: Link | None = None
         self.task: asyncio.Task[None] | None = None
@@ -100,7 +104,6 @@ class TcpFace:
         self.name = name
         self._tls = tls
         self._client_tls = tls.client() if tls else None
-        self._deliver = deliver
         self._channels = channels
         self._node_stats = node_stats
         self.broker = parse_address(broker)
@@ -117,11 +120,9 @@ class TcpFace:
         self._runner: asyncio.Task[None] | None = None
         self._subscribed: set[int] = set()
         self._advertised: set[int] = set()
-        self._acks: dict[int, asyncio.Future[None]] = {}
+        self._acks: dict[tuple[bool, int], asyncio.Future[None]] = {}  # (subscribe, uid)
         self._peers: dict[int, _Peer] = {}
         self._targets: dict[int, list[_Peer]] = {}  # uid -> peers subscribed to it
-        self._incoming: set[Link] = set()
-        self._doorman = Doorman(MAX_PUBLISHERS)  # links from publishers, bounded
         self._gone_dropped = 0  # events dropped for peers that are no longer subscribers
         self._closing: set[asyncio.Task[None]] = set()  # links to former subscribers
         self._closed = False
@@ -130,10 +131,17 @@ class TcpFace:
         #: more tables for ``ups status`` (the gateway's)
         self.extra_status: Callable[[], dict[str, Any]] | None = None
         self._seq: dict[int, int] = {}  # uid -> number of the last event published
-        self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
-        self._unreported_lost: dict[int, int] = {}  # publisher -> events lost, not logged yet
         self.counters = dict.fromkeys(
-            ("sent", "received", "lost", "unsubscribed", "malformed", "reconnects"), 0
+            ("sent", "received", "lost", "unsubscribed", "malformed", "reconnects", "denied",
+             "unvouched", "impostors"), 0,
+        )  # fmt: skip
+        self._inbox = Inbox(
+            deliver=deliver,
+            channels=channels,
+            subscribed=self._subscribed,
+            counters=self.counters,
+            status=self.status,
+            checking=tls is not None,
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -146,6 +154,8 @@ class TcpFace:
             try:
                 await self._connect_ecb()
                 break
+            except AccessDenied:
+                raise
             except (OSError, TimeoutError, UpsError) as exc:
                 if deadline is not None and loop.time() + delay > deadline:
                     host, port = self.broker
@@ -179,11 +189,7 @@ class TcpFace:
         self._peers.clear()
         self._targets.clear()
         await asyncio.gather(self._close_peers(peers), *self._closing)
-        for link in list(self._incoming):
-            link.close()
-        if self._server is not None:
-            self._server.close()
-        self._doorman.close()
+        self._inbox.close()
         for fut in self._acks.values():
             fut.cancel()
         self._report_drops()  # what was lost since the last report
@@ -228,15 +234,23 @@ class TcpFace:
         if uid in registered:
             return
         registered.add(uid)
-        frame = w.Subscribe(uid) if subscribe else w.Advertise(uid)
-        await self._ask(frame, uid)
+        try:
+            await self._ask(self._registration(uid, subscribe), subscribe, uid)
+        except AccessDenied:
+            registered.discard(uid)
+            raise
+
+    def _registration(self, uid: int, subscribe: bool) -> w.Subscribe | w.Advertise:
+        """Subscribe or Advertise, with the channel's name when we know it."""
+        state = self._channels.get(uid)
+        name = state.channel.name if state is not None else None
+        return w.Subscribe(uid, name) if subscribe else w.Advertise(uid, name)
 
     async def unsubscribe(self, state: ChannelState) -> None:
         uid = state.channel.uid
         self._subscribed.discard(uid)
         self._to_ecb(w.Unsubscribe(uid))
-        for key in [k for k in self._expected if k[1] == uid]:  # what comes later is news
-            del self._expected[key]
+        self._inbox.forget(uid)
 
     def send(self, state: ChannelState, data: bytes, priority: int) -> None:
         uid = state.channel.uid
@@ -266,7 +280,7 @@ class TcpFace:
                 self._new_ecb_link, host, port, ssl=self._client_tls
             )
             try:
-                if self._server is None:
+                if self.address is None:
                     await self._listen_for_peers(link)
                 link.send_control(w.encode(w.Hello(self.node_id, self.name, *self._my_address())))
                 await self._welcome
@@ -276,9 +290,9 @@ class TcpFace:
         self._ecb = link
         self._ecb_heard = loop.time()
         for uid in self._subscribed:  # after a reconnect: register everything again
-            link.send_control(w.encode(w.Subscribe(uid)))
+            link.send_control(w.encode(self._registration(uid, True)))
         for uid in self._advertised:
-            link.send_control(w.encode(w.Advertise(uid)))
+            link.send_control(w.encode(self._registration(uid, False)))
         link.send_control(w.encode(w.Ping()))  # ends the registration: the ECB forgets the rest
 
     def _new_ecb_link(self) -> Link:
@@ -288,14 +302,8 @@ class TcpFace:
         assert ecb.transport is not None
         local_host = ecb.transport.get_extra_info("sockname")[0]
         host, port = self._listen or (local_host, 0)
-        self._server = await asyncio.get_running_loop().create_server(
-            self._new_incoming,
-            host or None,
-            port,
-            reuse_address=True,
-            ssl=self._tls.server() if self._tls else None,
-        )
-        bound = self._server.sockets[0].getsockname()
+        tls = self._tls.server() if self._tls else None
+        bound = await self._inbox.listen(host, port, tls)
         self.address = (local_host if host in ("", "0.0.0.0", "::") else bound[0], bound[1])
 
     def _my_address(self) -> tuple[str, int]:
@@ -330,7 +338,8 @@ class TcpFace:
             try:
                 await self._connect_ecb()
             except (OSError, TimeoutError, UpsError) as exc:
-                log.debug("TCP-ECB at %s:%d not back yet: %s", host, port, exc)
+                level = logging.WARNING if isinstance(exc, AccessDenied) else logging.DEBUG
+                log.log(level, "TCP-ECB at %s:%d not back yet: %s", host, port, exc)
                 delay = min(delay * 2, _RETRY_MAX)
                 continue
             self.counters["reconnects"] += 1
@@ -341,7 +350,7 @@ class TcpFace:
         if self._ecb is not None and not self._ecb.lost.done():
             self._ecb.send_control(w.encode(frame))
 
-    async def _ask(self, frame: w.Subscribe | w.Advertise, uid: int) -> None:
+    async def _ask(self, frame: w.Subscribe | w.Advertise, subscribe: bool, uid: int) -> None:
         """Register with the ECB and wait for its answer (the channel's subscribers).
 
         Without an ECB the registration is kept and sent when it is back; meanwhile a publisher
@@ -350,17 +359,27 @@ class TcpFace:
         if self._ecb is None or self._ecb.lost.done():
             log.warning("no TCP-ECB now: %s registered once it is back", frame)
             return
-        fut = self._acks.get(uid)
+        key = (subscribe, uid)
+        fut = self._acks.get(key)
         if fut is None:
-            fut = self._acks[uid] = asyncio.get_running_loop().create_future()
+            fut = self._acks[key] = asyncio.get_running_loop().create_future()
         self._ecb.send_control(w.encode(frame))
         try:
             await asyncio.wait_for(asyncio.shield(fut), _BIND_TIMEOUT)
         except TimeoutError:
             log.warning("the TCP-ECB did not answer %s within %g s", frame, _BIND_TIMEOUT)
         finally:
-            if self._acks.get(uid) is fut:
-                del self._acks[uid]
+            if self._acks.get(key) is fut:
+                del self._acks[key]
+
+    def _acked(self, subscribe: bool, uid: int, error: AccessDenied | None = None) -> None:
+        fut = self._acks.get((subscribe, uid))
+        if fut is not None and not fut.done():
+            if error is None:
+                fut.set_result(None)
+            else:
+                fut.set_exception(error)
+                fut.exception()  # retrieved: the waiter may have timed out already
 
     def _ecb_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
         link.abort("the TCP-ECB sent an event")
@@ -369,11 +388,39 @@ class TcpFace:
         self._ecb_heard = asyncio.get_running_loop().time()
         if isinstance(frame, w.Subscribers):
             self._on_subscribers(frame)
+        elif isinstance(frame, w.Publishers):
+            self._inbox.vouch(frame.uid, frame.identities)
+            self._acked(True, frame.uid)
+        elif isinstance(frame, w.Refused):
+            self._on_refused(frame)
         elif isinstance(frame, w.Hello):
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_result(None)
         elif isinstance(frame, w.StatusRequest):
             link.send_control(w.encode(w.Status(self.status())))
+
+    def _on_refused(self, frame: w.Refused) -> None:
+        self.counters["denied"] += 1
+        state = self._channels.get(frame.uid)
+        channel = str(state.channel) if state is not None else _hex(frame.uid)
+        if frame.right == "connect":
+            error = AccessDenied(f"the TCP-ECB refused this node: {frame.reason}", "", "connect")
+            if self._welcome is not None and not self._welcome.done():
+                self._welcome.set_exception(error)
+            return
+        if frame.right not in ("publish", "subscribe"):
+            return
+        subscribe = frame.right == "subscribe"
+        error = AccessDenied(
+            f"the TCP-ECB does not let this node {frame.right} {channel}: {frame.reason}",
+            channel,
+            frame.right,
+        )
+        (self._subscribed if subscribe else self._advertised).discard(frame.uid)
+        if (subscribe, frame.uid) in self._acks:
+            self._acked(subscribe, frame.uid, error)
+        else:  # a registration renewed after a reconnect
+            log.error("%s", error)
 
     def _ecb_lost(self, link: Link, reason: str | None) -> None:
         if reason is not None and self._welcome is not None and not self._welcome.done():
@@ -383,20 +430,19 @@ class TcpFace:
 
     def _on_subscribers(self, frame: w.Subscribers) -> None:
         uid = frame.uid
-        fut = self._acks.get(uid)
-        if fut is not None and not fut.done():
-            fut.set_result(None)
+        self._acked(False, uid)
         if uid not in self._advertised:
             return
-        wanted = {p.node_id: (p.host, p.port) for p in frame.peers if p.node_id != self.node_id}
+        wanted = {p.node_id: p for p in frame.peers if p.node_id != self.node_id}
         targets = []
-        for node_id, addr in wanted.items():
+        for node_id, listed in wanted.items():
+            addr = (listed.host, listed.port)
             peer = self._peers.get(node_id)
-            if peer is not None and peer.addr != addr:  # restarted elsewhere
-                self._drop_peer(peer)
+            if peer is not None and (peer.addr, peer.identity) != (addr, listed.identity):
+                self._drop_peer(peer)  # restarted elsewhere
                 peer = None
             if peer is None:
-                peer = self._peers[node_id] = _Peer(node_id, addr)
+                peer = self._peers[node_id] = _Peer(node_id, addr, listed.identity)
                 self._connect_peer(peer)
             if uid not in peer.uids:  # its events of uid start with the next one published
                 peer.uids.add(uid)
@@ -430,12 +476,13 @@ class TcpFace:
             overflow=self._peer_overflow,
         )
         link.peer = peer
+        link.verify = functools.partial(self._verify, peer)
         link.send_control(w.encode(w.Hello(self.node_id, self.name, *self._my_address())))
         delay = 0.0
         if lost is not None:
             link.adopt(lost)
             peer.dropped += lost.dropped
-            delay = _RETRY_FIRST
+            delay = min(_RETRY_FIRST * 2**peer.failures, _RETRY_MAX)
         peer.link = link
         peer.task = asyncio.get_running_loop().create_task(self._dial(peer, link, delay))
 
@@ -447,10 +494,24 @@ class TcpFace:
             try:
                 async with asyncio.timeout(_BIND_TIMEOUT):
                     await loop.create_connection(lambda: link, *peer.addr, ssl=self._client_tls)
-                return
             except (OSError, TimeoutError) as exc:
                 delay = min(max(delay * 2, _RETRY_FIRST), _RETRY_MAX)
                 log.debug("subscriber %016x at %s:%d: %s", peer.node_id, *peer.addr, exc)
+                continue
+            return
+
+    def _verify(self, peer: _Peer, transport: asyncio.BaseTransport) -> str | None:
+        """With TLS, a subscriber must show the identity the ECB listed it with: else nothing
+        queued for it is written, and the link is closed."""
+        shown = identity(transport)
+        if self._tls is None or shown == peer.identity:
+            peer.failures = 0
+            return None
+        self.counters["impostors"] += 1
+        peer.failures += 1
+        log.warning("subscriber %016x at %s:%d shows identity %r, not %r: closed",
+                    peer.node_id, *peer.addr, shown, peer.identity)  # fmt: skip
+        return f"identity {shown!r} is not the subscriber's"
 
     def _peer_lost(self, link: Link, reason: str | None) -> None:
         peer: _Peer = link.peer
@@ -502,9 +563,7 @@ class TcpFace:
         for peer in self._peers.values():
             if peer.total_dropped() > peer.reported:
                 self._report(peer)
-        for publisher, count in self._unreported_lost.items():
-            log.warning("lost %d events from publisher %016x (numbers skipped)", count, publisher)
-        self._unreported_lost.clear()
+        self._inbox.report()
 
     def _report(self, peer: _Peer) -> None:
         total = peer.total_dropped()
@@ -528,63 +587,6 @@ class TcpFace:
         if isinstance(frame, w.StatusRequest):
             link.send_control(w.encode(w.Status(self.status())))
 
-    # --- publishers that deliver to us -----------------------------------------------------
-
-    def _new_incoming(self) -> Link:
-        link = Link(self._incoming_event, self._incoming_frame, self._incoming_lost)
-        self._incoming.add(link)
-        self._doorman.admit(link)
-        return link
-
-    def _incoming_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
-        if link.peer is None:
-            self.counters["malformed"] += 1
-            link.abort("event before Hello")
-            return
-        state = self._channels.get(uid)
-        if state is None or not state.subs:  # we unsubscribed; the publisher will hear of it
-            self.counters["unsubscribed"] += 1
-            return
-        key = (link.peer, uid)
-        expected = self._expected.get(key)
-        if expected is not None and seq > expected:  # numbers skipped: events lost on the way
-            self._lost_from(link.peer, seq - expected)
-        self._expected[key] = seq + 1  # (a lower number: the publisher started again)
-        self.counters["received"] += 1
-        self._deliver(state, data, priority, link.peer, time.time())
-
-    def _lost_from(self, publisher: int, count: int) -> None:
-        """Count events of ``publisher`` that never came; logged once a second (_report_drops)."""
-        self.counters["lost"] += count
-        self._unreported_lost[publisher] = self._unreported_lost.get(publisher, 0) + count
-
-    def _incoming_frame(self, link: Link, frame: w.Frame) -> None:
-        if isinstance(frame, w.Hello):
-            link.peer = frame.node_id
-            self._doorman.greeted(link)
-        elif isinstance(frame, w.Start):
-            if link.peer is None:
-                self.counters["malformed"] += 1
-                link.abort("Start before Hello")
-                return
-            key = (link.peer, frame.uid)
-            expected = self._expected.get(key)
-            state = self._channels.get(frame.uid)
-            if expected is not None and frame.seq > expected and state is not None and state.subs:
-                self._lost_from(link.peer, frame.seq - expected)  # published while we were away
-            if expected is None or frame.seq > expected:
-                self._expected[key] = frame.seq
-        elif isinstance(frame, w.StatusRequest):
-            link.send_control(w.encode(w.Status(self.status())))
-        elif isinstance(frame, w.Ping):
-            link.send_control(w.encode(w.Pong()))
-
-    def _incoming_lost(self, link: Link, reason: str | None) -> None:
-        self._incoming.discard(link)
-        self._doorman.gone(link)
-        if reason is not None and reason.startswith("bad frame"):
-            self.counters["malformed"] += 1
-
 
 async def query_status(
     address: str, timeout: float = 5.0, tls: Tls | None = None
@@ -603,6 +605,12 @@ async def query_status(
                     for frame in decoder.feed(data):
                         if isinstance(frame, w.Status):
                             return frame.info
+                        if isinstance(frame, w.Refused):
+                            raise AccessDenied(
+                                f"{host}:{port} does not show its status: {frame.reason}",
+                                "",
+                                frame.right,
+                            )
             finally:
                 writer.close()
     except (OSError, TimeoutError) as exc:

@@ -52,6 +52,8 @@ class Link(asyncio.BufferedProtocol):
         overflow: Overflow = "drop_oldest",
     ) -> None:
         self.peer: Any = None
+        #: called once connected, before anything is written: a reason to abort, or None
+        self.verify: Callable[[asyncio.BaseTransport], str | None] | None = None
         self.limit = limit
         self.overflow: Overflow = overflow
         self.dropped = 0
@@ -196,6 +198,9 @@ class Link(asyncio.BufferedProtocol):
         self.transport = cast(asyncio.Transport, transport)  # uvloop's is no subclass
         if self._closing:  # refused before it was even connected (see Doorman)
             self.transport.abort()
+            return
+        if self.verify is not None and (why := self.verify(transport)) is not None:
+            self.abort(why)
             return
         self.transport.set_write_buffer_limits(high=_WRITE_HIGH)
         self._flush()

@@ -24,8 +24,8 @@ DEFAULT_MAX_FRAME = 1 << 20  #: what a receiver accepts unless told otherwise
 
 (
     _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
-    _STATUS_REQUEST, _STATUS, _START,
-) = range(12)  # fmt: skip
+    _STATUS_REQUEST, _STATUS, _START, _PUBLISHERS, _REFUSED,
+) = range(14)  # fmt: skip
 MAX_SEQ = (1 << 64) - 1
 _HEAD = struct.Struct(">I")
 
@@ -62,7 +62,11 @@ class Start:
 
 @dataclass(frozen=True, slots=True)
 class Subscribe:
+    """The sender subscribes to ``uid``; ``name`` is the channel's name when the node knows it
+    (the ECB checks that it hashes to ``uid``, and its access control list may match it)."""
+
     uid: int
+    name: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +79,7 @@ class Advertise:
     """The sender publishes on ``uid``: the ECB keeps it told of the channel's subscribers."""
 
     uid: int
+    name: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,9 +89,31 @@ class Unadvertise:
 
 @dataclass(frozen=True, slots=True)
 class Peer:
+    """A subscriber: where to reach it, and (with TLS) the identity its certificate must show."""
+
     node_id: int
     host: str
     port: int
+    identity: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Publishers:
+    """ECB -> subscriber: the identities that publish on ``uid`` (with TLS; empty without).
+    A subscriber accepts events of ``uid`` only from links whose certificate shows one of them."""
+
+    uid: int
+    identities: tuple[str, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Refused:
+    """ECB -> node: ``right`` ("publish", "subscribe", "status" or "connect") on ``uid`` (0 for
+    "status" and "connect") is not granted; ``reason`` says why, for people."""
+
+    uid: int
+    right: str
+    reason: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,12 +146,7 @@ class Status:
     info: dict[str, Any]
 
 
-_CHANNEL_FRAMES: dict[int, type[Subscribe | Unsubscribe | Advertise | Unadvertise]] = {
-    _SUB: Subscribe,
-    _UNSUB: Unsubscribe,
-    _ADVERTISE: Advertise,
-    _UNADVERTISE: Unadvertise,
-}
+RIGHTS = ("publish", "subscribe", "status", "connect")
 
 Frame = (
     Hello
@@ -139,6 +161,8 @@ Frame = (
     | StatusRequest
     | Status
     | Start
+    | Publishers
+    | Refused
 )
 
 _packer = msgpack.Packer(use_bin_type=True)
@@ -166,16 +190,26 @@ def _fields(frame: Frame) -> tuple[Any, ...]:
     if isinstance(frame, Hello):
         return (_HELLO, frame.node_id, frame.name, frame.host, frame.port)
     if isinstance(frame, Subscribe):
-        return (_SUB, frame.uid)
+        return (_SUB, frame.uid) if frame.name is None else (_SUB, frame.uid, frame.name)
     if isinstance(frame, Unsubscribe):
         return (_UNSUB, frame.uid)
     if isinstance(frame, Advertise):
-        return (_ADVERTISE, frame.uid)
+        if frame.name is None:
+            return (_ADVERTISE, frame.uid)
+        return (_ADVERTISE, frame.uid, frame.name)
     if isinstance(frame, Unadvertise):
         return (_UNADVERTISE, frame.uid)
     if isinstance(frame, Subscribers):
-        peers = [(p.node_id, p.host, p.port) for p in frame.peers]
+        peers = [
+            (p.node_id, p.host, p.port) if p.identity is None
+            else (p.node_id, p.host, p.port, p.identity)
+            for p in frame.peers
+        ]  # fmt: skip
         return (_SUBSCRIBERS, frame.uid, peers)
+    if isinstance(frame, Publishers):
+        return (_PUBLISHERS, frame.uid, list(frame.identities))
+    if isinstance(frame, Refused):
+        return (_REFUSED, frame.uid, frame.right, frame.reason)
     if isinstance(frame, Status):
         return (_STATUS, frame.info)
     if isinstance(frame, StatusRequest):
@@ -300,17 +334,26 @@ def _frame(f: tuple[Any, ...]) -> Frame:
     if kind == _HELLO:
         _, node_id, name, host, port = f
         return Hello(_uid(node_id), _str(name), _str(host), _int(port, 0xFFFF))
-    if kind in (_SUB, _UNSUB, _ADVERTISE, _UNADVERTISE):
+    if kind in (_SUB, _ADVERTISE):
+        _, uid, *name = f  # the name is optional
+        if len(name) > 1:
+            raise ValueError("too many fields")
+        named = _str(name[0]) if name and name[0] is not None else None
+        return (Subscribe if kind == _SUB else Advertise)(_uid(uid), named)
+    if kind in (_UNSUB, _UNADVERTISE):
         _, uid = f
-        return _CHANNEL_FRAMES[kind](_uid(uid))
+        return (Unsubscribe if kind == _UNSUB else Unadvertise)(_uid(uid))
     if kind == _SUBSCRIBERS:
         _, uid, peers = f
-        if not isinstance(peers, tuple):
-            raise TypeError("peers must be an array")
-        return Subscribers(
-            _uid(uid),
-            tuple(Peer(_uid(n), _str(h), _int(p, 0xFFFF)) for n, h, p in peers),
-        )
+        return Subscribers(_uid(uid), tuple(_peer(p) for p in _array(peers)))
+    if kind == _PUBLISHERS:
+        _, uid, identities = f
+        return Publishers(_uid(uid), tuple(_str(i) for i in _array(identities)))
+    if kind == _REFUSED:
+        _, uid, right, reason = f
+        if right not in RIGHTS:
+            raise ValueError(f"unknown right {right!r:.30}")
+        return Refused(_uid(uid), right, _str(reason))
     if kind in (_PING, _PONG, _STATUS_REQUEST) and len(f) == 1:
         return Ping() if kind == _PING else Pong() if kind == _PONG else StatusRequest()
     if kind == _STATUS:
@@ -319,6 +362,20 @@ def _frame(f: tuple[Any, ...]) -> Frame:
             raise TypeError("status must be a map with string keys")
         return Status(info)
     raise ValueError(f"unknown frame kind {kind}")
+
+
+def _array(value: Any) -> tuple[Any, ...]:
+    if not isinstance(value, tuple):
+        raise TypeError(f"not an array: {_short(value)}")
+    return value
+
+
+def _peer(value: Any) -> Peer:
+    node_id, host, port, *rest = _array(value)
+    if len(rest) > 1:
+        raise ValueError("too many fields in a peer")
+    identity = _str(rest[0]) if rest and rest[0] is not None else None
+    return Peer(_uid(node_id), _str(host), _int(port, 0xFFFF), identity)
 
 
 def _uid(value: Any) -> int:

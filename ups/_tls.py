@@ -44,6 +44,19 @@ class Tls:
                 raise ConfigError(f"no such file: {path}")
         return cls(Path(ca), Path(cert), Path(key))
 
+    def identity(self) -> str:
+        """The common name of our own certificate: who we are to the others."""
+        from cryptography import x509
+
+        try:
+            cert = x509.load_pem_x509_certificate(self.cert.read_bytes())
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"cannot read the certificate {self.cert}: {exc}") from exc
+        names = cert.subject.get_attributes_for_oid(x509.oid.NameOID.COMMON_NAME)
+        if not names:
+            raise ConfigError(f"the certificate {self.cert} has no common name")
+        return str(names[0].value)
+
     def server(self) -> ssl.SSLContext:
         """For a listening socket: clients must show a certificate the CA signed."""
         context = self._context(ssl.Purpose.CLIENT_AUTH)

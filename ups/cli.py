@@ -91,6 +91,11 @@ def _parser() -> argparse.ArgumentParser:
         "--recovery", type=float, default=1.5,
         help="seconds after start to collect re-registrations before answering (default 1.5)",
     )  # fmt: skip
+    cmd.add_argument(
+        "--acl", metavar="FILE", default=None,
+        help="TOML access control list: [identity.NAME] publish/subscribe = [channels, globs, "
+        "0xUIDs], status = true; needs TLS; an identity not listed may do nothing",
+    )  # fmt: skip
     _add_tls(cmd)
     cmd.set_defaults(run=_run_broker)
 
@@ -301,12 +306,14 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 
 
 def _run_broker(args: argparse.Namespace) -> int:
+    from broker._acl import Acl
     from broker.tcp_ecb import serve
 
     tls = _tls(args)
+    acl = Acl.load(args.acl) if args.acl is not None else None
 
     async def run() -> int:
-        await serve(args.listen, args.liveness, args.recovery, tls)
+        await serve(args.listen, args.liveness, args.recovery, tls, acl)
         return 0
 
     return _run_until_signal(run())

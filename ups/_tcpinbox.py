@@ -1,0 +1,244 @@
+"""A node's TCP inbox: the listening socket and the links on which publishers deliver events.
+
+It counts what never arrives (sequence numbers per publisher and channel, see docs/protocol.md)
+and, with TLS, accepts the events of a channel only from the identities the TCP-ECB says publish
+on it (``vouch``, from its ``Publishers`` frames). A link whose event is not vouched for yet is
+held, unread, until the ECB's word comes; after ``VOUCH_WAIT`` seconds without it the link is
+cut off and what it held is counted (``unvouched``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import ssl
+import time
+from collections.abc import Callable, Collection
+from typing import TYPE_CHECKING, Any
+
+from . import _tcpwire as w
+from ._tcplink import Doorman, Link
+from ._tls import identity
+
+if TYPE_CHECKING:
+    from ._face import ChannelState, Deliver
+
+log = logging.getLogger("ups.tcp")
+
+MAX_PUBLISHERS = 1024  #: links from publishers a node accepts at once
+VOUCH_WAIT = 5.0  #: seconds a link may wait for the ECB to vouch for its publisher
+
+_HeldEvent = tuple[int, bytes, int, int]
+
+
+class _Publisher:
+    """The other side of one incoming link: who says it is, and who its certificate says."""
+
+    __slots__ = ("allowed", "held", "identity", "node_id", "timer")
+
+    def __init__(self, node_id: int, identity: str | None) -> None:
+        self.node_id = node_id
+        self.identity = identity
+        self.allowed: set[int] = set()  # channels vouched for on this link, for its lifetime
+        self.held: list[_HeldEvent | w.Start] | None = None  # read while waiting for a voucher
+        self.timer: asyncio.TimerHandle | None = None
+
+
+class Inbox:
+    """Links from publishers. ``counters`` is the face's: received, lost, unsubscribed,
+    malformed and unvouched are counted there."""
+
+    def __init__(
+        self,
+        *,
+        deliver: Deliver,
+        channels: dict[int, ChannelState],
+        subscribed: Collection[int],
+        counters: dict[str, int],
+        status: Callable[[], dict[str, Any]],
+        checking: bool,
+    ) -> None:
+        self._deliver = deliver
+        self._channels = channels
+        self._subscribed = subscribed
+        self._counters = counters
+        self._status = status
+        self._checking = checking  # with TLS: events only from vouched-for identities
+        self._vouched: dict[int, frozenset[str]] = {}  # uid -> identities publishing on it
+        self._links: set[Link] = set()
+        self._holding: set[Link] = set()
+        self._doorman = Doorman(MAX_PUBLISHERS)
+        self._server: asyncio.AbstractServer | None = None
+        self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
+        self._unreported: dict[int, int] = {}  # publisher -> events lost, not logged yet
+
+    async def listen(self, host: str, port: int, tls: ssl.SSLContext | None) -> tuple[str, int]:
+        """Open the listening socket; returns the address it is bound to."""
+        self._server = await asyncio.get_running_loop().create_server(
+            self._new_link, host or None, port, reuse_address=True, ssl=tls
+        )
+        bound = self._server.sockets[0].getsockname()
+        return bound[0], bound[1]
+
+    def close(self) -> None:
+        for link in list(self._links):
+            link.close()
+        if self._server is not None:
+            self._server.close()
+        self._doorman.close()
+
+    def vouch(self, uid: int, identities: tuple[str, ...]) -> None:
+        """The ECB says these identities publish on ``uid``: release links waiting for that.
+
+        What the ECB vouched for once stands while we subscribe (the ACL does not change while
+        the ECB runs): a publisher that withdrew still gets its last events through."""
+        if uid not in self._subscribed:
+            return
+        self._vouched[uid] = self._vouched.get(uid, frozenset()).union(identities)
+        for link in list(self._holding):
+            self._release(link)
+
+    def forget(self, uid: int) -> None:
+        """We unsubscribed from ``uid``: what comes later is news."""
+        self._vouched.pop(uid, None)
+        for key in [k for k in self._expected if k[1] == uid]:
+            del self._expected[key]
+
+    def report(self) -> None:
+        """Log the events lost since the last report (called once a second)."""
+        for publisher, count in self._unreported.items():
+            log.warning("lost %d events from publisher %016x (numbers skipped)", count, publisher)
+        self._unreported.clear()
+
+    # --- links -----------------------------------------------------------------------------
+
+    def _new_link(self) -> Link:
+        link = Link(self._event, self._frame, self._lost)
+        self._links.add(link)
+        self._doorman.admit(link)
+        return link
+
+    def _event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
+        pub: _Publisher | None = link.peer
+        if pub is None:
+            self._counters["malformed"] += 1
+            link.abort("event before Hello")
+            return
+        if pub.held is not None:  # after one that waits for a voucher: keep the order
+            pub.held.append((uid, data, priority, seq))
+            return
+        state = self._channels.get(uid)
+        if state is None or not state.subs:  # we unsubscribed; the publisher will hear of it
+            self._counters["unsubscribed"] += 1
+            return
+        if self._checking and uid not in pub.allowed and not self._allow(pub, uid):
+            self._hold(link, (uid, data, priority, seq))
+            return
+        key = (pub.node_id, uid)
+        expected = self._expected.get(key)
+        if expected is not None and seq > expected:  # numbers skipped: events lost on the way
+            self._lost_from(pub.node_id, seq - expected)
+        self._expected[key] = seq + 1  # (a lower number: the publisher started again)
+        self._counters["received"] += 1
+        self._deliver(state, data, priority, pub.node_id, time.time())
+
+    def _frame(self, link: Link, frame: w.Frame) -> None:
+        pub: _Publisher | None = link.peer
+        if isinstance(frame, w.Hello):
+            if pub is None:
+                link.peer = _Publisher(frame.node_id, identity(link.transport))
+                self._doorman.greeted(link)
+        elif isinstance(frame, w.Start):
+            if pub is None:
+                self._counters["malformed"] += 1
+                link.abort("Start before Hello")
+            elif pub.held is not None:
+                pub.held.append(frame)
+            else:
+                self._start(pub, frame)
+        elif isinstance(frame, w.StatusRequest):
+            link.send_control(w.encode(w.Status(self._status())))
+        elif isinstance(frame, w.Ping):
+            link.send_control(w.encode(w.Pong()))
+
+    def _start(self, pub: _Publisher, frame: w.Start) -> None:
+        key = (pub.node_id, frame.uid)
+        expected = self._expected.get(key)
+        state = self._channels.get(frame.uid)
+        if expected is not None and frame.seq > expected and state is not None and state.subs:
+            self._lost_from(pub.node_id, frame.seq - expected)  # published while we were away
+        if expected is None or frame.seq > expected:
+            self._expected[key] = frame.seq
+
+    def _lost(self, link: Link, reason: str | None) -> None:
+        self._links.discard(link)
+        self._doorman.gone(link)
+        pub: _Publisher | None = link.peer
+        if pub is not None and pub.held is not None:
+            self._refuse(link, pub)
+        if reason is not None and reason.startswith("bad frame"):
+            self._counters["malformed"] += 1
+
+    def _lost_from(self, publisher: int, count: int) -> None:
+        self._counters["lost"] += count
+        self._unreported[publisher] = self._unreported.get(publisher, 0) + count
+
+    # --- vouching --------------------------------------------------------------------------
+
+    def _allow(self, pub: _Publisher, uid: int) -> bool:
+        if pub.identity is not None and pub.identity in self._vouched.get(uid, ()):
+            pub.allowed.add(uid)
+            return True
+        return False
+
+    def _hold(self, link: Link, first: _HeldEvent) -> None:
+        """Stop reading ``link`` until the ECB vouches for its publisher, or the wait ends."""
+        pub: _Publisher = link.peer
+        pub.held = [first]
+        if pub.timer is None:
+            loop = asyncio.get_running_loop()
+            pub.timer = loop.call_later(VOUCH_WAIT, self._give_up, link)
+            if link.transport is not None:
+                link.transport.pause_reading()
+            self._holding.add(link)
+
+    def _release(self, link: Link) -> None:
+        """Go on with what ``link`` held, as far as the ECB now vouches for it."""
+        pub: _Publisher = link.peer
+        held, pub.held = pub.held or [], None
+        for i, item in enumerate(held):
+            if isinstance(item, w.Start):
+                self._start(pub, item)
+            else:
+                self._event(link, *item)
+            if pub.held is not None:  # still not vouched for: wait on
+                pub.held.extend(held[i + 1 :])
+                return
+        self._holding.discard(link)
+        if pub.timer is not None:
+            pub.timer.cancel()
+            pub.timer = None
+        if link.transport is not None and not link.lost.done():
+            link.transport.resume_reading()
+
+    def _give_up(self, link: Link) -> None:
+        pub: _Publisher = link.peer
+        pub.timer = None
+        if pub.held is not None:
+            self._refuse(link, pub)
+            link.abort("events from a publisher the TCP-ECB does not vouch for")
+
+    def _refuse(self, link: Link, pub: _Publisher) -> None:
+        held, pub.held = pub.held or [], None
+        self._holding.discard(link)
+        if pub.timer is not None:
+            pub.timer.cancel()
+            pub.timer = None
+        events = [item for item in held if not isinstance(item, w.Start)]
+        self._counters["unvouched"] += len(events)
+        uids = sorted({f"{item[0]:016x}" for item in events})
+        log.warning(
+            "refused %d events from %s (node %016x, %s) on %s: the TCP-ECB does not vouch for "
+            "it as a publisher",
+            len(events), pub.identity, pub.node_id, link.name, ", ".join(uids),
+        )  # fmt: skip
