@@ -59,4 +59,4 @@ def test_tcp_example_frame(raw: str, frame: str) -> None:
 
 
 def test_tcp_examples_are_found() -> None:
-    assert len(TCP_EXAMPLES) == 5
+    assert len(TCP_EXAMPLES) == 8
