@@ -93,7 +93,7 @@ async def test_a_subscriber_joining_later_is_told_to_the_publisher(tcp_ecb: TcpE
         assert pub.stats()["sent"] == 0
         async with tcp_node(tcp_ecb, "late") as late:
             sub = await late.subscribe("x")
-            await eventually(lambda: bool(pub.face._targets))
+            await eventually(lambda: bool(pub.face._outbox._targets))
             await pub.publish("x", b"you")
             assert (await sub.get_msg(timeout=5)).data == b"you"
             assert tcp_ecb.counters["pushes"] == 1
@@ -104,8 +104,8 @@ async def test_node_close_withdraws_everything_and_leaves_at_once(tcp_ecb: TcpEc
         await pub.publish("x", b"")
         async with tcp_node(tcp_ecb, "sub") as node:
             await node.subscribe("x")
-            await eventually(lambda: bool(pub.face._targets))
-        await eventually(lambda: not pub.face._targets)
+            await eventually(lambda: bool(pub.face._outbox._targets))
+        await eventually(lambda: not pub.face._outbox._targets)
         await eventually(lambda: len(tcp_ecb._members) == 1)
     await eventually(lambda: not tcp_ecb._members)
     assert tcp_ecb.counters["left"] == 2
@@ -143,7 +143,7 @@ async def test_events_keep_flowing_while_the_ecb_is_down(tcp_ecb: TcpEcb) -> Non
             assert (await sub.get_msg(timeout=5)).data == b"after"
             async with tcp_node(ecb, "new") as new:
                 sub2 = await new.subscribe("x")
-                await eventually(lambda: len(pub.face._targets[uid]) == 2)
+                await eventually(lambda: len(pub.face._outbox._targets[uid]) == 2)
                 await pub.publish("x", b"both")
                 assert (await sub2.get_msg(timeout=5)).data == b"both"
                 assert (await sub.get_msg(timeout=5)).data == b"both"
@@ -180,10 +180,10 @@ async def test_a_silent_node_leaves_every_list_after_the_liveness_timeout() -> N
         with socket.create_connection(("127.0.0.1", ecb.port)) as raw:
             raw.sendall(w.encode(w.Hello(0xDEAD, "zombie", "127.0.0.1", 9)))
             raw.sendall(w.encode(w.Subscribe(pub.face._advertised.copy().pop())))  # type: ignore[attr-defined]
-            await eventually(lambda: 0xDEAD in {p.node_id for p in pub.face._peers.values()})  # type: ignore[attr-defined]
+            await eventually(lambda: 0xDEAD in {p.node_id for p in pub.face._outbox._peers.values()})  # type: ignore[attr-defined]
             # it never pings, and keeps its connection open
             await eventually(lambda: 0xDEAD not in ecb._members, timeout=3)
-            await eventually(lambda: not pub.face._peers)  # type: ignore[attr-defined]
+            await eventually(lambda: not pub.face._outbox._peers)  # type: ignore[attr-defined]
             assert ecb.counters["left"] == 1
 
 
@@ -239,7 +239,7 @@ async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -
                     + w.encode(w.Subscribe(sub.channels[0].uid))
                 )
                 await pub.publish("x", b"")  # advertise
-                await eventually(lambda: len(pub.face._targets.get(sub.channels[0].uid, ())) == 2)  # type: ignore[attr-defined]
+                await eventually(lambda: len(pub.face._outbox._targets.get(sub.channels[0].uid, ())) == 2)  # type: ignore[attr-defined]
                 payload = bytes(1000)
                 count = 20_000
                 for i in range(count):
@@ -264,7 +264,7 @@ async def test_a_peer_link_that_breaks_is_dialled_again(
         sub = await node.subscribe("x")
         await pub.publish("x", b"1")
         await sub.get_msg(timeout=5)
-        (peer,) = pub.face._peers.values()  # type: ignore[attr-defined]
+        (peer,) = pub.face._outbox._peers.values()  # type: ignore[attr-defined]
         old = peer.link
         for link in list(node.face._inbox._links):  # type: ignore[attr-defined]
             link.abort("test")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -19,7 +18,8 @@ from . import _tcpwire as w
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, UpsError
 from ._tcpinbox import Inbox
 from ._tcplink import OVERFLOWS, Link, Overflow
-from ._tls import Tls, identity
+from ._tcpoutbox import Outbox
+from ._tls import Tls
 
 if TYPE_CHECKING:
     from ._face import ChannelState, Deliver
@@ -32,7 +32,6 @@ SILENCE = 6 * HEARTBEAT  # an ECB link that said nothing for this long is dead
 _RETRY_FIRST = 0.05
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
-_CLOSE_TIMEOUT = 2.0  # at close, how long queued events may take to reach their peers
 _EVENT_OVERHEAD = 32  # frame header + msgpack array, kind, uid, bin header, priority, seq
 
 
@@ -53,28 +52,6 @@ def parse_address(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]
     if not 0 <= number <= 0xFFFF:
         raise ConfigError(f"expected HOST:PORT, got {text!r}")
     return host, number
-
-
-class _Peer:
-    """A node that subscribes to channels we publish, and our link to it."""
-
-    __slots__ = (
-        "addr", "dropped", "failures", "identity", "link", "node_id", "reported", "task", "uids",
-    )  # fmt: skip
-
-    def __init__(self, node_id: int, addr: tuple[str, int], identity: str | None) -> None:
-        self.node_id = node_id
-        self.addr = addr
-        self.identity = identity  # what its certificate must say (with TLS)
-        self.failures = 0  # dials in a row that did not give a usable link
-        self.uids: set[int] = set()
-        self.link: Link | None = None
-        self.task: asyncio.Task[None] | None = None
-        self.dropped = 0  # of links that are gone
-        self.reported = 0  # drops already logged
-
-    def total_dropped(self) -> int:
-        return self.dropped + (self.link.dropped if self.link else 0)
 
 
 class TcpFace:
@@ -110,8 +87,6 @@ class TcpFace:
         self._listen = parse_address(listen, "") if listen is not None else None
         self.node_id = node_id
         self._join_timeout = join_timeout
-        self._peer_queue = peer_queue
-        self._peer_overflow: Overflow = peer_overflow
         self.address: tuple[str, int] | None = None  # where we listen, as peers reach us
         self._server: asyncio.AbstractServer | None = None
         self._ecb: Link | None = None
@@ -121,16 +96,11 @@ class TcpFace:
         self._subscribed: set[int] = set()
         self._advertised: set[int] = set()
         self._acks: dict[tuple[bool, int], asyncio.Future[None]] = {}  # (subscribe, uid)
-        self._peers: dict[int, _Peer] = {}
-        self._targets: dict[int, list[_Peer]] = {}  # uid -> peers subscribed to it
-        self._gone_dropped = 0  # events dropped for peers that are no longer subscribers
-        self._closing: set[asyncio.Task[None]] = set()  # links to former subscribers
         self._closed = False
         #: called with a UID when its first remote subscriber comes or its last one goes
         self.on_targets: Callable[[int], None] | None = None
         #: more tables for ``ups status`` (the gateway's)
         self.extra_status: Callable[[], dict[str, Any]] | None = None
-        self._seq: dict[int, int] = {}  # uid -> number of the last event published
         self.counters = dict.fromkeys(
             ("sent", "received", "lost", "unsubscribed", "malformed", "reconnects", "denied",
              "unvouched", "impostors"), 0,
@@ -142,6 +112,17 @@ class TcpFace:
             counters=self.counters,
             status=self.status,
             checking=tls is not None,
+        )
+        self._outbox = Outbox(
+            node_id=node_id,
+            name=name,
+            address=self._my_address,
+            tls=self._client_tls,
+            peer_queue=peer_queue,
+            peer_overflow=peer_overflow,
+            counters=self.counters,
+            on_targets=self._targets_changed,
+            status=self.status,
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -185,22 +166,16 @@ class TcpFace:
             for uid in self._advertised:
                 self._ecb.send_control(w.encode(w.Unadvertise(uid)))
             self._ecb.close()
-        peers = list(self._peers.values())
-        self._peers.clear()
-        self._targets.clear()
-        await asyncio.gather(self._close_peers(peers), *self._closing)
+        await self._outbox.close()
         self._inbox.close()
         for fut in self._acks.values():
             fut.cancel()
         self._report_drops()  # what was lost since the last report
 
     def stats(self) -> dict[str, int]:
-        peers = self._peers.values()
         return {
             **self.counters,
-            "peer_dropped": self._gone_dropped + sum(peer.total_dropped() for peer in peers),
-            "peers": sum(1 for peer in peers if peer.link and peer.link.transport),
-            "queued": sum(peer.link.queued for peer in peers if peer.link),
+            **self._outbox.stats(),
             "broker_connected": int(self._ecb is not None and not self._ecb.lost.done()),
         }
 
@@ -213,16 +188,7 @@ class TcpFace:
             "stats": self._node_stats(),
             "subscribed": [_hex(uid) for uid in sorted(self._subscribed)],
             "published": [_hex(uid) for uid in sorted(self._advertised)],
-            "peers": [
-                {
-                    "node_id": _hex(peer.node_id),
-                    "address": f"{peer.addr[0]}:{peer.addr[1]}",
-                    "channels": [_hex(uid) for uid in sorted(peer.uids)],
-                    "dropped": peer.total_dropped(),
-                    "queued": peer.link.queued if peer.link else 0,
-                }
-                for peer in self._peers.values()
-            ],
+            "peers": self._outbox.status(),
             **(self.extra_status() if self.extra_status is not None else {}),
         }
 
@@ -253,21 +219,11 @@ class TcpFace:
         self._inbox.forget(uid)
 
     def send(self, state: ChannelState, data: bytes, priority: int) -> None:
-        uid = state.channel.uid
-        seq = self._seq[uid] = self._seq.get(uid, 0) + 1  # numbered even with nobody to hear
-        peers = self._targets.get(uid)
-        if peers:
-            frame = w.encode_event(uid, data, priority, seq)
-            for peer in peers:
-                assert peer.link is not None
-                peer.link.send(frame)
-            self.counters["sent"] += len(peers)
+        self._outbox.send(state.channel.uid, data, priority)
 
     async def room(self, state: ChannelState) -> None:
         """Wait until every subscriber of the channel has room in its queue."""
-        for peer in list(self._targets.get(state.channel.uid, ())):
-            if peer.link is not None:
-                await peer.link.room()
+        await self._outbox.room(state.channel.uid)
 
     # --- the ECB link ----------------------------------------------------------------------
 
@@ -429,163 +385,21 @@ class TcpFace:
     # --- peers we publish to ---------------------------------------------------------------
 
     def _on_subscribers(self, frame: w.Subscribers) -> None:
-        uid = frame.uid
-        self._acked(False, uid)
-        if uid not in self._advertised:
-            return
-        wanted = {p.node_id: p for p in frame.peers if p.node_id != self.node_id}
-        targets = []
-        for node_id, listed in wanted.items():
-            addr = (listed.host, listed.port)
-            peer = self._peers.get(node_id)
-            if peer is not None and (peer.addr, peer.identity) != (addr, listed.identity):
-                self._drop_peer(peer)  # restarted elsewhere
-                peer = None
-            if peer is None:
-                peer = self._peers[node_id] = _Peer(node_id, addr, listed.identity)
-                self._connect_peer(peer)
-            if uid not in peer.uids:  # its events of uid start with the next one published
-                peer.uids.add(uid)
-                assert peer.link is not None
-                peer.link.send_control(w.encode(w.Start(uid, self._seq.get(uid, 0) + 1)))
-            targets.append(peer)
-        for peer in self._targets.get(uid, ()):
-            if peer.node_id not in wanted:
-                peer.uids.discard(uid)
-                if not peer.uids:
-                    self._drop_peer(peer)
-        had = uid in self._targets
-        if targets:
-            self._targets[uid] = targets
-        else:
-            self._targets.pop(uid, None)
-        if had != bool(targets) and self.on_targets is not None:
-            self.on_targets(uid)
+        self._acked(False, frame.uid)
+        if frame.uid in self._advertised:
+            self._outbox.update(frame)
 
     def subscribed_elsewhere(self, uid: int) -> bool:
         """Whether another node subscribes to ``uid`` (known for channels we publish on)."""
-        return uid in self._targets
+        return self._outbox.subscribed_elsewhere(uid)
 
-    def _connect_peer(self, peer: _Peer, lost: Link | None = None) -> None:
-        """Dial ``peer``; when ``lost`` is its old link, what that had not written goes first."""
-        link = Link(
-            self._peer_event,
-            self._peer_frame,
-            self._peer_lost,
-            limit=self._peer_queue,
-            overflow=self._peer_overflow,
-        )
-        link.peer = peer
-        link.verify = functools.partial(self._verify, peer)
-        link.send_control(w.encode(w.Hello(self.node_id, self.name, *self._my_address())))
-        delay = 0.0
-        if lost is not None:
-            link.adopt(lost)
-            peer.dropped += lost.dropped
-            delay = min(_RETRY_FIRST * 2**peer.failures, _RETRY_MAX)
-        peer.link = link
-        peer.task = asyncio.get_running_loop().create_task(self._dial(peer, link, delay))
-
-    async def _dial(self, peer: _Peer, link: Link, delay: float) -> None:
-        loop = asyncio.get_running_loop()
-        while not self._closed:
-            if delay:
-                await asyncio.sleep(delay)
-            try:
-                async with asyncio.timeout(_BIND_TIMEOUT):
-                    await loop.create_connection(lambda: link, *peer.addr, ssl=self._client_tls)
-            except (OSError, TimeoutError) as exc:
-                delay = min(max(delay * 2, _RETRY_FIRST), _RETRY_MAX)
-                log.debug("subscriber %016x at %s:%d: %s", peer.node_id, *peer.addr, exc)
-                continue
-            return
-
-    def _verify(self, peer: _Peer, transport: asyncio.BaseTransport) -> str | None:
-        """With TLS, a subscriber must show the identity the ECB listed it with: else nothing
-        queued for it is written, and the link is closed."""
-        shown = identity(transport)
-        if self._tls is None or shown == peer.identity:
-            peer.failures = 0
-            return None
-        self.counters["impostors"] += 1
-        peer.failures += 1
-        log.warning("subscriber %016x at %s:%d shows identity %r, not %r: closed",
-                    peer.node_id, *peer.addr, shown, peer.identity)  # fmt: skip
-        return f"identity {shown!r} is not the subscriber's"
-
-    def _peer_lost(self, link: Link, reason: str | None) -> None:
-        peer: _Peer = link.peer
-        if reason is None or peer.link is not link or self._peers.get(peer.node_id) is not peer:
-            return  # closed by us, replaced, or no longer a subscriber
-        log.info("link to subscriber %016x lost (%s); dialling again", peer.node_id, reason)
-        self._connect_peer(peer, lost=link)
-
-    def _drop_peer(self, peer: _Peer) -> None:
-        """``peer`` subscribes to nothing we publish any more: close its link."""
-        self._peers.pop(peer.node_id, None)
-        for uid in peer.uids:
-            targets = self._targets.get(uid)
-            if targets and peer in targets:
-                targets.remove(peer)
-        peer.uids.clear()
-        task = asyncio.get_running_loop().create_task(self._close_peers([peer]))
-        self._closing.add(task)
-        task.add_done_callback(self._closing.discard)
-
-    async def _close_peers(self, peers: list[_Peer]) -> None:
-        """Give each peer's queued events a moment to go out, then close its link; what is
-        still queued after that is dropped, and counted."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + _CLOSE_TIMEOUT
-        for peer in peers:
-            link, task = peer.link, peer.task
-            if link is None:
-                continue
-            if task is not None and not task.done() and link.queued:
-                with contextlib.suppress(TimeoutError, asyncio.CancelledError):
-                    await asyncio.wait_for(asyncio.shield(task), max(0.0, deadline - loop.time()))
-            if task is not None:
-                task.cancel()
-            link.close()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(asyncio.shield(link.lost), max(0.0, deadline - loop.time()))
-            unsent = link.queued
-            if not link.lost.done():
-                link.abort("closing")
-            peer.dropped += link.dropped + unsent
-            peer.link = None
-            if peer.dropped > peer.reported:
-                self._report(peer)
-            if self._peers.get(peer.node_id) is not peer:  # gone: keep its count
-                self._gone_dropped += peer.dropped
+    def _targets_changed(self, uid: int) -> None:
+        if self.on_targets is not None:
+            self.on_targets(uid)
 
     def _report_drops(self) -> None:
-        for peer in self._peers.values():
-            if peer.total_dropped() > peer.reported:
-                self._report(peer)
+        self._outbox.report()
         self._inbox.report()
-
-    def _report(self, peer: _Peer) -> None:
-        total = peer.total_dropped()
-        log.warning(
-            "dropped %d events for subscriber %016x at %s:%d (%d in all): it does not read "
-            "them, and its queue of %d is full (%s) or was left at close",
-            total - peer.reported,
-            peer.node_id,
-            *peer.addr,
-            total,
-            self._peer_queue,
-            self._peer_overflow,
-        )
-        peer.reported = total
-
-    def _peer_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
-        self.counters["malformed"] += 1  # subscribers do not send events back
-        link.abort("a subscriber sent an event")
-
-    def _peer_frame(self, link: Link, frame: w.Frame) -> None:
-        if isinstance(frame, w.StatusRequest):
-            link.send_control(w.encode(w.Status(self.status())))
 
 
 async def query_status(
