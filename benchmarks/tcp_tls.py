@@ -1,9 +1,11 @@
-"""TLS against plain TCP for UPS itself, in the same run: round trip and one-way throughput.
+"""TLS (and TLS with an ACL) against plain TCP for UPS itself, in the same run: round trip and
+one-way throughput.
 
 A TCP-ECB and two nodes in this process on loopback (one event loop, so absolute figures are
 lower than across processes; the ratio is the point). Round trip: node A publishes a ping,
 node B answers with a pong, ``--roundtrips`` times. Throughput: A publishes ``--messages``
-8-byte events with backpressure (``wait=True``), B counts them. Run:
+8-byte events with backpressure (``wait=True``), B counts them. The ACL run adds the broker's
+access control and the subscribers' check of each publisher's identity. Run:
 
     .venv/bin/python -m benchmarks.tcp_tls
 """
@@ -19,6 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from broker._acl import Acl
 from broker.tcp_ecb import TcpEcb
 from ups import Node, Tls
 
@@ -29,8 +32,20 @@ def make_fleet(folder: Path) -> None:
                        capture_output=True)  # fmt: skip
 
 
-async def run(tls: dict[str, Tls] | None, roundtrips: int, messages: int) -> tuple[float, float]:
-    ecb = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls["ecb"] if tls else None)
+_ACL = """
+[identity.a]
+publish = ["bench/*"]
+subscribe = ["bench/pong"]
+[identity.b]
+publish = ["bench/pong"]
+subscribe = ["bench/ping", "bench/flow"]
+"""
+
+
+async def run(
+    tls: dict[str, Tls] | None, roundtrips: int, messages: int, acl: Acl | None = None
+) -> tuple[float, float]:
+    ecb = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls["ecb"] if tls else None, acl=acl)
     await ecb.start()
     address = f"127.0.0.1:{ecb.port}"
     try:
@@ -82,11 +97,11 @@ def main() -> None:
                for n in ("ecb", "a", "b")}  # fmt: skip
         plain = asyncio.run(run(None, args.roundtrips, args.messages))
         secure = asyncio.run(run(tls, args.roundtrips, args.messages))
-    print(f"plain TCP: round trip p50 {plain[0]:.1f} us, throughput {plain[1]:,.0f} events/s")
-    print(f"TLS:       round trip p50 {secure[0]:.1f} us, throughput {secure[1]:,.0f} events/s")
-    print(
-        f"TLS/plain: round trip {secure[0] / plain[0]:.2f}x, throughput {secure[1] / plain[1]:.2f}x"
-    )
+        guarded = asyncio.run(run(tls, args.roundtrips, args.messages, Acl.parse(_ACL)))
+    for label, (rtt, rate) in (("plain TCP", plain), ("TLS", secure), ("TLS + ACL", guarded)):
+        print(f"{label:10} round trip p50 {rtt:6.1f} us, throughput {rate:9,.0f} events/s")
+    for label, (rtt, rate) in (("TLS", secure), ("TLS + ACL", guarded)):
+        print(f"{label}/plain: round trip {rtt / plain[0]:.2f}x, throughput {rate / plain[1]:.2f}x")
 
 
 if __name__ == "__main__":
