@@ -29,9 +29,10 @@ import time
 from typing import Any
 
 from ups import _tcpwire as w
+from ups._address import DEFAULT_PORT, parse_address
 from ups._channel import name_to_uid
 from ups._errors import ConfigError
-from ups._tcpface import DEFAULT_PORT, HEARTBEAT, parse_address
+from ups._tcpface import HEARTBEAT
 from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 

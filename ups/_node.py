@@ -18,14 +18,12 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import IO, Any
 
-from ._canface import CanFace
 from ._canproto import DEFAULT_PRIORITY
 from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError, PayloadTooLarge
 from ._face import ChannelState, Face, Sink
 from ._message import Message
 from ._nodeid import claim_node_id
-from ._tcpface import TcpFace
 from ._tcplink import OVERFLOWS, Overflow
 from ._tls import Tls
 
@@ -222,31 +220,7 @@ class Node:
             # machine gets two ids (the TCP-ECB binds each id to one identity).
             key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
             self._node_id, self._id_lock = claim_node_id(key)
-        face: Face
-        if self._can is not None:
-            face = CanFace(
-                self._can,
-                self._node_id,
-                deliver=self._deliver,
-                channels=self._states,
-                join_timeout=self._join_timeout,
-                filter_limit=self._filter_limit,
-            )
-        else:
-            assert self._broker is not None
-            face = TcpFace(
-                self._broker,
-                self._node_id,
-                name=self.name,
-                deliver=self._deliver,
-                channels=self._states,
-                node_stats=self.stats,
-                listen=self._listen,
-                join_timeout=self._join_timeout,
-                peer_queue=self._peer_queue,
-                peer_overflow=self._peer_overflow,
-                tls=self._tls,
-            )
+        face = self._build_face(self._node_id)
         try:
             await face.start()
         except BaseException:
@@ -254,6 +228,37 @@ class Node:
             self._release_id()
             raise
         self._face = face
+
+    def _build_face(self, node_id: int) -> Face:
+        """The face of this node's network, handed what it needs (imported only when used: a
+        TCP/IP node does not load python-can)."""
+        if self._can is not None:
+            from ._canface import CanFace
+
+            return CanFace(
+                self._can,
+                node_id,
+                deliver=self._deliver,
+                channels=self._states,
+                join_timeout=self._join_timeout,
+                filter_limit=self._filter_limit,
+            )
+        from ._tcpface import TcpFace
+
+        assert self._broker is not None
+        return TcpFace(
+            self._broker,
+            node_id,
+            name=self.name,
+            deliver=self._deliver,
+            channels=self._states,
+            node_stats=self.stats,
+            listen=self._listen,
+            join_timeout=self._join_timeout,
+            peer_queue=self._peer_queue,
+            peer_overflow=self._peer_overflow,
+            tls=self._tls,
+        )
 
     async def close(self) -> None:
         """Close every subscription and the network. Safe to call twice."""
@@ -403,11 +408,11 @@ class Node:
         deadline. Times are rounded to 0.1 ms, towards the safe side.
         """
         self._check_open()
-        face = self.face
-        if not isinstance(face, CanFace):
+        declare = getattr(self.face, "declare", None)  # a CAN face's: the CAN-ECB admits
+        if declare is None:
             raise ConfigError("real-time declarations are for CAN channels")
         state = await self._publishing_state(channel)
-        priority = await face.declare(state, size_bytes, period_ms, deadline_ms, jitter_ms)
+        priority: int = await declare(state, size_bytes, period_ms, deadline_ms, jitter_ms)
         state.declared = True
         return priority
 

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
+from ._address import parse_address
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, UpsError
 from ._tcpinbox import Inbox
 from ._tcplink import OVERFLOWS, Link, Overflow
@@ -26,7 +27,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("ups.tcp")
 
-DEFAULT_PORT = 7411
 HEARTBEAT = 0.5  # seconds between Pings to the ECB
 SILENCE = 6 * HEARTBEAT  # an ECB link that said nothing for this long is dead
 _RETRY_FIRST = 0.05
@@ -37,21 +37,6 @@ _EVENT_OVERHEAD = 32  # frame header + msgpack array, kind, uid, bin header, pri
 
 def _hex(value: int) -> str:
     return f"0x{value:016x}"
-
-
-def parse_address(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
-    """``HOST:PORT``, ``HOST`` or ``:PORT`` (IPv6 hosts in brackets) -> (host, port)."""
-    host, sep, port = text.rpartition(":")
-    if not sep or "]" in port:
-        host, port = text, str(DEFAULT_PORT)
-    host = host.strip("[]") or default_host
-    try:
-        number = int(port)
-    except ValueError:
-        number = -1
-    if not 0 <= number <= 0xFFFF:
-        raise ConfigError(f"expected HOST:PORT, got {text!r}")
-    return host, number
 
 
 class TcpFace:

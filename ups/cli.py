@@ -7,22 +7,21 @@ imports ``broker``, ``gateway`` and ``examples`` (lazily, per subcommand).
 from __future__ import annotations
 
 import argparse
-import asyncio
 import contextlib
 import json
 import logging
-import signal
 import sys
 from collections.abc import Coroutine
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from ._address import DEFAULT_PORT
 from ._channel import Channel, parse_channel
 from ._errors import ConfigError, UpsError
-from ._message import Message
-from ._node import Node
-from ._tcpface import DEFAULT_PORT, query_status
-from ._tls import Tls
-from .rt import cli as rt_cli
+
+if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
+    from ._message import Message
+    from ._node import Node
+    from ._tls import Tls
 
 EXIT_TIMEOUT = 1
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
@@ -30,7 +29,8 @@ EXIT_USAGE = 2
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = _parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = _parser(analyze="analyze" in argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -47,7 +47,9 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser(analyze: bool = True) -> argparse.ArgumentParser:
+    """The whole command line; ``analyze=False`` leaves out the options of ``ups analyze``
+    (the real-time analysis is the heaviest import, and only that command needs it)."""
     parser = argparse.ArgumentParser(prog="ups", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -167,8 +169,11 @@ def _parser() -> argparse.ArgumentParser:
     cmd.set_defaults(run=_run_sub)
 
     cmd = commands.add_parser("analyze", help="CAN response-time analysis of a message set")
-    rt_cli.add_arguments(cmd)
-    cmd.set_defaults(run=rt_cli.run)
+    if analyze:
+        from .rt import cli as rt_cli
+
+        rt_cli.add_arguments(cmd)
+        cmd.set_defaults(run=rt_cli.run)
 
     cmd = commands.add_parser(
         "demo", help="run the demo robots on a virtual CAN bus, with a gateway to loopback TCP/IP"
@@ -216,6 +221,8 @@ def _add_tls(cmd: argparse.ArgumentParser) -> None:
 
 
 def _tls(args: argparse.Namespace) -> Tls | None:
+    from ._tls import Tls
+
     return Tls.from_files(args.tls_ca, args.tls_cert, args.tls_key)
 
 
@@ -258,6 +265,9 @@ def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
     """Run ``coro`` (on uvloop when installed); SIGTERM and SIGINT cancel it, so every
     resource closes before exit."""
 
+    import asyncio
+    import signal
+
     async def wrapper() -> int:
         task = asyncio.current_task()
         assert task is not None
@@ -277,6 +287,8 @@ def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
 
 
 def _node(args: argparse.Namespace) -> Node:
+    from ._node import Node
+
     if args.listen is not None and args.broker is None:
         raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
     return Node(
@@ -352,6 +364,8 @@ def _run_certs(args: argparse.Namespace) -> int:
 
 
 def _run_status(args: argparse.Namespace) -> int:
+    from ._tcpface import query_status
+
     async def run() -> int:
         info = await query_status(args.address, args.timeout, _tls(args))
         print(json.dumps(info, indent=2))
@@ -361,6 +375,8 @@ def _run_status(args: argparse.Namespace) -> int:
 
 
 def _run_pub(args: argparse.Namespace) -> int:
+    import asyncio
+
     async def run() -> int:
         async with _node(args) as node:
             if args.priority is not None:
@@ -386,6 +402,8 @@ def _run_pub(args: argparse.Namespace) -> int:
 
 
 def _run_sub(args: argparse.Namespace) -> int:
+    import asyncio
+
     async def run() -> int:
         got = 0
         code = 0
