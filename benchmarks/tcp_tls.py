@@ -27,7 +27,7 @@ from ups import Node, Tls
 
 
 def make_fleet(folder: Path) -> None:
-    for args in (["ca", str(folder)], *(["issue", str(folder), n] for n in ("ecb", "a", "b"))):
+    for args in (["ca", str(folder)], *(["issue", str(folder), n] for n in ("broker", "a", "b"))):
         subprocess.run([sys.executable, "-m", "ups.cli", "certs", *args], check=True,
                        capture_output=True)  # fmt: skip
 
@@ -45,7 +45,7 @@ subscribe = ["bench/ping", "bench/flow"]
 async def run(
     tls: dict[str, Tls] | None, roundtrips: int, messages: int, acl: Acl | None = None
 ) -> tuple[float, float]:
-    ecb = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls["ecb"] if tls else None, acl=acl)
+    ecb = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls["broker"] if tls else None, acl=acl)
     await ecb.start()
     address = f"127.0.0.1:{ecb.port}"
     try:
@@ -94,7 +94,7 @@ def main() -> None:
         folder = Path(tmp)
         make_fleet(folder)
         tls = {n: Tls(folder / "ca.crt", folder / f"{n}.crt", folder / f"{n}.key")
-               for n in ("ecb", "a", "b")}  # fmt: skip
+               for n in ("broker", "a", "b")}  # fmt: skip
         plain = asyncio.run(run(None, args.roundtrips, args.messages))
         secure = asyncio.run(run(tls, args.roundtrips, args.messages))
         guarded = asyncio.run(run(tls, args.roundtrips, args.messages, Acl.parse(_ACL)))

@@ -14,7 +14,8 @@ Each entry is a channel name (``robot1/speed``), a glob over names (``robot1/*``
 and ``[...]`` as in shell patterns, ``*`` crossing ``/`` too), or a UID (``0x`` and hex digits).
 A name or UID matches its channel whether the node gave the name or only the UID (the UID is the
 name's hash). A glob matches only channels whose name the broker knows; the lone ``*`` matches
-every channel. An identity that is not listed may do nothing, not even connect.
+every channel. An identity that is not listed may do nothing: the ECB refuses even its Hello,
+and since the ECB vouches for no node of it, subscribers admit none of its links for long.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ channels they subscribe to and publish on. The ECB answers every Subscribe and A
 the channel's current subscriber list, and pushes the new list to the channel's publishers
 whenever it changes. It is never on the data path: publishers connect to subscribers directly.
 
-Liveness: every frame from a node counts as a sign of life (nodes Ping once a second). A node
+Liveness: every frame from a node counts as a sign of life (nodes Ping every 0.5 s). A node
 silent for ``liveness`` seconds, or whose link ended and did not come back within that time,
 leaves every list. A node that closed its link after withdrawing everything leaves at once.
 
@@ -45,6 +45,8 @@ DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
 STATUS_LIST = 1000  #: nodes and channels listed in a Status at most (the rest are counted)
+STATUS_INNER = 64  #: channels of a node, nodes of a channel, listed in a Status at most
+MAX_OWNERS = 1 << 16  #: node ids remembered with their identity (TLS), departed ones included
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
 
@@ -182,8 +184,9 @@ class TcpEcb:
                     "identity": m.identity,
                     "address": f"{m.address[0]}:{m.address[1]}",
                     "connected": m.link is not None,
-                    "subscribed": [_hex(uid) for uid in sorted(m.subs)],
-                    "published": [_hex(uid) for uid in sorted(m.pubs)],
+                    "subscribed": _listed(m.subs),
+                    "published": _listed(m.pubs),
+                    "channel_count": len(m.subs) + len(m.pubs),
                 }
                 for m in members
             ],
@@ -191,8 +194,8 @@ class TcpEcb:
                 {
                     "uid": _hex(uid),
                     "name": self._names.get(uid),
-                    "subscribers": [_hex(n) for n in sorted(self._subscribers.get(uid, ()))],
-                    "publishers": [_hex(n) for n in sorted(self._publishers.get(uid, ()))],
+                    "subscribers": _listed(self._subscribers.get(uid, ())),
+                    "publishers": _listed(self._publishers.get(uid, ())),
                 }
                 for uid in channels
             ],
@@ -210,11 +213,15 @@ class TcpEcb:
         return link
 
     def _on_event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
+        if link.lost.done():  # the rest of a read after we closed the link
+            return
         self.counters["malformed"] += 1
         log.warning("closed the link from %s: events do not go through the ECB", link.name)
         link.abort("sent an event to the ECB")
 
     def _on_frame(self, link: Link, frame: w.Frame) -> None:
+        if link.lost.done():  # the rest of a read after we closed the link: ignored
+            return
         member: _Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
             if self._acl is None or self._acl.may_status(identity(link.transport)):
@@ -251,12 +258,17 @@ class TcpEcb:
             link.abort("unexpected frame")
 
     def _owned_by(self, link: Link, node_id: int) -> bool:
-        """With TLS, a node id belongs to the identity that first registered it: another
-        identity saying Hello with it is refused (no takeover)."""
+        """With TLS, a node id belongs to the identity that first registered it, also after the
+        node left (no takeover, no squatting while it restarts): another identity saying
+        Hello with it is refused."""
         name = identity(link.transport)
         if name is None:
             return True
         owner = self._owners.setdefault(node_id, name)
+        if len(self._owners) > MAX_OWNERS:  # forget the oldest id of a departed node
+            oldest = next((n for n in self._owners if n not in self._members), None)
+            if oldest is not None:
+                del self._owners[oldest]
         if owner == name:
             return True
         self.counters["impostors"] += 1
@@ -380,11 +392,11 @@ class TcpEcb:
             return False
         if frame.name is not None and (theirs := _uid_of(frame.name)) != uid:
             why = "not a channel name" if theirs is None else f"the name of {_hex(theirs)}"
-            self._refuse(member.link, uid, right, f"{frame.name!r} is {why}")
+            self._refuse(member.link, uid, right, f"{frame.name!r:.80} is {why}")
             return False
         name = frame.name if frame.name is not None else self._names.get(uid)
         if self._acl is not None and not self._acl.allows(member.identity, right, uid, name):
-            channel = name if name is not None else _hex(uid)
+            channel = name[:255] if name is not None else _hex(uid)
             self._refuse(member.link, uid, right,
                          f"identity {member.identity!r} may not {right} {channel}")  # fmt: skip
             return False
@@ -398,7 +410,6 @@ class TcpEcb:
 
     def _leave(self, member: _Member, why: str) -> None:
         del self._members[member.node_id]
-        self._owners.pop(member.node_id, None)  # the id is free again
         self.counters["left"] += 1
         log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
         for uid in member.pubs:
@@ -427,10 +438,10 @@ class TcpEcb:
         peers = tuple(self._members[n].peer() for n in sorted(self._subscribers.get(uid, ())))
         return w.encode(w.Subscribers(uid, peers))
 
-    def _identities(self, uid: int) -> tuple[str, ...]:
-        """The identities that publish on ``uid`` (none without TLS)."""
+    def _identities(self, uid: int) -> tuple[tuple[int, str], ...]:
+        """The nodes that publish on ``uid``, with their identities (none without TLS)."""
         members = (self._members[n] for n in self._publishers.get(uid, ()))
-        return tuple(sorted({m.identity for m in members if m.identity is not None}))
+        return tuple(sorted((m.node_id, m.identity) for m in members if m.identity is not None))
 
     def _answer(self, member: _Member, uid: int, subscribe: bool) -> None:
         """Send a subscriber the channel's Publishers, a publisher its Subscribers."""
@@ -452,7 +463,7 @@ class TcpEcb:
                 self._answer(self._members[node_id], uid, subscribe=False)
                 self.counters["pushes"] += 1
 
-    def _vouch(self, uid: int, before: tuple[str, ...] | None) -> None:
+    def _vouch(self, uid: int, before: tuple[tuple[int, str], ...] | None) -> None:
         """Tell the subscribers of ``uid`` its publishers' identities, if they changed."""
         if before is None or self._identities(uid) == before:
             return
@@ -483,6 +494,11 @@ class TcpEcb:
 
 def _hex(value: int) -> str:
     return f"0x{value:016x}"
+
+
+def _listed(values: Any) -> list[str]:
+    """At most STATUS_INNER of ``values`` (UIDs or node ids), in order, as hex."""
+    return [_hex(v) for v in sorted(values)[:STATUS_INNER]]
 
 
 def _uid_of(name: str) -> int | None:

@@ -20,7 +20,7 @@ import pytest
 from broker._acl import Acl
 from broker.tcp_ecb import TcpEcb
 from gateway import Gateway
-from ups import AccessDenied, Channel, ConfigError, Node, _tcpinbox, name_to_uid
+from ups import AccessDenied, BrokerUnavailable, Channel, ConfigError, Node, _tcpinbox, name_to_uid
 from ups import _tcpwire as w
 from ups._tcpface import query_status
 
@@ -199,7 +199,7 @@ async def test_a_link_that_comes_before_the_brokers_word_waits_for_it(fleet: Pat
             *alice.face.address,
             ssl=tls(fleet, "bob").client(),  # type: ignore[attr-defined]
         )
-        writer.write(w.encode(w.Hello(0xB1, "bob-early", "127.0.0.1", 1)) + b"".join(early))
+        writer.write(w.encode(w.Hello(0xB0, "bob-early", "127.0.0.1", 1)) + b"".join(early))
         await eventually(lambda: bool(alice.face._inbox._holding))  # type: ignore[attr-defined]
         assert not sub._queue
         await bob.publish("robot/speed", b"late")  # bob advertises: the ECB vouches for bob
@@ -355,3 +355,130 @@ def test_the_command_line_names_what_is_refused(fleet: Path) -> None:
     assert plain.finish()[0] == 2 and "an ACL needs TLS" in "".join(plain.stderr_lines)
     missing = Proc("broker", "--acl", str(fleet / "nope.toml"), *opts("broker"))
     assert missing.finish()[0] == 2 and "cannot read the ACL" in "".join(missing.stderr_lines)
+
+
+# --- what a holder of a fleet certificate tried (the review's findings, kept as tests) -------
+
+
+async def test_a_node_joins_only_the_fleet_broker(fleet: Path) -> None:
+    """mallory runs a TCP-ECB of her own with her certificate: nodes will not join it."""
+    fake = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls(fleet, "mallory"))
+    await fake.start()
+    try:
+        alice = node(fleet, fake, "alice", 0xA1)
+        alice._join_timeout = 1  # type: ignore[attr-defined]
+        with pytest.raises(BrokerUnavailable, match="shows identity 'mallory'"):
+            await alice.start()
+        await alice.close()
+        assert fake.stats()["nodes"] == 0
+    finally:
+        await fake.close()
+
+
+async def test_links_nobody_vouched_for_make_room_for_a_publisher(
+    fleet: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """eve (no rights at all) fills alice's publisher slots with links that said Hello: bob's
+    link still gets in, and eve's are the ones closed."""
+    monkeypatch.setattr(_tcpinbox, "MAX_PUBLISHERS", 8)
+    async with (
+        acl_ecb(fleet) as ecb,
+        node(fleet, ecb, "alice", 0xA1) as alice,
+        node(fleet, ecb, "bob", 0xB0) as bob,
+    ):
+        sub = await alice.subscribe("robot/speed")
+        writers = []
+        for n in range(8):
+            _, writer = await asyncio.open_connection(
+                *alice.face.address,
+                ssl=tls(fleet, "eve").client(),  # type: ignore[attr-defined]
+            )
+            writer.write(w.encode(w.Hello(0xE0 + n, "eve", "127.0.0.1", 1)))
+            writers.append(writer)
+        inbox = alice.face._inbox  # type: ignore[attr-defined]
+        await eventually(lambda: len(inbox._waiting) == 8)
+        await bob.publish("robot/speed", b"through")
+        assert (await sub.get_msg(timeout=5)).data == b"through"
+        assert inbox._doorman.counters["evicted"] >= 1
+        for writer in writers:
+            writer.close()
+
+
+async def test_a_client_that_never_reads_refusals_is_cut_off(fleet: Path) -> None:
+    """Registrations with long bogus names, answers never read: each answer stays short, and
+    the ECB cuts the link off at its control-queue bound instead of growing."""
+    async with acl_ecb(fleet) as ecb:
+        reader, writer = await asyncio.open_connection(
+            "127.0.0.1", ecb.port, ssl=tls(fleet, "mallory").client()
+        )
+        writer.write(w.encode(w.Hello(0x3A, "mallory", "127.0.0.1", 1)))
+        bogus = w.encode(w.Subscribe(1, "x" * 200 + "/not-the-name-of-1"))
+        for _ in range(20):
+            writer.write(bogus * 1000)
+        await eventually(lambda: ecb.stats()["denied"] >= 16384, timeout=20)
+        await eventually(lambda: ecb.stats()["nodes"] == 0, timeout=10)  # link cut: it leaves
+        writer.close()
+        del reader
+        async with node(fleet, ecb, "alice", 0xA1) as alice:  # and the ECB serves on
+            await alice.subscribe("robot/speed")
+
+
+async def test_frames_after_a_bad_one_are_ignored_not_crashed_on(
+    fleet: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    async with acl_ecb(fleet) as ecb:
+        speed = name_to_uid("robot/speed")
+        reader, writer = await asyncio.open_connection(
+            "127.0.0.1", ecb.port, ssl=tls(fleet, "mallory").client()
+        )
+        writer.write(w.encode(w.Hello(0x3A, "mallory", "127.0.0.1", 1)))
+        writer.write(w.encode(w.Subscribe(speed, "robot/speed")))
+        await eventually(lambda: speed in ecb._subscribers)
+        burst = w.encode_event(speed, b"", 0, 1) + w.encode(w.Subscribe(speed, "robot/speed"))
+        writer.write(w.encode(w.Subscribe(speed, "robot/speed")) + burst)
+        await reader.read()  # until the ECB closes the link
+        writer.close()
+        async with node(fleet, ecb, "bob", 0xB0) as bob:
+            await bob.publish("robot/speed", b"")
+        assert not [r for r in caplog.records if r.levelname == "ERROR"]
+
+
+async def test_forged_starts_and_node_ids_change_nothing(fleet: Path) -> None:
+    """alice may publish robot/speed, but not as bob: a link claiming bob's node id with her
+    certificate is refused; Starts from it neither fake losses nor grow any table."""
+    speed = name_to_uid("robot/speed")
+    async with (
+        acl_ecb(fleet) as ecb,
+        node(fleet, ecb, "alice", 0xA1) as alice,
+        node(fleet, ecb, "bob", 0xB0) as bob,
+        node(fleet, ecb, "mallory", 0x3A) as mallory,
+    ):
+        sub = await mallory.subscribe("robot/speed")
+        await bob.publish("robot/speed", b"bob-1")
+        await alice.publish("robot/speed", b"alice-1")
+        got = {(m.data, m.source) for m in [await sub.get_msg(timeout=5) for _ in range(2)]}
+        assert got == {(b"bob-1", 0xB0), (b"alice-1", 0xA1)}
+        inbox = mallory.face._inbox  # type: ignore[attr-defined]
+        tables = len(inbox._expected)
+        frames = [w.encode(w.Start(speed, (1 << 64) - 2))]
+        frames += [w.encode(w.Start(uid, 5)) for uid in range(1000, 2000)]
+        frames += [w.encode_event(speed, b"not bob", 0, (1 << 64) - 2)]
+        await _inject_as(fleet, "alice", mallory, w.Hello(0xB0, "bob", "127.0.0.1", 1), frames)
+        assert len(inbox._expected) == tables and mallory.stats()["lost"] == 0
+        assert mallory.stats()["unvouched"] == 1
+        await bob.publish("robot/speed", b"bob-2")
+        assert (await sub.get_msg(timeout=5)).data == b"bob-2"
+        assert mallory.stats()["lost"] == 0 and not sub._queue
+
+
+async def _inject_as(
+    fleet: Path, who: str, target: Node, hello: w.Hello, frames: list[bytes]
+) -> None:
+    reader, writer = await asyncio.open_connection(
+        *target.face.address,
+        ssl=tls(fleet, who).client(),  # type: ignore[attr-defined]
+    )
+    writer.write(w.encode(hello) + b"".join(frames))
+    await writer.drain()
+    await reader.read()  # until the target closes the link
+    writer.close()

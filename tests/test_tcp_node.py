@@ -180,7 +180,8 @@ async def test_a_silent_node_leaves_every_list_after_the_liveness_timeout() -> N
         with socket.create_connection(("127.0.0.1", ecb.port)) as raw:
             raw.sendall(w.encode(w.Hello(0xDEAD, "zombie", "127.0.0.1", 9)))
             raw.sendall(w.encode(w.Subscribe(pub.face._advertised.copy().pop())))  # type: ignore[attr-defined]
-            await eventually(lambda: 0xDEAD in {p.node_id for p in pub.face._outbox._peers.values()})  # type: ignore[attr-defined]
+            peers = pub.face._outbox._peers  # type: ignore[attr-defined]
+            await eventually(lambda: 0xDEAD in {p.node_id for p in peers.values()})
             # it never pings, and keeps its connection open
             await eventually(lambda: 0xDEAD not in ecb._members, timeout=3)
             await eventually(lambda: not pub.face._outbox._peers)  # type: ignore[attr-defined]
@@ -239,7 +240,8 @@ async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -
                     + w.encode(w.Subscribe(sub.channels[0].uid))
                 )
                 await pub.publish("x", b"")  # advertise
-                await eventually(lambda: len(pub.face._outbox._targets.get(sub.channels[0].uid, ())) == 2)  # type: ignore[attr-defined]
+                targets = pub.face._outbox._targets  # type: ignore[attr-defined]
+                await eventually(lambda: len(targets.get(sub.channels[0].uid, ())) == 2)
                 payload = bytes(1000)
                 count = 20_000
                 for i in range(count):

@@ -14,6 +14,7 @@ from broker.tcp_ecb import TcpEcb
 from ups import AccessDenied, BrokerUnavailable, Node, Tls
 from ups._tcpface import query_status
 
+from .conftest import eventually
 from .procs import ROOT, Proc
 
 
@@ -83,9 +84,14 @@ async def test_a_node_id_cannot_be_taken_by_another_identity(fleet: Path, ecb: T
             await thief.start()  # at once, with the reason
         await thief.close()
         assert ecb.stats()["impostors"] == 1 and ecb.stats()["nodes"] == 1
-    # Once alice is gone, the id is free: ids are bound to identities while they are in use.
-    async with Node(broker=address, node_id=0xA1, tls=tls(fleet, "mallory")):
-        pass
+    # alice is gone (she may be restarting): her id is still hers, for mallory to squat on.
+    await eventually(lambda: ecb.stats()["nodes"] == 0)
+    squatter = Node(broker=address, node_id=0xA1, join_timeout=5, tls=tls(fleet, "mallory"))
+    with pytest.raises(AccessDenied, match="is taken"):
+        await squatter.start()
+    await squatter.close()
+    async with Node(broker=address, node_id=0xA1, tls=tls(fleet, "alice")) as back:
+        await back.subscribe("mine")
 
 
 async def test_one_program_run_by_two_identities_gets_two_node_ids(

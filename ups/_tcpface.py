@@ -20,7 +20,7 @@ from ._errors import AccessDenied, BrokerUnavailable, ConfigError, UpsError
 from ._tcpinbox import Inbox
 from ._tcplink import OVERFLOWS, Link, Overflow
 from ._tcpoutbox import Outbox
-from ._tls import Tls
+from ._tls import Tls, identity
 
 if TYPE_CHECKING:
     from ._face import ChannelState, Deliver
@@ -221,6 +221,8 @@ class TcpFace:
                 self._new_ecb_link, host, port, ssl=self._client_tls
             )
             try:
+                if link.lost.done():  # refused at once: not the broker (see _verify_ecb)
+                    await self._welcome  # raises why
                 if self.address is None:
                     await self._listen_for_peers(link)
                 link.send_control(w.encode(w.Hello(self.node_id, self.name, *self._my_address())))
@@ -237,7 +239,19 @@ class TcpFace:
         link.send_control(w.encode(w.Ping()))  # ends the registration: the ECB forgets the rest
 
     def _new_ecb_link(self) -> Link:
-        return Link(self._ecb_event, self._ecb_frame, self._ecb_lost)
+        link = Link(self._ecb_event, self._ecb_frame, self._ecb_lost)
+        link.verify = self._verify_ecb
+        return link
+
+    def _verify_ecb(self, transport: asyncio.BaseTransport) -> str | None:
+        """With TLS, the TCP-ECB must show the fleet broker's identity: a node that joined
+        another participant posing as the ECB would let it decide who hears what."""
+        if self._tls is None:
+            return None
+        shown = identity(transport)
+        if shown == self._tls.broker:
+            return None
+        return f"the TCP-ECB shows identity {shown!r}, not the broker's ({self._tls.broker!r})"
 
     async def _listen_for_peers(self, ecb: Link) -> None:
         assert ecb.transport is not None
@@ -330,7 +344,7 @@ class TcpFace:
         if isinstance(frame, w.Subscribers):
             self._on_subscribers(frame)
         elif isinstance(frame, w.Publishers):
-            self._inbox.vouch(frame.uid, frame.identities)
+            self._inbox.vouch(frame.uid, frame.publishers)
             self._acked(True, frame.uid)
         elif isinstance(frame, w.Refused):
             self._on_refused(frame)
@@ -358,6 +372,8 @@ class TcpFace:
             frame.right,
         )
         (self._subscribed if subscribe else self._advertised).discard(frame.uid)
+        if not subscribe:  # no longer a publisher of it: its subscribers get nothing more
+            self._outbox.update(w.Subscribers(frame.uid, ()))
         if (subscribe, frame.uid) in self._acks:
             self._acked(subscribe, frame.uid, error)
         else:  # a registration renewed after a reconnect

@@ -1,10 +1,12 @@
 """A node's TCP inbox: the listening socket and the links on which publishers deliver events.
 
 It counts what never arrives (sequence numbers per publisher and channel, see docs/protocol.md)
-and, with TLS, accepts the events of a channel only from the identities the TCP-ECB says publish
-on it (``vouch``, from its ``Publishers`` frames). A link whose event is not vouched for yet is
-held, unread, until the ECB's word comes; after ``VOUCH_WAIT`` seconds without it the link is
-cut off and what it held is counted (``unvouched``).
+and, with TLS, accepts the events of a channel only from the nodes the TCP-ECB says publish on
+it, each with its identity (``vouch``, from its ``Publishers`` frames). A link whose event (or
+Start) is not vouched for yet is held, unread, until the ECB's word comes; after
+``VOUCH_WAIT`` seconds without it the link is cut off and what it held is counted
+(``unvouched``). A link whose node the ECB vouched for on no channel counts as waiting at the
+doorman: it is closed after 5 s, and evicted first when too many wait.
 """
 
 from __future__ import annotations
@@ -64,7 +66,9 @@ class Inbox:
         self._counters = counters
         self._status = status
         self._checking = checking  # with TLS: events only from vouched-for identities
-        self._vouched: dict[int, frozenset[str]] = {}  # uid -> identities publishing on it
+        self._vouched: dict[int, frozenset[tuple[int, str]]] = {}  # uid -> (node id, identity)
+        self._known: set[tuple[int, str]] = set()  # every pair vouched for, on any channel
+        self._waiting: set[Link] = set()  # said Hello, not vouched for on any channel yet
         self._links: set[Link] = set()
         self._holding: set[Link] = set()
         self._doorman = Doorman(MAX_PUBLISHERS)
@@ -87,20 +91,30 @@ class Inbox:
             self._server.close()
         self._doorman.close()
 
-    def vouch(self, uid: int, identities: tuple[str, ...]) -> None:
-        """The ECB says these identities publish on ``uid``: release links waiting for that.
+    def vouch(self, uid: int, publishers: tuple[tuple[int, str], ...]) -> None:
+        """The ECB says these nodes (node id, identity) publish on ``uid``: admit and release
+        links waiting for that.
 
         What the ECB vouched for once stands while we subscribe (the ACL does not change while
         the ECB runs): a publisher that withdrew still gets its last events through."""
         if uid not in self._subscribed:
             return
-        self._vouched[uid] = self._vouched.get(uid, frozenset()).union(identities)
+        self._vouched[uid] = self._vouched.get(uid, frozenset()).union(publishers)
+        self._known.update(publishers)
+        for link in list(self._waiting):
+            pub: _Publisher = link.peer
+            if (pub.node_id, pub.identity) in self._known:
+                self._waiting.discard(link)
+                self._doorman.greeted(link)
         for link in list(self._holding):
             self._release(link)
 
     def forget(self, uid: int) -> None:
-        """We unsubscribed from ``uid``: what comes later is news."""
+        """We unsubscribed from ``uid``: what comes later is news, and needs the ECB's word."""
         self._vouched.pop(uid, None)
+        for link in self._links:
+            if link.peer is not None:
+                link.peer.allowed.discard(uid)
         for key in [k for k in self._expected if k[1] == uid]:
             del self._expected[key]
 
@@ -146,14 +160,20 @@ class Inbox:
         pub: _Publisher | None = link.peer
         if isinstance(frame, w.Hello):
             if pub is None:
-                link.peer = _Publisher(frame.node_id, identity(link.transport))
-                self._doorman.greeted(link)
+                pub = link.peer = _Publisher(frame.node_id, identity(link.transport))
+                if not self._checking or (pub.node_id, pub.identity) in self._known:
+                    self._doorman.greeted(link)
+                else:  # full-sized frames, but out at the doorman's timeout unless vouched for
+                    self._doorman.lift(link)
+                    self._waiting.add(link)
         elif isinstance(frame, w.Start):
             if pub is None:
                 self._counters["malformed"] += 1
                 link.abort("Start before Hello")
             elif pub.held is not None:
                 pub.held.append(frame)
+            elif self._checking and not self._allow(pub, frame.uid):
+                self._hold(link, frame)
             else:
                 self._start(pub, frame)
         elif isinstance(frame, w.StatusRequest):
@@ -162,6 +182,8 @@ class Inbox:
             link.send_control(w.encode(w.Pong()))
 
     def _start(self, pub: _Publisher, frame: w.Start) -> None:
+        if frame.uid not in self._subscribed:  # nothing to count for a channel we do not want
+            return
         key = (pub.node_id, frame.uid)
         expected = self._expected.get(key)
         state = self._channels.get(frame.uid)
@@ -172,6 +194,7 @@ class Inbox:
 
     def _lost(self, link: Link, reason: str | None) -> None:
         self._links.discard(link)
+        self._waiting.discard(link)
         self._doorman.gone(link)
         pub: _Publisher | None = link.peer
         if pub is not None and pub.held is not None:
@@ -186,12 +209,14 @@ class Inbox:
     # --- vouching --------------------------------------------------------------------------
 
     def _allow(self, pub: _Publisher, uid: int) -> bool:
-        if pub.identity is not None and pub.identity in self._vouched.get(uid, ()):
+        if uid in pub.allowed:
+            return True
+        if pub.identity is not None and (pub.node_id, pub.identity) in self._vouched.get(uid, ()):
             pub.allowed.add(uid)
             return True
         return False
 
-    def _hold(self, link: Link, first: _HeldEvent) -> None:
+    def _hold(self, link: Link, first: _HeldEvent | w.Start) -> None:
         """Stop reading ``link`` until the ECB vouches for its publisher, or the wait ends."""
         pub: _Publisher = link.peer
         pub.held = [first]

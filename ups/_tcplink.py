@@ -8,8 +8,8 @@ the frames that follow it in the same iteration are queued and written together 
 event queue is bounded: while the peer does not read (the transport paused us) it fills up to
 ``limit`` frames, then ``overflow`` decides which event is lost, and ``dropped`` counts it.
 Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of
-their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them
-unread is cut off.
+their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them,
+or ``CONTROL_BYTES`` of them, unread is cut off.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ _BUFFER = 1 << 14  # receive buffer to begin with; grown for bigger frames ...
 _BUFFER_KEEP = 1 << 18  # ... and given back once empty, when it grew past this
 _WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us
 CONTROL_LIMIT = 1 << 14  #: control frames queued for a peer that does not read: then cut off
+CONTROL_BYTES = 8 << 20  #: ... or this many bytes of them
 
 
 class Link(asyncio.BufferedProtocol):
@@ -67,6 +68,7 @@ class Link(asyncio.BufferedProtocol):
         self._end = 0
         self._out: collections.deque[bytes] = collections.deque()  # events
         self._control: list[bytes] = []  # control frames, written before the events
+        self._control_bytes = 0
         self._room: asyncio.Future[None] | None = None  # awaited by a publisher for room
         self._flush_pending = False
         self._paused = False
@@ -94,10 +96,12 @@ class Link(asyncio.BufferedProtocol):
         """Queue a frame that must not be lost (anything but an event), ahead of the events."""
         if self._closing:
             return
-        if len(self._control) >= CONTROL_LIMIT:
-            self.abort(f"{CONTROL_LIMIT} control frames left unread")
+        if len(self._control) >= CONTROL_LIMIT or self._control_bytes > CONTROL_BYTES:
+            self.abort(f"{len(self._control)} control frames ({self._control_bytes} bytes) "
+                       "left unread")  # fmt: skip
             return
         self._control.append(frame)
+        self._control_bytes += len(frame)
         if not self._flush_pending and self._writable():
             self._flush_pending = True
             self._loop.call_soon(self._flush)
@@ -157,6 +161,7 @@ class Link(asyncio.BufferedProtocol):
             if self._control:
                 self.transport.write(b"".join(self._control))
                 self._control.clear()
+                self._control_bytes = 0
             if out:
                 self.transport.write(out[0] if len(out) == 1 else b"".join(out))
                 out.clear()
@@ -255,11 +260,12 @@ class Link(asyncio.BufferedProtocol):
 class Doorman:
     """Bounds the connections one listening socket accepts, and counts what it turns away.
 
-    At most ``max_links`` connections in all (a new one beyond is closed at once: counted in
-    ``refused``). Of those, at most ``max_waiting`` may not have said Hello yet: when another
-    comes, the oldest waiting one is closed (``evicted``). A connection that has not said Hello
-    within ``hello_timeout`` seconds is closed (``timed_out``). Until its Hello, a connection
-    may send frames of at most ``first_frame`` bytes.
+    At most ``max_links`` connections in all. A new one beyond closes the oldest connection
+    still waiting to be admitted (``evicted``), or, if none waits, is closed itself
+    (``refused``). At most ``max_waiting`` may wait to be admitted: when another comes, the
+    oldest waiting one is closed (``evicted``). A connection not admitted (``greeted``) within
+    ``hello_timeout`` seconds is closed (``timed_out``). Until ``lift`` or ``greeted``, a
+    connection may send frames of at most ``first_frame`` bytes.
     """
 
     def __init__(
@@ -282,9 +288,13 @@ class Doorman:
         """A new connection (call from the protocol factory)."""
         self.links += 1
         if self.links > self.max_links:
-            self.counters["refused"] += 1
-            link.abort(f"more than {self.max_links} connections")
-            return
+            if not self._waiting:
+                self.counters["refused"] += 1
+                link.abort(f"more than {self.max_links} connections")
+                return
+            oldest = next(iter(self._waiting))  # one not admitted yet makes room for the new one
+            self.counters["evicted"] += 1
+            oldest.abort(f"more than {self.max_links} connections, and not admitted")
         if len(self._waiting) >= self.max_waiting:
             oldest = next(iter(self._waiting))
             self.counters["evicted"] += 1
@@ -294,11 +304,16 @@ class Doorman:
         self._waiting[link] = loop.call_later(self.hello_timeout, self._time_out, link)
 
     def greeted(self, link: Link) -> None:
-        """``link`` said Hello: it may stay, and send full-sized frames."""
+        """``link`` said Hello (and is admitted): it may stay, and send full-sized frames."""
+        self.lift(link)
         timer = self._waiting.pop(link, None)
         if timer is not None:
             timer.cancel()
-            link.max_frame = link.full_frame
+
+    def lift(self, link: Link) -> None:
+        """``link`` may send full-sized frames, but still counts as waiting to be admitted
+        (``greeted``): it is still timed out, and evicted first."""
+        link.max_frame = link.full_frame
 
     def gone(self, link: Link) -> None:
         """``link`` ended (call from its on_lost)."""
@@ -310,7 +325,8 @@ class Doorman:
     def _time_out(self, link: Link) -> None:
         if link in self._waiting:
             self.counters["timed_out"] += 1
-            link.abort(f"no Hello within {self.hello_timeout:g} s")
+            link.abort(f"not admitted (no Hello, or none vouched for) within "
+                       f"{self.hello_timeout:g} s")  # fmt: skip
 
     def close(self) -> None:
         for timer in self._waiting.values():

@@ -99,11 +99,12 @@ class Peer:
 
 @dataclass(frozen=True, slots=True)
 class Publishers:
-    """ECB -> subscriber: the identities that publish on ``uid`` (with TLS; empty without).
-    A subscriber accepts events of ``uid`` only from links whose certificate shows one of them."""
+    """ECB -> subscriber: the nodes that publish on ``uid``, as (node id, identity) pairs (with
+    TLS; empty without). A subscriber accepts events of ``uid`` only from a link whose Hello
+    says one of these node ids and whose certificate shows that node's identity."""
 
     uid: int
-    identities: tuple[str, ...]
+    publishers: tuple[tuple[int, str], ...]
 
 
 @dataclass(frozen=True, slots=True)
@@ -207,7 +208,7 @@ def _fields(frame: Frame) -> tuple[Any, ...]:
         ]  # fmt: skip
         return (_SUBSCRIBERS, frame.uid, peers)
     if isinstance(frame, Publishers):
-        return (_PUBLISHERS, frame.uid, list(frame.identities))
+        return (_PUBLISHERS, frame.uid, [list(p) for p in frame.publishers])
     if isinstance(frame, Refused):
         return (_REFUSED, frame.uid, frame.right, frame.reason)
     if isinstance(frame, Status):
@@ -347,8 +348,8 @@ def _frame(f: tuple[Any, ...]) -> Frame:
         _, uid, peers = f
         return Subscribers(_uid(uid), tuple(_peer(p) for p in _array(peers)))
     if kind == _PUBLISHERS:
-        _, uid, identities = f
-        return Publishers(_uid(uid), tuple(_str(i) for i in _array(identities)))
+        _, uid, publishers = f
+        return Publishers(_uid(uid), tuple(_voucher(p) for p in _array(publishers)))
     if kind == _REFUSED:
         _, uid, right, reason = f
         if right not in RIGHTS:
@@ -368,6 +369,11 @@ def _array(value: Any) -> tuple[Any, ...]:
     if not isinstance(value, tuple):
         raise TypeError(f"not an array: {_short(value)}")
     return value
+
+
+def _voucher(value: Any) -> tuple[int, str]:
+    node_id, identity = _array(value)
+    return _uid(node_id), _str(identity)
 
 
 def _peer(value: Any) -> Peer:

@@ -4,7 +4,9 @@ A node's identity is its certificate's common name. ``ups certs ca DIR`` makes t
 (``DIR/ca.crt``, ``DIR/ca.key``); ``ups certs issue DIR NAME`` makes ``DIR/NAME.crt`` and
 ``DIR/NAME.key`` signed by it. Every daemon and node is then given ``--tls-ca``,
 ``--tls-cert`` and ``--tls-key``: it accepts only peers whose certificate the CA signed, and
-shows its own. Host names are not checked: the CA's signature is what admits a peer.
+shows its own. Host names are not checked: the CA's signature is what admits a peer, and the
+name in it says who the peer is. A node also checks that its TCP-ECB is the fleet's broker:
+its certificate must name the identity ``broker`` (``--tls-broker`` says another).
 """
 
 from __future__ import annotations
@@ -29,9 +31,12 @@ class Tls:
     ca: Path
     cert: Path
     key: Path
+    broker: str = "broker"  #: the identity a node's TCP-ECB must show
 
     @classmethod
-    def from_files(cls, ca: str | None, cert: str | None, key: str | None) -> Tls | None:
+    def from_files(
+        cls, ca: str | None, cert: str | None, key: str | None, broker: str = "broker"
+    ) -> Tls | None:
         """All three, or none (plain TCP); anything else is a ``ConfigError``."""
         given = [x for x in (ca, cert, key) if x]
         if not given:
@@ -42,7 +47,7 @@ class Tls:
         for path in (ca, cert, key):
             if not Path(path).is_file():
                 raise ConfigError(f"no such file: {path}")
-        return cls(Path(ca), Path(cert), Path(key))
+        return cls(Path(ca), Path(cert), Path(key), broker)
 
     def identity(self) -> str:
         """The common name of our own certificate: who we are to the others."""

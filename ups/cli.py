@@ -123,7 +123,7 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
-    _add_tls(cmd)
+    _add_tls(cmd, node=True)
     cmd.set_defaults(run=_run_gateway)
 
     cmd = commands.add_parser("status", help="print the tables and counters of a TCP daemon")
@@ -210,20 +210,26 @@ def _add_node_options(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument(
         "--join-timeout", type=float, default=30.0, help="seconds to wait for the broker"
     )
-    _add_tls(cmd)
+    _add_tls(cmd, node=True)
 
 
-def _add_tls(cmd: argparse.ArgumentParser) -> None:
+def _add_tls(cmd: argparse.ArgumentParser, node: bool = False) -> None:
     tls = cmd.add_argument_group("TLS (TCP/IP; all three, from 'ups certs')")
     tls.add_argument("--tls-ca", metavar="FILE", help="the fleet CA's certificate")
     tls.add_argument("--tls-cert", metavar="FILE", help="this participant's certificate")
     tls.add_argument("--tls-key", metavar="FILE", help="this participant's private key")
+    if node:
+        tls.add_argument(
+            "--tls-broker", metavar="NAME", default="broker",
+            help="the identity the TCP-ECB's certificate must show (default: broker)",
+        )  # fmt: skip
 
 
 def _tls(args: argparse.Namespace) -> Tls | None:
     from ._tls import Tls
 
-    return Tls.from_files(args.tls_ca, args.tls_cert, args.tls_key)
+    broker = getattr(args, "tls_broker", "broker")  # the commands that join a TCP-ECB have it
+    return Tls.from_files(args.tls_ca, args.tls_cert, args.tls_key, broker)
 
 
 def _channel_arg(text: str) -> Channel:
