@@ -119,7 +119,7 @@ def test_ecb_killed_mid_stream_then_restarted() -> None:
         second, address = start_tcp_broker("--recovery", "1.5", port=port)
         with second, sub_proc(address, "flow", node_id=SUB_ID + 1, count=5) as new_sub:
             code, out = new_sub.finish(timeout=30)
-            assert code == 0, "a subscriber that came after the restart was not found"
+            assert code == 0, f"the subscriber that came after the restart: {new_sub.stderr_lines}"
             assert len(out.splitlines()) == 5
             assert pub.finish(timeout=30)[0] == 0  # nothing dropped on the way
             code, out = old_sub.finish(timeout=30)

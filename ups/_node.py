@@ -465,9 +465,14 @@ class Node:
     async def _attach(self, chan: Channel, sink: Sink) -> ChannelState:
         """Deliver ``chan``'s events to ``sink`` too (subscribing on the network if need be)."""
         state = self._state(chan)
-        if not state.subs:
-            await self.face.bind(state, subscribe=True)
-        state.subs.append(sink)
+        first = not state.subs
+        state.subs.append(sink)  # events that come while the network binds are kept too
+        if first:
+            try:
+                await self.face.bind(state, subscribe=True)
+            except BaseException:
+                state.subs.remove(sink)
+                raise
         return state
 
     async def _detach(self, chan: Channel, sink: Sink) -> None:
