@@ -126,46 +126,57 @@ def _utilisation(msgs: Sequence[_Msg]) -> Fraction:
     return sum((msg.c / msg.t for msg in msgs), Fraction(0))
 
 
-def _queuing(base: Fraction, higher: Sequence[_Msg], start: Fraction, tau: Fraction) -> Fraction:
-    """Least fixed point >= ``start`` of ``w = base + sum ceil((w + J_k + tau) / T_k) C_k``.
+def _queuing(base: int, higher: Sequence[tuple[int, int, int]], start: int, tau: int) -> int:
+    """Least fixed point >= ``start`` of ``w = base + sum ceil((w + J_k + tau) / T_k) C_k``,
+    in integer time units; ``higher`` holds (C_k, T_k, J_k).
 
     The caller guarantees that the utilisation of ``higher`` is below 1, so it exists.
     """
     w = start
     while True:
-        following = base + sum(
-            (math.ceil((w + k.j + tau) / k.t) * k.c for k in higher), Fraction(0)
-        )
+        following = base + sum(-((-(w + j + tau)) // t) * c for c, t, j in higher)
         if following == w:
             return w
         w = following
 
 
 def _response_time(bus: _Bus, higher: Sequence[_Msg], m: _Msg, b: Fraction) -> Fraction | None:
-    """Worst-case response time of ``m`` below the messages ``higher`` with blocking ``b``."""
-    hp_sum = sum((k.c for k in higher), Fraction(0))
-    if bus.method == "tindell1994":
-        if _utilisation(higher) >= 1:
-            return None
-        w = _queuing(b, higher, b + hp_sum, bus.tau)
-        return w + m.c  # paper 000 leaves out J_m, not the J_k inside w_m
+    """Worst-case response time of ``m`` below the messages ``higher`` with blocking ``b``.
+
+    The recurrences run on integers: every time is scaled by the least common multiple of the
+    denominators involved (exact, and much faster than Fractions on long busy periods).
+    """
     level = [*higher, m]
-    if _utilisation(level) >= 1:
+    if _utilisation(higher if bus.method == "tindell1994" else level) >= 1:
         return None
-    t = b + hp_sum + m.c
+    times = [b, bus.tau, *(x for k in level for x in (k.c, k.t, k.j))]
+    unit = math.lcm(*(x.denominator for x in times))
+
+    def scaled(x: Fraction) -> int:
+        return int(x * unit)
+
+    hp = [(scaled(k.c), scaled(k.t), scaled(k.j)) for k in higher]
+    hp_sum = sum(c for c, _, _ in hp)
+    base, tau = scaled(b), scaled(bus.tau)
+    mc, mt, mj = scaled(m.c), scaled(m.t), scaled(m.j)
+    if bus.method == "tindell1994":
+        w = _queuing(base, hp, base + hp_sum, tau)
+        return Fraction(w + mc, unit)  # paper 000 leaves out J_m, not the J_k inside w_m
+    everyone = [*hp, (mc, mt, mj)]
+    t = base + hp_sum + mc
     while True:
-        following = b + sum((math.ceil((t + k.j) / k.t) * k.c for k in level), Fraction(0))
+        following = base + sum(-((-(t + j)) // period) * c for c, period, j in everyone)
         if following == t:
             break
         t = following
-    instances = math.ceil((t + m.j) / m.t)
-    worst = Fraction(0)
-    w = Fraction(0)
+    instances = -((-(t + mj)) // mt)
+    worst = 0
+    w = 0
     for q in range(instances):
-        base = b + q * m.c
-        w = _queuing(base, higher, max(w, base + hp_sum), bus.tau)
-        worst = max(worst, m.j + w - q * m.t + m.c)
-    return worst
+        start = base + q * mc
+        w = _queuing(start, hp, max(w, start + hp_sum), tau)
+        worst = max(worst, mj + w - q * mt + mc)
+    return Fraction(worst, unit)
 
 
 def analyze(
