@@ -29,9 +29,7 @@ def etag_of(node: Node, channel: str) -> int:
     return node.face._bound[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
 
 
-async def test_simultaneous_joiners_get_distinct_txnodes(
-    bus: str, ecb: CanEcb
-) -> None:
+async def test_simultaneous_joiners_get_distinct_txnodes(bus: str, ecb: CanEcb) -> None:
     ids = [0xFFFF_0000_0000_0001, 0x1234, 0x8000_0000_0000_0000, 0x1235, 0x0FED_CBA9_8765_4321]
     nodes = [Node(can=bus, node_id=i) for i in ids]
     try:
