@@ -221,12 +221,18 @@ class Node:
             key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
             self._node_id, self._id_lock = claim_node_id(key)
         face = self._build_face(self._node_id)
+        where = f"the CAN-ECB on {self._can}" if self._can else f"the TCP-ECB at {self._broker}"
+        waiting = asyncio.get_running_loop().call_later(
+            1.0, log.info, "waiting for %s (up to %s s)", where, self._join_timeout
+        )  # a second of silence is long enough to say why
         try:
             await face.start()
         except BaseException:
             await face.close()
             self._release_id()
             raise
+        finally:
+            waiting.cancel()
         self._face = face
 
     def _build_face(self, node_id: int) -> Face:

@@ -10,6 +10,8 @@ import argparse
 import contextlib
 import json
 import logging
+import os
+import re
 import sys
 from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any
@@ -43,8 +45,33 @@ def main(argv: list[str] | None = None) -> int:
     except UpsError as exc:
         print(f"ups {args.command}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:  # the reader of our output went away: a way to stop, not an error
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as exc:  # a port in use, an address that does not exist, a full disk ...
+        text = re.sub(r"^\[Errno -?\d+\] ", "", str(exc))
+        print(f"ups {args.command}: {text}", file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+
+
+class _Version(argparse.Action):
+    """``--version``, looked up only when asked for (importlib.metadata is not cheap)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, help="print the version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> None:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            text = version("ups-pubsub")
+        except PackageNotFoundError:
+            text = "(not installed)"
+        print(f"ups {text}")
+        parser.exit()
 
 
 def _parser(analyze: bool = True) -> argparse.ArgumentParser:
@@ -52,9 +79,16 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     (the real-time analysis is the heaviest import, and only that command needs it)."""
     parser = argparse.ArgumentParser(prog="ups", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail")
+    parser.add_argument("--version", action=_Version)
+    common = argparse.ArgumentParser(add_help=False)  # -v after the command works too
+    common.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                        help="log debug detail")  # fmt: skip
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    cmd = commands.add_parser("can-broker", help="run the CAN-ECB of one bus")
+    def command(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        return commands.add_parser(name, parents=[common], **kwargs)
+
+    cmd = command("can-broker", help="run the CAN-ECB of one bus")
     _add_can(cmd)
     cmd.add_argument(
         "--db", default=None,
@@ -62,7 +96,7 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         "$UPS_STATE_DIR, $XDG_STATE_HOME/ups or ~/.local/state/ups)",
     )  # fmt: skip
     cmd.add_argument(
-        "--recovery", type=float, default=2.0,
+        "--recovery", type=_nonnegative_float, default=2.0,
         help="seconds after start spent relearning the bus before answering (default 2)",
     )  # fmt: skip
     cmd.add_argument(
@@ -75,12 +109,12 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         "another when none is free (default 86400)",
     )  # fmt: skip
     cmd.add_argument(
-        "--bitrate", type=int, default=500_000,
+        "--bitrate", type=_positive_int, default=500_000,
         help="the bus's bit rate, for admitting real-time channels (default 500000)",
     )  # fmt: skip
     cmd.set_defaults(run=_run_can_broker)
 
-    cmd = commands.add_parser("broker", help="run a TCP-ECB (the registry of a TCP/IP network)")
+    cmd = command("broker", help="run a TCP-ECB (the registry of a TCP/IP network)")
     cmd.add_argument(
         "--listen", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="HOST:PORT",
         help=f"address to listen on (default 127.0.0.1:{DEFAULT_PORT}; 0.0.0.0 for every one)",
@@ -90,7 +124,7 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         help="seconds a silent or disconnected node stays registered (default 3)",
     )  # fmt: skip
     cmd.add_argument(
-        "--recovery", type=float, default=1.5,
+        "--recovery", type=_nonnegative_float, default=1.5,
         help="seconds after start to collect re-registrations before answering (default 1.5)",
     )  # fmt: skip
     cmd.add_argument(
@@ -101,11 +135,14 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     _add_tls(cmd)
     cmd.set_defaults(run=_run_broker)
 
-    cmd = commands.add_parser(
+    cmd = command(
         "gateway", help="forward subscribed events between a CAN bus and TCP/IP"
     )
     _add_can(cmd)
-    cmd.add_argument("--broker", required=True, metavar="HOST:PORT", help="the TCP-ECB")
+    cmd.add_argument(
+        "--broker", metavar="HOST:PORT", default=os.environ.get("UPS_BROKER") or None,
+        required=not os.environ.get("UPS_BROKER"), help="the TCP-ECB (default: $UPS_BROKER)",
+    )  # fmt: skip
     cmd.add_argument(
         "--listen", metavar="HOST:PORT", default=None,
         help="where TCP publishers and 'ups status' reach the gateway (default: any port)",
@@ -119,20 +156,20 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         help="do not host the bus's CAN-ECB: one already runs ('ups can-broker')",
     )  # fmt: skip
     cmd.add_argument(
-        "--bitrate", type=int, default=500_000,
+        "--bitrate", type=_positive_int, default=500_000,
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
     _add_tls(cmd, node=True)
     cmd.set_defaults(run=_run_gateway)
 
-    cmd = commands.add_parser("status", help="print the tables and counters of a TCP daemon")
+    cmd = command("status", help="print the tables and counters of a TCP daemon")
     cmd.add_argument("address", metavar="HOST:PORT", help="a TCP-ECB, gateway or node")
     cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
     _add_tls(cmd)
     cmd.set_defaults(run=_run_status)
 
-    cmd = commands.add_parser("certs", help="make the fleet CA and certificates for TLS")
+    cmd = command("certs", help="make the fleet CA and certificates for TLS")
     certs = cmd.add_subparsers(dest="certs_command", required=True, metavar="ACTION")
     act = certs.add_parser("ca", help="make DIR/ca.crt and DIR/ca.key")
     act.add_argument("dir", metavar="DIR")
@@ -141,13 +178,14 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     act.add_argument("name", metavar="NAME", help="the identity (the certificate's common name)")
     cmd.set_defaults(run=_run_certs)
 
-    cmd = commands.add_parser("pub", help="publish events on a channel")
+    cmd = command("pub", help="publish events on a channel")
     cmd.add_argument("channel", type=_channel_arg, help="channel name, or UID as 0x + hex")
     cmd.add_argument("data", type=_hex_arg, help="payload as hex digits ('' for none)")
     _add_node_options(cmd)
     cmd.add_argument("--count", type=_positive_int, default=1, help="events to publish")
     cmd.add_argument(
-        "--rate", type=float, default=10.0, help="events per second (0: as fast as possible)"
+        "--rate", type=_nonnegative_float, default=10.0,
+        help="events per second (0: as fast as possible)",
     )
     cmd.add_argument("--priority", type=_priority_arg, default=None, help="0 (highest)..255")
     cmd.add_argument(
@@ -156,11 +194,13 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_pub)
 
-    cmd = commands.add_parser("sub", help="print the events of channels")
+    cmd = command("sub", help="print the events of channels")
     cmd.add_argument("channels", nargs="+", type=_channel_arg, metavar="CHANNEL")
     _add_node_options(cmd)
     cmd.add_argument("--count", type=_positive_int, default=None, help="exit 0 after N events")
-    cmd.add_argument("--timeout", type=float, default=None, help="exit 1 if this many s pass")
+    cmd.add_argument(
+        "--timeout", type=_positive_float, default=None, help="exit 1 if this many s pass"
+    )
     cmd.add_argument("--json", action="store_true", help="one JSON object per line")
     cmd.add_argument(
         "--queue", type=_positive_int, default=1024,
@@ -168,17 +208,17 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_sub)
 
-    cmd = commands.add_parser("analyze", help="CAN response-time analysis of a message set")
+    cmd = command("analyze", help="CAN response-time analysis of a message set")
     if analyze:
         from .rt import cli as rt_cli
 
         rt_cli.add_arguments(cmd)
         cmd.set_defaults(run=rt_cli.run)
 
-    cmd = commands.add_parser(
+    cmd = command(
         "demo", help="run the demo robots on a virtual CAN bus, with a gateway to loopback TCP/IP"
     )
-    cmd.add_argument("--duration", type=float, default=3.0, help="seconds to run")
+    cmd.add_argument("--duration", type=_positive_float, default=3.0, help="seconds to run")
     cmd.set_defaults(run=_run_demo)
     return parser
 
@@ -186,29 +226,34 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
 def _add_can(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument(
         "--can",
-        required=True,
+        default=os.environ.get("UPS_CAN") or None,
+        required=not os.environ.get("UPS_CAN"),
         metavar="INTERFACE:CHANNEL[,key=value...]",
-        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114",
+        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
+        "(default: $UPS_CAN)",
     )
 
 
 def _add_node_options(cmd: argparse.ArgumentParser) -> None:
-    network = cmd.add_mutually_exclusive_group(required=True)
+    network = cmd.add_mutually_exclusive_group()  # or $UPS_BROKER, or $UPS_CAN
     network.add_argument(
         "--can",
         metavar="INTERFACE:CHANNEL[,key=value...]",
-        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114",
+        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
+        "(default: $UPS_CAN, when $UPS_BROKER is not set)",
     )
     network.add_argument(
-        "--broker", metavar="HOST:PORT", help="TCP/IP network served by the TCP-ECB at HOST:PORT"
-    )
+        "--broker", metavar="HOST:PORT",
+        help="TCP/IP network served by the TCP-ECB at HOST:PORT (default: $UPS_BROKER)",
+    )  # fmt: skip
     cmd.add_argument(
         "--listen", metavar="HOST:PORT", default=None,
         help="TCP/IP: where publishers reach this node (default: towards the broker, any port)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
     cmd.add_argument(
-        "--join-timeout", type=float, default=30.0, help="seconds to wait for the broker"
+        "--join-timeout", type=_positive_float, default=30.0,
+        help="seconds to wait for the broker",
     )
     _add_tls(cmd, node=True)
 
@@ -250,6 +295,13 @@ def _positive_float(text: str) -> float:
     value = float(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
+    return value
+
+
+def _nonnegative_float(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
     return value
 
 
@@ -295,11 +347,20 @@ def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
 def _node(args: argparse.Namespace) -> Node:
     from ._node import Node
 
-    if args.listen is not None and args.broker is None:
+    can, broker = args.can, args.broker
+    if can is None and broker is None:  # the environment's, TCP/IP first
+        broker = os.environ.get("UPS_BROKER") or None
+        can = None if broker else os.environ.get("UPS_CAN") or None
+    if can is None and broker is None:
+        raise ConfigError(
+            "which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT "
+            "(or set UPS_CAN or UPS_BROKER)"
+        )
+    if args.listen is not None and broker is None:
         raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
     return Node(
-        can=args.can,
-        broker=args.broker,
+        can=can,
+        broker=broker,
         listen=args.listen,
         node_id=args.node_id,
         name=f"ups-{args.command}",

@@ -1,0 +1,83 @@
+"""The command line with real processes: bad input exits 2 with one line and no traceback, a
+slow broker is announced, the environment gives defaults, and closing the output is a way to
+stop."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from .procs import ROOT, Proc
+from .test_tcp_processes import start_tcp_broker
+
+NO_NETWORK = {"UPS_BROKER": "", "UPS_CAN": ""}
+
+
+def one_line_error(proc: Proc) -> str:
+    code, _ = proc.finish()
+    text = "".join(proc.stderr_lines)
+    assert code == 2, text
+    assert "Traceback" not in text, text
+    errors = [line for line in proc.stderr_lines if line.startswith(("ups ", "usage:"))]
+    assert errors, text
+    return text
+
+
+def test_version_and_verbose_after_the_command() -> None:
+    code, out = Proc("--version").finish()
+    assert code == 0 and out.startswith("ups ")
+    code, _ = Proc("certs", "ca", "-v", "--help").finish()
+    assert code == 0
+
+
+def test_a_port_in_use_is_one_line() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        text = one_line_error(Proc("broker", "--listen", f"127.0.0.1:{port}"))
+        assert "address already in use" in text
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["pub", "x", "00", "--broker", "127.0.0.1:1", "--rate", "-5"], "must be 0 or more"),
+        (["sub", "x", "--broker", "127.0.0.1:1", "--timeout", "-1"], "must be above 0"),
+        (["sub", "x", "--broker", "127.0.0.1:1", "--join-timeout", "0"], "must be above 0"),
+        (["sub", "x"], "which network?"),
+        (["sub", "x", "--broker", "nohost:99999"], "expected HOST:PORT"),
+        (["pub", "x", "zz", "--broker", "127.0.0.1:1"], "not hex digits"),
+        (["can-broker", "--can", "virtual:x", "--db", "/proc/no/such.db"], "cannot use"),
+        (["sub", "x", "--can", "nosuch:x"], "cannot open CAN bus"),
+        (["gateway", "--can", "virtual:x"], "--broker"),
+    ],
+)
+def test_bad_input_is_one_line(args: list[str], message: str) -> None:
+    assert message in one_line_error(Proc(*args, env=NO_NETWORK))
+
+
+def test_a_missing_broker_is_announced_and_then_given_up() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens here
+    proc = Proc("sub", "x", "--broker", f"127.0.0.1:{port}", "--join-timeout", "2.5")
+    proc.wait_for_line(f"waiting for the TCP-ECB at 127.0.0.1:{port}")
+    assert "no TCP-ECB answered" in one_line_error(proc)
+
+
+def test_the_environment_names_the_network_and_a_closed_pipe_stops_quietly() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    env = {"UPS_BROKER": address, "PYTHONPATH": str(ROOT)}
+    with broker, Proc("pub", "env/x", "01", "--count", "100000", "--rate", "2000", env=env):
+        reader = subprocess.Popen(  # no --broker: the environment's
+            f"{sys.executable} -m ups.cli sub env/x --json | head -n 1",
+            shell=True, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        out, err = reader.communicate(timeout=30)  # head leaves after one line: sub stops
+        assert out.count("\n") == 1 and '"data": "01"' in out
+        assert "Traceback" not in err, err
