@@ -8,7 +8,7 @@ import threading
 import pytest
 
 from broker.can_ecb import CanEcb
-from ups import BlockingNode, BrokerUnavailable, PayloadTooLarge
+from ups import BlockingNode, BrokerUnavailable, PayloadTooLarge, Unschedulable
 
 
 async def test_blocking_nodes_talk_through_the_ecb(bus: str, ecb: CanEcb) -> None:
@@ -36,3 +36,15 @@ def test_blocking_node_without_broker_fails_cleanly(bus: str) -> None:
     with pytest.raises(BrokerUnavailable):
         BlockingNode(can=bus, node_id=1, join_timeout=0.2)
     assert not [t for t in threading.enumerate() if t.name == "ups-blocking-loop"]
+
+
+async def test_blocking_nodes_declare_real_time_channels(bus: str, ecb: CanEcb) -> None:
+    def script() -> int:
+        with BlockingNode(can=bus, node_id=1) as a:
+            priority = a.declare("brake", period_ms=10, deadline_ms=5, size_bytes=2)
+            with pytest.raises(Unschedulable):  # 0.1 ms: shorter than one 8-byte frame
+                a.declare("steer", period_ms=1, deadline_ms=0.1, size_bytes=8)
+            a.publish("brake", b"\x01\x02", wait=True)
+            return priority
+
+    assert 0x02 <= await asyncio.to_thread(script) <= 0xFF

@@ -52,8 +52,28 @@ class BlockingNode:
         """The asyncio node underneath (use it only from its own loop)."""
         return self._node
 
-    def publish(self, channel: ChannelLike, data: bytes | bytearray | memoryview) -> None:
-        self._call(self._node.publish(channel, data))
+    def publish(
+        self, channel: ChannelLike, data: bytes | bytearray | memoryview, *, wait: bool = False
+    ) -> None:
+        self._call(self._node.publish(channel, data, wait=wait))
+
+    def declare(
+        self,
+        channel: ChannelLike,
+        *,
+        period_ms: float,
+        deadline_ms: float,
+        size_bytes: int = 8,
+        jitter_ms: float = 0.0,
+    ) -> int:
+        """``Node.declare``: a real-time channel on CAN, admitted by the CAN-ECB or refused
+        (``Unschedulable``); returns the priority it publishes with."""
+        return self._call(
+            self._node.declare(
+                channel, period_ms=period_ms, deadline_ms=deadline_ms, size_bytes=size_bytes,
+                jitter_ms=jitter_ms,
+            )
+        )  # fmt: skip
 
     def subscribe(
         self,
