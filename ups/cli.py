@@ -169,6 +169,16 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     _add_tls(cmd)
     cmd.set_defaults(run=_run_status)
 
+    cmd = command("ls", help="list the nodes and channels of a TCP/IP network, with names")
+    cmd.add_argument(
+        "--broker", metavar="HOST:PORT", default=os.environ.get("UPS_BROKER") or None,
+        required=not os.environ.get("UPS_BROKER"), help="its TCP-ECB (default: $UPS_BROKER)",
+    )  # fmt: skip
+    cmd.add_argument("--json", action="store_true", help="one JSON object")
+    cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
+    _add_tls(cmd)
+    cmd.set_defaults(run=_run_ls)
+
     cmd = command("certs", help="make the fleet CA and certificates for TLS")
     certs = cmd.add_subparsers(dest="certs_command", required=True, metavar="ACTION")
     act = certs.add_parser("ca", help="make DIR/ca.crt and DIR/ca.key")
@@ -428,6 +438,18 @@ def _run_certs(args: argparse.Namespace) -> int:
         crt, key = issue(args.dir, args.name)
     print(f"{crt}\n{key}")
     return 0
+
+
+def _run_ls(args: argparse.Namespace) -> int:
+    from ._ls import listing, render
+    from ._tcpface import query_status
+
+    async def run() -> int:
+        table = listing(await query_status(args.broker, args.timeout, _tls(args)))
+        print(json.dumps(table, indent=2) if args.json else render(table))
+        return 0
+
+    return _run_until_signal(run())
 
 
 def _run_status(args: argparse.Namespace) -> int:
