@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
+from pathlib import Path
+
+from ups import Node, name_to_uid
+from ups._ls import can_listing, render_can
 
 from .procs import Proc
 from .test_tcp_processes import start_tcp_broker, wait_until
@@ -38,3 +43,39 @@ def test_ls_shows_nodes_and_channels_by_name() -> None:
         assert code == 0
         row = next(line for line in out.splitlines() if "robot/speed" in line)
         assert row.split()[2:] == ["ups-pub", "ups-sub"]  # uid, name, publishers, subscribers
+
+
+async def test_ls_of_a_can_bus_reads_the_ecb_tables_and_listens(bus: str, tmp_path: Path) -> None:
+    import broker
+
+    db = tmp_path / "ecb.db"
+    async with (
+        broker.hosted_can_ecb(bus, db, recovery=0.1),
+        Node(can=bus, node_id=0xA1) as pub,
+        Node(can=bus, node_id=0xB2) as sub_node,
+    ):
+        await sub_node.subscribe("speed")
+        await pub.publish("speed", b"\x01")
+
+        async def keep_publishing() -> None:
+            while True:
+                await pub.publish("speed", b"\x02")
+                await asyncio.sleep(0.01)  # about 100 frames/s, for the listener to count
+
+        task = asyncio.create_task(keep_publishing())
+        try:
+            table = await asyncio.to_thread(can_listing, bus, str(db), 0.5)
+        finally:
+            task.cancel()
+    nodes = {n["node_id"]: n for n in table["nodes"]}
+    assert set(nodes) == {f"0x{0xA1:016x}", f"0x{0xB2:016x}"}
+    assert nodes[f"0x{0xA1:016x}"]["heard"] and nodes[f"0x{0xA1:016x}"]["frames_per_s"] > 10
+    (speed,) = [c for c in table["channels"] if c["uid"] == f"0x{name_to_uid('speed'):016x}"]
+    assert speed["publishers"] == [f"0x{0xA1:016x}"] and speed["frames_per_s"] > 10
+    assert "0x00000000000000a1" in render_can(table)
+
+
+def test_ls_of_a_can_bus_without_its_database_is_one_line(tmp_path: Path) -> None:
+    proc = Proc("ls", "--can", "virtual:nobody", "--db", str(tmp_path / "none.db"))
+    code, _ = proc.finish()
+    assert code == 2 and "no CAN-ECB database at" in "".join(proc.stderr_lines)

@@ -169,10 +169,20 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     _add_tls(cmd)
     cmd.set_defaults(run=_run_status)
 
-    cmd = command("ls", help="list the nodes and channels of a TCP/IP network, with names")
+    cmd = command("ls", help="list the nodes and channels of a network")
+    network = cmd.add_mutually_exclusive_group()
+    network.add_argument(
+        "--broker", metavar="HOST:PORT",
+        help="a TCP/IP network: ask its TCP-ECB (default: $UPS_BROKER)",
+    )  # fmt: skip
+    network.add_argument(
+        "--can", metavar="INTERFACE:CHANNEL[,key=value...]",
+        help="a CAN bus: read its CAN-ECB's database and listen (default: $UPS_CAN)",
+    )  # fmt: skip
+    cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
     cmd.add_argument(
-        "--broker", metavar="HOST:PORT", default=os.environ.get("UPS_BROKER") or None,
-        required=not os.environ.get("UPS_BROKER"), help="its TCP-ECB (default: $UPS_BROKER)",
+        "--listen-for", type=_positive_float, default=1.0, metavar="S",
+        help="CAN: seconds to listen to the bus for who sends what (default 1)",
     )  # fmt: skip
     cmd.add_argument("--json", action="store_true", help="one JSON object")
     cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
@@ -441,8 +451,23 @@ def _run_certs(args: argparse.Namespace) -> int:
 
 
 def _run_ls(args: argparse.Namespace) -> int:
-    from ._ls import listing, render
+    from ._ls import can_listing, listing, render, render_can
     from ._tcpface import query_status
+
+    can, broker = args.can, args.broker
+    if can is None and broker is None:
+        broker = os.environ.get("UPS_BROKER") or None
+        can = None if broker else os.environ.get("UPS_CAN") or None
+    if can is not None:
+        from broker._store import default_db
+
+        db = args.db if args.db is not None else str(default_db(can))
+        table = can_listing(can, db, args.listen_for)
+        print(json.dumps(table, indent=2) if args.json else render_can(table))
+        return 0
+    if broker is None:
+        raise ConfigError("which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT")
+    args.broker = broker
 
     async def run() -> int:
         table = listing(await query_status(args.broker, args.timeout, _tls(args)))
