@@ -53,6 +53,7 @@ def test_a_port_in_use_is_one_line() -> None:
         (["pub", "x", "zz", "--broker", "127.0.0.1:1"], "not hex digits"),
         (["can-broker", "--can", "virtual:x", "--db", "/proc/no/such.db"], "cannot use"),
         (["sub", "x", "--can", "nosuch:x"], "cannot open CAN bus"),
+        (["sub", "x", "--can", "virtual:x,bogus=1"], "unknown option 'bogus'"),
         (["gateway", "--can", "virtual:x"], "--broker"),
     ],
 )

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
+import inspect
 import logging
 import socket
 import threading
@@ -64,9 +66,33 @@ def _option_value(text: str) -> Any:
     return text
 
 
+#: options python-can takes for any interface (it ignores them where they mean nothing)
+_COMMON_OPTIONS = frozenset({"bitrate", "data_bitrate", "fd", "timing", "receive_own_messages"})
+
+
+def _check_options(kwargs: dict[str, Any]) -> None:
+    """An option the interface's bus class does not name is a typo: python-can would pass it
+    on unused, silently. Interfaces that cannot be loaded here are left to python-can."""
+    entry = can.interfaces.BACKENDS.get(kwargs["interface"])
+    if entry is None:
+        return
+    try:
+        bus_class = getattr(importlib.import_module(entry[0]), entry[1])
+        params = inspect.signature(bus_class.__init__).parameters
+    except Exception:  # a missing vendor library, or no signature: python-can will say
+        return
+    known = {n for n, p in params.items() if p.kind is not p.VAR_KEYWORD} | _COMMON_OPTIONS
+    for key in kwargs.keys() - known - {"interface", "self"}:
+        takes = ", ".join(sorted(known - {"self", "channel"}))
+        raise ConfigError(
+            f"unknown option {key!r} for the {kwargs['interface']} interface (it takes: {takes})"
+        )
+
+
 def open_bus(spec: str) -> can.BusABC:
     """Open the python-can bus named by ``spec`` (see ``parse_bus_spec``)."""
     kwargs = parse_bus_spec(spec)
+    _check_options(kwargs)
     try:
         bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
