@@ -124,7 +124,33 @@ async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]
             limited = True
 
 
+INTRO = """\
+UPS demo: four robot parts on one CAN bus, an operator station on TCP/IP, a gateway between.
+- Each CAN node joins the bus and gets a TxNode (its 7-bit sender number) from the CAN-ECB,
+  the bus's broker, hosted here by the gateway.
+- Channels have names (robot/speed); on CAN each one is bound to a 14-bit etag. Frames carry
+  priority | TxNode | etag in their 29-bit identifier, nothing else.
+- On TCP/IP the TCP-ECB keeps who subscribes to what; publishers send to subscribers direct.
+- The gateway forwards only what someone on the other side subscribes to.
+"""
+
+
+def _outro(local_ok: bool, remote_ok: bool, seen: dict[str, int], remote: dict[str, int]) -> str:
+    verdict = "everything arrived" if local_ok and remote_ok else "something did NOT arrive"
+    return f"""
+In short: {verdict}. The dashboard (CAN) got {sum(seen.values())} events, the operator (TCP/IP)
+{sum(remote.values())}; the brake went out at real-time priority 0x02 and crossed the gateway.
+
+Try next (each in its own shell):
+  ups broker                                   # a TCP-ECB on 127.0.0.1:7411
+  ups sub robot/speed --broker 127.0.0.1:7411
+  ups pub robot/speed 0032 --broker 127.0.0.1:7411 --count 5
+  ups ls --broker 127.0.0.1:7411               # who is there, by name
+On a real bus: ups gateway --can socketcan:vcan0 --broker 127.0.0.1:7411, then --can nodes."""
+
+
 async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
+    print(INTRO)
     with tempfile.TemporaryDirectory() as tmp:
         registry = TcpEcb("127.0.0.1", 0, recovery=0)  # any free port
         await registry.start()
@@ -159,6 +185,7 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
             print(f"gateway: {gateway.stats()}")
             local_ok = all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE))
             remote_ok = all(remote.get(ch) for ch in (SPEED, BRAKE, "slowed"))
+            print(_outro(local_ok, remote_ok, seen, remote))
             return 0 if local_ok and remote_ok else 1
         finally:
             await operator.close()
