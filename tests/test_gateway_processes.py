@@ -86,7 +86,7 @@ def test_can_to_tcp_and_tcp_to_can(mbus: str, wire: can.BusABC, tmp_path: Path) 
                 assert code == 0
                 events = [json.loads(line) for line in out.splitlines()]
                 assert {(e["data"], e["priority"]) for e in events} == {("0102", 0x30)}
-                assert {e["source"] for e in events} == {GW_ID}
+                assert {e["source"] for e in events} == {f"0x{GW_ID:016x}"}
                 can_pub.stop()
         # TCP publisher -> CAN subscriber, priority kept, the gateway's TxNode on the wire.
         with Proc(
@@ -106,7 +106,7 @@ def test_can_to_tcp_and_tcp_to_can(mbus: str, wire: can.BusABC, tmp_path: Path) 
             events = [json.loads(line) for line in out.splitlines()]
             assert [(e["data"], e["priority"]) for e in events] == [("09", 0x40)] * 2
             txnode = gateway_info(gw_address)["txnode"]
-            assert {e["source"] for e in events} == {txnode}
+            assert {e["source"] for e in events} == {f"0x{txnode:02x}"}
             ids = {f.arbitration_id for f in events_on(wire) if f.data == b"\x09"}
             assert len(ids) == 1
             (can_id,) = ids

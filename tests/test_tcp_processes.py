@@ -79,7 +79,7 @@ def test_sub_pub_and_unsubscribe_across_processes() -> None:
             ("speed", "0102", 0x20),
             (None, "ff", 0x80),
         ]
-        assert {e["source"] for e in events} == {PUB_ID}
+        assert {e["source"] for e in events} == {f"0x{PUB_ID:016x}"}
         assert events[3]["uid"] == "0x0000000000001234"
         # The subscriber withdrew as it exited: it is in no list, and the ECB forgot it.
         assert subscribers_of(address, "speed") == []

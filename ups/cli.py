@@ -378,6 +378,7 @@ def _node(args: argparse.Namespace) -> Node:
         )
     if args.listen is not None and broker is None:
         raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
+    args.on_can = can is not None  # what ``source`` is: a TxNode or a node id
     return Node(
         can=can,
         broker=broker,
@@ -537,7 +538,7 @@ def _run_sub(args: argparse.Namespace) -> int:
                         code = EXIT_TIMEOUT
                         break
                     got += 1
-                    print(_event_line(msg, args.json), flush=True)
+                    print(_event_line(msg, args.json, args.on_can), flush=True)
             except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
                 pass
             dropped, skipped = sub.dropped, node.stats().get("lost", 0)
@@ -553,7 +554,11 @@ def _run_sub(args: argparse.Namespace) -> int:
     return _run_until_signal(run())
 
 
-def _event_line(msg: Message, as_json: bool) -> str:
+def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
+    """One event as ``ups sub`` prints it. The source is hex: a TxNode (2 digits) on CAN, a
+    node id (16 digits) on TCP/IP, null for the node's own events."""
+    digits = 2 if on_can else 16
+    source = None if msg.source is None else f"0x{msg.source:0{digits}x}"
     if as_json:
         return json.dumps(
             {
@@ -562,10 +567,10 @@ def _event_line(msg: Message, as_json: bool) -> str:
                 "data": msg.data.hex(),
                 "timestamp": msg.timestamp,
                 "priority": msg.priority,
-                "source": msg.source,
+                "source": source,
             }
         )
-    return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}"
+    return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}  from={source or '-'}"
 
 
 def _run_demo(args: argparse.Namespace) -> int:
