@@ -7,6 +7,7 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -82,3 +83,17 @@ def test_the_environment_names_the_network_and_a_closed_pipe_stops_quietly() -> 
         out, err = reader.communicate(timeout=30)  # head leaves after one line: sub stops
         assert out.count("\n") == 1 and '"data": "01"' in out
         assert "Traceback" not in err, err
+
+
+def test_bash_completion_knows_the_commands_and_their_options(tmp_path: Path) -> None:
+    code, script = Proc("completion").finish()
+    assert code == 0
+    (tmp_path / "ups.bash").write_text(script)
+    probe = (
+        f"source {tmp_path / 'ups.bash'}\n"
+        "COMP_WORDS=(ups su); COMP_CWORD=1; _ups; echo ${COMPREPLY[@]}\n"
+        "COMP_WORDS=(ups sub --bro); COMP_CWORD=2; _ups; echo ${COMPREPLY[@]}\n"
+        "COMP_WORDS=(ups broker --a); COMP_CWORD=2; _ups; echo ${COMPREPLY[@]}\n"
+    )
+    done = subprocess.run(["bash", "-c", probe], capture_output=True, text=True, timeout=30)
+    assert done.stdout.split("\n")[:3] == ["sub", "--broker", "--acl"], done.stderr

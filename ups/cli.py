@@ -240,7 +240,47 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     )
     cmd.add_argument("--duration", type=_positive_float, default=3.0, help="seconds to run")
     cmd.set_defaults(run=_run_demo)
+
+    cmd = command("completion", help="print a bash completion script: eval \"$(ups completion)\"")
+    cmd.set_defaults(run=_run_completion)
     return parser
+
+
+def _run_completion(args: argparse.Namespace) -> int:
+    """A bash completion script for every command and its options, made from this parser."""
+    parser = _parser()
+    commands = next(
+        a for a in parser._actions if isinstance(a, argparse._SubParsersAction)
+    )  # argparse keeps its subcommands there; there is no public way to list them
+    cases = []
+    for name, sub in commands.choices.items():
+        options = sorted(o for a in sub._actions for o in a.option_strings)
+        cases.append(f'        {name}) opts="{" ".join(options)}" ;;')
+    script = _COMPLETION.replace("COMMANDS", " ".join(commands.choices)).replace(
+        "CASES", "\n".join(cases)
+    )
+    print(script)
+    return 0
+
+
+_COMPLETION = """\
+_ups() {
+    local cur=${COMP_WORDS[COMP_CWORD]} command=${COMP_WORDS[1]} opts
+    if [ "$COMP_CWORD" -eq 1 ]; then
+        COMPREPLY=($(compgen -W "COMMANDS --help --version -v" -- "$cur"))
+        return
+    fi
+    case "$command" in
+CASES
+        *) opts="" ;;
+    esac
+    if [[ "$cur" == -* ]]; then
+        COMPREPLY=($(compgen -W "$opts" -- "$cur"))
+    else
+        COMPREPLY=($(compgen -f -- "$cur"))
+    fi
+}
+complete -F _ups ups"""
 
 
 def _add_can(cmd: argparse.ArgumentParser) -> None:
