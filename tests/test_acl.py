@@ -142,18 +142,6 @@ async def test_an_identity_not_in_the_acl_cannot_even_join(fleet: Path) -> None:
         assert ecb.stats()["nodes"] == 0 and ecb.stats()["denied"] == 1
 
 
-async def _inject(
-    fleet: Path, address: tuple[str, int], hello: w.Hello, frames: list[bytes]
-) -> None:
-    """Connect to ``address`` with mallory's certificate and write ``hello`` and ``frames``."""
-    context = tls(fleet, "mallory").client()
-    reader, writer = await asyncio.open_connection(*address, ssl=context)
-    writer.write(w.encode(hello) + b"".join(frames))
-    await writer.drain()
-    await reader.read()  # until the other side closes the link
-    writer.close()
-
-
 async def test_a_valid_client_without_the_right_cannot_inject(
     fleet: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -173,7 +161,7 @@ async def test_a_valid_client_without_the_right_cannot_inject(
         ]
         assert alice.face.address is not None  # type: ignore[attr-defined]
         hello = w.Hello(0xB0, "bob", "127.0.0.1", 1)
-        await _inject(fleet, alice.face.address, hello, forged)  # type: ignore[attr-defined]
+        await _inject_as(fleet, "mallory", alice, hello, forged)
         assert alice.stats()["unvouched"] == 100  # held, refused, counted, link closed
         await bob.publish("robot/speed", b"bob-2")
         assert (await sub.get_msg(timeout=5)).data == b"bob-2"
@@ -365,8 +353,8 @@ async def test_a_node_joins_only_the_fleet_broker(fleet: Path) -> None:
     fake = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls(fleet, "mallory"))
     await fake.start()
     try:
-        alice = node(fleet, fake, "alice", 0xA1)
-        alice._join_timeout = 1  # type: ignore[attr-defined]
+        alice = Node(broker=f"127.0.0.1:{fake.port}", node_id=0xA1, join_timeout=1,
+                     tls=tls(fleet, "alice"))  # fmt: skip
         with pytest.raises(BrokerUnavailable, match="shows identity 'mallory'"):
             await alice.start()
         await alice.close()
@@ -474,6 +462,8 @@ async def test_forged_starts_and_node_ids_change_nothing(fleet: Path) -> None:
 async def _inject_as(
     fleet: Path, who: str, target: Node, hello: w.Hello, frames: list[bytes]
 ) -> None:
+    """Connect to ``target``'s listening port with ``who``'s certificate, write ``hello`` and
+    ``frames``, and wait until the target closes the link."""
     reader, writer = await asyncio.open_connection(
         *target.face.address,
         ssl=tls(fleet, who).client(),  # type: ignore[attr-defined]

@@ -28,18 +28,11 @@ from hypothesis.stateful import RuleBasedStateMachine, precondition, rule
 from broker.tcp_ecb import TcpEcb
 from ups import Node, Subscription, name_to_uid
 
+from .conftest import eventually
+
 NODES = ("a", "b", "c")
 CHANNELS = ("inv/0", "inv/1")
 _ids = itertools.count(0x1000)
-
-
-async def _eventually(predicate: Any, timeout: float = 5.0) -> None:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not predicate():
-        if loop.time() > deadline:
-            raise AssertionError("condition not met within the time allowed")
-        await asyncio.sleep(0.002)
 
 
 class TcpPromise(RuleBasedStateMachine):
@@ -99,7 +92,7 @@ class TcpPromise(RuleBasedStateMachine):
         self.subs[(who, channel)] = self.run(node.subscribe(channel))
         # Settled once every node that publishes on the channel has it among its targets.
         publishers = [p for p in NODES if p != who and self.published.get((p, channel))]
-        self.run(_eventually(lambda: all(node.node_id in self._targets(p, channel)
+        self.run(eventually(lambda: all(node.node_id in self._targets(p, channel)
                                          for p in publishers)))  # fmt: skip
 
     @rule(who=st.sampled_from(NODES), channel=st.sampled_from(CHANNELS))
@@ -134,7 +127,7 @@ class TcpPromise(RuleBasedStateMachine):
                 first = False
                 subscribers = {self.nodes[s].node_id for (s, c) in self.subs
                                if c == channel and s != who}  # fmt: skip
-                self.run(_eventually(lambda s=subscribers: s <= self._targets(who, channel)))
+                self.run(eventually(lambda s=subscribers: s <= self._targets(who, channel)))
 
     @precondition(lambda self: self.ecb is not None)
     @rule()
@@ -145,10 +138,10 @@ class TcpPromise(RuleBasedStateMachine):
             assert self.ecb is not None
             await self.ecb.close()
             await self._start_ecb()
-            await _eventually(
+            await eventually(
                 lambda: all(n.stats()["broker_connected"] for n in self.nodes.values())
             )
-            await _eventually(lambda: not self.ecb._recovering)  # type: ignore[union-attr]
+            await eventually(lambda: not self.ecb._recovering)  # type: ignore[union-attr]
 
         self.run(restart())
 
@@ -172,7 +165,7 @@ class TcpPromise(RuleBasedStateMachine):
 
     async def _settle(self) -> None:
         with contextlib.suppress(AssertionError):  # check() says what is missing
-            await _eventually(self._arrived, timeout=3)
+            await eventually(self._arrived, timeout=3)
 
     def check(self) -> None:
         ids = {self.nodes[n].node_id: n for n in NODES}

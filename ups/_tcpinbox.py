@@ -170,18 +170,21 @@ class Inbox:
             if pub is None:
                 self._counters["malformed"] += 1
                 link.abort("Start before Hello")
-            elif pub.held is not None:
-                pub.held.append(frame)
-            elif self._checking and not self._allow(pub, frame.uid):
-                self._hold(link, frame)
             else:
-                self._start(pub, frame)
+                self._start(link, pub, frame)
         elif isinstance(frame, w.StatusRequest):
             link.send_control(w.encode(w.Status(self._status())))
         elif isinstance(frame, w.Ping):
             link.send_control(w.encode(w.Pong()))
 
-    def _start(self, pub: _Publisher, frame: w.Start) -> None:
+    def _start(self, link: Link, pub: _Publisher, frame: w.Start) -> None:
+        """Where ``pub``'s events of a channel start; vouched for, and kept in order, as events."""
+        if pub.held is not None:
+            pub.held.append(frame)
+            return
+        if self._checking and not self._allow(pub, frame.uid):
+            self._hold(link, frame)
+            return
         if frame.uid not in self._subscribed:  # nothing to count for a channel we do not want
             return
         key = (pub.node_id, frame.uid)
@@ -233,7 +236,7 @@ class Inbox:
         held, pub.held = pub.held or [], None
         for i, item in enumerate(held):
             if isinstance(item, w.Start):
-                self._start(pub, item)
+                self._start(link, pub, item)
             else:
                 self._event(link, *item)
             if pub.held is not None:  # still not vouched for: wait on

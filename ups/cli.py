@@ -404,11 +404,10 @@ def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
     return uvloop.run(wrapper())
 
 
-def _node(args: argparse.Namespace) -> Node:
-    from ._node import Node
-
+def _network(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """(--can, --broker), or else the environment's (UPS_BROKER first); exactly one is set."""
     can, broker = args.can, args.broker
-    if can is None and broker is None:  # the environment's, TCP/IP first
+    if can is None and broker is None:
         broker = os.environ.get("UPS_BROKER") or None
         can = None if broker else os.environ.get("UPS_CAN") or None
     if can is None and broker is None:
@@ -416,6 +415,13 @@ def _node(args: argparse.Namespace) -> Node:
             "which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT "
             "(or set UPS_CAN or UPS_BROKER)"
         )
+    return can, broker
+
+
+def _node(args: argparse.Namespace) -> Node:
+    from ._node import Node
+
+    can, broker = _network(args)
     if args.listen is not None and broker is None:
         raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
     args.on_can = can is not None  # what ``source`` is: a TxNode or a node id
@@ -495,10 +501,7 @@ def _run_ls(args: argparse.Namespace) -> int:
     from ._ls import can_listing, listing, render, render_can
     from ._tcpface import query_status
 
-    can, broker = args.can, args.broker
-    if can is None and broker is None:
-        broker = os.environ.get("UPS_BROKER") or None
-        can = None if broker else os.environ.get("UPS_CAN") or None
+    can, broker = _network(args)
     if can is not None:
         from broker._store import default_db
 
@@ -506,8 +509,6 @@ def _run_ls(args: argparse.Namespace) -> int:
         table = can_listing(can, db, args.listen_for)
         print(json.dumps(table, indent=2) if args.json else render_can(table))
         return 0
-    if broker is None:
-        raise ConfigError("which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT")
     args.broker = broker
 
     async def run() -> int:
