@@ -118,7 +118,7 @@ class TcpEcb:
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
         )
         self.counters = dict.fromkeys(
-            ("joined", "left", "malformed", "pushes", "limited", "impostors", "denied"), 0
+            ("joined", "left", "malformed", "pushes", "limited", "impostors", "denied", "errors"), 0
         )
 
     async def start(self) -> None:
@@ -358,7 +358,6 @@ class TcpEcb:
             new = uid not in mine
             if not self._admitted(member, frame, subscribe, new):
                 return
-            before = None if subscribe else self._identities(uid)
             mine.add(uid)
             table.setdefault(uid, set()).add(member.node_id)
             if frame.name is not None:
@@ -368,16 +367,16 @@ class TcpEcb:
                 if new:
                     self._push(uid, skip=member.node_id)
             else:  # subscribers hear of a new publisher before it hears of them
-                self._vouch(uid, before)
+                if new:
+                    self._vouch(uid, member)
                 self._answer(member, uid, subscribe=False)
         elif uid in mine:
-            before = None if subscribe else self._identities(uid)
             mine.discard(uid)
             self._discard(table, uid, member.node_id)
             if subscribe:
                 self._push(uid)
             else:
-                self._vouch(uid, before)
+                self._vouch(uid, member)
 
     def _admitted(
         self, member: _Member, frame: w.Subscribe | w.Advertise, sub: bool, new: bool
@@ -412,12 +411,13 @@ class TcpEcb:
         del self._members[member.node_id]
         self.counters["left"] += 1
         log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
-        for uid in member.pubs:
-            before = self._identities(uid)
+        for uid in member.pubs:  # out of every table first: then tell the others
             self._discard(self._publishers, uid, member.node_id)
-            self._vouch(uid, before)
         for uid in member.subs:
             self._discard(self._subscribers, uid, member.node_id)
+        for uid in member.pubs:
+            self._vouch(uid, member)
+        for uid in member.subs:
             self._push(uid)
         link, member.link = member.link, None
         if link is not None:
@@ -463,9 +463,10 @@ class TcpEcb:
                 self._answer(self._members[node_id], uid, subscribe=False)
                 self.counters["pushes"] += 1
 
-    def _vouch(self, uid: int, before: tuple[tuple[int, str], ...] | None) -> None:
-        """Tell the subscribers of ``uid`` its publishers' identities, if they changed."""
-        if before is None or self._identities(uid) == before:
+    def _vouch(self, uid: int, publisher: _Member) -> None:
+        """``publisher`` came to or left ``uid``: tell the channel's subscribers its new
+        Publishers (without TLS there are no identities to tell)."""
+        if publisher.identity is None:
             return
         for node_id in self._subscribers.get(uid, ()):
             self._answer(self._members[node_id], uid, subscribe=True)
@@ -489,7 +490,11 @@ class TcpEcb:
             now = time.monotonic()
             for member in list(self._members.values()):
                 if now - member.heard > self.liveness:
-                    self._leave(member, f"silent for {self.liveness:g} s")
+                    try:
+                        self._leave(member, f"silent for {self.liveness:g} s")
+                    except Exception:  # one broken entry must not stop every later sweep
+                        self.counters["errors"] += 1
+                        log.exception("could not remove node %016x", member.node_id)
 
 
 def _hex(value: int) -> str:

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from broker.tcp_ecb import TcpEcb
-from ups import BrokerUnavailable, Closed, ConfigError, Node, PayloadTooLarge
+from ups import BrokerUnavailable, Closed, ConfigError, Node, PayloadTooLarge, name_to_uid
 from ups import _tcpwire as w
 from ups._tcpface import parse_address, query_status
 
@@ -186,6 +186,22 @@ async def test_a_silent_node_leaves_every_list_after_the_liveness_timeout() -> N
             await eventually(lambda: 0xDEAD not in ecb._members, timeout=3)
             await eventually(lambda: not pub.face._outbox._peers)  # type: ignore[attr-defined]
             assert ecb.counters["left"] == 1
+
+
+async def test_silent_publishers_leave_one_after_the_other() -> None:
+    """A publisher that goes silent with its registrations still in place (killed, say) leaves
+    every list, and the sweep that removed it goes on to remove the next one."""
+    async with running_tcp_ecb(liveness=1.0) as ecb, tcp_node(ecb, "sub") as sub:
+        await sub.subscribe("x")
+        uid = name_to_uid("x")
+        for zombie in (0xDEAD, 0xBEEF):
+            with socket.create_connection(("127.0.0.1", ecb.port)) as raw:
+                raw.sendall(w.encode(w.Hello(zombie, "zombie", "127.0.0.1", 9)))
+                raw.sendall(w.encode(w.Advertise(uid)) + w.encode(w.Subscribe(uid)))
+                await eventually(lambda z=zombie: z in ecb._publishers.get(uid, ()))
+                await eventually(lambda z=zombie: z not in ecb._members, timeout=3)
+        assert ecb.counters["left"] == 2 and ecb.counters["errors"] == 0
+        assert ecb._publishers.get(uid) is None and ecb._subscribers[uid] == {sub.node_id}
 
 
 async def test_a_node_that_lost_its_link_leaves_after_the_liveness_timeout() -> None:
