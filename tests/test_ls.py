@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ups import Node, name_to_uid
-from ups._ls import can_listing, render_can
+from ups.tools.ls import can_listing, render_can
 
 from .procs import Proc
 from .test_tcp_processes import start_tcp_broker, wait_until

@@ -323,6 +323,15 @@ class Node:
             self._deliver(state, payload, state.priority, None, time.time())
         face.send(state, payload, state.priority)
 
+    async def advertise(self, channel: ChannelLike) -> None:
+        """Bind ``channel`` for publishing now, so that the first ``publish`` is not delayed by
+        the network's binding (a round trip to the CAN-ECB or the TCP-ECB). ``publish`` binds
+        by itself when this was not called."""
+        if self._closed:
+            raise Closed("node closed")
+        if channel not in self._publishing:
+            self._publishing[channel] = await self._publishing_state(channel)
+
     async def subscribe(
         self,
         *channels: ChannelLike,

@@ -8,22 +8,34 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import json
 import logging
 import os
 import re
 import sys
-from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any
 
+from . import tools
 from ._address import DEFAULT_PORT
-from ._channel import Channel, parse_channel
-from ._errors import ConfigError, UpsError
+from ._cliargs import (
+    add_can,
+    add_node_options,
+    add_tls,
+    channel_arg,
+    hex_arg,
+    nonnegative_float,
+    open_node,
+    positive_float,
+    positive_int,
+    priority_arg,
+    run_until_signal,
+    tls_of,
+)
+from ._errors import UpsError
 
 if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
     from ._message import Message
-    from ._node import Node
-    from ._tls import Tls
 
 EXIT_TIMEOUT = 1
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
@@ -89,27 +101,27 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         return commands.add_parser(name, parents=[common], **kwargs)
 
     cmd = command("can-broker", help="run the CAN-ECB of one bus")
-    _add_can(cmd)
+    add_can(cmd)
     cmd.add_argument(
         "--db", default=None,
         help="SQLite file of TxNodes and etags (default: the bus's own file under "
         "$UPS_STATE_DIR, $XDG_STATE_HOME/ups or ~/.local/state/ups)",
     )  # fmt: skip
     cmd.add_argument(
-        "--recovery", type=_nonnegative_float, default=2.0,
+        "--recovery", type=nonnegative_float, default=2.0,
         help="seconds after start spent relearning the bus before answering (default 2)",
     )  # fmt: skip
     cmd.add_argument(
-        "--max-channels", type=_positive_int, default=8192,
+        "--max-channels", type=positive_int, default=8192,
         help="channels one node may subscribe to or publish on (default 8192)",
     )  # fmt: skip
     cmd.add_argument(
-        "--lease", type=_positive_float, default=86_400.0,
+        "--lease", type=positive_float, default=86_400.0,
         help="seconds after which a silent node's TxNode, or an unused etag, may be given to "
         "another when none is free (default 86400)",
     )  # fmt: skip
     cmd.add_argument(
-        "--bitrate", type=_positive_int, default=500_000,
+        "--bitrate", type=positive_int, default=500_000,
         help="the bus's bit rate, for admitting real-time channels (default 500000)",
     )  # fmt: skip
     cmd.set_defaults(run=_run_can_broker)
@@ -120,11 +132,11 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         help=f"address to listen on (default 127.0.0.1:{DEFAULT_PORT}; 0.0.0.0 for every one)",
     )  # fmt: skip
     cmd.add_argument(
-        "--liveness", type=_positive_float, default=3.0,
+        "--liveness", type=positive_float, default=3.0,
         help="seconds a silent or disconnected node stays registered (default 3)",
     )  # fmt: skip
     cmd.add_argument(
-        "--recovery", type=_nonnegative_float, default=1.5,
+        "--recovery", type=nonnegative_float, default=1.5,
         help="seconds after start to collect re-registrations before answering (default 1.5)",
     )  # fmt: skip
     cmd.add_argument(
@@ -132,13 +144,11 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         help="TOML access control list: [identity.NAME] publish/subscribe = [channels, globs, "
         "0xUIDs], status = true; needs TLS; an identity not listed may do nothing",
     )  # fmt: skip
-    _add_tls(cmd)
+    add_tls(cmd)
     cmd.set_defaults(run=_run_broker)
 
-    cmd = command(
-        "gateway", help="forward subscribed events between a CAN bus and TCP/IP"
-    )
-    _add_can(cmd)
+    cmd = command("gateway", help="forward subscribed events between a CAN bus and TCP/IP")
+    add_can(cmd)
     cmd.add_argument(
         "--broker", metavar="HOST:PORT", default=os.environ.get("UPS_BROKER") or None,
         required=not os.environ.get("UPS_BROKER"), help="the TCP-ECB (default: $UPS_BROKER)",
@@ -156,38 +166,18 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         help="do not host the bus's CAN-ECB: one already runs ('ups can-broker')",
     )  # fmt: skip
     cmd.add_argument(
-        "--bitrate", type=_positive_int, default=500_000,
+        "--bitrate", type=positive_int, default=500_000,
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
-    _add_tls(cmd, node=True)
+    add_tls(cmd, node=True)
     cmd.set_defaults(run=_run_gateway)
 
     cmd = command("status", help="print the tables and counters of a TCP daemon")
     cmd.add_argument("address", metavar="HOST:PORT", help="a TCP-ECB, gateway or node")
-    cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
-    _add_tls(cmd)
+    cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
+    add_tls(cmd)
     cmd.set_defaults(run=_run_status)
-
-    cmd = command("ls", help="list the nodes and channels of a network")
-    network = cmd.add_mutually_exclusive_group()
-    network.add_argument(
-        "--broker", metavar="HOST:PORT",
-        help="a TCP/IP network: ask its TCP-ECB (default: $UPS_BROKER)",
-    )  # fmt: skip
-    network.add_argument(
-        "--can", metavar="INTERFACE:CHANNEL[,key=value...]",
-        help="a CAN bus: read its CAN-ECB's database and listen (default: $UPS_CAN)",
-    )  # fmt: skip
-    cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
-    cmd.add_argument(
-        "--listen-for", type=_positive_float, default=1.0, metavar="S",
-        help="CAN: seconds to listen to the bus for who sends what (default 1)",
-    )  # fmt: skip
-    cmd.add_argument("--json", action="store_true", help="one JSON object")
-    cmd.add_argument("--timeout", type=_positive_float, default=5.0, help="seconds to wait")
-    _add_tls(cmd)
-    cmd.set_defaults(run=_run_ls)
 
     cmd = command("certs", help="make the fleet CA and certificates for TLS")
     certs = cmd.add_subparsers(dest="certs_command", required=True, metavar="ACTION")
@@ -199,15 +189,17 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     cmd.set_defaults(run=_run_certs)
 
     cmd = command("pub", help="publish events on a channel")
-    cmd.add_argument("channel", type=_channel_arg, help="channel name, or UID as 0x + hex")
-    cmd.add_argument("data", type=_hex_arg, help="payload as hex digits ('' for none)")
-    _add_node_options(cmd)
-    cmd.add_argument("--count", type=_positive_int, default=1, help="events to publish")
+    cmd.add_argument("channel", type=channel_arg, help="channel name, or UID as 0x + hex")
+    cmd.add_argument("data", type=hex_arg, help="payload as hex digits ('' for none)")
+    add_node_options(cmd)
+    cmd.add_argument("--count", type=positive_int, default=1, help="events to publish")
     cmd.add_argument(
-        "--rate", type=_nonnegative_float, default=10.0,
+        "--rate",
+        type=nonnegative_float,
+        default=10.0,
         help="events per second (0: as fast as possible)",
     )
-    cmd.add_argument("--priority", type=_priority_arg, default=None, help="0 (highest)..255")
+    cmd.add_argument("--priority", type=priority_arg, default=None, help="0 (highest)..255")
     cmd.add_argument(
         "--wait", action="store_true",
         help="wait for room at slow subscribers instead of dropping (TCP/IP backpressure)",
@@ -215,18 +207,24 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     cmd.set_defaults(run=_run_pub)
 
     cmd = command("sub", help="print the events of channels")
-    cmd.add_argument("channels", nargs="+", type=_channel_arg, metavar="CHANNEL")
-    _add_node_options(cmd)
-    cmd.add_argument("--count", type=_positive_int, default=None, help="exit 0 after N events")
+    cmd.add_argument("channels", nargs="+", type=channel_arg, metavar="CHANNEL")
+    add_node_options(cmd)
+    cmd.add_argument("--count", type=positive_int, default=None, help="exit 0 after N events")
     cmd.add_argument(
-        "--timeout", type=_positive_float, default=None, help="exit 1 if this many s pass"
+        "--timeout", type=positive_float, default=None, help="exit 1 if this many s pass"
     )
     cmd.add_argument("--json", action="store_true", help="one JSON object per line")
     cmd.add_argument(
-        "--queue", type=_positive_int, default=1024,
+        "--queue", type=positive_int, default=1024,
         help="events held while the output is slow (default 1024); beyond, the oldest are lost",
     )  # fmt: skip
     cmd.set_defaults(run=_run_sub)
+
+    for name in tools.COMMANDS:  # the operators' tools, one module each
+        module = importlib.import_module(f"ups.tools.{name}")
+        cmd = command(name, help=module.HELP)
+        module.add_arguments(cmd)
+        cmd.set_defaults(run=module.run)
 
     cmd = command("analyze", help="CAN response-time analysis of a message set")
     if analyze:
@@ -238,10 +236,10 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     cmd = command(
         "demo", help="run the demo robots on a virtual CAN bus, with a gateway to loopback TCP/IP"
     )
-    cmd.add_argument("--duration", type=_positive_float, default=3.0, help="seconds to run")
+    cmd.add_argument("--duration", type=positive_float, default=3.0, help="seconds to run")
     cmd.set_defaults(run=_run_demo)
 
-    cmd = command("completion", help="print a bash completion script: eval \"$(ups completion)\"")
+    cmd = command("completion", help='print a bash completion script: eval "$(ups completion)"')
     cmd.set_defaults(run=_run_completion)
     return parser
 
@@ -283,159 +281,6 @@ CASES
 complete -F _ups ups"""
 
 
-def _add_can(cmd: argparse.ArgumentParser) -> None:
-    cmd.add_argument(
-        "--can",
-        default=os.environ.get("UPS_CAN") or None,
-        required=not os.environ.get("UPS_CAN"),
-        metavar="INTERFACE:CHANNEL[,key=value...]",
-        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
-        "(default: $UPS_CAN)",
-    )
-
-
-def _add_node_options(cmd: argparse.ArgumentParser) -> None:
-    network = cmd.add_mutually_exclusive_group()  # or $UPS_BROKER, or $UPS_CAN
-    network.add_argument(
-        "--can",
-        metavar="INTERFACE:CHANNEL[,key=value...]",
-        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
-        "(default: $UPS_CAN, when $UPS_BROKER is not set)",
-    )
-    network.add_argument(
-        "--broker", metavar="HOST:PORT",
-        help="TCP/IP network served by the TCP-ECB at HOST:PORT (default: $UPS_BROKER)",
-    )  # fmt: skip
-    cmd.add_argument(
-        "--listen", metavar="HOST:PORT", default=None,
-        help="TCP/IP: where publishers reach this node (default: towards the broker, any port)",
-    )  # fmt: skip
-    cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
-    cmd.add_argument(
-        "--join-timeout", type=_positive_float, default=30.0,
-        help="seconds to wait for the broker",
-    )
-    _add_tls(cmd, node=True)
-
-
-def _add_tls(cmd: argparse.ArgumentParser, node: bool = False) -> None:
-    tls = cmd.add_argument_group("TLS (TCP/IP; all three, from 'ups certs')")
-    tls.add_argument("--tls-ca", metavar="FILE", help="the fleet CA's certificate")
-    tls.add_argument("--tls-cert", metavar="FILE", help="this participant's certificate")
-    tls.add_argument("--tls-key", metavar="FILE", help="this participant's private key")
-    if node:
-        tls.add_argument(
-            "--tls-broker", metavar="NAME", default="broker",
-            help="the identity the TCP-ECB's certificate must show (default: broker)",
-        )  # fmt: skip
-
-
-def _tls(args: argparse.Namespace) -> Tls | None:
-    from ._tls import Tls
-
-    broker = getattr(args, "tls_broker", "broker")  # the commands that join a TCP-ECB have it
-    return Tls.from_files(args.tls_ca, args.tls_cert, args.tls_key, broker)
-
-
-def _channel_arg(text: str) -> Channel:
-    try:
-        return parse_channel(text)
-    except UpsError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _hex_arg(text: str) -> bytes:
-    try:
-        return bytes.fromhex(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not hex digits: {text!r}") from None
-
-
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
-    return value
-
-
-def _nonnegative_float(text: str) -> float:
-    value = float(text)
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
-def _priority_arg(text: str) -> int:
-    value = int(text, 0)
-    if not 0 <= value <= 255:
-        raise argparse.ArgumentTypeError(f"priority must be 0..255, got {value}")
-    return value
-
-
-def _run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
-    """Run ``coro`` (on uvloop when installed); SIGTERM and SIGINT cancel it, so every
-    resource closes before exit."""
-
-    import asyncio
-    import signal
-
-    async def wrapper() -> int:
-        task = asyncio.current_task()
-        assert task is not None
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, task.cancel)
-        try:
-            return await coro
-        except asyncio.CancelledError:
-            return 0
-
-    try:
-        import uvloop  # the faster event loop, when installed (pip install ups-pubsub[fast])
-    except ImportError:
-        return asyncio.run(wrapper())
-    return uvloop.run(wrapper())
-
-
-def _network(args: argparse.Namespace) -> tuple[str | None, str | None]:
-    """(--can, --broker), or else the environment's (UPS_BROKER first); exactly one is set."""
-    can, broker = args.can, args.broker
-    if can is None and broker is None:
-        broker = os.environ.get("UPS_BROKER") or None
-        can = None if broker else os.environ.get("UPS_CAN") or None
-    if can is None and broker is None:
-        raise ConfigError(
-            "which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT "
-            "(or set UPS_CAN or UPS_BROKER)"
-        )
-    return can, broker
-
-
-def _node(args: argparse.Namespace) -> Node:
-    from ._node import Node
-
-    can, broker = _network(args)
-    if args.listen is not None and broker is None:
-        raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
-    args.on_can = can is not None  # what ``source`` is: a TxNode or a node id
-    return Node(
-        can=can,
-        broker=broker,
-        listen=args.listen,
-        node_id=args.node_id,
-        name=f"ups-{args.command}",
-        join_timeout=args.join_timeout,
-        tls=_tls(args),
-    )
-
-
 def _run_can_broker(args: argparse.Namespace) -> int:
     from broker._store import default_db
     from broker.can_ecb import serve
@@ -448,21 +293,21 @@ def _run_can_broker(args: argparse.Namespace) -> int:
             recovery=args.recovery, lease=args.lease, max_channels=args.max_channels,
         )  # fmt: skip
 
-    return _run_until_signal(run())
+    return run_until_signal(run())
 
 
 def _run_broker(args: argparse.Namespace) -> int:
     from broker._acl import Acl
     from broker.tcp_ecb import serve
 
-    tls = _tls(args)
+    tls = tls_of(args)
     acl = Acl.load(args.acl) if args.acl is not None else None
 
     async def run() -> int:
         await serve(args.listen, args.liveness, args.recovery, tls, acl)
         return 0
 
-    return _run_until_signal(run())
+    return run_until_signal(run())
 
 
 def _run_gateway(args: argparse.Namespace) -> int:
@@ -476,14 +321,14 @@ def _run_gateway(args: argparse.Namespace) -> int:
         bitrate=args.bitrate,
         node_id=args.node_id,
         listen=args.listen,
-        tls=_tls(args),
+        tls=tls_of(args),
     )
 
     async def run() -> int:
         await serve(gateway)
         return 0
 
-    return _run_until_signal(run())
+    return run_until_signal(run())
 
 
 def _run_certs(args: argparse.Namespace) -> int:
@@ -497,44 +342,22 @@ def _run_certs(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_ls(args: argparse.Namespace) -> int:
-    from ._ls import can_listing, listing, render, render_can
-    from ._tcpface import query_status
-
-    can, broker = _network(args)
-    if can is not None:
-        from broker._store import default_db
-
-        db = args.db if args.db is not None else str(default_db(can))
-        table = can_listing(can, db, args.listen_for)
-        print(json.dumps(table, indent=2) if args.json else render_can(table))
-        return 0
-    args.broker = broker
-
-    async def run() -> int:
-        table = listing(await query_status(args.broker, args.timeout, _tls(args)))
-        print(json.dumps(table, indent=2) if args.json else render(table))
-        return 0
-
-    return _run_until_signal(run())
-
-
 def _run_status(args: argparse.Namespace) -> int:
     from ._tcpface import query_status
 
     async def run() -> int:
-        info = await query_status(args.address, args.timeout, _tls(args))
+        info = await query_status(args.address, args.timeout, tls_of(args))
         print(json.dumps(info, indent=2))
         return 0
 
-    return _run_until_signal(run())
+    return run_until_signal(run())
 
 
 def _run_pub(args: argparse.Namespace) -> int:
     import asyncio
 
     async def run() -> int:
-        async with _node(args) as node:
+        async with open_node(args) as node:
             if args.priority is not None:
                 node.set_priority(args.channel, args.priority)
             loop = asyncio.get_running_loop()
@@ -554,7 +377,7 @@ def _run_pub(args: argparse.Namespace) -> int:
             return 1
         return 0
 
-    return _run_until_signal(run())
+    return run_until_signal(run())
 
 
 def _run_sub(args: argparse.Namespace) -> int:
@@ -563,7 +386,7 @@ def _run_sub(args: argparse.Namespace) -> int:
     async def run() -> int:
         got = 0
         code = 0
-        async with _node(args) as node:
+        async with open_node(args) as node:
             sub = await node.subscribe(*args.channels, maxlen=args.queue)
             names = ", ".join(str(c) for c in args.channels)
             logging.getLogger("ups").info("subscribed to %s", names)
@@ -592,7 +415,7 @@ def _run_sub(args: argparse.Namespace) -> int:
             return code or EXIT_LOST
         return code
 
-    return _run_until_signal(run())
+    return run_until_signal(run())
 
 
 def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
@@ -619,7 +442,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
     if not args.verbose:  # the demo prints what matters; keep the join/bind log for -v
         logging.getLogger().setLevel(logging.WARNING)
-    return _run_until_signal(run_demo(args.duration))
+    return run_until_signal(run_demo(args.duration))
 
 
 if __name__ == "__main__":

@@ -3,18 +3,72 @@
 On TCP/IP from the TCP-ECB's Status. The TCP-ECB is not on the data path, so it knows who
 subscribes to and publishes on what (and the channel names nodes gave it), not event rates.
 On CAN from the CAN-ECB's database (TxNodes, etags) and a moment of listening to the bus (who
-sends what, how often).
+sends what, how often); names come from the catalog.
 """
 
 from __future__ import annotations
 
-import contextlib
+import argparse
+import json
 from collections.abc import Sequence
 from typing import Any
 
+from .._catalog import Catalog, load_catalog
+from .._cliargs import (
+    add_catalog,
+    add_network,
+    add_tls,
+    network_of,
+    positive_float,
+    run_until_signal,
+    tls_of,
+)
 
-def listing(status: dict[str, Any]) -> dict[str, Any]:
-    """The nodes and channels of a TCP-ECB's Status, each as a flat record."""
+HELP = "list the nodes and channels of a network"
+
+
+def add_arguments(cmd: argparse.ArgumentParser) -> None:
+    add_network(
+        cmd, "a CAN bus: read its CAN-ECB's database and listen",
+        "a TCP/IP network: ask its TCP-ECB",
+    )  # fmt: skip
+    cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
+    cmd.add_argument(
+        "--listen-for", type=positive_float, default=1.0, metavar="S",
+        help="CAN: seconds to listen to the bus for who sends what (default 1)",
+    )  # fmt: skip
+    add_catalog(cmd)
+    cmd.add_argument("--json", action="store_true", help="one JSON object")
+    cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
+    add_tls(cmd)
+
+
+def run(args: argparse.Namespace) -> int:
+    can, broker = network_of(args)
+    catalog = load_catalog(args.catalog)
+    if can is not None:
+        from broker._store import default_db
+
+        db = args.db if args.db is not None else str(default_db(can))
+        table = can_listing(can, db, args.listen_for, catalog)
+        print(json.dumps(table, indent=2) if args.json else render_can(table))
+        return 0
+    assert broker is not None
+
+    async def ask() -> int:
+        from .._tcpface import query_status
+
+        table = listing(await query_status(broker, args.timeout, tls_of(args)), catalog)
+        print(json.dumps(table, indent=2) if args.json else render(table))
+        return 0
+
+    return run_until_signal(ask())
+
+
+def listing(status: dict[str, Any], catalog: Catalog | None = None) -> dict[str, Any]:
+    """The nodes and channels of a TCP-ECB's Status, each as a flat record; names the nodes
+    did not give come from ``catalog``."""
+    catalog = catalog or Catalog()
     nodes = [
         {
             "node_id": n["node_id"],
@@ -30,7 +84,7 @@ def listing(status: dict[str, Any]) -> dict[str, Any]:
     channels = [
         {
             "uid": c["uid"],
-            "name": c.get("name"),
+            "name": c.get("name") or catalog.channel(int(c["uid"], 16)).name,
             "publishers": list(c.get("publishers", ())),
             "subscribers": list(c.get("subscribers", ())),
         }
@@ -76,28 +130,23 @@ def _aligned(rows: Sequence[tuple[str, ...]]) -> list[str]:
             for row in rows]  # fmt: skip
 
 
-def can_listing(bus: str, db: str, seconds: float) -> dict[str, Any]:
+def can_listing(
+    bus: str, db: str, seconds: float, catalog: Catalog | None = None
+) -> dict[str, Any]:
     """The nodes and channels of a CAN bus: its CAN-ECB's tables (read from the CAN-ECB's
     database, read-only: run it where the CAN-ECB runs) and what ``seconds`` of listening to
-    the bus show (who sends, how often). Names are unknown on CAN."""
-    import sqlite3
+    the bus show (who sends, how often). Names come from ``catalog``."""
     import time
-    from pathlib import Path
 
-    from . import _canproto as p
-    from ._canlink import open_bus
-    from ._errors import ConfigError
+    from .. import _canproto as p
+    from .._bindings import Bindings
+    from .._canlink import open_bus
 
-    if not Path(db).is_file():
-        raise ConfigError(
-            f"no CAN-ECB database at {db}: give --db, on the host the CAN-ECB runs on"
-        )
-    try:
-        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as conn:
-            txnodes = {int(n, 16): t for n, t in conn.execute("SELECT * FROM txnodes")}
-            etags = {int(u, 16): e for u, e in conn.execute("SELECT * FROM etags")}
-    except sqlite3.Error as exc:
-        raise ConfigError(f"cannot read the CAN-ECB database {db}: {exc}") from None
+    catalog = catalog or Catalog()
+    bindings = Bindings()
+    bindings.load_db(db)
+    txnodes = {n: t for t, n in bindings.txnodes.items()}
+    etags = {u: e for e, u in bindings.etags.items()}
     heard: dict[int, int] = {}  # TxNode -> frames
     sent: dict[int, dict[int, int]] = {}  # etag -> TxNode -> event frames
     listener = open_bus(bus)
@@ -129,7 +178,7 @@ def can_listing(bus: str, db: str, seconds: float) -> dict[str, Any]:
         senders = sent.get(etag, {})
         channels.append({
             "uid": None if uid is None else f"0x{uid:016x}",
-            "name": None,
+            "name": None if uid is None else catalog.channel(uid).name,
             "etag": f"0x{etag:04x}",
             "publishers": [f"0x{node_at[t]:016x}" if t in node_at else f"TxNode 0x{t:02x}"
                            for t in sorted(senders)],
@@ -148,10 +197,10 @@ def render_can(table: dict[str, Any]) -> str:
         for n in table["nodes"]
     ]
     lines = [f"{table['total']['nodes']} nodes", *_aligned(rows), ""]
-    rows = [("UID", "ETAG", "PUBLISHERS HEARD", "FRAMES/S")]
+    rows = [("UID", "NAME", "ETAG", "PUBLISHERS HEARD", "FRAMES/S")]
     rows += [
-        (c["uid"] or "(not bound)", c["etag"], ", ".join(c["publishers"]) or "-",
-         str(c["frames_per_s"]))
+        (c["uid"] or "(not bound)", c["name"] or "-", c["etag"],
+         ", ".join(c["publishers"]) or "-", str(c["frames_per_s"]))
         for c in table["channels"]
     ]  # fmt: skip
     lines += [f"{table['total']['channels']} channels", *_aligned(rows)]

@@ -1,0 +1,143 @@
+"""What a listener needs to read a UPS bus: which channel each etag carries, which node each
+TxNode is. Learned from the CAN-ECB's database, from the management frames on the bus (Bind,
+PUB_AT/SUB_AT, Assign) and from a recording's sidecar file.
+
+The tools (``ls``, ``record``, ``decode``, ``replay``, ``monitor``, ``dbc``, ``console``) share
+it. A frame reads as one of three things: a management frame (``Management``), an event
+(``Event``: priority, TxNode, etag, payload and the channel UID when the etag is bound), or
+foreign traffic (standard 11-bit ids, error frames, malformed management frames).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from . import _canproto as p
+from ._errors import ConfigError, DecodeError
+
+SIDECAR_FORMAT = "ups-bindings/1"
+SIDECAR_SUFFIX = ".ups.json"  #: next to a recording: capture.asc -> capture.asc.ups.json
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    """An event frame: ``uid`` is None when the etag's channel is not known (yet)."""
+
+    priority: int
+    txnode: int
+    etag: int
+    uid: int | None
+    data: bytes
+
+
+@dataclass
+class Bindings:
+    """etag -> channel UID and TxNode -> node id of one bus (or of one recording)."""
+
+    etags: dict[int, int] = field(default_factory=dict)
+    txnodes: dict[int, int] = field(default_factory=dict)
+    names: dict[int, str] = field(default_factory=dict)  #: UID -> name, when known
+    network: str = "can"  #: "can", or "tcp" for a recording of a TCP/IP network
+
+    def read(self, can_id: int, data: bytes, extended: bool = True) -> Event | p.Management | None:
+        """Read one frame, learning from it; None for foreign or malformed traffic."""
+        if not extended:
+            return None
+        if p.is_management(can_id):
+            try:
+                msg = p.decode(can_id, bytes(data))
+            except DecodeError:
+                return None
+            self.learn(msg)
+            return msg
+        priority, txnode, etag = p.split_id(can_id)
+        return Event(priority, txnode, etag, self.etags.get(etag), bytes(data))
+
+    def learn(self, msg: p.Management) -> None:
+        if isinstance(msg, p.Bind | p.Holds):
+            self.etags[msg.etag] = msg.uid
+        elif isinstance(msg, p.Assign):
+            for txnode, node_id in list(self.txnodes.items()):
+                if node_id == msg.node_id and txnode != msg.txnode:
+                    del self.txnodes[txnode]
+            self.txnodes[msg.txnode] = msg.node_id
+
+    def etag_of(self, uid: int) -> int | None:
+        return next((e for e, u in self.etags.items() if u == uid), None)
+
+    def load_db(self, db: str | Path) -> None:
+        """Add the tables of a CAN-ECB's database, opened read-only (the CAN-ECB may run)."""
+        import sqlite3
+
+        if not Path(db).is_file():
+            raise ConfigError(f"no CAN-ECB database at {db}: give --db, on the CAN-ECB's host")
+        try:
+            with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as conn:
+                txnodes = [(int(n, 16), t) for n, t in conn.execute("SELECT * FROM txnodes")]
+                etags = [(int(u, 16), e) for u, e in conn.execute("SELECT * FROM etags")]
+        except (sqlite3.Error, ValueError) as exc:
+            raise ConfigError(f"cannot read the CAN-ECB database {db}: {exc}") from None
+        for node_id, txnode in txnodes:
+            self.txnodes[txnode] = node_id
+        for uid, etag in etags:
+            self.etags[etag] = uid
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": SIDECAR_FORMAT,
+            "network": self.network,
+            "etags": {f"0x{e:04x}": f"0x{u:016x}" for e, u in sorted(self.etags.items())},
+            "txnodes": {f"0x{t:02x}": f"0x{n:016x}" for t, n in sorted(self.txnodes.items())},
+            "names": {f"0x{u:016x}": n for u, n in sorted(self.names.items())},
+        }
+
+    @classmethod
+    def from_json(cls, doc: Any, source: str = "bindings") -> Bindings:
+        try:
+            if doc.get("format") != SIDECAR_FORMAT:
+                raise ConfigError(f"{source}: not a UPS bindings file ({SIDECAR_FORMAT})")
+            return cls(
+                {_etag(e): int(u, 16) for e, u in doc["etags"].items()},
+                {_txnode(t): int(n, 16) for t, n in doc["txnodes"].items()},
+                {int(u, 16): str(n) for u, n in doc.get("names", {}).items()},
+                str(doc.get("network", "can")),
+            )
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: malformed bindings ({exc})") from None
+
+    def save(self, path: str | Path) -> None:
+        tmp = Path(f"{path}.tmp")
+        tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Bindings:
+        try:
+            doc = json.loads(Path(path).read_text())
+        except OSError as exc:
+            raise ConfigError(f"cannot read {path}: {exc.strerror}") from None
+        except ValueError as exc:
+            raise ConfigError(f"{path}: not JSON ({exc})") from None
+        return cls.from_json(doc, str(path))
+
+
+def _etag(text: str) -> int:
+    value = int(text, 16)
+    if not p.FIRST_ETAG <= value <= p.LAST_ETAG:
+        raise ValueError(f"etag {text} out of range")
+    return value
+
+
+def _txnode(text: str) -> int:
+    value = int(text, 16)
+    if not 0 <= value < p.TXNODE_COUNT:
+        raise ValueError(f"TxNode {text} out of range")
+    return value
+
+
+def sidecar_of(recording: str | Path) -> Path:
+    return Path(f"{recording}{SIDECAR_SUFFIX}")

@@ -1,0 +1,189 @@
+"""What the ``ups`` commands share: their common options, argument types, the choice of
+network, and running a command's coroutine until a signal."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Coroutine
+from typing import TYPE_CHECKING, Any
+
+from ._channel import Channel, parse_channel
+from ._errors import ConfigError, UpsError
+
+if TYPE_CHECKING:
+    from ._node import Node
+    from ._tls import Tls
+
+
+def add_can(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument(
+        "--can",
+        default=os.environ.get("UPS_CAN") or None,
+        required=not os.environ.get("UPS_CAN"),
+        metavar="INTERFACE:CHANNEL[,key=value...]",
+        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
+        "(default: $UPS_CAN)",
+    )
+
+
+def add_node_options(cmd: argparse.ArgumentParser) -> None:
+    network = cmd.add_mutually_exclusive_group()  # or $UPS_BROKER, or $UPS_CAN
+    network.add_argument(
+        "--can",
+        metavar="INTERFACE:CHANNEL[,key=value...]",
+        help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
+        "(default: $UPS_CAN, when $UPS_BROKER is not set)",
+    )
+    network.add_argument(
+        "--broker", metavar="HOST:PORT",
+        help="TCP/IP network served by the TCP-ECB at HOST:PORT (default: $UPS_BROKER)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--listen", metavar="HOST:PORT", default=None,
+        help="TCP/IP: where publishers reach this node (default: towards the broker, any port)",
+    )  # fmt: skip
+    cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    cmd.add_argument(
+        "--join-timeout",
+        type=positive_float,
+        default=30.0,
+        help="seconds to wait for the broker",
+    )
+    add_tls(cmd, node=True)
+
+
+def add_tls(cmd: argparse.ArgumentParser, node: bool = False) -> None:
+    tls = cmd.add_argument_group("TLS (TCP/IP; all three, from 'ups certs')")
+    tls.add_argument("--tls-ca", metavar="FILE", help="the fleet CA's certificate")
+    tls.add_argument("--tls-cert", metavar="FILE", help="this participant's certificate")
+    tls.add_argument("--tls-key", metavar="FILE", help="this participant's private key")
+    if node:
+        tls.add_argument(
+            "--tls-broker", metavar="NAME", default="broker",
+            help="the identity the TCP-ECB's certificate must show (default: broker)",
+        )  # fmt: skip
+
+
+def tls_of(args: argparse.Namespace) -> Tls | None:
+    from ._tls import Tls
+
+    broker = getattr(args, "tls_broker", "broker")  # the commands that join a TCP-ECB have it
+    return Tls.from_files(args.tls_ca, args.tls_cert, args.tls_key, broker)
+
+
+def channel_arg(text: str) -> Channel:
+    try:
+        return parse_channel(text)
+    except UpsError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def hex_arg(text: str) -> bytes:
+    try:
+        return bytes.fromhex(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not hex digits: {text!r}") from None
+
+
+def positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def priority_arg(text: str) -> int:
+    value = int(text, 0)
+    if not 0 <= value <= 255:
+        raise argparse.ArgumentTypeError(f"priority must be 0..255, got {value}")
+    return value
+
+
+def run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
+    """Run ``coro`` (on uvloop when installed); SIGTERM and SIGINT cancel it, so every
+    resource closes before exit."""
+
+    import asyncio
+    import signal
+
+    async def wrapper() -> int:
+        task = asyncio.current_task()
+        assert task is not None
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, task.cancel)
+        try:
+            return await coro
+        except asyncio.CancelledError:
+            return 0
+
+    try:
+        import uvloop  # the faster event loop, when installed (pip install ups-pubsub[fast])
+    except ImportError:
+        return asyncio.run(wrapper())
+    return uvloop.run(wrapper())
+
+
+def network_of(args: argparse.Namespace) -> tuple[str | None, str | None]:
+    """(--can, --broker), or else the environment's (UPS_BROKER first); exactly one is set."""
+    can, broker = args.can, args.broker
+    if can is None and broker is None:
+        broker = os.environ.get("UPS_BROKER") or None
+        can = None if broker else os.environ.get("UPS_CAN") or None
+    if can is None and broker is None:
+        raise ConfigError(
+            "which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT "
+            "(or set UPS_CAN or UPS_BROKER)"
+        )
+    return can, broker
+
+
+def open_node(args: argparse.Namespace) -> Node:
+    from ._node import Node
+
+    can, broker = network_of(args)
+    if args.listen is not None and broker is None:
+        raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
+    args.on_can = can is not None  # what ``source`` is: a TxNode or a node id
+    return Node(
+        can=can,
+        broker=broker,
+        listen=args.listen,
+        node_id=args.node_id,
+        name=f"ups-{args.command}",
+        join_timeout=args.join_timeout,
+        tls=tls_of(args),
+    )
+
+
+def add_network(cmd: argparse.ArgumentParser, can_help: str, broker_help: str) -> None:
+    """``--can BUS | --broker HOST:PORT`` (else $UPS_BROKER, else $UPS_CAN: see network_of)."""
+    network = cmd.add_mutually_exclusive_group()
+    network.add_argument(
+        "--can", metavar="INTERFACE:CHANNEL[,key=value...]", help=f"{can_help} (default: $UPS_CAN)"
+    )
+    network.add_argument(
+        "--broker", metavar="HOST:PORT", help=f"{broker_help} (default: $UPS_BROKER)"
+    )
+
+
+def add_catalog(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument(
+        "--catalog", metavar="FILE", default=None,
+        help="TOML channel catalog: names and payload layouts (default: $UPS_CATALOG)",
+    )  # fmt: skip

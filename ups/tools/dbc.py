@@ -1,0 +1,191 @@
+"""``ups dbc -o FILE.dbc``: a DBC file (written by cantools) that labels a UPS bus's event
+frames, so SavvyCAN, cantools and vendor tools show channels and decoded signals.
+
+A DBC names a frame by its whole identifier, and a UPS identifier holds the priority, the
+publisher's TxNode and the channel's etag, all three chosen on the bus at run time. So a DBC
+is true for one bus as it is bound now: one message per (priority, TxNode, etag) in use, taken
+from the live bus (``--can BUS``: its CAN-ECB's database and a moment of listening) or from a
+recording (``--recording FILE``). The catalog (``--catalog``) gives names and the signals of
+each channel's layout; a channel without one gets a single ``raw`` signal when it fits 64 bits.
+Run it again after the CAN-ECB gives out etags or TxNodes anew (a lost database, a lease).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from typing import TYPE_CHECKING, Any
+
+from .._catalog import Catalog, ChannelSpec, load_catalog
+from .._cliargs import add_catalog, positive_float
+from .._errors import ConfigError
+
+if TYPE_CHECKING:
+    from .._bindings import Bindings
+
+HELP = "write a DBC that labels a UPS bus's frames (for cantools, SavvyCAN ...)"
+Stream = tuple[int, int, int]  #: (priority, TxNode, etag) of frames in use
+
+
+def add_arguments(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument("-o", "--output", metavar="FILE.dbc", required=True, help="the DBC to write")
+    source = cmd.add_mutually_exclusive_group()
+    source.add_argument(
+        "--can", metavar="INTERFACE:CHANNEL[,key=value...]",
+        help="the live bus: its CAN-ECB's database and the frames heard (default: $UPS_CAN)",
+    )  # fmt: skip
+    source.add_argument("--recording", metavar="FILE", help="the frames of a recording instead")
+    cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
+    cmd.add_argument(
+        "--listen-for", type=positive_float, default=2.0, metavar="S",
+        help="CAN: seconds to listen for the frames in use (default 2)",
+    )  # fmt: skip
+    add_catalog(cmd)
+
+
+def run(args: argparse.Namespace) -> int:
+    import os
+
+    catalog = load_catalog(args.catalog)
+    if args.recording is not None:
+        bindings, streams, sizes = _from_recording(args.recording)
+    else:
+        bus = args.can or os.environ.get("UPS_CAN") or None
+        if bus is None:
+            raise ConfigError(
+                "which frames? give --can BUS (the live bus) or --recording FILE: a DBC names "
+                "frames by their identifier, which holds the TxNode and etag chosen on the bus"
+            )
+        bindings, streams, sizes = _from_bus(bus, args.db, args.listen_for)
+    database, skipped = build(bindings, streams, sizes, catalog)
+    database.refresh()
+    import cantools
+
+    try:
+        cantools.database.dump_file(database, args.output)
+    except OSError as exc:
+        raise ConfigError(f"cannot write {args.output}: {exc.strerror}") from None
+    print(
+        f"ups dbc: {len(database.messages)} messages in {args.output}"
+        + (f"; left out: {skipped} streams on etags bound to no known channel" if skipped else ""),
+        file=sys.stderr,
+    )
+    return 0
+
+
+def build(
+    bindings: Bindings, streams: set[Stream], sizes: dict[Stream, int], catalog: Catalog
+) -> tuple[Any, int]:
+    """The cantools Database of ``streams``; returns it and how many were left out."""
+    from cantools.database.can import Database, Message
+
+    from .. import _canproto as p
+
+    messages = []
+    skipped = 0
+    used: set[str] = set()
+    for stream in sorted(streams):
+        priority, txnode, etag = stream
+        uid = bindings.etags.get(etag)
+        if uid is None:
+            skipped += 1
+            continue
+        spec = catalog.get(uid)
+        name = catalog.channel(uid).name or bindings.names.get(uid) or f"uid_{uid:016x}"
+        base = re.sub(r"\W", "_", name).strip("_") or "channel"
+        if base[0].isdigit():
+            base = f"ch_{base}"
+        label = f"{base}_tx{txnode:02x}"
+        if label in used:  # the same channel and publisher at another priority
+            label = f"{label}_p{priority:02x}"
+        used.add(label)
+        node = bindings.txnodes.get(txnode)
+        signals, length = _signals(spec, sizes.get(stream, 8))
+        comment = f"UPS channel {name} (UID 0x{uid:016x}), etag 0x{etag:04x}, TxNode 0x{txnode:02x}"
+        if node is not None:
+            comment += f" (node 0x{node:016x})"
+        messages.append(
+            Message(
+                frame_id=p.make_id(priority, txnode, etag), name=label, length=length,
+                signals=signals, comment=comment, is_extended_frame=True,
+                is_fd=length > p.CLASSIC_MAX_DATA, strict=False,
+            )
+        )  # fmt: skip
+    return Database(messages=messages, strict=False), skipped
+
+
+def _signals(spec: ChannelSpec | None, observed: int) -> tuple[list[Any], int]:
+    from cantools.database.can import Signal
+    from cantools.database.conversion import BaseConversion
+
+    fields = () if spec is None else spec.fields
+    if not fields or spec is None or spec.size is None:
+        if observed > 8:
+            return [], observed
+        raw = Signal("raw", 0, 8 * observed) if observed else None
+        return ([raw] if raw else []), observed
+    signals = []
+    at = 0
+    little = spec.byte_order == "little"
+    for f in fields:
+        size = f.size or 0
+        start = 8 * at if little else 8 * at + 7  # DBC numbers a Motorola signal by its MSB
+        conversion = BaseConversion.factory(
+            scale=f.scale, offset=f.offset, is_float=f.type in ("f32", "f64")
+        )
+        signals.append(
+            Signal(
+                f.name, start, 8 * size if f.type != "bool" else 1,
+                byte_order="little_endian" if little else "big_endian",
+                is_signed=f.type.startswith("i"), conversion=conversion, unit=f.unit or None,
+            )
+        )  # fmt: skip
+        at += size
+    return signals, at
+
+
+def _from_recording(path: str) -> tuple[Bindings, set[Stream], dict[Stream, int]]:
+    from .._bindings import Event
+    from .decode import Tally, bindings_for, read
+
+    bindings = bindings_for(path, None, None)
+    streams: set[Stream] = set()
+    sizes: dict[Stream, int] = {}
+    for _, item in read(path, bindings, Tally()):
+        if isinstance(item, Event):
+            stream = (item.priority, item.txnode, item.etag)
+            streams.add(stream)
+            sizes[stream] = max(sizes.get(stream, 0), len(item.data))
+    return bindings, streams, sizes
+
+
+def _from_bus(
+    bus: str, db: str | None, seconds: float
+) -> tuple[Bindings, set[Stream], dict[Stream, int]]:
+    import time
+
+    from broker._store import default_db
+
+    from .._bindings import Bindings, Event
+    from .._canlink import open_bus
+
+    bindings = Bindings()
+    bindings.load_db(db if db is not None else default_db(bus))
+    streams: set[Stream] = set()
+    sizes: dict[Stream, int] = {}
+    listener = open_bus(bus)
+    try:
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            msg = listener.recv(left)
+            if msg is None or not msg.is_extended_id or msg.is_error_frame:
+                continue
+            item = bindings.read(msg.arbitration_id, bytes(msg.data))
+            if isinstance(item, Event):
+                stream = (item.priority, item.txnode, item.etag)
+                streams.add(stream)
+                sizes[stream] = max(sizes.get(stream, 0), len(item.data))
+    finally:
+        listener.shutdown()
+    return bindings, streams, sizes

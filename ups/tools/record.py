@@ -1,0 +1,342 @@
+"""``ups record FILE``: the events of a network in a python-can log file (``.asc``, ``.blf``,
+``.log``), with the bindings needed to read it back in ``FILE.ups.json``.
+
+On CAN the file is the bus as it was: every UPS frame, management included (its Bind, PUB_AT
+and SUB_AT frames say which channel each etag carried, its Assign frames which node each
+TxNode was). What was bound before the recording began comes from the CAN-ECB's database when
+it is on this host, and from the recorder's own subscription when channels are named: the
+sidecar holds, for each etag in the file, the channel it carried when first recorded.
+
+On TCP/IP there are no frames: each event becomes one (the CAN FD frame of its payload), its
+channel a stand-in etag and its publisher a stand-in TxNode, and a Bind (Assign) frame written
+before an etag's (TxNode's) first event says which. Events above 64 bytes do not fit a frame of
+these formats: they are counted and reported, not written.
+
+Frames that are not UPS (11-bit ids, error frames) are not written; they are counted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import time
+from collections import OrderedDict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .._catalog import load_catalog
+from .._channel import Channel
+from .._cliargs import (
+    add_catalog,
+    add_network,
+    add_tls,
+    channel_arg,
+    network_of,
+    positive_float,
+    positive_int,
+    run_until_signal,
+    tls_of,
+)
+from .._errors import ConfigError, UpsError
+
+if TYPE_CHECKING:
+    import asyncio
+
+    import can
+
+    from .._bindings import Bindings
+
+
+HELP = "record a network's events to a python-can log file (.asc, .blf, .log)"
+FORMATS = (".asc", ".blf", ".log")
+FD_MAX_DATA = 64  #: the largest frame these log formats hold (CAN FD)
+QUEUE = 65536  #: TCP/IP: events held while the file is written; beyond, counted as lost
+FOLLOW_EVERY = 1.0  #: TCP/IP: seconds between looks at the TCP-ECB for new channels
+_log = logging.getLogger("ups.record")
+
+
+def add_arguments(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument("file", metavar="FILE", help="the log file: .asc, .blf or .log (candump)")
+    cmd.add_argument(
+        "channels", nargs="*", type=channel_arg, metavar="CHANNEL",
+        help="record only these (name or 0xUID; default: every channel)",
+    )  # fmt: skip
+    add_network(cmd, "record a CAN bus", "record a TCP/IP network")
+    cmd.add_argument("--duration", type=positive_float, default=None, help="stop after S seconds")
+    cmd.add_argument("--count", type=positive_int, default=None, help="stop after N events")
+    cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
+    add_catalog(cmd)
+    cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
+    add_tls(cmd, node=True)
+
+
+def check_format(path: str) -> str:
+    suffix = Path(path).suffix.lower()
+    if suffix not in FORMATS:
+        raise ConfigError(f"{path}: the log format is chosen by the suffix: {' '.join(FORMATS)}")
+    return suffix
+
+
+def run(args: argparse.Namespace) -> int:
+    from .._bindings import Bindings
+
+    check_format(args.file)
+    can_bus, broker = network_of(args)
+    catalog = load_catalog(args.catalog)
+    bindings = Bindings(network="can" if can_bus is not None else "tcp")
+    if can_bus is not None:
+        from broker._store import default_db
+
+        db = args.db if args.db is not None else default_db(can_bus)
+        if args.db is not None or Path(db).is_file():
+            bindings.load_db(db)
+    bindings.names.update({s.uid: s.name for s in catalog if s.name})
+    bindings.names.update({c.uid: c.name for c in args.channels if c.name})
+    recorder = _Recorder(args.file, {c.uid for c in args.channels}, bindings, args.count)
+    try:
+        if can_bus is not None:
+            code = run_until_signal(_record_can(args, can_bus, recorder))
+        else:
+            assert broker is not None
+            code = run_until_signal(_record_tcp(args, broker, recorder))
+    finally:
+        recorder.close()
+    print(recorder.summary(), file=sys.stderr)
+    return code
+
+
+class _Recorder:
+    """The writer, what it has written and what it could not."""
+
+    def __init__(self, path: str, only: set[int], bindings: Bindings, count: int | None) -> None:
+        import can
+
+        from .._bindings import sidecar_of
+
+        self.path = path
+        self.sidecar = sidecar_of(path)
+        self.only = only
+        self.bindings = bindings
+        self.first_use: dict[int, int | None] = {}  #: etag -> its channel when first written
+        self.events = self.management = 0
+        self.count = count
+        self.full = threading.Event()  #: set once ``count`` events are written, or on error
+        self.error: OSError | None = None  #: writing failed (a full disk ...): recording stops
+        self.skipped: dict[str, int] = {}
+        self._writer: can.Listener = can.Logger(path)
+        self._msg = can.Message
+
+    def skip(self, why: str) -> None:
+        self.skipped[why] = self.skipped.get(why, 0) + 1
+
+    def frame(self, msg: can.Message) -> None:
+        """A frame heard on the bus: learn from it, write it (or count why not). A write that
+        fails stops the recording (``error``)."""
+        try:
+            self._frame(msg)
+        except OSError as exc:
+            self.error = exc
+            self.full.set()
+
+    def _frame(self, msg: can.Message) -> None:
+        from .._bindings import Event
+
+        if msg.is_error_frame or not msg.is_extended_id or msg.is_remote_frame:
+            self.skip("not UPS frames (11-bit, error or remote)")
+            return
+        item = self.bindings.read(msg.arbitration_id, bytes(msg.data))
+        if item is None:
+            self.skip("malformed management frames")
+            return
+        if isinstance(item, Event):
+            if self.only and item.uid not in self.only:
+                if item.uid is None:
+                    self.skip("events on etags not bound to a known channel")
+                return  # another channel's: not asked for
+            if self.full.is_set():
+                return
+            self.first_use.setdefault(item.etag, item.uid)
+            self.events += 1
+            if self.events == self.count:
+                self.full.set()
+        else:
+            self.management += 1
+        self._writer.on_message_received(msg)
+
+    def write(self, timestamp: float, can_id: int, data: bytes) -> None:
+        self._writer.on_message_received(
+            self._msg(
+                timestamp=timestamp, arbitration_id=can_id, is_extended_id=True,
+                is_fd=len(data) > 8, data=data,
+            )
+        )  # fmt: skip
+
+    def close(self) -> None:
+        self._writer.stop()
+        bindings = self.bindings
+        saved = type(bindings)(
+            {e: u for e, u in self.first_use.items() if u is not None},
+            dict(bindings.txnodes),
+            {u: n for u, n in bindings.names.items() if u in self.first_use.values()},
+            bindings.network,
+        )
+        saved.save(self.sidecar)
+
+    def summary(self) -> str:
+        channels = len({u for u in self.first_use.values()})
+        text = (
+            f"ups record: {self.events} events on {channels} channels and "
+            f"{self.management} management frames in {self.path} (bindings: {self.sidecar})"
+        )
+        for why, count in self.skipped.items():
+            text += f"; not recorded: {count} {why}"
+        return text
+
+
+async def _record_can(args: argparse.Namespace, bus: str, rec: _Recorder) -> int:
+    import asyncio
+
+    import can
+
+    from .._canlink import open_bus
+
+    listener = open_bus(bus)
+    try:
+        stop = threading.Event()
+        loop = asyncio.get_running_loop()
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+
+        def pump() -> None:  # python-can's recv blocks: a thread, stopped by the event
+            while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                if rec.full.is_set():
+                    break
+                msg = listener.recv(0.1)
+                if msg is not None:
+                    loop.call_soon_threadsafe(rec.frame, msg)
+
+        reader = asyncio.create_task(asyncio.to_thread(pump))
+        try:
+            if rec.only:  # join and subscribe: the CAN-ECB binds (or re-announces) their etags
+                await _subscribe_can(bus, args, rec, reader)
+            else:
+                _log.info("recording %s to %s", bus, args.file)
+                await reader
+        finally:
+            stop.set()
+            await asyncio.gather(reader, return_exceptions=True)
+        reader.result()  # the bus failed: say so
+    except can.CanError as exc:
+        raise UpsError(f"the bus failed: {exc}") from None
+    finally:
+        listener.shutdown()
+    if rec.error is not None:
+        raise rec.error
+    return 0
+
+
+async def _subscribe_can(
+    bus: str, args: argparse.Namespace, rec: _Recorder, reader: asyncio.Task[Any]
+) -> None:
+    from .._node import Node
+
+    channels = [Channel(uid, rec.bindings.names.get(uid)) for uid in sorted(rec.only)]
+    async with Node(can=bus, name="ups-record", join_timeout=args.timeout) as node:
+        await node.subscribe(*channels)
+        _log.info("recording %s to %s", ", ".join(map(str, channels)), args.file)
+        await reader
+
+
+class _StandIns:
+    """Stand-in numbers (etags or TxNodes) for keys (UIDs or node ids), at most ``size`` at a
+    time: the least recently used is given to a new key, and the caller writes the new
+    binding before the frame that uses it."""
+
+    def __init__(self, first: int, size: int) -> None:
+        self._first, self._size = first, size
+        self._numbers: OrderedDict[int, int] = OrderedDict()
+
+    def get(self, key: int) -> tuple[int, bool]:
+        """``(number, new)``: ``new`` when the binding must be written first."""
+        number = self._numbers.get(key)
+        if number is not None:
+            self._numbers.move_to_end(key)
+            return number, False
+        if len(self._numbers) < self._size:
+            number = self._first + len(self._numbers)
+        else:
+            _, number = self._numbers.popitem(last=False)
+        self._numbers[key] = number
+        return number, True
+
+
+async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> int:
+    import asyncio
+
+    from .. import _canproto as p
+    from .._node import Node
+    from .._tcpface import query_status
+
+    loop = asyncio.get_running_loop()
+    tls = tls_of(args)
+    etags = _StandIns(p.FIRST_ETAG, p.LAST_ETAG - p.FIRST_ETAG + 1)
+    txnodes = _StandIns(0, p.TXNODE_COUNT)
+    names = rec.bindings.names
+    async with Node(broker=broker, name="ups-record", join_timeout=args.timeout, tls=tls) as node:
+        subscribed = set(rec.only)
+        if rec.only:
+            await node.subscribe(*[Channel(u, names.get(u)) for u in rec.only], maxlen=QUEUE)
+
+        async def follow() -> None:  # every channel: subscribe to those the TCP-ECB lists
+            while True:
+                status = await query_status(broker, args.timeout, tls)
+                for c in status.get("channels", ()):
+                    uid = int(c["uid"], 16)
+                    if c.get("name"):
+                        names.setdefault(uid, c["name"])
+                    if uid not in subscribed:
+                        subscribed.add(uid)
+                        await node.subscribe(Channel(uid, names.get(uid)), maxlen=QUEUE)
+                await asyncio.sleep(FOLLOW_EVERY)
+
+        follower = None if rec.only else asyncio.create_task(follow())
+        _log.info("recording %s to %s", broker, args.file)
+        deadline = None if args.duration is None else loop.time() + args.duration
+        try:
+            while deadline is None or loop.time() < deadline:
+                if follower is not None and follower.done():
+                    follower.result()  # the TCP-ECB went away: say so, do not record nothing
+                left = 1.0 if deadline is None else min(1.0, max(0.0, deadline - loop.time()))
+                try:
+                    msg = await node.get_msg(timeout=left)
+                except TimeoutError:
+                    continue
+                if len(msg.data) > FD_MAX_DATA:
+                    rec.skip(f"events above {FD_MAX_DATA} bytes")
+                    continue
+                etag, new = etags.get(msg.uid)
+                if new:
+                    rec.bindings.etags[etag] = msg.uid
+                    rec.write(msg.timestamp, *p.encode(p.Bind(etag, msg.uid)))
+                    rec.management += 1
+                source = msg.source if msg.source is not None else node.node_id
+                txnode, new = txnodes.get(source)
+                if new:
+                    rec.bindings.txnodes[txnode] = source
+                    rec.write(msg.timestamp, *p.encode(p.Assign(txnode, source)))
+                    rec.management += 1
+                rec.first_use.setdefault(etag, msg.uid)
+                priority = max(msg.priority, p.FIRST_EVENT_PRIORITY)
+                rec.write(msg.timestamp, p.make_id(priority, txnode, etag), msg.data)
+                rec.events += 1
+                if rec.events == rec.count:
+                    break
+        finally:
+            if follower is not None:
+                follower.cancel()
+                await asyncio.gather(follower, return_exceptions=True)
+        lost = node.stats().get("dropped", 0) + node.stats().get("lost", 0)
+        if lost:
+            rec.skipped["events lost on the way (a full queue or sequence gaps)"] = lost
+    return 0
