@@ -69,7 +69,7 @@ async def motor_controller(node: Node, stop: asyncio.Event) -> None:
     print(f"motor-controller: {BRAKE} admitted as real-time, priority {priority:#04x}")
     sub = await node.subscribe(SPEED, DISTANCE)
     speed = distance = None
-    braking = False
+    braking = 0.0  # when the brake was last sent
     while not stop.is_set():
         try:
             msg = await sub.get_msg(timeout=0.2)
@@ -80,9 +80,10 @@ async def motor_controller(node: Node, stop: asyncio.Event) -> None:
         else:
             (distance,) = struct.unpack(">H", msg.data)
         near = distance is not None and distance < NEAR_CM and bool(speed)
-        if near and not braking:
+        now = asyncio.get_running_loop().time()
+        if near and now - braking >= 0.25:  # again while near: a brake command is a state
             await node.publish(BRAKE, b"\x01")
-        braking = near
+            braking = now
 
 
 async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> None:
@@ -95,7 +96,8 @@ async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> No
         name = msg.channel.name or str(msg.channel)
         seen[name] = seen.get(name, 0) + 1
         if name == BRAKE:
-            print(f"dashboard: BRAKE from TxNode {msg.source} (priority {msg.priority:#04x})")
+            if seen[name] == 1:
+                print(f"dashboard: BRAKE from TxNode {msg.source} (priority {msg.priority:#04x})")
         elif seen[name] % 10 == 1:
             (value,) = struct.unpack(">h" if name == SPEED else ">H", msg.data)
             print(f"dashboard: {name} = {value} (from TxNode {msg.source})")
@@ -104,7 +106,7 @@ async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> No
 async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> None:
     """On TCP/IP: watch the robot through the gateway, and cap its speed once it moves."""
     sub = await node.subscribe(SPEED, BRAKE)
-    limited = False
+    sent = 0.0  # when the limit was last sent
     while not stop.is_set():
         try:
             msg = await sub.get_msg(timeout=0.2)
@@ -113,15 +115,18 @@ async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]
         name = msg.channel.name or str(msg.channel)
         seen[name] = seen.get(name, 0) + 1
         if name == BRAKE:
-            print(f"operator (TCP): BRAKE via the gateway (priority {msg.priority:#04x})")
+            if seen[name] == 1:
+                print(f"operator (TCP): BRAKE via the gateway (priority {msg.priority:#04x})")
             continue
         (speed,) = struct.unpack(">h", msg.data)
         if speed <= LIMIT_CM_S:
             seen["slowed"] = 1
-        if not limited:
-            print(f"operator (TCP): robot moves at {speed} cm/s; limiting it to {LIMIT_CM_S}")
+        now = asyncio.get_running_loop().time()
+        if speed > LIMIT_CM_S and now - sent >= 0.5:  # again until it slows: the first may
+            if not sent:  # go out before the gateway has told TCP/IP the encoder listens
+                print(f"operator (TCP): robot moves at {speed} cm/s; limiting it to {LIMIT_CM_S}")
             await node.publish(MAX_SPEED, struct.pack(">h", LIMIT_CM_S))
-            limited = True
+            sent = now
 
 
 INTRO = """\
@@ -193,3 +198,52 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
                 await node.close()
             await gateway.close()
             await registry.close()
+
+
+PARTS = ("wheel-encoder", "sonar", "motor-controller", "dashboard", "operator")
+
+
+async def run_part(part: str, can: str | None, broker: str | None, node_id: int) -> int:
+    """One robot part as a process of its own (``python -m examples.robots PART``): the CAN
+    parts on ``can``, the operator on the TCP/IP network of ``broker``; until SIGTERM."""
+    import signal
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    seen: dict[str, int] = {}
+    on_tcp = part == "operator"
+    async with Node(can=None if on_tcp else can, broker=broker if on_tcp else None,
+                    name=part, node_id=node_id, join_timeout=30) as node:  # fmt: skip
+        where = "on TCP/IP" if on_tcp else f"as TxNode {node.stats()['txnode']}"
+        print(f"{part}: joined {where}", flush=True)
+        if part == "wheel-encoder":
+            await wheel_encoder(node, stop)
+        elif part == "sonar":
+            await sonar(node, stop)
+        elif part == "motor-controller":
+            await motor_controller(node, stop)
+        elif part == "dashboard":
+            await dashboard(node, stop, seen)
+        else:
+            await operator_station(node, stop, seen)
+    return 0
+
+
+def main() -> None:
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(description="one part of the demo robot, as a process")
+    parser.add_argument("part", choices=PARTS)
+    parser.add_argument("--can", help="the robot's CAN bus (python-can spec)")
+    parser.add_argument("--broker", help="the TCP-ECB (for the operator)")
+    parser.add_argument("--node-id", type=lambda t: int(t, 0), required=True)
+    args = parser.parse_args()
+    sys.stdout.reconfigure(line_buffering=True)  # type: ignore[union-attr]
+    sys.exit(asyncio.run(run_part(args.part, args.can, args.broker, args.node_id)))
+
+
+if __name__ == "__main__":
+    main()

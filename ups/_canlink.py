@@ -131,6 +131,9 @@ class CanLink:
         self.rx_errors = 0
         self.handler_errors = 0
 
+    def __str__(self) -> str:
+        return self._spec or str(getattr(self.bus, "channel_info", "a CAN bus"))
+
     @classmethod
     def open(cls, spec: str) -> CanLink:
         return cls(open_bus(spec), owns_bus=True, spec=spec)

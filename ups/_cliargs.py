@@ -187,3 +187,10 @@ def add_catalog(cmd: argparse.ArgumentParser) -> None:
         "--catalog", metavar="FILE", default=None,
         help="TOML channel catalog: names and payload layouts (default: $UPS_CATALOG)",
     )  # fmt: skip
+
+
+def say(args: argparse.Namespace, text: str) -> None:
+    """One line of what a command is doing, on stderr (whatever the log level)."""
+    import sys
+
+    print(f"ups {args.command}: {text}", file=sys.stderr, flush=True)

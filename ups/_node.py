@@ -223,7 +223,7 @@ class Node:
         face = self._build_face(self._node_id)
         where = f"the CAN-ECB on {self._can}" if self._can else f"the TCP-ECB at {self._broker}"
         waiting = asyncio.get_running_loop().call_later(
-            1.0, log.info, "waiting for %s (up to %s s)", where, self._join_timeout
+            1.0, log.warning, "waiting for %s (up to %s s)", where, self._join_timeout
         )  # a second of silence is long enough to say why
         try:
             await face.start()

@@ -30,9 +30,10 @@ from ._cliargs import (
     positive_int,
     priority_arg,
     run_until_signal,
+    say,
     tls_of,
 )
-from ._errors import UpsError
+from ._errors import ConfigError, UpsError
 
 if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
     from ._message import Message
@@ -40,14 +41,16 @@ if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help st
 EXIT_TIMEOUT = 1
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
 EXIT_USAGE = 2
+DAEMONS = ("can-broker", "broker", "gateway")  #: log at INFO; the other commands at WARNING
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = _parser(analyze="analyze" in argv)
     args = parser.parse_args(argv)
+    quiet = args.command not in DAEMONS  # a daemon logs what it does; a command says it
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
+        level=logging.DEBUG if args.verbose else logging.WARNING if quiet else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",
         stream=sys.stderr,
     )
@@ -236,7 +239,23 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     cmd = command(
         "demo", help="run the demo robots on a virtual CAN bus, with a gateway to loopback TCP/IP"
     )
-    cmd.add_argument("--duration", type=positive_float, default=3.0, help="seconds to run")
+    cmd.add_argument(
+        "--duration", type=positive_float, default=None,
+        help="seconds to run (default 3; with --processes until Ctrl-C)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--processes", action="store_true",
+        help="each robot part a process of its own on a shared bus (--can), for ups monitor, "
+        "console, ls and record to watch",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--can", default=os.environ.get("UPS_CAN") or None, metavar="INTERFACE:CHANNEL",
+        help="with --processes: a bus processes share, e.g. socketcan:vcan0 (default: $UPS_CAN)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--listen", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="HOST:PORT",
+        help=f"with --processes: the TCP-ECB's address (default 127.0.0.1:{DEFAULT_PORT})",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_demo)
 
     cmd = command("completion", help='print a bash completion script: eval "$(ups completion)"')
@@ -389,7 +408,7 @@ def _run_sub(args: argparse.Namespace) -> int:
         async with open_node(args) as node:
             sub = await node.subscribe(*args.channels, maxlen=args.queue)
             names = ", ".join(str(c) for c in args.channels)
-            logging.getLogger("ups").info("subscribed to %s", names)
+            say(args, f"subscribed to {names}")
             loop = asyncio.get_running_loop()
             deadline = None if args.timeout is None else loop.time() + args.timeout
             try:
@@ -438,11 +457,20 @@ def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from examples.robots import run_demo
+    if not args.processes:
+        from examples.robots import run_demo
 
-    if not args.verbose:  # the demo prints what matters; keep the join/bind log for -v
-        logging.getLogger().setLevel(logging.WARNING)
-    return run_until_signal(run_demo(args.duration))
+        return run_until_signal(run_demo(args.duration or 3.0))
+    if args.can is None:
+        raise ConfigError(
+            "--processes needs a bus that processes share: --can socketcan:vcan0, or "
+            "udp_multicast inside scripts/netns-run (a virtual bus lives in one process)"
+        )
+    if args.can.startswith("virtual"):
+        raise ConfigError("a virtual bus lives in one process: give --can socketcan:vcan0")
+    from examples.fleet import run_fleet
+
+    return run_until_signal(run_fleet(args.can, args.listen, args.duration))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ Frames that are not UPS (11-bit ids, error frames) are not written; they are cou
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import threading
 import time
@@ -37,6 +36,7 @@ from .._cliargs import (
     positive_float,
     positive_int,
     run_until_signal,
+    say,
     tls_of,
 )
 from .._errors import ConfigError, UpsError
@@ -54,7 +54,6 @@ FORMATS = (".asc", ".blf", ".log")
 FD_MAX_DATA = 64  #: the largest frame these log formats hold (CAN FD)
 QUEUE = 65536  #: TCP/IP: events held while the file is written; beyond, counted as lost
 FOLLOW_EVERY = 1.0  #: TCP/IP: seconds between looks at the TCP-ECB for new channels
-_log = logging.getLogger("ups.record")
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
@@ -221,7 +220,7 @@ async def _record_can(args: argparse.Namespace, bus: str, rec: _Recorder) -> int
             if rec.only:  # join and subscribe: the CAN-ECB binds (or re-announces) their etags
                 await _subscribe_can(bus, args, rec, reader)
             else:
-                _log.info("recording %s to %s", bus, args.file)
+                say(args, f"recording {bus} to {args.file}")
                 await reader
         finally:
             stop.set()
@@ -244,7 +243,7 @@ async def _subscribe_can(
     channels = [Channel(uid, rec.bindings.names.get(uid)) for uid in sorted(rec.only)]
     async with Node(can=bus, name="ups-record", join_timeout=args.timeout) as node:
         await node.subscribe(*channels)
-        _log.info("recording %s to %s", ", ".join(map(str, channels)), args.file)
+        say(args, f"recording {', '.join(map(str, channels))} to {args.file}")
         await reader
 
 
@@ -301,7 +300,7 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
                 await asyncio.sleep(FOLLOW_EVERY)
 
         follower = None if rec.only else asyncio.create_task(follow())
-        _log.info("recording %s to %s", broker, args.file)
+        say(args, f"recording {broker} to {args.file}")
         deadline = None if args.duration is None else loop.time() + args.duration
         try:
             while deadline is None or loop.time() < deadline:
