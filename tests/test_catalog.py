@@ -114,3 +114,20 @@ def test_decode_refuses_a_payload_of_another_size() -> None:
         spec.encode({})
     with pytest.raises(ConfigError, match="v=70000"):
         spec.encode({"v": 70000})
+
+
+def test_ups_pub_encodes_field_values_with_the_catalog() -> None:
+    from .procs import ROOT, Proc, start_tcp_broker
+
+    catalog = str(ROOT / "examples" / "robots.toml")
+    broker, address = start_tcp_broker("--recovery", "0")
+    with broker, Proc("sub", "robot/max-speed", "--broker", address, "--count", "1",
+                      "--json", "--timeout", "20") as sub:  # fmt: skip
+        sub.wait_for_line("subscribed to")
+        pub = Proc("pub", "robot/max-speed", "limit=30", "--broker", address, "--catalog", catalog)
+        assert pub.finish()[0] == 0, pub.stderr_lines
+        code, out = sub.finish()
+        assert code == 0 and '"data": "001e"' in out
+    bad = Proc("pub", "robot/max-speed", "speed=30", "--broker", address, "--catalog", catalog)
+    assert bad.finish()[0] == 2
+    assert bad.stderr_lines == ["ups pub: robot/max-speed has no field speed\n"]

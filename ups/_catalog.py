@@ -152,12 +152,10 @@ class ChannelSpec:
             if f.type == "str":
                 parts.append(str(value).encode("utf-8"))
                 continue
-            raw = (float(value) - f.offset) / f.scale if f.scaled else value
-            if f.type[0] in "iu":
-                raw = round(float(raw))
             try:
+                raw = _raw(f, value)
                 parts.append(struct.pack(order + _FIXED[f.type], raw))
-            except (struct.error, TypeError, ValueError) as exc:
+            except (struct.error, TypeError, ValueError, OverflowError) as exc:
                 raise ConfigError(f"{self.channel}: {f.name}={value!r}: {exc}") from None
         return b"".join(parts)
 
@@ -180,6 +178,22 @@ class ChannelSpec:
         if size is not None:
             return f"{size}"
         return f"at least {sum(f.size or 0 for f in self.fields)}"
+
+
+def _raw(f: Field, value: Any) -> int | float | bool:
+    """The number a fixed field's value is sent as; strings (from a command line) parsed."""
+    if f.type == "bool":
+        if isinstance(value, str):
+            if value.lower() not in ("true", "false", "1", "0"):
+                raise ValueError("expected true or false")
+            return value.lower() in ("true", "1")
+        return bool(value)
+    number = float(value) if isinstance(value, str) else value
+    if f.scaled:
+        number = (float(number) - f.offset) / f.scale
+    if f.type[0] in "iu":
+        return round(float(number))
+    return float(number)
 
 
 def _show(value: Value) -> str:

@@ -83,7 +83,7 @@ def hex_arg(text: str) -> bytes:
     try:
         return bytes.fromhex(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not hex digits: {text!r}") from None
+        raise ConfigError(f"not hex digits: {text!r}") from None
 
 
 def positive_float(text: str) -> float:

@@ -20,6 +20,7 @@ from . import tools
 from ._address import DEFAULT_PORT
 from ._cliargs import (
     add_can,
+    add_catalog,
     add_node_options,
     add_tls,
     channel_arg,
@@ -36,6 +37,7 @@ from ._cliargs import (
 from ._errors import ConfigError, UpsError
 
 if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
+    from ._channel import Channel
     from ._message import Message
 
 EXIT_TIMEOUT = 1
@@ -193,7 +195,11 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
 
     cmd = command("pub", help="publish events on a channel")
     cmd.add_argument("channel", type=channel_arg, help="channel name, or UID as 0x + hex")
-    cmd.add_argument("data", type=hex_arg, help="payload as hex digits ('' for none)")
+    cmd.add_argument(
+        "data", help="payload as hex digits ('' for none), or field=value,... that the "
+        "catalog's layout of the channel encodes (e.g. left=1.5,right=1.5)",
+    )  # fmt: skip
+    add_catalog(cmd)
     add_node_options(cmd)
     cmd.add_argument("--count", type=positive_int, default=1, help="events to publish")
     cmd.add_argument(
@@ -375,6 +381,8 @@ def _run_status(args: argparse.Namespace) -> int:
 def _run_pub(args: argparse.Namespace) -> int:
     import asyncio
 
+    args.data = _payload(args.channel, args.data, args.catalog)
+
     async def run() -> int:
         async with open_node(args) as node:
             if args.priority is not None:
@@ -397,6 +405,26 @@ def _run_pub(args: argparse.Namespace) -> int:
         return 0
 
     return run_until_signal(run())
+
+
+def _payload(channel: Channel, text: str, catalog_path: str | None) -> bytes:
+    """``ups pub``'s DATA: hex digits, or ``field=value,...`` encoded by the catalog."""
+    if "=" not in text:
+        return hex_arg(text)
+    from ._catalog import load_catalog
+
+    spec = load_catalog(catalog_path).get(channel.uid)
+    if spec is None or not spec.fields:
+        raise ConfigError(
+            f"{text!r}: the catalog (--catalog, $UPS_CATALOG) has no layout of {channel}"
+        )
+    values = {}
+    for pair in text.split(","):
+        name, sep, value = pair.partition("=")
+        if not sep:
+            raise ConfigError(f"{pair!r}: expected field=value")
+        values[name.strip()] = value.strip()
+    return spec.encode(values)
 
 
 def _run_sub(args: argparse.Namespace) -> int:

@@ -156,3 +156,26 @@ def test_python_dash_m() -> None:
         )
         assert done.returncode == 0, done.stderr
         assert len(json.loads(done.stdout)["messages"]) == 53
+
+
+def test_a_channel_catalog_is_analysed_like_its_csv(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    catalog = tmp_path / "channels.toml"
+    catalog.write_text(
+        '[channel."a"]\nfields = [{ name = "x", type = "u32" }]\npriority = 3\n'
+        "realtime = { period = 0.01, deadline = 0.005 }\n"
+        '[channel."b"]\nfields = [{ name = "x", type = "u64" }]\npriority = 2\n'
+        "realtime = { period = 0.005, deadline = 0.005, jitter = 0.001 }\n"
+        '[channel."best-effort"]\nfields = [{ name = "x", type = "u8" }]\n'
+    )
+    csv = _write(tmp_path, f"{HEADER},priority\na,4,0,10,5,3\nb,8,1,5,5,2\n")
+    code, from_catalog, err = _run(capsys, str(catalog), "--json")
+    assert code == 0, err
+    code, from_csv, err = _run(capsys, csv, "--json")
+    assert code == 0, err
+    assert json.loads(from_catalog)["messages"] == json.loads(from_csv)["messages"]
+    catalog.write_text('[channel."a"]\nfields = [{ name = "t", type = "str" }]\n'
+                       "realtime = { period = 0.01 }\n")  # fmt: skip
+    code, _, err = _run(capsys, str(catalog))
+    assert code == 2 and "payload has no fixed size" in err

@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "file",
         metavar="FILE",
         help="CSV: first column names each message; columns size_bytes, jitter_ms, period_ms, "
-        "deadline_ms; optional priority (lower = higher), else rows are highest priority first",
+        "deadline_ms; optional priority (lower = higher), else rows are highest priority first. "
+        "Or a channel catalog (.toml): its channels with a realtime declaration",
     )
     parser.add_argument(
         "--bitrate",
@@ -81,6 +82,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print a JSON object")
 
 
+def _load_catalog(path: str) -> list[MessageSpec]:
+    """The real-time channels of a UPS channel catalog (their ``realtime`` declarations)."""
+    from .._catalog import Catalog
+    from .._errors import ConfigError
+
+    try:
+        catalog = Catalog.load(path)
+    except ConfigError as error:
+        raise ValueError(str(error)) from None
+    specs = []
+    for spec in catalog:
+        if spec.realtime is None:
+            continue
+        name = spec.name or f"0x{spec.uid:016x}"
+        if spec.size is None:
+            raise ValueError(f"{path}: {name} is real-time but its payload has no fixed size")
+        rt = spec.realtime
+        specs.append(
+            MessageSpec(
+                name,
+                spec.size,
+                Fraction(str(rt.period * 1000)),
+                Fraction(str(rt.deadline * 1000)),
+                Fraction(str(rt.jitter * 1000)),
+                spec.priority,
+            )
+        )
+    if not specs:
+        raise ValueError(f"{path}: no channel has a realtime declaration")
+    return specs
+
+
 def _error(message: str, stream: TextIO) -> int:
     print(f"{_PROG}: error: {' '.join(message.split())}", file=stream)
     return 2
@@ -92,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     method: Method = args.method
     blocking: Blocking = args.blocking
     try:
-        specs = load_csv(args.file)
+        specs = _load_catalog(args.file) if args.file.endswith(".toml") else load_csv(args.file)
     except OSError as error:
         reason = error.strerror or str(error)
         return _error(f"cannot read {args.file}: {reason}", err)
