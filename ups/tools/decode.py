@@ -170,4 +170,21 @@ def _management(item: p.Management, catalog: Catalog, names: dict[int, str]) -> 
         return f"TxNode 0x{item.txnode:02x} {what} {label} (etag 0x{item.etag:04x})"
     if isinstance(item, p.Assign):
         return f"Assign TxNode 0x{item.txnode:02x} to node 0x{item.node_id:016x}"
+    if isinstance(item, p.Request):
+        who = f"TxNode 0x{item.txnode:02x}"
+        if item.kind == p.CLAIM:
+            return f"{who} claims it is node 0x{item.value:016x}"
+        what = {p.PUB_BIND: "asks to publish on", p.SUB_BIND: "asks to subscribe to",
+                p.UNSUB: "no longer subscribes to"}[item.kind]  # fmt: skip
+        return f"{who} {what} {channel_label(item.value, 0, catalog, names)}"
+    if isinstance(item, p.Declare):
+        return (
+            f"TxNode 0x{item.txnode:02x} declares etag 0x{item.etag:04x} real-time: "
+            f"{item.size_bytes} bytes every {item.period / 10} ms, due in {item.deadline / 10} ms"
+        )
+    if isinstance(item, p.Grant):
+        return (
+            f"Grant: TxNode 0x{item.txnode:02x} on etag 0x{item.etag:04x} at priority "
+            f"0x{item.priority:02x}"
+        )
     return repr(item)
