@@ -1,0 +1,73 @@
+"""What a recording must never do, over random histories of a bus: read an event as another
+channel's. Etags are bound and bound anew at random, the recording starts at a random moment
+(what was bound before comes from the CAN-ECB's tables, as ``ups record`` loads them), and
+every python-can format is written and read back with python-can's own writers and readers."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import can
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from ups import _canproto as p
+from ups._bindings import Bindings, Event
+from ups.tools.decode import Tally, bindings_for, read
+from ups.tools.record import FORMATS, _Recorder
+
+ETAGS = st.integers(p.FIRST_ETAG, p.FIRST_ETAG + 3)
+UIDS = st.integers(1, 6)
+STEP = st.one_of(
+    st.tuples(st.just("bind"), ETAGS, UIDS),
+    st.tuples(st.just("event"), ETAGS, st.binary(max_size=8)),
+    st.tuples(st.just("noise"), st.integers(0, 0x7FF), st.binary(max_size=8)),
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(history=st.lists(STEP, max_size=40), suffix=st.sampled_from(FORMATS), data=st.data())
+def test_every_recorded_event_reads_as_the_channel_it_was_sent_on(
+    history: list[tuple[str, int, object]], suffix: str, data: st.DataObject
+) -> None:
+    start = data.draw(st.integers(0, len(history)), label="start")
+    bound: dict[int, int] = {}  # the bus's bindings, step by step
+    expected: list[int | None] = []  # the channel of each recorded event
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / f"run{suffix}")
+        recorder: _Recorder | None = None
+        for i, (kind, key, value) in enumerate([*history, ("end", 0, b"")]):
+            if i == start or (recorder is None and kind == "end"):
+                tables = Bindings(etags=dict(bound))  # what the CAN-ECB's database holds
+                recorder = _Recorder(path, set(), tables, None)
+            t = float(i)
+            if kind == "bind":
+                assert isinstance(value, int)
+                bound[key] = value
+                can_id, data = p.encode(p.Bind(key, value))
+                msg = can.Message(timestamp=t, arbitration_id=can_id, data=data)
+            elif kind == "event":
+                assert isinstance(value, bytes)
+                can_id = p.make_id(p.DEFAULT_PRIORITY, 5, key)
+                msg = can.Message(timestamp=t, arbitration_id=can_id, data=value)
+                if recorder is not None:
+                    expected.append(bound.get(key))
+            elif kind == "noise":  # 11-bit traffic of another protocol
+                assert isinstance(value, bytes)
+                msg = can.Message(timestamp=t, arbitration_id=key, data=value,
+                                  is_extended_id=False)  # fmt: skip
+            else:
+                break
+            if recorder is not None:
+                recorder.frame(msg)
+        assert recorder is not None
+        recorder.close()
+        tally = Tally()
+        got = [
+            item.uid
+            for _, item in read(path, bindings_for(path, None, None), tally)
+            if isinstance(item, Event)
+        ]
+    assert got == expected
+    assert tally.unbound == expected.count(None)  # an event never bound is shown as unbound
