@@ -278,7 +278,7 @@ class CanEcb:
         """A request from a TxNode this CAN-ECB does not know: its tables are behind the bus
         (or someone forges frames). Say Hello again, so that nodes claim (rate-limited)."""
         self.counters["unassigned"] += 1
-        self._warn("unassigned", "request from TxNode %d, which no node holds", txnode)
+        self._warn("unassigned", "request from TxNode 0x%02x, which no node holds", txnode)
         self._strays.add(txnode)
         if not self.recovering and time.monotonic() - self._last_unknown_hello >= HELLO_GAP:
             self._last_unknown_hello = time.monotonic()
@@ -395,7 +395,7 @@ class CanEcb:
             log.warning("no TxNode left for node %016x", node_id)
             self._send(p.TxNodesFull(node_id))
         elif writes:  # reclaimed: its old owner is forgotten for good
-            self._store.submit(writes, self._log_failure(f"the reclaim of TxNode {txnode}"))
+            self._store.submit(writes, self._log_failure(f"the reclaim of TxNode 0x{txnode:02x}"))
         return txnode
 
     def _withdraw(self, node_id: int) -> None:
@@ -424,7 +424,7 @@ class CanEcb:
         self.counters["joined"] += 1
         self._seen_tx[txnode] = time.monotonic()
         self._forget_node(txnode)  # a (re)joining node starts with no subscriptions
-        log.info("node %016x has TxNode %d", node_id, txnode)
+        log.info("node %016x has TxNode 0x%02x", node_id, txnode)
         self._send(p.Assign(txnode, node_id))
 
     def _free_txnode(self, writes: list[Write]) -> int | None:
@@ -443,7 +443,7 @@ class CanEcb:
         self._forget_node(oldest)
         writes.append(("txnodes", old_id, None))
         self.counters["reclaimed"] += 1
-        log.warning("reclaimed TxNode %d of node %016x, silent for %.0f s", oldest, old_id,
+        log.warning("reclaimed TxNode 0x%02x of node %016x, silent for %.0f s", oldest, old_id,
                     now - self._seen_tx[oldest])  # fmt: skip
         return oldest
 
@@ -464,7 +464,7 @@ class CanEcb:
         holder = self._node_at.get(txnode)
         if not self.recovering:  # claims answer Hello; any other is stray or forged
             self.counters["conflicts"] += 1
-            self._warn("claim", "ignored CLAIM of TxNode %d by node %016x outside recovery",
+            self._warn("claim", "ignored CLAIM of TxNode 0x%02x by node %016x outside recovery",
                        txnode, node_id)  # fmt: skip
             if known is not None and holder is None:  # it was told to move: tell it the truth
                 self._send(p.Assign(known, node_id))
@@ -473,19 +473,19 @@ class CanEcb:
             return
         if self._started_up and txnode not in self._strays:  # a later window is for strays only
             self.counters["conflicts"] += 1
-            self._warn("claim", "ignored CLAIM of TxNode %d by node %016x: it asked nothing",
+            self._warn("claim", "ignored CLAIM of TxNode 0x%02x by node %016x: it asked nothing",
                        txnode, node_id)  # fmt: skip
             return
         if known is None and holder is None and txnode not in self._pending_tx.values():
             self.counters["adopted"] += 1
-            log.info("adopting TxNode %d of node %016x", txnode, node_id)
+            log.info("adopting TxNode 0x%02x of node %016x", txnode, node_id)
             self._hold_txnode(node_id, txnode)
             self._store.submit(
-                [("txnodes", node_id, txnode)], self._log_failure(f"adopted TxNode {txnode}")
+                [("txnodes", node_id, txnode)], self._log_failure(f"adopted TxNode 0x{txnode:02x}")
             )
             return
         self.counters["conflicts"] += 1
-        log.warning("node %016x claims TxNode %d held by another node: moving it",
+        log.warning("node %016x claims TxNode 0x%02x held by another node: moving it",
                     node_id, txnode)  # fmt: skip
         self._move(node_id)  # the holder of ``txnode`` keeps it and its channels
 
@@ -613,14 +613,14 @@ class CanEcb:
             if not self._within_limit(msg.txnode, uid):
                 return
             self.counters["adopted"] += 1
-            log.info("adopting etag %#x of channel %016x from TxNode %d", etag, uid, msg.txnode)
+            log.info("adopting etag %#x of channel %016x from TxNode 0x%02x", etag, uid, msg.txnode)
             self._hold_etag(uid, etag)
             self._store.submit([("etags", uid, etag)], self._log_failure(f"adopted etag {etag:#x}"))
             self._update(self.publishers if msg.publish else self.subscribers, uid,
                          msg.txnode, add=True)  # fmt: skip
             return
         self.counters["conflicts"] += 1
-        self._warn("holds", "TxNode %d holds %016x at etag %#x, which contradicts the tables: "
+        self._warn("holds", "TxNode 0x%02x holds %016x at etag %#x, which contradicts the tables: "
                    "correcting", msg.txnode, uid, etag)  # fmt: skip
         self._correct(etag, uid)
         if known is None and not self.recovering:  # it will ask again; answer it now
@@ -632,7 +632,7 @@ class CanEcb:
         if uid in channels or uid in asking or len(channels) + len(asking) < self._max_channels:
             return True
         self.counters["limited"] += 1
-        self._warn("limit", "TxNode %d uses %d channels already: refused %016x", txnode,
+        self._warn("limit", "TxNode 0x%02x uses %d channels already: refused %016x", txnode,
                    len(channels), uid)  # fmt: skip
         self._send(p.Limit(txnode, uid))
         return False
@@ -676,7 +676,7 @@ class CanEcb:
         uid = self._uid_at.get(msg.etag)
         if uid is None or msg.txnode not in self.publishers.get(uid, ()):
             self.counters["malformed"] += 1
-            self._warn("declare-unbound", "TxNode %d declared etag %#x, which it does not "
+            self._warn("declare-unbound", "TxNode 0x%02x declared etag %#x, which it does not "
                        "publish on", msg.txnode, msg.etag)  # fmt: skip
             return
         repeat = self._admission.repeat(msg)
@@ -685,7 +685,7 @@ class CanEcb:
             return
         if not self._declare_allowed(msg.txnode):
             self.counters["limited"] += 1
-            self._warn("declare", "TxNode %d declares too often: ignored", msg.txnode)
+            self._warn("declare", "TxNode 0x%02x declares too often: ignored", msg.txnode)
             return
         verdict = self._admission.decide(msg)
         self.counters["admitted" if verdict.admitted else "refused"] += 1

@@ -50,7 +50,7 @@ async def wheel_encoder(node: Node, stop: asyncio.Event) -> None:
         while limits.pending:
             msg = await limits.get_msg()
             (limit,) = struct.unpack(">h", msg.data)
-            print(f"wheel-encoder: speed limit {limit} cm/s from TxNode {msg.source}")
+            print(f"wheel-encoder: speed limit {limit} cm/s from TxNode 0x{msg.source:02x}")
             speed = min(speed, limit)
         await node.publish(SPEED, struct.pack(">h", speed))
         await asyncio.sleep(0.05)
@@ -97,10 +97,11 @@ async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> No
         seen[name] = seen.get(name, 0) + 1
         if name == BRAKE:
             if seen[name] == 1:
-                print(f"dashboard: BRAKE from TxNode {msg.source} (priority {msg.priority:#04x})")
+                txnode, priority = msg.source, msg.priority
+                print(f"dashboard: BRAKE from TxNode 0x{txnode:02x} (priority {priority:#04x})")
         elif seen[name] % 10 == 1:
             (value,) = struct.unpack(">h" if name == SPEED else ">H", msg.data)
-            print(f"dashboard: {name} = {value} (from TxNode {msg.source})")
+            print(f"dashboard: {name} = {value} (from TxNode 0x{msg.source:02x})")
 
 
 async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> None:
@@ -166,10 +167,11 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
         operator = Node(broker=broker, name="operator", node_id=0x0D3E_0100)
         try:
             await gateway.start()
-            print(f"gateway: on the bus as TxNode {gateway.stats()['txnode']}, TCP-ECB at {broker}")
+            txnode = gateway.stats()["txnode"]
+            print(f"gateway: on the bus as TxNode 0x{txnode:02x}, TCP-ECB at {broker}")
             for node in nodes:
                 await node.start()
-                print(f"{node.name}: joined as TxNode {node.stats()['txnode']}")
+                print(f"{node.name}: joined as TxNode 0x{node.stats()['txnode']:02x}")
             await operator.start()
             stop = asyncio.Event()
             seen: dict[str, int] = {}
@@ -216,7 +218,7 @@ async def run_part(part: str, can: str | None, broker: str | None, node_id: int)
     on_tcp = part == "operator"
     async with Node(can=None if on_tcp else can, broker=broker if on_tcp else None,
                     name=part, node_id=node_id, join_timeout=30) as node:  # fmt: skip
-        where = "on TCP/IP" if on_tcp else f"as TxNode {node.stats()['txnode']}"
+        where = "on TCP/IP" if on_tcp else f"as TxNode 0x{node.stats()['txnode']:02x}"
         print(f"{part}: joined {where}", flush=True)
         if part == "wheel-encoder":
             await wheel_encoder(node, stop)

@@ -23,8 +23,8 @@ def test_demo_runs_and_brakes() -> None:
     code, out = demo.finish(timeout=60)
     assert code == 0, "".join(demo.stderr_lines)
     assert "robot/brake admitted as real-time, priority 0x02" in out
-    assert "dashboard: BRAKE from TxNode 3 (priority 0x02)" in out
-    assert "wheel-encoder: speed limit 30 cm/s from TxNode 0" in out  # TCP -> gateway -> CAN
+    assert "dashboard: BRAKE from TxNode 0x03 (priority 0x02)" in out
+    assert "wheel-encoder: speed limit 30 cm/s from TxNode 0x00" in out  # TCP -> gateway -> CAN
     assert "operator (TCP): BRAKE via the gateway (priority 0x02)" in out  # CAN -> TCP
     assert "gets a TxNode" in out.split("gateway:")[0]  # it says what it will show, first
     assert "In short: everything arrived." in out and "Try next" in out

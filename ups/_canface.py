@@ -104,9 +104,8 @@ class CanFace:
         self.link.add_handler(self._handler, [_MGMT_FILTER])
         self.link.start()
         self.txnode = await self._joiner.run()
-        log.info(
-            "node %016x joined %s as TxNode %d", self.node_id, self.link.channel_info, self.txnode
-        )
+        node_id, bus = self.node_id, self.link.channel_info
+        log.info("node %016x joined %s as TxNode 0x%02x", node_id, bus, self.txnode)
 
     async def close(self) -> None:
         tasks = [t for t in (self._announcer, *self._rebinding.values()) if t is not None]
@@ -397,7 +396,7 @@ class CanFace:
         else:
             other = self._heard.get(msg.miss_etag)
             name = f"0x{other:016x}" if other is not None else f"etag {msg.miss_etag:#x}"
-            culprit = f"channel {name} of TxNode {msg.miss_txnode}"
+            culprit = f"channel {name} of TxNode 0x{msg.miss_txnode:02x}"
         if msg.response_10us == p.RESPONSE_UNBOUNDED:
             response = "no bounded response time"
         else:
