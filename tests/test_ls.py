@@ -78,3 +78,25 @@ def test_ls_of_a_can_bus_without_its_database_is_one_line(tmp_path: Path) -> Non
     proc = Proc("ls", "--can", "virtual:nobody", "--db", str(tmp_path / "none.db"))
     code, _ = proc.finish()
     assert code == 2 and "no CAN-ECB database at" in "".join(proc.stderr_lines)
+
+
+def test_ls_rates_counts_events_on_tcp() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    with (
+        broker,
+        Proc(
+            "pub", "robot/speed", "01", "--broker", address, "--count", "100000", "--rate", "200"
+        ),  # fmt: skip
+    ):
+
+        def listed() -> dict:
+            ls = Proc("ls", "--broker", address, "--json", "--rates", "--listen-for", "1")
+            code, out = ls.finish()
+            assert code == 0, ls.stderr_lines
+            return json.loads(out)
+
+        wait_until(lambda: any(c["publishers"] for c in listed()["channels"]))
+        (speed,) = listed()["channels"]
+        assert speed["name"] == "robot/speed" and speed["events_per_s"] > 50
+        ls = Proc("ls", "--broker", address, "--rates", "--listen-for", "0.5")
+        assert "EVENTS/S" in ls.finish()[1]

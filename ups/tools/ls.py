@@ -1,7 +1,8 @@
 """``ups ls``: the nodes and channels of a network in UPS terms.
 
 On TCP/IP from the TCP-ECB's Status. The TCP-ECB is not on the data path, so it knows who
-subscribes to and publishes on what (and the channel names nodes gave it), not event rates.
+subscribes to and publishes on what (and the channel names nodes gave it), not event rates:
+``--rates`` subscribes to every channel for ``--listen-for`` seconds and counts.
 On CAN from the CAN-ECB's database (TxNodes, etags) and a moment of listening to the bus (who
 sends what, how often); names come from the catalog.
 """
@@ -35,7 +36,11 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
     cmd.add_argument(
         "--listen-for", type=positive_float, default=1.0, metavar="S",
-        help="CAN: seconds to listen to the bus for who sends what (default 1)",
+        help="seconds to listen for who sends what (CAN) or for rates (--rates) (default 1)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--rates", action="store_true",
+        help="TCP/IP: join, subscribe to every channel for --listen-for seconds, count events",
     )  # fmt: skip
     add_catalog(cmd)
     cmd.add_argument("--json", action="store_true", help="one JSON object")
@@ -59,10 +64,43 @@ def run(args: argparse.Namespace) -> int:
         from .._tcpface import query_status
 
         table = listing(await query_status(broker, args.timeout, tls_of(args)), catalog)
+        if args.rates:
+            await _count_rates(table, broker, args)
         print(json.dumps(table, indent=2) if args.json else render(table))
         return 0
 
     return run_until_signal(ask())
+
+
+MAX_RATED = 1024  #: --rates subscribes to at most as many channels (the rest show no rate)
+
+
+async def _count_rates(table: dict[str, Any], broker: str, args: argparse.Namespace) -> None:
+    """Add ``events_per_s`` to the channels of ``table``: events heard in ``--listen-for`` s."""
+    import asyncio
+
+    from .._channel import Channel
+    from .._node import Node
+
+    channels = table["channels"][:MAX_RATED]
+    counts = {int(c["uid"], 16): 0 for c in channels}
+    if not counts:
+        return
+    async with Node(broker=broker, name="ups-ls", join_timeout=args.timeout,
+                    tls=tls_of(args)) as node:  # fmt: skip
+        await node.subscribe(*[Channel(u) for u in counts], maxlen=65536)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + args.listen_for
+        while (left := deadline - loop.time()) > 0:
+            try:
+                msg = await node.get_msg(timeout=left)
+            except TimeoutError:
+                break
+            counts[msg.uid] += 1
+        lost = node.stats().get("dropped", 0) + node.stats().get("lost", 0)
+    for c in channels:
+        c["events_per_s"] = round(counts[int(c["uid"], 16)] / args.listen_for, 1)
+    table["lost_while_counting"] = lost
 
 
 def listing(status: dict[str, Any], catalog: Catalog | None = None) -> dict[str, Any]:
@@ -115,11 +153,13 @@ def render(table: dict[str, Any]) -> str:
         for n in table["nodes"]
     ]  # fmt: skip
     lines = [f"{table['total']['nodes']} nodes", *_aligned(rows), ""]
-    rows = [("UID", "NAME", "PUBLISHERS", "SUBSCRIBERS")]  # the channels' table
+    rated = any("events_per_s" in c for c in table["channels"])
+    rows = [("UID", "NAME", "PUBLISHERS", "SUBSCRIBERS", *(("EVENTS/S",) if rated else ()))]
     rows += [
-        (c["uid"], c["name"] or "-", who(c["publishers"]), who(c["subscribers"]))
+        (c["uid"], c["name"] or "-", who(c["publishers"]), who(c["subscribers"]),
+         *((str(c.get("events_per_s", "-")),) if rated else ()))
         for c in table["channels"]
-    ]
+    ]  # fmt: skip
     lines += [f"{table['total']['channels']} channels", *_aligned(rows)]
     return "\n".join(lines)
 
