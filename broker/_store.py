@@ -19,12 +19,12 @@ import fcntl
 import logging
 import os
 import queue
-import re
 import sqlite3
 import threading
 from collections.abc import Callable
 from pathlib import Path
 
+from ups._bindings import default_db, state_dir
 from ups._errors import ConfigError
 
 log = logging.getLogger("ups.can_ecb")
@@ -42,24 +42,7 @@ CREATE TABLE IF NOT EXISTS txnodes (node_id TEXT PRIMARY KEY, txnode INTEGER UNI
 CREATE TABLE IF NOT EXISTS etags (uid TEXT PRIMARY KEY, etag INTEGER UNIQUE NOT NULL);
 """
 _COLUMNS = {"txnodes": ("node_id", "txnode"), "etags": ("uid", "etag")}
-
-
-def state_dir() -> Path:
-    """Where daemons keep their state: ``$UPS_STATE_DIR``, else ``$XDG_STATE_HOME/ups``, else
-    ``~/.local/state/ups``."""
-    if os.environ.get("UPS_STATE_DIR"):
-        return Path(os.environ["UPS_STATE_DIR"])
-    base = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
-    return Path(base) / "ups"
-
-
-def default_db(bus: str) -> Path:
-    """The CAN-ECB database of bus ``bus`` (an ``INTERFACE:CHANNEL[,key=value]`` spec): one
-    file per interface, channel and (for udp_multicast) port, so two buses never share one."""
-    head, *options = bus.split(",")
-    port = [o.replace(" ", "") for o in options if o.replace(" ", "").startswith("port=")]
-    slug = re.sub(r"[^A-Za-z0-9.]+", "_", "_".join([head, *port])).strip("_")
-    return state_dir() / f"can-ecb-{slug}.db"
+__all__ = ["Store", "default_db", "state_dir"]  # the state files' paths live in ups._bindings
 
 
 class Store:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,6 +67,13 @@ class Bindings:
                 if node_id == msg.node_id and txnode != msg.txnode:
                     del self.txnodes[txnode]
             self.txnodes[msg.txnode] = msg.node_id
+
+    def load_bus_db(self, bus: str, db: str | Path | None) -> None:
+        """Add the tables of ``bus``'s CAN-ECB: from ``db`` (which must exist), else from the
+        bus's default file when there is one on this host."""
+        path = db if db is not None else default_db(bus)
+        if db is not None or Path(path).is_file():
+            self.load_db(path)
 
     def etag_of(self, uid: int) -> int | None:
         return next((e for e, u in self.etags.items() if u == uid), None)
@@ -137,6 +146,24 @@ def _txnode(text: str) -> int:
     if not 0 <= value < p.TXNODE_COUNT:
         raise ValueError(f"TxNode {text} out of range")
     return value
+
+
+def state_dir() -> Path:
+    """Where daemons keep their state: ``$UPS_STATE_DIR``, else ``$XDG_STATE_HOME/ups``, else
+    ``~/.local/state/ups``."""
+    if os.environ.get("UPS_STATE_DIR"):
+        return Path(os.environ["UPS_STATE_DIR"])
+    base = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
+    return Path(base) / "ups"
+
+
+def default_db(bus: str) -> Path:
+    """The CAN-ECB database of bus ``bus`` (an ``INTERFACE:CHANNEL[,key=value]`` spec): one
+    file per interface, channel and (for udp_multicast) port, so two buses never share one."""
+    head, *options = bus.split(",")
+    port = [o.replace(" ", "") for o in options if o.replace(" ", "").startswith("port=")]
+    slug = re.sub(r"[^A-Za-z0-9.]+", "_", "_".join([head, *port])).strip("_")
+    return state_dir() / f"can-ecb-{slug}.db"
 
 
 def sidecar_of(recording: str | Path) -> Path:

@@ -165,9 +165,7 @@ def _from_bus(
 ) -> tuple[Bindings, set[Stream], dict[Stream, int]]:
     import time
 
-    from broker._store import default_db
-
-    from .._bindings import Bindings, Event
+    from .._bindings import Bindings, Event, default_db
     from .._canlink import open_bus
 
     bindings = Bindings()

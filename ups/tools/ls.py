@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     can, broker = network_of(args)
     catalog = load_catalog(args.catalog)
     if can is not None:
-        from broker._store import default_db
+        from .._bindings import default_db
 
         db = args.db if args.db is not None else str(default_db(can))
         table = can_listing(can, db, args.listen_for, catalog)

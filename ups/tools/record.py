@@ -86,11 +86,7 @@ def run(args: argparse.Namespace) -> int:
     catalog = load_catalog(args.catalog)
     bindings = Bindings(network="can" if can_bus is not None else "tcp")
     if can_bus is not None:
-        from broker._store import default_db
-
-        db = args.db if args.db is not None else default_db(can_bus)
-        if args.db is not None or Path(db).is_file():
-            bindings.load_db(db)
+        bindings.load_bus_db(can_bus, args.db)
     bindings.names.update({s.uid: s.name for s in catalog if s.name})
     bindings.names.update({c.uid: c.name for c in args.channels if c.name})
     recorder = _Recorder(args.file, {c.uid for c in args.channels}, bindings, args.count)
