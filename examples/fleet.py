@@ -93,14 +93,16 @@ async def _pump(
 
     async def lines(stream: asyncio.StreamReader | None, log: bool) -> None:
         assert stream is not None
+        crashing = False  # within a traceback: every line of it
         async for raw in stream:
             line = raw.decode(errors="replace").rstrip()
+            crashing = crashing or line.startswith("Traceback")
             if ready is not None and not up.done() and re.search(ready, line):
                 up.set_result(None)
             for mark in ("BRAKE from TxNode", "BRAKE via the gateway", "speed limit"):
                 if mark in line:
                     seen.add(mark)
-            if not log or re.search(r" (WARNING|ERROR|CRITICAL): |Traceback|Error", line):
+            if not log or crashing or re.search(r" (WARNING|ERROR|CRITICAL): ", line):
                 print(f"[{name}] {line}", flush=True)
 
     await asyncio.gather(lines(proc.stdout, False), lines(proc.stderr, True))

@@ -78,8 +78,13 @@ def test_encode_then_decode_is_the_identity(left: int, right: int, x: float) -> 
             '[channel."a"]\nfields = [{ name = "s", type = "str" }, { name = "v", type = "u8" }]\n',
             "only the last field",
         ),
-        ('[channel."a"]\npriority = 300\n', "priority must be an integer 0..255"),
-        ('[channel."a"]\nperiod = -1\n', "period must be a number of seconds above 0"),
+        ('[channel."a"]\npriority = 300\n', "priority must be an integer 2..255"),
+        ('[channel."a"]\npriority = 1\n', "priority must be an integer 2..255"),
+        ('[channel."a"]\nperiod = -1\n', "period must be a finite number of seconds above 0"),
+        ('[channel."a"]\nperiod = inf\n', "period must be a finite number"),
+        ('[channel."a"]\ndescription = 3\n', "description must be a string"),
+        ('[channel."a"]\nfields = [{ name = "v", type = "u8", unit = 3 }]\n', "unit must be a"),
+        ('[channel."0x_1"]\n', "bad channel UID"),
         ('[channel."a"]\ncolour = "red"\n', "unknown key colour"),
         ('[channel."a"]\nrealtime = { deadline = 0.1 }\n', "realtime needs a period"),
         ('[channel."0xzz"]\n', "bad channel UID"),
@@ -131,3 +136,20 @@ def test_ups_pub_encodes_field_values_with_the_catalog() -> None:
     bad = Proc("pub", "robot/max-speed", "speed=30", "--broker", address, "--catalog", catalog)
     assert bad.finish()[0] == 2
     assert bad.stderr_lines == ["ups pub: robot/max-speed has no field speed\n"]
+
+
+def test_integers_encode_exactly_and_bad_values_are_config_errors() -> None:
+    (spec,) = Catalog.from_text(
+        '[channel."a"]\nfields = [{ name = "u", type = "u64" }, { name = "b", type = "bytes" }]\n'
+    )
+    top = (1 << 64) - 1
+    assert spec.decode(spec.encode({"u": str(top), "b": "ab"})) == {"u": top, "b": b"\xab"}
+    assert spec.decode(spec.encode({"u": "9007199254740993", "b": ""}))["u"] == 9007199254740993
+    assert spec.decode(spec.encode({"u": "0x10", "b": ""}))["u"] == 16
+    with pytest.raises(ConfigError, match="b='zz'"):
+        spec.encode({"u": 1, "b": "zz"})
+    with pytest.raises(ConfigError, match="u='-1'"):
+        spec.encode({"u": "-1", "b": ""})
+    (rt,) = Catalog.from_text('[channel."r"]\nfields = [{ name = "x", type = "u8" }]\n'
+                              "realtime = { period = 0.01, jitter = 0 }\n")  # fmt: skip
+    assert rt.realtime is not None and rt.realtime.jitter == 0.0

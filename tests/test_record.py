@@ -166,6 +166,9 @@ def test_a_can_recording_replays_by_channel_onto_a_bus_bound_the_other_way(
         (("replay", "run.asc", "--broker", "127.0.0.1:1"), "malformed bindings"),
         (("dbc", "-o", "x.dbc"), "which frames?"),
         (("decode", "other.asc", "--catalog", "bad.toml"), "catalog bad.toml"),
+        (("decode", "cut.blf"), "not a log python-can can read"),
+        (("replay", "neg.log", "--broker", "127.0.0.1:1"), "is not 0x and 1..16 hex digits"),
+        (("record", "keep.blf", "--broker", "127.0.0.1:1", "--timeout", "0.5"), "TCP-ECB"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: tuple[str, ...], says: str) -> None:
@@ -174,7 +177,36 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: tuple[str, ...],
     (tmp_path / "other.asc").write_text("")
     (tmp_path / "run.asc.ups.json").write_text('{"format": "ups-bindings/1", "etags": 3}')
     (tmp_path / "bad.toml").write_text('[channel."x"]\nfields = [{ name = "a", type = "u7" }]\n')
+    with can.Logger(str(tmp_path / "keep.blf")) as log:  # a recording that must stay as it is
+        for i in range(50):
+            log(can.Message(timestamp=i, arbitration_id=0x1000_0010, data=bytes([i])))
+    kept = (tmp_path / "keep.blf").read_bytes()
+    (tmp_path / "cut.blf").write_bytes(kept[:17])
+    (tmp_path / "neg.log").write_text("(1.0) vcan0 10000010#01\n")
+    (tmp_path / "neg.log.ups.json").write_text(
+        '{"format": "ups-bindings/1", "etags": {"0x0010": "-0x1"}, "txnodes": {}}'
+    )
     proc = Proc(*args, cwd=tmp_path, env={"UPS_CAN": ""})
     code, _ = proc.finish()
     assert code == 2
     assert len(proc.stderr_lines) == 1 and says in proc.stderr_lines[0], proc.stderr_lines
+    assert (tmp_path / "keep.blf").read_bytes() == kept  # a failed record destroys nothing
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # nor leaves a part
+
+
+def test_a_dbc_of_odd_channel_names_loads_in_cantools(tmp_path: Path) -> None:
+    from ups import name_to_uid
+    from ups._bindings import Bindings
+    from ups._catalog import Catalog
+    from ups.tools.dbc import build
+
+    names = ["vitesse/é", "a/b", "a.b", "a_b", "9lives"]
+    bindings = Bindings(etags={0x10 + i: name_to_uid(n) for i, n in enumerate(names)})
+    streams = {(0x80, 5, 0x10 + i): (name_to_uid(n), 2) for i, n in enumerate(names)}
+    streams[(0x40, 5, 0x11)] = (name_to_uid("a/b"), 2)  # one channel at two priorities
+    database, skipped = build(bindings, streams, Catalog())
+    assert skipped == 0
+    cantools.database.dump_file(database, str(tmp_path / "odd.dbc"))
+    loaded = cantools.database.load_file(str(tmp_path / "odd.dbc"))
+    labels = [m.name for m in loaded.messages]
+    assert len(set(labels)) == len(names) + 1 and all(label.isascii() for label in labels)

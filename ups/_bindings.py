@@ -110,9 +110,9 @@ class Bindings:
             if doc.get("format") != SIDECAR_FORMAT:
                 raise ConfigError(f"{source}: not a UPS bindings file ({SIDECAR_FORMAT})")
             return cls(
-                {_etag(e): int(u, 16) for e, u in doc["etags"].items()},
-                {_txnode(t): int(n, 16) for t, n in doc["txnodes"].items()},
-                {int(u, 16): str(n) for u, n in doc.get("names", {}).items()},
+                {_etag(e): _u64(u) for e, u in doc["etags"].items()},
+                {_txnode(t): _u64(n) for t, n in doc["txnodes"].items()},
+                {_u64(u): _name(n) for u, n in doc.get("names", {}).items()},
                 str(doc.get("network", "can")),
             )
         except (AttributeError, KeyError, TypeError, ValueError) as exc:
@@ -139,6 +139,18 @@ def _etag(text: str) -> int:
     if not p.FIRST_ETAG <= value <= p.LAST_ETAG:
         raise ValueError(f"etag {text} out of range")
     return value
+
+
+def _u64(text: str) -> int:
+    if not re.fullmatch(r"0x[0-9a-fA-F]{1,16}", text):
+        raise ValueError(f"{text!r} is not 0x and 1..16 hex digits (a 64-bit id)")
+    return int(text, 16)
+
+
+def _name(text: Any) -> str:
+    if not isinstance(text, str):
+        raise ValueError(f"channel name {text!r} is not a string")
+    return text
 
 
 def _txnode(text: str) -> int:

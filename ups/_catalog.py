@@ -41,7 +41,7 @@ _FIXED = {
 }  # fmt: skip
 _TAIL = ("str", "bytes")  #: the rest of the payload; only as the last field
 FIELD_TYPES = (*_FIXED, *_TAIL)
-MAX_CHANNELS = 16384  #: a catalog describes at most as many channels as a CAN bus has etags
+MAX_CHANNELS = 16368  #: a catalog describes at most as many channels as a CAN bus has etags
 _KEYS = {"description", "period", "priority", "byte_order", "fields", "realtime"}
 _FIELD_KEYS = {"name", "type", "unit", "scale", "offset"}
 
@@ -146,13 +146,13 @@ class ChannelSpec:
             if f.name not in values:
                 raise ConfigError(f"{self.channel}: a value for {f.name} is missing")
             value = values[f.name]
-            if f.type == "bytes":
-                parts.append(bytes.fromhex(value) if isinstance(value, str) else bytes(value))
-                continue
-            if f.type == "str":
-                parts.append(str(value).encode("utf-8"))
-                continue
             try:
+                if f.type == "bytes":
+                    parts.append(bytes.fromhex(value) if isinstance(value, str) else bytes(value))
+                    continue
+                if f.type == "str":
+                    parts.append(str(value).encode("utf-8"))
+                    continue
                 raw = _raw(f, value)
                 parts.append(struct.pack(order + _FIXED[f.type], raw))
             except (struct.error, TypeError, ValueError, OverflowError) as exc:
@@ -188,12 +188,19 @@ def _raw(f: Field, value: Any) -> int | float | bool:
                 raise ValueError("expected true or false")
             return value.lower() in ("true", "1")
         return bool(value)
-    number = float(value) if isinstance(value, str) else value
+    if f.type[0] in "iu" and not f.scaled:  # exact: a u64 does not go through a float
+        if isinstance(value, str):
+            try:
+                return int(value, 0)
+            except ValueError:
+                value = float(value)
+        if isinstance(value, float):
+            return round(value)
+        return int(value)
+    number = float(value)
     if f.scaled:
-        number = (float(number) - f.offset) / f.scale
-    if f.type[0] in "iu":
-        return round(float(number))
-    return float(number)
+        number = (number - f.offset) / f.scale
+    return round(number) if f.type[0] in "iu" else number
 
 
 def _show(value: Value) -> str:
@@ -291,8 +298,12 @@ def _spec(key: str, entry: Any) -> ChannelSpec:
     if byte_order not in ("little", "big"):
         raise ConfigError(f"byte_order must be little or big, not {byte_order!r}")
     priority = entry.get("priority")
-    if priority is not None and not (isinstance(priority, int) and 0 <= priority <= 255):
-        raise ConfigError(f"priority must be an integer 0..255, not {priority!r}")
+    if priority is not None and not (isinstance(priority, int) and 2 <= priority <= 255):
+        raise ConfigError(
+            f"priority must be an integer 2..255 (0, 1: management), not {priority!r}"
+        )
+    if not isinstance(entry.get("description", ""), str):
+        raise ConfigError("description must be a string")
     period = _seconds(entry, "period")
     fields = tuple(_field(i, f) for i, f in enumerate(entry.get("fields", [])))
     names = [f.name for f in fields]
@@ -309,7 +320,7 @@ def _spec(key: str, entry: Any) -> ChannelSpec:
         if rt_period is None:
             raise ConfigError("realtime needs a period (its own or the channel's)")
         realtime = Realtime(rt_period, _seconds(rt, "deadline") or rt_period,
-                            _seconds(rt, "jitter") or 0.0)  # fmt: skip
+                            _seconds(rt, "jitter", zero=True) or 0.0)  # fmt: skip
     return ChannelSpec(channel, str(entry.get("description", "")), period, priority,
                        byte_order, fields, realtime)  # fmt: skip
 
@@ -325,6 +336,8 @@ def _field(index: int, entry: Any) -> Field:
         raise ConfigError(f"field {index}: name must be an identifier, not {name!r}")
     if kind not in FIELD_TYPES:
         raise ConfigError(f"field {name}: type must be one of {' '.join(FIELD_TYPES)}")
+    if not isinstance(entry.get("unit", ""), str):
+        raise ConfigError(f"field {name}: unit must be a string")
     scale, offset = entry.get("scale", 1.0), entry.get("offset", 0.0)
     for label, value in (("scale", scale), ("offset", offset)):
         if (
@@ -340,12 +353,18 @@ def _field(index: int, entry: Any) -> Field:
     return Field(name, kind, str(entry.get("unit", "")), float(scale), float(offset))
 
 
-def _seconds(entry: dict[str, Any], key: str) -> float | None:
+def _seconds(entry: dict[str, Any], key: str, zero: bool = False) -> float | None:
     value = entry.get(key)
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-        raise ConfigError(f"{key} must be a number of seconds above 0, not {value!r}")
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or not (value >= 0 if zero else value > 0)
+    ):
+        least = "0 or more" if zero else "above 0"
+        raise ConfigError(f"{key} must be a finite number of seconds {least}, not {value!r}")
     return float(value)
 
 

@@ -56,9 +56,9 @@ def as_channel(channel: ChannelLike) -> Channel:
 def parse_channel(text: str) -> Channel:
     """Parse a channel as written on the command line: ``0x`` + hex digits is a UID, else a name."""
     if text[:2].lower() == "0x":
-        try:
-            return as_channel(int(text, 16))
-        except ValueError:
+        digits = text[2:]
+        if not digits or not all(c in "0123456789abcdefABCDEF" for c in digits):
             msg = f"bad channel UID {text!r}: expected 0x followed by hex digits"
-            raise ConfigError(msg) from None
+            raise ConfigError(msg)
+        return as_channel(int(digits, 16))
     return as_channel(text)

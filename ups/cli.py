@@ -208,7 +208,10 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         default=10.0,
         help="events per second (0: as fast as possible)",
     )
-    cmd.add_argument("--priority", type=priority_arg, default=None, help="0 (highest)..255")
+    cmd.add_argument(
+        "--priority", type=priority_arg, default=None,
+        help="0 (highest)..255 (default: the catalog's, else 0x80)",
+    )  # fmt: skip
     cmd.add_argument(
         "--wait", action="store_true",
         help="wait for room at slow subscribers instead of dropping (TCP/IP backpressure)",
@@ -383,6 +386,12 @@ def _run_pub(args: argparse.Namespace) -> int:
 
     args.data = _payload(args.channel, args.data, args.catalog)
 
+    if args.priority is None:  # the catalog's, when it gives one
+        from ._catalog import load_catalog
+
+        spec = load_catalog(args.catalog).get(args.channel.uid)
+        args.priority = None if spec is None else spec.priority
+
     async def run() -> int:
         async with open_node(args) as node:
             if args.priority is not None:
@@ -423,6 +432,8 @@ def _payload(channel: Channel, text: str, catalog_path: str | None) -> bytes:
         name, sep, value = pair.partition("=")
         if not sep:
             raise ConfigError(f"{pair!r}: expected field=value")
+        if name.strip() in values:
+            raise ConfigError(f"{name.strip()} is given twice")
         values[name.strip()] = value.strip()
     return spec.encode(values)
 
@@ -496,6 +507,8 @@ def _run_demo(args: argparse.Namespace) -> int:
         )
     if args.can.startswith("virtual"):
         raise ConfigError("a virtual bus lives in one process: give --can socketcan:vcan0")
+    if args.listen.endswith(":0"):
+        raise ConfigError("--listen needs a port the parts can be told (not 0)")
     from examples.fleet import run_fleet
 
     return run_until_signal(run_fleet(args.can, args.listen, args.duration))

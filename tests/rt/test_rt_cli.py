@@ -179,3 +179,25 @@ def test_a_channel_catalog_is_analysed_like_its_csv(
                        "realtime = { period = 0.01 }\n")  # fmt: skip
     code, _, err = _run(capsys, str(catalog))
     assert code == 2 and "payload has no fixed size" in err
+
+
+def test_catalog_times_are_read_as_written(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """0.00104 s is 1.04 ms exactly: a float product would be 1.0399999999999998, and a
+    message whose response time is exactly its deadline would wrongly miss it."""
+    catalog = tmp_path / "c.toml"
+    catalog.write_text("".join(
+        f'[channel."m{i}"]\nfields = [{{ name = "x", type = "u8" }}]\npriority = {i + 2}\n'
+        "realtime = { period = 0.01, deadline = 0.00104 }\n"
+        for i in range(4)
+    ))  # fmt: skip
+    csv = _write(tmp_path, f"{HEADER},priority\n" + "".join(
+        f"m{i},1,0,10,1.04,{i + 2}\n" for i in range(4)))  # fmt: skip
+    code, from_catalog, _ = _run(capsys, str(catalog), "--json")
+    code2, from_csv, _ = _run(capsys, csv, "--json")
+    assert code == code2 == 0
+    assert json.loads(from_catalog)["messages"] == json.loads(from_csv)["messages"]
+    catalog.write_text('[channel."e"]\nrealtime = { period = 0.01 }\n')
+    code, _, err = _run(capsys, str(catalog))
+    assert code == 2 and "no fixed size" in err

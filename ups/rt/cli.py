@@ -96,22 +96,28 @@ def _load_catalog(path: str) -> list[MessageSpec]:
         if spec.realtime is None:
             continue
         name = spec.name or f"0x{spec.uid:016x}"
-        if spec.size is None:
+        if spec.size is None or not spec.fields:
             raise ValueError(f"{path}: {name} is real-time but its payload has no fixed size")
         rt = spec.realtime
         specs.append(
             MessageSpec(
                 name,
                 spec.size,
-                Fraction(str(rt.period * 1000)),
-                Fraction(str(rt.deadline * 1000)),
-                Fraction(str(rt.jitter * 1000)),
+                _ms_of(rt.period),
+                _ms_of(rt.deadline),
+                _ms_of(rt.jitter),
                 spec.priority,
             )
         )
     if not specs:
         raise ValueError(f"{path}: no channel has a realtime declaration")
     return specs
+
+
+def _ms_of(seconds: float) -> Fraction:
+    """Seconds as written in the catalog, in exact milliseconds (0.00104 s is 1.04 ms, not
+    the 1.0399999999999998 of a float product)."""
+    return Fraction(repr(seconds)) * 1000
 
 
 def _error(message: str, stream: TextIO) -> int:

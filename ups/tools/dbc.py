@@ -22,10 +22,11 @@ from .._cliargs import add_catalog, positive_float
 from .._errors import ConfigError
 
 if TYPE_CHECKING:
-    from .._bindings import Bindings
+    from .._bindings import Bindings, Event
 
 HELP = "write a DBC that labels a UPS bus's frames (for cantools, SavvyCAN ...)"
 Stream = tuple[int, int, int]  #: (priority, TxNode, etag) of frames in use
+Streams = dict[Stream, tuple[int | None, int]]  #: -> (channel UID then, longest payload)
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
@@ -49,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
     catalog = load_catalog(args.catalog)
     if args.recording is not None:
-        bindings, streams, sizes = _from_recording(args.recording)
+        bindings, streams = _from_recording(args.recording)
     else:
         bus = args.can or os.environ.get("UPS_CAN") or None
         if bus is None:
@@ -57,8 +58,8 @@ def run(args: argparse.Namespace) -> int:
                 "which frames? give --can BUS (the live bus) or --recording FILE: a DBC names "
                 "frames by their identifier, which holds the TxNode and etag chosen on the bus"
             )
-        bindings, streams, sizes = _from_bus(bus, args.db, args.listen_for)
-    database, skipped = build(bindings, streams, sizes, catalog)
+        bindings, streams = _from_bus(bus, args.db, args.listen_for)
+    database, skipped = build(bindings, streams, catalog)
     database.refresh()
     import cantools
 
@@ -74,9 +75,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def build(
-    bindings: Bindings, streams: set[Stream], sizes: dict[Stream, int], catalog: Catalog
-) -> tuple[Any, int]:
+def build(bindings: Bindings, streams: Streams, catalog: Catalog) -> tuple[Any, int]:
     """The cantools Database of ``streams``; returns it and how many were left out."""
     from cantools.database.can import Database, Message
 
@@ -85,23 +84,24 @@ def build(
     messages = []
     skipped = 0
     used: set[str] = set()
-    for stream in sorted(streams):
+    for stream, (uid, size) in sorted(streams.items()):
         priority, txnode, etag = stream
-        uid = bindings.etags.get(etag)
         if uid is None:
             skipped += 1
             continue
         spec = catalog.get(uid)
         name = catalog.channel(uid).name or bindings.names.get(uid) or f"uid_{uid:016x}"
-        base = re.sub(r"\W", "_", name).strip("_") or "channel"
+        base = re.sub(r"[^A-Za-z0-9_]", "_", name).strip("_") or "channel"  # DBC: ASCII
         if base[0].isdigit():
             base = f"ch_{base}"
         label = f"{base}_tx{txnode:02x}"
-        if label in used:  # the same channel and publisher at another priority
-            label = f"{label}_p{priority:02x}"
+        if label in used:  # another priority, or names that differ only in what _ stands for
+            label = next(
+                f"{label}_{n}" for n in range(2, len(used) + 3) if f"{label}_{n}" not in used
+            )
         used.add(label)
         node = bindings.txnodes.get(txnode)
-        signals, length = _signals(spec, sizes.get(stream, 8))
+        signals, length = _signals(spec, size)
         comment = f"UPS channel {name} (UID 0x{uid:016x}), etag 0x{etag:04x}, TxNode 0x{txnode:02x}"
         if node is not None:
             comment += f" (node 0x{node:016x})"
@@ -145,24 +145,29 @@ def _signals(spec: ChannelSpec | None, observed: int) -> tuple[list[Any], int]:
     return signals, at
 
 
-def _from_recording(path: str) -> tuple[Bindings, set[Stream], dict[Stream, int]]:
+def _from_recording(path: str) -> tuple[Bindings, Streams]:
     from .._bindings import Event
     from .decode import Tally, bindings_for, read
 
     bindings = bindings_for(path, None, None)
-    streams: set[Stream] = set()
-    sizes: dict[Stream, int] = {}
+    streams: Streams = {}
     for _, item in read(path, bindings, Tally()):
         if isinstance(item, Event):
-            stream = (item.priority, item.txnode, item.etag)
-            streams.add(stream)
-            sizes[stream] = max(sizes.get(stream, 0), len(item.data))
-    return bindings, streams, sizes
+            _add(streams, item)
+    return bindings, streams
 
 
-def _from_bus(
-    bus: str, db: str | None, seconds: float
-) -> tuple[Bindings, set[Stream], dict[Stream, int]]:
+def _add(streams: Streams, ev: Event) -> None:
+    """One event of a stream: the channel it carried (its last, when bound anew) and the
+    longest payload."""
+    stream = (ev.priority, ev.txnode, ev.etag)
+    uid, size = streams.get(stream, (ev.uid, 0))
+    if ev.uid != uid:
+        size = 0  # the etag was bound anew: the DBC is true of the bus as it is now
+    streams[stream] = (ev.uid, max(size, len(ev.data)))
+
+
+def _from_bus(bus: str, db: str | None, seconds: float) -> tuple[Bindings, Streams]:
     import time
 
     from .._bindings import Bindings, Event, default_db
@@ -170,8 +175,7 @@ def _from_bus(
 
     bindings = Bindings()
     bindings.load_db(db if db is not None else default_db(bus))
-    streams: set[Stream] = set()
-    sizes: dict[Stream, int] = {}
+    streams: Streams = {}
     listener = open_bus(bus)
     try:
         deadline = time.monotonic() + seconds
@@ -181,9 +185,7 @@ def _from_bus(
                 continue
             item = bindings.read(msg.arbitration_id, bytes(msg.data))
             if isinstance(item, Event):
-                stream = (item.priority, item.txnode, item.etag)
-                streams.add(stream)
-                sizes[stream] = max(sizes.get(stream, 0), len(item.data))
+                _add(streams, item)
     finally:
         listener.shutdown()
-    return bindings, streams, sizes
+    return bindings, streams

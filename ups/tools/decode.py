@@ -74,8 +74,10 @@ def read(
 
     try:
         reader = can.LogReader(path)
-    except (ValueError, OSError) as exc:
-        raise ConfigError(f"cannot read {path}: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except Exception as exc:  # a reader raises whatever its parser does: struct, zlib ...
+        raise ConfigError(f"{path}: not a log python-can can read ({exc})") from None
     try:
         for msg in reader:
             if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
@@ -91,8 +93,11 @@ def read(
             else:
                 tally.management += 1
                 yield msg.timestamp, item
-    except (ValueError, EOFError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not a log python-can can read ({exc})") from None
+    except Exception as exc:  # a corrupt or cut file: python-can's parsers raise anything
+        raise ConfigError(
+            f"{path}: not a log python-can can read, or damaged after {tally.events} events "
+            f"({type(exc).__name__}: {exc})"
+        ) from None
     finally:
         stop = getattr(reader, "stop", None)
         if stop is not None:

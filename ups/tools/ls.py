@@ -161,6 +161,10 @@ def render(table: dict[str, Any]) -> str:
         for c in table["channels"]
     ]  # fmt: skip
     lines += [f"{table['total']['channels']} channels", *_aligned(rows)]
+    if rated and len(table["channels"]) > MAX_RATED:
+        lines.append(f"(rates of the first {MAX_RATED} channels only)")
+    if table.get("lost_while_counting"):
+        lines.append(f"lost {table['lost_while_counting']} events while counting: rates are low")
     return "\n".join(lines)
 
 

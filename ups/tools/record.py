@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
             code = run_until_signal(_record_tcp(args, broker, recorder))
     finally:
         recorder.close()
-    print(recorder.summary(), file=sys.stderr)
+        if recorder.started:  # also when it stopped on an error: what it kept, and where
+            print(recorder.summary(), file=sys.stderr)
     return code
 
 
@@ -112,15 +113,19 @@ class _Recorder:
 
         self.path = path
         self.sidecar = sidecar_of(path)
+        name = Path(path).name  # written aside, and moved over FILE once recording began:
+        self._part = Path(path).with_name(f".{name}.part{Path(path).suffix}")  # a failed
+        self.started = False  # start leaves an earlier FILE as it was
         self.only = only
         self.bindings = bindings
         self.first_use: dict[int, int | None] = {}  #: etag -> its channel when first written
+        self.first_node: dict[int, int | None] = {}  #: TxNode -> its node when first written
         self.events = self.management = 0
         self.count = count
         self.full = threading.Event()  #: set once ``count`` events are written, or on error
         self.error: OSError | None = None  #: writing failed (a full disk ...): recording stops
         self.skipped: dict[str, int] = {}
-        self._writer: can.Listener = can.Logger(path)
+        self._writer: can.Listener = can.Logger(str(self._part))
         self._msg = can.Message
 
     def skip(self, why: str) -> None:
@@ -152,13 +157,19 @@ class _Recorder:
                 return  # another channel's: not asked for
             if self.full.is_set():
                 return
-            self.first_use.setdefault(item.etag, item.uid)
-            self.events += 1
+            self.used(item.etag, item.txnode)
             if self.events == self.count:
                 self.full.set()
         else:
             self.management += 1
         self._writer.on_message_received(msg)
+
+    def used(self, etag: int, txnode: int) -> None:
+        """One more event, on ``etag`` from ``txnode``: the sidecar keeps what the first one
+        of each stood for (later bindings are in the file itself, where they happen)."""
+        self.events += 1
+        self.first_use.setdefault(etag, self.bindings.etags.get(etag))
+        self.first_node.setdefault(txnode, self.bindings.txnodes.get(txnode))
 
     def write(self, timestamp: float, can_id: int, data: bytes) -> None:
         self._writer.on_message_received(
@@ -169,18 +180,24 @@ class _Recorder:
         )  # fmt: skip
 
     def close(self) -> None:
+        """Close the file; once recording began, move it over FILE and write its sidecar,
+        else remove it (an earlier FILE stays as it was)."""
         self._writer.stop()
+        if not self.started:
+            self._part.unlink(missing_ok=True)
+            return
+        self._part.replace(self.path)
         bindings = self.bindings
         saved = type(bindings)(
             {e: u for e, u in self.first_use.items() if u is not None},
-            dict(bindings.txnodes),
+            {t: n for t, n in self.first_node.items() if n is not None},
             {u: n for u, n in bindings.names.items() if u in self.first_use.values()},
             bindings.network,
         )
         saved.save(self.sidecar)
 
     def summary(self) -> str:
-        channels = len({u for u in self.first_use.values()})
+        channels = len({u for u in self.first_use.values() if u is not None})
         text = (
             f"ups record: {self.events} events on {channels} channels and "
             f"{self.management} management frames in {self.path} (bindings: {self.sidecar})"
@@ -216,6 +233,7 @@ async def _record_can(args: argparse.Namespace, bus: str, rec: _Recorder) -> int
             if rec.only:  # join and subscribe: the CAN-ECB binds (or re-announces) their etags
                 await _subscribe_can(bus, args, rec, reader)
             else:
+                rec.started = True
                 say(args, f"recording {bus} to {args.file}")
                 await reader
         finally:
@@ -239,6 +257,7 @@ async def _subscribe_can(
     channels = [Channel(uid, rec.bindings.names.get(uid)) for uid in sorted(rec.only)]
     async with Node(can=bus, name="ups-record", join_timeout=args.timeout) as node:
         await node.subscribe(*channels)
+        rec.started = True
         say(args, f"recording {', '.join(map(str, channels))} to {args.file}")
         await reader
 
@@ -296,6 +315,7 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
                 await asyncio.sleep(FOLLOW_EVERY)
 
         follower = None if rec.only else asyncio.create_task(follow())
+        rec.started = True
         say(args, f"recording {broker} to {args.file}")
         deadline = None if args.duration is None else loop.time() + args.duration
         try:
@@ -321,10 +341,9 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
                     rec.bindings.txnodes[txnode] = source
                     rec.write(msg.timestamp, *p.encode(p.Assign(txnode, source)))
                     rec.management += 1
-                rec.first_use.setdefault(etag, msg.uid)
                 priority = max(msg.priority, p.FIRST_EVENT_PRIORITY)
                 rec.write(msg.timestamp, p.make_id(priority, txnode, etag), msg.data)
-                rec.events += 1
+                rec.used(etag, txnode)
                 if rec.events == rec.count:
                     break
         finally:

@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
         f"{total.management} management frames (never replayed); {failed} not delivered",
         file=sys.stderr,
     )
-    if code == 0 and (failed or total.unbound or counts["too large"]):
-        return 1
+    unfinished = counts["sent"] + counts["too large"] < total.events - total.unbound
+    if failed or total.unbound or counts["too large"] or unfinished:
+        return 1  # not all of it replayed: stopped early, or some of it could not be
     return code
