@@ -248,6 +248,28 @@ class Catalog:
         except DecodeError:
             return None
 
+    def payload(self, channel: Channel, text: str) -> bytes:
+        """A payload as a person writes it: hex digits, or ``field=value,...`` that this
+        catalog's layout of ``channel`` encodes (a value cannot hold a comma)."""
+        text = text.strip()
+        if "=" not in text:
+            try:
+                return bytes.fromhex(text)
+            except ValueError:
+                raise ConfigError(f"not hex digits: {text!r}") from None
+        spec = self._by_uid.get(channel.uid)
+        if spec is None or not spec.fields:
+            raise ConfigError(f"{text!r}: the catalog has no layout of {channel}")
+        values: dict[str, str] = {}
+        for pair in text.split(","):
+            name, sep, value = pair.partition("=")
+            if not sep:
+                raise ConfigError(f"{pair!r}: expected field=value")
+            if name.strip() in values:
+                raise ConfigError(f"{name.strip()} is given twice")
+            values[name.strip()] = value.strip()
+        return spec.encode(values)
+
     @classmethod
     def load(cls, path: str | Path) -> Catalog:
         """Read a catalog file; a ConfigError names the file, the channel and what is wrong."""

@@ -37,7 +37,6 @@ from ._cliargs import (
 from ._errors import ConfigError, UpsError
 
 if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
-    from ._channel import Channel
     from ._message import Message
 
 EXIT_TIMEOUT = 1
@@ -384,12 +383,13 @@ def _run_status(args: argparse.Namespace) -> int:
 def _run_pub(args: argparse.Namespace) -> int:
     import asyncio
 
-    args.data = _payload(args.channel, args.data, args.catalog)
+    from ._catalog import load_catalog
+
+    catalog = load_catalog(args.catalog) if "=" in args.data else None
+    args.data = catalog.payload(args.channel, args.data) if catalog else hex_arg(args.data)
 
     if args.priority is None:  # the catalog's, when it gives one
-        from ._catalog import load_catalog
-
-        spec = load_catalog(args.catalog).get(args.channel.uid)
+        spec = (catalog or load_catalog(args.catalog)).get(args.channel.uid)
         args.priority = None if spec is None else spec.priority
 
     async def run() -> int:
@@ -414,28 +414,6 @@ def _run_pub(args: argparse.Namespace) -> int:
         return 0
 
     return run_until_signal(run())
-
-
-def _payload(channel: Channel, text: str, catalog_path: str | None) -> bytes:
-    """``ups pub``'s DATA: hex digits, or ``field=value,...`` encoded by the catalog."""
-    if "=" not in text:
-        return hex_arg(text)
-    from ._catalog import load_catalog
-
-    spec = load_catalog(catalog_path).get(channel.uid)
-    if spec is None or not spec.fields:
-        raise ConfigError(
-            f"{text!r}: the catalog (--catalog, $UPS_CATALOG) has no layout of {channel}"
-        )
-    values = {}
-    for pair in text.split(","):
-        name, sep, value = pair.partition("=")
-        if not sep:
-            raise ConfigError(f"{pair!r}: expected field=value")
-        if name.strip() in values:
-            raise ConfigError(f"{name.strip()} is given twice")
-        values[name.strip()] = value.strip()
-    return spec.encode(values)
 
 
 def _run_sub(args: argparse.Namespace) -> int:

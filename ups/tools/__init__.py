@@ -7,4 +7,4 @@ whole command line is built from them on every ``ups`` call, and ``ups --help`` 
 What a command needs beyond that (python-can, rich, aiohttp, cantools) it imports in ``run``.
 """
 
-COMMANDS = ("ls", "record", "decode", "replay", "dbc")
+COMMANDS = ("ls", "monitor", "record", "decode", "replay", "dbc", "console")

@@ -1,0 +1,137 @@
+"""``ups monitor`` with real processes: channels by name with their rate and decoded last
+value, nodes joining and leaving; on CAN, etags, names from the catalog and the bus load,
+while only listening."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from .procs import ROOT, Proc, private_multicast_bus, start_tcp_broker
+
+CATALOG = str(ROOT / "examples" / "robots.toml")
+
+
+def snapshots(out: str) -> list[dict]:
+    return [json.loads(line) for line in out.splitlines()]
+
+
+def test_monitor_shows_channels_values_and_nodes_coming_and_going() -> None:
+    broker, address = start_tcp_broker("--recovery", "0", "--liveness", "1")
+    with (
+        broker,
+        Proc(
+            "pub",
+            "robot/speed",
+            "speed=42",
+            "--broker",
+            address,
+            "--catalog",
+            CATALOG,
+            "--count",
+            "100000",
+            "--rate",
+            "50",
+        ),  # fmt: skip
+        Proc(
+            "monitor",
+            "--broker",
+            address,
+            "--catalog",
+            CATALOG,
+            "--json",
+            "--interval",
+            "0.5",
+            "--duration",
+            "30",
+        ) as monitor,  # fmt: skip
+    ):
+        short = Proc("pub", "robot/distance", "distance=7", "--broker", address, "--catalog",
+                     CATALOG, "--node-id", "0xb2", "--count", "60", "--rate", "20")  # fmt: skip
+        assert short.finish()[0] == 0, short.stderr_lines
+        gone = "0x00000000000000b2"
+
+        def seen() -> list[dict]:
+            return snapshots("".join(monitor.stdout_lines[:-1]))  # whole lines only
+
+        deadline = time.monotonic() + 25
+        while not any(any(n["key"] == gone and not n["alive"] for n in s["nodes"])
+                      for s in seen()):  # fmt: skip
+            assert time.monotonic() < deadline, seen()[-1:]
+            time.sleep(0.1)
+    snaps = seen()
+    last = snaps[-1]
+    speed = next(c for c in last["channels"] if c["name"] == "robot/speed")
+    assert speed["last"] == "speed=42 cm/s" and speed["values"] == {"speed": 42}
+    assert speed["rate"] > 10 and speed["count"] > 10
+    assert any(c["name"] == "robot/distance" and c["last"] == "distance=7 cm"
+               for s in snaps for c in s["channels"])  # fmt: skip
+    recent = "\n".join(last["recent"])
+    assert f"joined: ups-pub ({gone})" in recent
+    assert f"disconnected: ups-pub ({gone})" in recent or f"left: ups-pub ({gone})" in recent
+
+
+def test_monitor_plain_text_is_a_table() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    with (
+        broker,
+        Proc(
+            "pub",
+            "robot/speed",
+            "speed=5",
+            "--broker",
+            address,
+            "--catalog",
+            CATALOG,
+            "--count",
+            "100000",
+            "--rate",
+            "50",
+        ),  # fmt: skip
+    ):
+        monitor = Proc("monitor", "--broker", address, "--catalog", CATALOG, "--plain",
+                       "--interval", "1", "--duration", "3.5")  # fmt: skip
+        code, out = monitor.finish()
+    assert code == 0, monitor.stderr_lines
+    assert out.startswith(f"ups monitor  tcp {address}")
+    assert any(line.startswith("robot/speed") and "speed=5 cm/s" in line
+               for line in out.splitlines())  # fmt: skip
+
+
+@pytest.mark.netns
+def test_monitor_of_a_can_bus_only_listens(tmp_path: object) -> None:
+    bus = private_multicast_bus()
+    db = str(tmp_path) + "/ecb.db"  # type: ignore[operator]
+    with Proc("can-broker", "--can", bus, "--db", db, "--recovery", "0.2") as ecb:
+        ecb.wait_for_line("CAN-ECB on")
+        with Proc("pub", "robot/speed", "speed=9", "--can", bus, "--catalog", CATALOG,
+                  "--count", "100000", "--rate", "100"):  # fmt: skip
+            monitor = Proc("monitor", "--can", bus, "--db", db, "--catalog", CATALOG,
+                           "--json", "--interval", "1", "--duration", "3.5")  # fmt: skip
+            code, out = monitor.finish()
+        assert code == 0, monitor.stderr_lines
+        # the CAN-ECB gave out one TxNode: the publisher's; the monitor never joined
+        assert ecb.stop() == 0
+    last = snapshots(out)[-1]
+    speed = next(c for c in last["channels"] if c["name"] == "robot/speed")
+    assert speed["etag"] == "0x0010" and speed["last"] == "speed=9 cm/s" and speed["rate"] > 20
+    assert last["bus_load"] > 0
+    assert [n["txnode"] for n in last["nodes"]] == ["0x00"]
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (("monitor", "--can", "virtual:x", "--db", "/nonexistent.db"), "no CAN-ECB database"),
+        (("monitor", "--broker", "127.0.0.1:1", "--timeout", "0.5", "--plain"), "TCP-ECB"),
+        (("monitor", "--broker", "127.0.0.1:1", "--catalog", "/none.toml"), "cannot read"),
+    ],
+)
+def test_monitor_bad_input_is_one_line_and_exit_2(args: tuple[str, ...], says: str) -> None:
+    proc = Proc(*args)
+    code, _ = proc.finish()
+    assert code == 2 and len(proc.stderr_lines) == 1 and says in proc.stderr_lines[0], (
+        proc.stderr_lines
+    )

@@ -1,0 +1,210 @@
+"""``ups console``: the paper's operator palmtop, today: a web page of the live network.
+
+The page (``console.html``, plain JavaScript, nothing fetched from the internet) shows the
+channels and nodes as ``ups monitor`` does, updated by server-sent events, a plot of a
+chosen channel's decoded fields, and a form that publishes on a channel (hex, or
+``field=value,...`` that the catalog encodes). Routes:
+
+- ``GET /``: the page; ``GET /events``: one ``snapshot`` (see ``_live``) per
+  ``SNAPSHOT_EVERY`` s, as server-sent events; ``GET /snapshot``: one, as JSON;
+- ``GET /history?key=0x...``: the channel's recent (time, values) points;
+- ``POST /publish`` (JSON ``{"channel", "data"}``): ``{"ok": true}`` or ``{"error": "..."}``
+  (400 for bad input, 403 when the TCP-ECB's ACL refuses), never a traceback.
+
+With the TLS options the console is one more participant of the fleet: its node joins with
+that identity (so the TCP-ECB's ACL decides what it may see and publish), and the page is
+served over HTTPS to browsers that show a certificate of the same fleet CA. On CAN the
+console listens only, and joins the bus the first time someone publishes from the page.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from .._catalog import load_catalog
+from .._cliargs import (
+    add_catalog,
+    add_network,
+    add_tls,
+    network_of,
+    positive_float,
+    positive_int,
+    run_until_signal,
+    say,
+    tls_of,
+)
+from .._errors import ConfigError
+
+HELP = "a web page of the live network: channels, nodes, a plot, a form to publish"
+DEFAULT_LISTEN = "127.0.0.1:8470"
+SNAPSHOT_EVERY = 0.5  #: seconds between snapshots sent to each page
+MAX_PAGES = 32  #: pages followed at once; more are answered 503
+
+
+def add_arguments(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument(
+        "--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
+        help=f"where the page is served (default {DEFAULT_LISTEN})",
+    )  # fmt: skip
+    add_network(cmd, "a CAN bus (listening; joins to publish)", "a TCP/IP network")
+    cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
+    add_catalog(cmd)
+    cmd.add_argument(
+        "--bitrate", type=positive_int, default=500_000,
+        help="CAN: the bus's bit rate, for its load (default 500000)",
+    )  # fmt: skip
+    cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
+    add_tls(cmd, node=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    from .._address import parse_address
+    from .._bindings import Bindings
+    from ._live import Live
+
+    try:
+        import aiohttp  # noqa: F401
+    except ImportError:
+        raise ConfigError("ups console needs aiohttp: pip install 'ups-pubsub[tools]'") from None
+    host, port = parse_address(args.listen)
+    can, broker = network_of(args)
+    live = Live(load_catalog(args.catalog), "can" if can else "tcp", can or broker or "",
+                args.bitrate)  # fmt: skip
+    bindings = Bindings()
+    if can is not None:
+        bindings.load_bus_db(can, args.db)
+    return run_until_signal(_serve(args, live, bindings, can, broker, host, port))
+
+
+async def _serve(
+    args: argparse.Namespace, live: Any, bindings: Any, can: str | None, broker: str | None,
+    host: str, port: int,
+) -> int:  # fmt: skip
+    import asyncio
+    import contextlib
+
+    from aiohttp import web
+
+    from .._node import Node
+    from ._live import feed_can, feed_tcp
+
+    tls = tls_of(args)
+    node: Node | None = None
+    joining = asyncio.Lock()
+
+    async def publisher() -> Node:  # on CAN, the console joins when first asked to publish
+        nonlocal node
+        async with joining:
+            if node is None:
+                node = Node(can=can, name="ups-console", join_timeout=args.timeout)
+                await node.start()
+        return node
+
+    app = web.Application(client_max_size=64 * 1024)
+    app["live"], app["publisher"], app["pages"] = live, publisher, 0
+    app.add_routes([
+        web.get("/", _page), web.get("/events", _events), web.get("/snapshot", _snapshot),
+        web.get("/history", _history), web.post("/publish", _publish),
+    ])  # fmt: skip
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    try:
+        site = web.TCPSite(runner, host, port, ssl_context=_https(tls))
+        await site.start()
+        scheme = "https" if tls is not None else "http"
+        bound = runner.addresses[0][1]  # the port, when --listen asked for any (0)
+        if broker is not None:  # the page is served first: a port in use is said at once
+            node = Node(broker=broker, name="ups-console", join_timeout=args.timeout, tls=tls)
+            await node.start()
+        say(args, f"console on {scheme}://{host}:{bound}")
+        if can is not None:
+            await feed_can(live, can, bindings)
+        else:
+            assert node is not None and broker is not None
+            await feed_tcp(live, node, broker, [], args.timeout, tls)
+    except asyncio.CancelledError:
+        pass  # Ctrl-C, SIGTERM: the way to stop it
+    finally:
+        await runner.cleanup()
+        if node is not None:
+            with contextlib.suppress(Exception):
+                await node.close()
+    return 0
+
+
+def _https(tls: Any) -> Any:
+    """The server's TLS context: the fleet certificate, and a browser's of the same CA."""
+    if tls is None:
+        return None
+    import ssl
+
+    context = tls.server()
+    context.verify_mode = ssl.CERT_REQUIRED
+    return context
+
+
+async def _page(request: Any) -> Any:
+    from importlib.resources import files
+
+    from aiohttp import web
+
+    html = files("ups.tools").joinpath("console.html").read_text(encoding="utf-8")
+    return web.Response(text=html, content_type="text/html")
+
+
+async def _snapshot(request: Any) -> Any:
+    from aiohttp import web
+
+    return web.json_response(request.app["live"].snapshot())
+
+
+async def _events(request: Any) -> Any:
+    import asyncio
+    import json
+
+    from aiohttp import web
+
+    app = request.app
+    if app["pages"] >= MAX_PAGES:
+        return web.Response(status=503, text=f"at most {MAX_PAGES} pages at once")
+    app["pages"] += 1
+    try:
+        response = web.StreamResponse(headers={"Content-Type": "text/event-stream",
+                                               "Cache-Control": "no-cache"})  # fmt: skip
+        await response.prepare(request)
+        while True:
+            data = json.dumps(app["live"].snapshot())
+            await response.write(f"data: {data}\n\n".encode())
+            await asyncio.sleep(SNAPSHOT_EVERY)
+    except (ConnectionError, asyncio.CancelledError):
+        return response  # the page went away
+    finally:
+        app["pages"] -= 1
+
+
+async def _history(request: Any) -> Any:
+    from aiohttp import web
+
+    points = request.app["live"].history(request.query.get("key", ""))
+    return web.json_response([{"t": t, "values": v} for t, v in points])
+
+
+async def _publish(request: Any) -> Any:
+    from aiohttp import web
+
+    from .._channel import parse_channel
+    from .._errors import AccessDenied, UpsError
+
+    try:
+        body = await request.json()
+        channel = parse_channel(str(body["channel"]).strip())
+        data = request.app["live"].catalog.payload(channel, str(body.get("data", "")))
+        node = await request.app["publisher"]()
+        await node.publish(channel, data)
+    except AccessDenied as exc:
+        return web.json_response({"error": str(exc)}, status=403)
+    except (UpsError, ValueError, KeyError, TypeError) as exc:
+        text = str(exc) if isinstance(exc, UpsError | ValueError) else f"missing {exc}"
+        return web.json_response({"error": text}, status=400)
+    return web.json_response({"ok": True, "channel": str(channel), "data": data.hex()})
