@@ -127,3 +127,32 @@ def test_the_command_line_over_tls(fleet: Path) -> None:
         assert code == 2 and "all of --tls-ca, --tls-cert and --tls-key" in "".join(
             bad.stderr_lines
         )
+
+
+async def test_the_console_behind_tls_serves_only_fleet_browsers(fleet: Path) -> None:
+    """With TLS the console's page is HTTPS, and a client without a fleet certificate gets no
+    page; with one (alice's), the page and the console's view of the fleet."""
+    import ssl
+
+    import aiohttp
+
+    def opts(name: str) -> list[str]:
+        return ["--tls-ca", str(fleet / "ca.crt"), "--tls-cert", str(fleet / f"{name}.crt"),
+                "--tls-key", str(fleet / f"{name}.key")]  # fmt: skip
+
+    with Proc("broker", "--listen", "127.0.0.1:0", "--recovery", "0", *opts("broker")) as broker:
+        line = broker.wait_for_line(r"TCP-ECB on 127\.0\.0\.1:\d+")
+        address = line.split("TCP-ECB on ")[1].split()[0]
+        with Proc("console", "--listen", "127.0.0.1:0", "--broker", address,
+                  *opts("bob")) as console:  # fmt: skip
+            url = console.wait_for_line(r"console on https://").split("console on ")[1].strip()
+            fleet_browser = ssl.create_default_context(cafile=str(fleet / "ca.crt"))
+            fleet_browser.check_hostname = False  # the certificate names an identity, not a host
+            fleet_browser.load_cert_chain(fleet / "alice.crt", fleet / "alice.key")
+            stranger = ssl.create_default_context(cafile=str(fleet / "ca.crt"))
+            stranger.check_hostname = False
+            async with aiohttp.ClientSession() as http:
+                reply = await http.get(f"{url}/snapshot", ssl=fleet_browser)
+                assert reply.status == 200 and (await reply.json())["source"] == address
+                with pytest.raises(aiohttp.ClientError):
+                    await http.get(f"{url}/snapshot", ssl=stranger)
