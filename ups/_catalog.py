@@ -26,14 +26,15 @@ from __future__ import annotations
 
 import math
 import struct
-import tomllib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ._channel import Channel, parse_channel
 from ._errors import ConfigError, DecodeError, UpsError
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 _FIXED = {
     "u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i",
@@ -274,7 +275,8 @@ class Catalog:
     def load(cls, path: str | Path) -> Catalog:
         """Read a catalog file; a ConfigError names the file, the channel and what is wrong."""
         try:
-            text = Path(path).read_text(encoding="utf-8")
+            with open(path, encoding="utf-8") as f:
+                text = f.read()
         except (OSError, UnicodeDecodeError) as exc:
             reason = getattr(exc, "strerror", None) or str(exc)
             raise ConfigError(f"cannot read the catalog {path}: {reason}") from None
@@ -283,6 +285,8 @@ class Catalog:
     @classmethod
     def from_text(cls, text: str, source: str = "<text>") -> Catalog:
         """A catalog from TOML text; ``source`` names it in errors."""
+        import tomllib  # only when a catalog is read: ups --help stays quick
+
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:

@@ -2,21 +2,39 @@
 
 from __future__ import annotations
 
-import hashlib
-from dataclasses import dataclass
-
 from ._errors import ConfigError
 
 UID_MAX = (1 << 64) - 1
 NAME_MAX_BYTES = 255
 
 
-@dataclass(frozen=True, slots=True)
 class Channel:
-    """An event channel: its 64-bit UID and, when it was given by name, that name."""
+    """An event channel: its 64-bit UID and, when it was given by name, that name.
 
+    Immutable, compared and hashed by both. (A plain class: the command line imports it,
+    and a dataclass costs milliseconds at start.)"""
+
+    __slots__ = ("name", "uid")
     uid: int
-    name: str | None = None
+    name: str | None
+
+    def __init__(self, uid: int, name: str | None = None) -> None:
+        object.__setattr__(self, "uid", uid)
+        object.__setattr__(self, "name", name)
+
+    def __setattr__(self, key: str, value: object) -> None:
+        raise AttributeError(f"a Channel is immutable: cannot set {key}")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Channel):
+            return NotImplemented
+        return self.uid == other.uid and self.name == other.name
+
+    def __hash__(self) -> int:
+        return hash((self.uid, self.name))
+
+    def __repr__(self) -> str:
+        return f"Channel(uid={self.uid:#018x}, name={self.name!r})"
 
     def __str__(self) -> str:
         return self.name if self.name is not None else f"0x{self.uid:016x}"
@@ -27,6 +45,8 @@ def name_to_uid(name: str) -> int:
 
     Stable across runs, machines and Python versions, so every node maps a name alike.
     """
+    import hashlib  # here, not at the top: the command line imports this module
+
     raw = name.encode("utf-8")
     if not raw or len(raw) > NAME_MAX_BYTES:
         raise ConfigError(f"channel name must be 1..{NAME_MAX_BYTES} UTF-8 bytes, got {name!r}")

@@ -9,8 +9,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
-import json
-import logging
 import os
 import re
 import sys
@@ -49,6 +47,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = _parser(analyze="analyze" in argv)
     args = parser.parse_args(argv)
+    import logging  # after parsing: --help does without it
+
     quiet = args.command not in DAEMONS  # a daemon logs what it does; a command says it
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.WARNING if quiet else logging.INFO,
@@ -370,6 +370,8 @@ def _run_certs(args: argparse.Namespace) -> int:
 
 
 def _run_status(args: argparse.Namespace) -> int:
+    import json
+
     from ._tcpface import query_status
 
     async def run() -> int:
@@ -460,6 +462,8 @@ def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
     digits = 2 if on_can else 16
     source = None if msg.source is None else f"0x{msg.source:0{digits}x}"
     if as_json:
+        import json  # cached after the first event: a dict lookup
+
         return json.dumps(
             {
                 "uid": f"0x{msg.uid:016x}",

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from .._catalog import load_catalog
 from .._cliargs import (
     add_catalog,
     add_network,
@@ -61,6 +60,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from .._address import parse_address
     from .._bindings import Bindings
+    from .._catalog import load_catalog
     from ._live import Live
 
     try:

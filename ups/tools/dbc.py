@@ -17,12 +17,12 @@ import re
 import sys
 from typing import TYPE_CHECKING, Any
 
-from .._catalog import Catalog, ChannelSpec, load_catalog
 from .._cliargs import add_catalog, positive_float
 from .._errors import ConfigError
 
 if TYPE_CHECKING:
     from .._bindings import Bindings, Event
+    from .._catalog import Catalog, ChannelSpec
 
 HELP = "write a DBC that labels a UPS bus's frames (for cantools, SavvyCAN ...)"
 Stream = tuple[int, int, int]  #: (priority, TxNode, etag) of frames in use
@@ -47,6 +47,8 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import os
+
+    from .._catalog import load_catalog
 
     catalog = load_catalog(args.catalog)
     if args.recording is not None:

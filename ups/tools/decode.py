@@ -10,20 +10,18 @@ where it stands. An event whose etag is bound by none of them is shown by its et
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._catalog import Catalog, load_catalog
 from .._cliargs import add_catalog
 from .._errors import ConfigError
 
 if TYPE_CHECKING:
     from .. import _canproto as p
     from .._bindings import Bindings, Event
+    from .._catalog import Catalog
 
 HELP = "print a recording or a candump/python-can log of a UPS bus in UPS terms"
 
@@ -52,6 +50,8 @@ class Tally:
 
 def bindings_for(path: str, sidecar: str | None, db: str | None) -> Bindings:
     """The bindings a recording starts from: its sidecar (or ``sidecar``), a database."""
+    from pathlib import Path
+
     from .._bindings import Bindings, sidecar_of
 
     if not Path(path).is_file():
@@ -105,7 +105,10 @@ def read(
 
 
 def run(args: argparse.Namespace) -> int:
+    import json
+
     from .._bindings import Event
+    from .._catalog import load_catalog
 
     bindings = bindings_for(args.file, args.bindings, args.db)
     catalog = load_catalog(args.catalog)
@@ -141,6 +144,8 @@ def _event_line(
     bindings: Bindings,
     as_json: bool,
 ) -> str:
+    import json
+
     node = bindings.txnodes.get(ev.txnode)
     if as_json:
         doc: dict[str, Any] = {

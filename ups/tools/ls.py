@@ -10,11 +10,9 @@ sends what, how often); names come from the catalog.
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .._catalog import Catalog, load_catalog
 from .._cliargs import (
     add_catalog,
     add_network,
@@ -24,6 +22,9 @@ from .._cliargs import (
     run_until_signal,
     tls_of,
 )
+
+if TYPE_CHECKING:
+    from .._catalog import Catalog
 
 HELP = "list the nodes and channels of a network"
 
@@ -49,6 +50,10 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import json
+
+    from .._catalog import load_catalog
+
     can, broker = network_of(args)
     catalog = load_catalog(args.catalog)
     if can is not None:
@@ -106,6 +111,8 @@ async def _count_rates(table: dict[str, Any], broker: str, args: argparse.Namesp
 def listing(status: dict[str, Any], catalog: Catalog | None = None) -> dict[str, Any]:
     """The nodes and channels of a TCP-ECB's Status, each as a flat record; names the nodes
     did not give come from ``catalog``."""
+    from .._catalog import Catalog
+
     catalog = catalog or Catalog()
     nodes = [
         {
@@ -185,6 +192,7 @@ def can_listing(
     from .. import _canproto as p
     from .._bindings import Bindings
     from .._canlink import open_bus
+    from .._catalog import Catalog
 
     catalog = catalog or Catalog()
     bindings = Bindings()

@@ -13,7 +13,6 @@ import argparse
 import sys
 from typing import Any
 
-from .._catalog import load_catalog
 from .._cliargs import (
     add_catalog,
     add_network,
@@ -52,6 +51,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._bindings import Bindings
+    from .._catalog import load_catalog
     from ._live import Live
 
     can, broker = network_of(args)

@@ -19,13 +19,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import threading
 import time
 from collections import OrderedDict
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._catalog import load_catalog
 from .._channel import Channel
 from .._cliargs import (
     add_catalog,
@@ -72,6 +69,8 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
 
 
 def check_format(path: str) -> str:
+    from pathlib import Path
+
     suffix = Path(path).suffix.lower()
     if suffix not in FORMATS:
         raise ConfigError(f"{path}: the log format is chosen by the suffix: {' '.join(FORMATS)}")
@@ -80,6 +79,7 @@ def check_format(path: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from .._bindings import Bindings
+    from .._catalog import load_catalog
 
     check_format(args.file)
     can_bus, broker = network_of(args)
@@ -107,6 +107,9 @@ class _Recorder:
     """The writer, what it has written and what it could not."""
 
     def __init__(self, path: str, only: set[int], bindings: Bindings, count: int | None) -> None:
+        import threading
+        from pathlib import Path
+
         import can
 
         from .._bindings import sidecar_of
@@ -209,6 +212,7 @@ class _Recorder:
 
 async def _record_can(args: argparse.Namespace, bus: str, rec: _Recorder) -> int:
     import asyncio
+    import threading
 
     import can
 

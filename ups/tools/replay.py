@@ -12,7 +12,6 @@ to a channel, events too large for the target network.
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 import time
 
@@ -22,7 +21,6 @@ from .decode import Tally, bindings_for, read
 
 HELP = "publish a recording's events again on a live network, by channel UID"
 PROGRESS_EVERY = 1.0  #: seconds between progress lines on stderr
-_log = logging.getLogger("ups.replay")
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
