@@ -52,7 +52,8 @@ class _Channel:
     first_at: float = 0.0
     priority: int | None = None
     publishers: set[str] = field(default_factory=set)
-    times: collections.deque[float] = field(default_factory=collections.deque)
+    #: events per whole second, the last ``WINDOW`` + 1 seconds: a rate in bounded memory
+    seconds: collections.deque[list[int]] = field(default_factory=collections.deque)
     history: collections.deque[tuple[float, dict[str, float]]] = field(
         default_factory=lambda: collections.deque(maxlen=HISTORY)
     )
@@ -80,8 +81,8 @@ class Live:
         self.nodes: dict[str, _Node] = {}
         self.recent: collections.deque[str] = collections.deque(maxlen=RECENT)
         self.counters = {"foreign": 0, "malformed": 0, "dropped": 0, "untracked": 0}
-        self._bits: collections.deque[tuple[float, int]] = collections.deque()
-        self._began = time.time()
+        self._bits: collections.deque[list[int]] = collections.deque()  #: [second, bits]
+        self._began: float | None = None  #: the first frame's time
 
     # --- feeding ----------------------------------------------------------------------------
 
@@ -103,7 +104,13 @@ class Live:
         if etag is not None:
             chan.etag = etag
         chan.priority = priority
-        chan.times.append(now)
+        second = int(now)
+        if chan.seconds and chan.seconds[-1][0] == second:
+            chan.seconds[-1][1] += 1
+        else:
+            chan.seconds.append([second, 1])
+            if len(chan.seconds) > WINDOW + 1:
+                chan.seconds.popleft()
         if len(chan.publishers) < 64:
             chan.publishers.add(sender)
         if uid is not None:
@@ -156,7 +163,15 @@ class Live:
             self.recent.append(f"{_clock(now)} {why}: {_label(key, {'name': node.name})}")
 
     def frame_bits(self, now: float, bits: int) -> None:
-        self._bits.append((now, bits))
+        if self._began is None:
+            self._began = now
+        second = int(now)
+        if self._bits and self._bits[-1][0] == second:
+            self._bits[-1][1] += bits
+        else:
+            self._bits.append([second, bits])
+            if len(self._bits) > WINDOW + 1:
+                self._bits.popleft()
 
     # --- reading ----------------------------------------------------------------------------
 
@@ -164,9 +179,9 @@ class Live:
         now = time.time() if now is None else now
         since = now - WINDOW
         for chan in self.channels.values():
-            while chan.times and chan.times[0] < since:
-                chan.times.popleft()
-        while self._bits and self._bits[0][0] < since:
+            while chan.seconds and chan.seconds[0][0] < int(since):
+                chan.seconds.popleft()
+        while self._bits and self._bits[0][0] < int(since):
             self._bits.popleft()
         if self.network == "can":
             for node in self.nodes.values():
@@ -174,8 +189,8 @@ class Live:
                     self.left(now, node.key, "silent")
         load = None
         if self.network == "can":
-            span = _span(now, self._began)
-            load = round(sum(b for _, b in self._bits) / span / self.bitrate, 4)
+            first = now if self._began is None else self._began
+            load = round(_per_second(self._bits, now, first) / self.bitrate, 4)
         return {
             "network": self.network,
             "source": self.source,
@@ -188,7 +203,7 @@ class Live:
                     "uid": None if c.uid is None else f"0x{c.uid:016x}",
                     "name": c.name,
                     "etag": None if c.etag is None else f"0x{c.etag:04x}",
-                    "rate": round(len(c.times) / _span(now, c.first_at), 1),
+                    "rate": round(_per_second(c.seconds, now, c.first_at), 1),
                     "count": c.count,
                     "last": c.last,
                     "values": c.values,
@@ -216,9 +231,12 @@ class Live:
         return [] if chan is None else list(chan.history)
 
 
-def _span(now: float, since: float) -> float:
-    """The seconds a rate is over: the window, or less while it is not yet full."""
-    return max(0.5, min(WINDOW, now - since))
+def _per_second(buckets: collections.deque[list[int]], now: float, first: float) -> float:
+    """The mean per second of the whole-second ``buckets`` in the window before ``now`` (or
+    since ``first``, while the window is not yet full)."""
+    start = math.ceil(now - WINDOW)
+    total = sum(n for second, n in buckets if second >= start)
+    return total / max(0.5, now - max(start, first))
 
 
 def _jsonable(value: object) -> Any:
