@@ -26,6 +26,7 @@ import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -163,6 +164,22 @@ class CanEcb:
             "standby": self.standby,
             "instance": f"{self.instance:016x}",
         }
+
+    def status(self) -> dict[str, Any]:
+        """The tables as ``ups status`` and ``ups ls`` show them: nodes, and each channel's
+        etag, publishing and subscribing TxNodes (hex); the counters under ``stats``."""
+        txnode_of = self._store.txnodes
+        return {
+            "nodes": [{"node_id": f"0x{n:016x}", "txnode": f"0x{t:02x}"}
+                      for n, t in sorted(txnode_of.items(), key=lambda i: i[1])],
+            "channels": [
+                {"uid": f"0x{u:016x}", "etag": f"0x{e:04x}",
+                 "publishers": [f"0x{t:02x}" for t in sorted(self.publishers.get(u, ()))],
+                 "subscribers": [f"0x{t:02x}" for t in sorted(self.subscribers.get(u, ()))]}
+                for u, e in sorted(self._store.etags.items(), key=lambda i: i[1])
+            ],
+            "stats": self.stats(),
+        }  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
 
@@ -728,25 +745,34 @@ class CanEcb:
 
 
 async def serve(
-    bus: str, db_path: str | Path, bitrate: int = 500_000, **options: float | int
-) -> int:
-    """Run a standalone CAN-ECB on ``bus`` until cancelled.
+    bus: str, db_path: str | Path, bitrate: int = 500_000, status: str | None = None,
+    **options: float | int,
+) -> int:  # fmt: skip
+    """Run a standalone CAN-ECB on ``bus`` until cancelled; with ``status`` (HOST:PORT) its
+    tables are served there to ``ups status`` and ``ups ls --can ... --ecb``.
 
     Returns 1 if the database failed during the run, else 0. Standing by for another CAN-ECB
     is logged; it serves again when the other goes silent.
     """
+    from ._status import StatusServer
+
     link = CanLink.open(bus)
     try:
         ecb = CanEcb(link, db_path, bitrate=bitrate, **options)  # type: ignore[arg-type]
     except BaseException:
         link.close()
         raise
+    server = None if status is None else StatusServer(status, ecb.status)
     try:
+        if server is not None:
+            await server.start()
         await ecb.start()
         await asyncio.Event().wait()
         return 0
     except asyncio.CancelledError:
         return 1 if ecb.counters["storage_errors"] else 0
     finally:
+        if server is not None:
+            await server.close()
         ecb.close()
         link.close()

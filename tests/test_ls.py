@@ -6,6 +6,8 @@ import asyncio
 import json
 from pathlib import Path
 
+import pytest
+
 from ups import Node, name_to_uid
 from ups.tools.ls import can_listing, render_can
 
@@ -100,3 +102,50 @@ def test_ls_rates_counts_events_on_tcp() -> None:
         assert speed["name"] == "robot/speed" and speed["events_per_s"] > 50
         ls = Proc("ls", "--broker", address, "--rates", "--listen-for", "0.5")
         assert "EVENTS/S" in ls.finish()[1]
+
+
+@pytest.mark.netns
+def test_ls_of_a_can_bus_asks_the_can_ecb_for_who_subscribes(tmp_path: Path) -> None:
+    from .procs import private_multicast_bus
+
+    bus = private_multicast_bus()
+    catalog = tmp_path / "c.toml"
+    catalog.write_text('[channel."robot/speed"]\n')
+    with Proc("can-broker", "--can", bus, "--db", str(tmp_path / "ecb.db"), "--recovery",
+              "0.2", "--status", "127.0.0.1:0") as ecb:  # fmt: skip
+        line = ecb.wait_for_line(r"status on 127\.0\.0\.1:\d+")
+        status = line.split("status on ")[1].strip()
+        ecb.wait_for_line("CAN-ECB on")
+        with (
+            Proc("sub", "robot/speed", "--can", bus, "--node-id", "0x5b") as sub,
+            Proc(
+                "pub",
+                "robot/speed",
+                "01",
+                "--can",
+                bus,
+                "--node-id",
+                "0x5a",
+                "--count",
+                "100000",
+                "--rate",
+                "100",
+            ),  # fmt: skip
+        ):
+            sub.wait_for_line("subscribed to")
+
+            def listed() -> dict:
+                ls = Proc("ls", "--can", bus, "--ecb", status, "--catalog", str(catalog),
+                          "--json", "--listen-for", "0.5")  # fmt: skip
+                code, out = ls.finish()
+                assert code == 0, ls.stderr_lines
+                return json.loads(out)
+
+            wait_until(lambda: any(c["publishers"] for c in listed()["channels"]))
+            (speed,) = listed()["channels"]
+            assert speed["name"] == "robot/speed" and speed["etag"] == "0x0010"
+            assert speed["subscribers"] == [f"0x{0x5B:016x}"]
+            assert speed["publishers"] == [f"0x{0x5A:016x}"]
+            status_proc = Proc("status", status)
+            code, out = status_proc.finish()
+            assert code == 0 and json.loads(out)["stats"]["joined"] >= 2

@@ -128,6 +128,11 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         "--bitrate", type=positive_int, default=500_000,
         help="the bus's bit rate, for admitting real-time channels (default 500000)",
     )  # fmt: skip
+    cmd.add_argument(
+        "--status", metavar="HOST:PORT", default=None,
+        help="also serve the tables (nodes, etags, who publishes and subscribes) there, for "
+        "'ups status' and 'ups ls --can BUS --ecb HOST:PORT' (default: not served)",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_can_broker)
 
     cmd = command("broker", help="run a TCP-ECB (the registry of a TCP/IP network)")
@@ -316,7 +321,7 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 
     async def run() -> int:
         return await serve(
-            args.can, db, args.bitrate,
+            args.can, db, args.bitrate, status=args.status,
             recovery=args.recovery, lease=args.lease, max_channels=args.max_channels,
         )  # fmt: skip
 

@@ -36,6 +36,11 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
     cmd.add_argument(
+        "--ecb", metavar="HOST:PORT", default=None,
+        help="CAN: ask the CAN-ECB's status port (ups can-broker --status) instead of reading "
+        "its database: from any host, and with who subscribes",
+    )  # fmt: skip
+    cmd.add_argument(
         "--listen-for", type=positive_float, default=1.0, metavar="S",
         help="seconds to listen for who sends what (CAN) or for rates (--rates) (default 1)",
     )  # fmt: skip
@@ -50,6 +55,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio
     import json
 
     from .._catalog import load_catalog
@@ -59,8 +65,17 @@ def run(args: argparse.Namespace) -> int:
     if can is not None:
         from .._bindings import default_db
 
+        ecb = None
+        if args.ecb is not None:  # its tables, subscribers included, from its status port
+
+            async def ask_ecb() -> dict[str, Any]:
+                from .._tcpface import query_status
+
+                return await query_status(args.ecb, args.timeout, tls_of(args))
+
+            ecb = asyncio.run(ask_ecb())
         db = args.db if args.db is not None else str(default_db(can))
-        table = can_listing(can, db, args.listen_for, catalog)
+        table = can_listing(can, None if ecb else db, args.listen_for, catalog, ecb)
         print(json.dumps(table, indent=2) if args.json else render_can(table))
         return 0
     assert broker is not None
@@ -182,11 +197,13 @@ def _aligned(rows: Sequence[tuple[str, ...]]) -> list[str]:
 
 
 def can_listing(
-    bus: str, db: str, seconds: float, catalog: Catalog | None = None
-) -> dict[str, Any]:
-    """The nodes and channels of a CAN bus: its CAN-ECB's tables (read from the CAN-ECB's
-    database, read-only: run it where the CAN-ECB runs) and what ``seconds`` of listening to
-    the bus show (who sends, how often). Names come from ``catalog``."""
+    bus: str, db: str | None, seconds: float, catalog: Catalog | None = None,
+    ecb: dict[str, Any] | None = None,
+) -> dict[str, Any]:  # fmt: skip
+    """The nodes and channels of a CAN bus: its CAN-ECB's tables and what ``seconds`` of
+    listening to the bus show (who sends, how often). The tables come from the CAN-ECB's
+    status (``ecb``, from ``ups can-broker --status``: with who subscribes) or else from its
+    database (``db``, read-only: on the CAN-ECB's host). Names come from ``catalog``."""
     import time
 
     from .. import _canproto as p
@@ -195,10 +212,18 @@ def can_listing(
     from .._catalog import Catalog
 
     catalog = catalog or Catalog()
-    bindings = Bindings()
-    bindings.load_db(db)
-    txnodes = {n: t for t, n in bindings.txnodes.items()}
-    etags = {u: e for e, u in bindings.etags.items()}
+    subscribers: dict[int, list[int]] = {}  # uid -> TxNodes, when the CAN-ECB said
+    if ecb is not None:
+        txnodes = {int(n["node_id"], 16): int(n["txnode"], 16) for n in ecb.get("nodes", ())}
+        etags = {int(c["uid"], 16): int(c["etag"], 16) for c in ecb.get("channels", ())}
+        subscribers = {int(c["uid"], 16): [int(t, 16) for t in c.get("subscribers", ())]
+                       for c in ecb.get("channels", ())}  # fmt: skip
+    else:
+        assert db is not None
+        bindings = Bindings()
+        bindings.load_db(db)
+        txnodes = {n: t for t, n in bindings.txnodes.items()}
+        etags = {u: e for e, u in bindings.etags.items()}
     heard: dict[int, int] = {}  # TxNode -> frames
     sent: dict[int, dict[int, int]] = {}  # etag -> TxNode -> event frames
     listener = open_bus(bus)
@@ -234,7 +259,10 @@ def can_listing(
             "etag": f"0x{etag:04x}",
             "publishers": [f"0x{node_at[t]:016x}" if t in node_at else f"TxNode 0x{t:02x}"
                            for t in sorted(senders)],
-            "subscribers": [],  # known to the CAN-ECB only in memory
+            "subscribers": None if ecb is None else [  # the CAN-ECB's, in its memory only
+                f"0x{node_at[t]:016x}" if t in node_at else f"TxNode 0x{t:02x}"
+                for t in (subscribers.get(uid, ()) if uid is not None else ())
+            ],
             "frames_per_s": round(sum(senders.values()) / seconds, 1),
         })  # fmt: skip
     return {"nodes": nodes, "channels": channels,
@@ -249,10 +277,14 @@ def render_can(table: dict[str, Any]) -> str:
         for n in table["nodes"]
     ]
     lines = [f"{table['total']['nodes']} nodes", *_aligned(rows), ""]
-    rows = [("UID", "NAME", "ETAG", "PUBLISHERS HEARD", "FRAMES/S")]
+    subs = any(c["subscribers"] is not None for c in table["channels"])  # the CAN-ECB said
+    rows = [("UID", "NAME", "ETAG", "PUBLISHERS HEARD", *(("SUBSCRIBERS",) if subs else ()),
+             "FRAMES/S")]  # fmt: skip
     rows += [
         (c["uid"] or "(not bound)", c["name"] or "-", c["etag"],
-         ", ".join(c["publishers"]) or "-", str(c["frames_per_s"]))
+         ", ".join(c["publishers"]) or "-",
+         *((", ".join(c["subscribers"] or ()) or "-",) if subs else ()),
+         str(c["frames_per_s"]))
         for c in table["channels"]
     ]  # fmt: skip
     lines += [f"{table['total']['channels']} channels", *_aligned(rows)]
