@@ -135,3 +135,31 @@ def test_monitor_bad_input_is_one_line_and_exit_2(args: tuple[str, ...], says: s
     assert code == 2 and len(proc.stderr_lines) == 1 and says in proc.stderr_lines[0], (
         proc.stderr_lines
     )
+
+
+def test_monitor_outlives_a_restart_of_the_tcp_ecb() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    port = int(address.rpartition(":")[2])
+    with Proc("monitor", "--broker", address, "--json", "--interval", "0.3",
+              "--duration", "60") as monitor:  # fmt: skip
+
+        def recent() -> str:
+            snaps = snapshots("".join(monitor.stdout_lines[:-1]))
+            return "\n".join(snaps[-1]["recent"]) if snaps else ""
+
+        def until(text: str) -> None:
+            deadline = time.monotonic() + 20
+            while text not in recent():
+                assert monitor.popen.poll() is None, monitor.stderr_lines
+                assert time.monotonic() < deadline, recent()
+                time.sleep(0.1)
+
+        deadline = time.monotonic() + 20
+        while len(monitor.stdout_lines) < 2:  # joined, and a snapshot printed whole
+            assert time.monotonic() < deadline and monitor.popen.poll() is None
+            time.sleep(0.1)
+        assert broker.stop() == 0
+        until("no status from the TCP-ECB")
+        again, _ = start_tcp_broker("--recovery", "0", port=port)
+        with again:
+            until("the TCP-ECB answers again")

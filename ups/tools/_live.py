@@ -80,7 +80,8 @@ class Live:
         self.channels: dict[str, _Channel] = {}
         self.nodes: dict[str, _Node] = {}
         self.recent: collections.deque[str] = collections.deque(maxlen=RECENT)
-        self.counters = {"foreign": 0, "malformed": 0, "dropped": 0, "untracked": 0}
+        self.counters = {"foreign": 0, "malformed": 0, "dropped": 0, "untracked": 0,
+                         "status_failures": 0}  # fmt: skip
         self._bits: collections.deque[list[int]] = collections.deque()  #: [second, bits]
         self._began: float | None = None  #: the first frame's time
 
@@ -264,7 +265,10 @@ async def feed_can(live: Live, bus: str, bindings: Bindings) -> None:
     import asyncio
     import threading
 
+    import can
+
     from .._canlink import open_bus
+    from .._errors import UpsError
 
     loop = asyncio.get_running_loop()
     stop = threading.Event()
@@ -280,6 +284,8 @@ async def feed_can(live: Live, bus: str, bindings: Bindings) -> None:
 
     try:
         await asyncio.to_thread(pump)
+    except can.CanError as exc:
+        raise UpsError(f"the bus {bus} failed: {exc}") from None
     finally:
         stop.set()
         listener.shutdown()
@@ -321,6 +327,7 @@ async def feed_tcp(
     import asyncio
 
     from .._channel import Channel
+    from .._errors import BrokerUnavailable
     from .._tcpface import query_status
 
     subscribed: set[int] = set()
@@ -330,8 +337,20 @@ async def feed_tcp(
         subscribed.update(channels)
 
     async def status() -> None:
+        reachable = True
         while True:
-            info = await query_status(broker, timeout, tls)
+            try:
+                info = await query_status(broker, timeout, tls)
+            except BrokerUnavailable as exc:  # it restarts, say: keep watching, and say so
+                live.counters["status_failures"] += 1
+                if reachable:
+                    live.recent.append(f"{_clock(time.time())} no status from the TCP-ECB: {exc}")
+                reachable = False
+                await asyncio.sleep(1.0)
+                continue
+            if not reachable:
+                live.recent.append(f"{_clock(time.time())} the TCP-ECB answers again")
+            reachable = True
             now = time.time()
             listed = set()
             for n in info.get("nodes", ()):
