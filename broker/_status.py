@@ -33,7 +33,7 @@ class StatusServer:
         self.host, self.port = parse_address(address)
         self._info = info
         self._server: asyncio.Server | None = None
-        self._links: set[asyncio.Task[None]] = set()
+        self._links: dict[asyncio.Task[None], asyncio.StreamWriter] = {}
         self.counters = {"answered": 0, "refused_busy": 0, "bad_requests": 0}
 
     async def start(self) -> None:
@@ -46,8 +46,8 @@ class StatusServer:
             self._server.close()
             with contextlib.suppress(Exception):
                 await self._server.wait_closed()
-        for task in list(self._links):
-            task.cancel()
+        for writer in self._links.values():  # their reads end; cancelling them would log
+            writer.close()
         await asyncio.gather(*self._links, return_exceptions=True)
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -57,7 +57,7 @@ class StatusServer:
             self.counters["refused_busy"] += 1
             writer.close()
             return
-        self._links.add(task)
+        self._links[task] = writer
         try:
             decoder = w.Decoder(max_frame=MAX_REQUEST)
             async with asyncio.timeout(READ_TIMEOUT):
@@ -77,5 +77,5 @@ class StatusServer:
             self.counters["bad_requests"] += 1
             log.exception("could not answer a status request")
         finally:
-            self._links.discard(task)
+            self._links.pop(task, None)
             writer.close()

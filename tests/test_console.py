@@ -21,6 +21,7 @@ import pytest
 from .procs import ROOT, Proc, start_tcp_broker
 
 CATALOG = str(ROOT / "examples" / "robots.toml")
+JSON = {"Content-Type": "application/json"}
 
 
 def chromium() -> str:
@@ -169,9 +170,19 @@ async def test_the_console_answers_bad_requests_with_a_message() -> None:
                 ('{"channel": "0xzz", "data": "01"}', 400, "bad channel UID"),
                 ('{"channel": "a", "data": "zz"}', 400, "not hex digits"),
                 ('{"channel": "a", "data": "v=1"}', 400, "the catalog has no layout of a"),
+                ("[1]", 400, "must be a JSON object"),
             ]:
-                reply = await http.post(f"{url}/publish", data=body)
+                reply = await http.post(f"{url}/publish", data=body, headers=JSON)
                 assert reply.status == status and says in (await reply.json())["error"]
+            # another web site's page cannot publish, nor read it under another name
+            evil = {"Origin": "http://evil.example", **JSON}
+            reply = await http.post(f"{url}/publish", data='{"channel": "a"}', headers=evil)
+            assert reply.status == 403
+            reply = await http.post(f"{url}/publish", data='{"channel": "a", "data": "01"}',
+                                    headers={"Content-Type": "text/plain"})  # fmt: skip
+            assert reply.status == 415  # what a form on another site can send without asking
+            reply = await http.get(f"{url}/snapshot", headers={"Host": "evil.example:80"})
+            assert reply.status == 421  # DNS rebinding
             snapshot = await (await http.get(f"{url}/snapshot")).json()
             assert snapshot["network"] == "tcp" and snapshot["source"] == address
 
@@ -200,3 +211,16 @@ def test_a_console_port_in_use_is_one_line_and_exit_2() -> None:
         code, _ = second.finish()
         assert code == 2 and len(second.stderr_lines) == 1, second.stderr_lines
         assert "in use" in second.stderr_lines[0]
+
+
+async def test_the_console_stops_at_once_with_pages_open() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    with broker, Proc("console", "--listen", "127.0.0.1:0", "--broker", address) as console:
+        url = console.wait_for_line(r"console on http://").split("console on ")[1].strip()
+        async with aiohttp.ClientSession() as http:
+            page = await http.get(f"{url}/events")  # a page following the stream
+            assert (await page.content.readline()).startswith(b"data: ")
+            loop = asyncio.get_running_loop()
+            began = loop.time()
+            code = await asyncio.to_thread(console.stop)  # SIGTERM, SIGKILL after 10 s
+            assert code == 0 and loop.time() - began < 5

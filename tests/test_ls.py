@@ -149,3 +149,13 @@ def test_ls_of_a_can_bus_asks_the_can_ecb_for_who_subscribes(tmp_path: Path) -> 
             status_proc = Proc("status", status)
             code, out = status_proc.finish()
             assert code == 0 and json.loads(out)["stats"]["joined"] >= 2
+
+
+def test_ls_ecb_of_something_else_is_one_line() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    with broker, Proc("sub", "x", "--broker", address) as sub:
+        sub.wait_for_line("subscribed to")
+        ls = Proc("ls", "--can", "virtual:nobody", "--ecb", address, "--listen-for", "0.1")
+        code, _ = ls.finish()
+        assert code == 2 and len(ls.stderr_lines) == 1
+        assert "not a CAN-ECB's status port" in ls.stderr_lines[0]

@@ -37,6 +37,8 @@ HISTORY = 600  #: points (time, values) kept per channel, for the console's plot
 RECENT = 20  #: lines of nodes joining and leaving kept
 MAX_CHANNELS = 4096  #: channels tracked; the others are counted, not shown
 MAX_NODES = 1024  #: nodes tracked; the others are counted, not shown
+MAX_PENDING = 65536  #: CAN frames waiting for a busy loop; more are dropped and counted
+QUEUE = 1024  #: TCP/IP events queued per channel; more are dropped and counted
 
 
 @dataclass
@@ -237,7 +239,7 @@ def _per_second(buckets: collections.deque[list[int]], now: float, first: float)
     since ``first``, while the window is not yet full)."""
     start = math.ceil(now - WINDOW)
     total = sum(n for second, n in buckets if second >= start)
-    return total / max(0.5, now - max(start, first))
+    return total / max(1.0, now - max(start, first))
 
 
 def _jsonable(value: object) -> Any:
@@ -276,11 +278,23 @@ async def feed_can(live: Live, bus: str, bindings: Bindings) -> None:
         live.known(uid, etag=etag)
     listener = open_bus(bus)
 
-    def pump() -> None:
+    pending: collections.deque[can.Message] = collections.deque()
+
+    def drain() -> None:
+        while pending:
+            _can_frame(live, bindings, pending.popleft())
+
+    def pump() -> None:  # frames wait in a bounded queue while the loop is busy
         while not stop.is_set():
             msg = listener.recv(0.2)
-            if msg is not None:
-                loop.call_soon_threadsafe(_can_frame, live, bindings, msg)
+            if msg is None:
+                continue
+            if len(pending) >= MAX_PENDING:
+                live.counters["dropped"] += 1
+                continue
+            pending.append(msg)
+            if len(pending) == 1:  # the loop drains all there are, once woken
+                loop.call_soon_threadsafe(drain)
 
     try:
         await asyncio.to_thread(pump)
@@ -297,10 +311,13 @@ def _can_frame(live: Live, bindings: Bindings, msg: can.Message) -> None:
     from ..rt._frames import frame_bits
 
     now = time.time()
+    if not msg.is_error_frame:  # every frame loads the bus, UPS or not
+        size = 0 if msg.is_remote_frame else len(msg.data)
+        id_bits = 29 if msg.is_extended_id else 11
+        live.frame_bits(now, frame_bits(size, id_bits, "none", fd=bool(msg.is_fd)))
     if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
         live.counters["foreign"] += 1
         return
-    live.frame_bits(now, frame_bits(len(msg.data), 29, "none", fd=bool(msg.is_fd)))
     item = bindings.read(msg.arbitration_id, bytes(msg.data))
     if item is None:
         live.counters["malformed"] += 1
@@ -312,6 +329,7 @@ def _can_frame(live: Live, bindings: Bindings, msg: can.Message) -> None:
     elif isinstance(item, p.Bind):
         live.known(item.uid, etag=item.etag)
     elif isinstance(item, p.Assign):
+        live.nodes.pop(f"TxNode 0x{item.txnode:02x}", None)  # heard before its id was known
         live.node(now, f"0x{item.node_id:016x}", txnode=item.txnode)
     elif isinstance(item, p.Request | p.Holds | p.Declare):
         node_id = bindings.txnodes.get(item.txnode)
@@ -333,7 +351,7 @@ async def feed_tcp(
     subscribed: set[int] = set()
     if channels:
         await node.subscribe(*[Channel(u, live.catalog.channel(u).name) for u in channels],
-                             maxlen=65536)  # fmt: skip
+                             maxlen=QUEUE)  # fmt: skip
         subscribed.update(channels)
 
     async def status() -> None:
@@ -370,7 +388,7 @@ async def feed_tcp(
                 if not channels and uid not in subscribed and len(subscribed) < MAX_CHANNELS:
                     subscribed.add(uid)
                     name = live.catalog.channel(uid).name or c.get("name")
-                    await node.subscribe(Channel(uid, name), maxlen=65536)
+                    await node.subscribe(Channel(uid, name), maxlen=QUEUE)
             stats = node.stats()
             live.counters["dropped"] = stats.get("dropped", 0) + stats.get("lost", 0)
             await asyncio.sleep(1.0)

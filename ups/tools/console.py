@@ -35,10 +35,18 @@ from .._cliargs import (
 )
 from .._errors import ConfigError
 
+
+def _middleware(function: Any) -> Any:
+    """aiohttp's middleware mark, without importing aiohttp for ``ups --help``."""
+    function.__middleware_version__ = 1
+    return function
+
+
 HELP = "a web page of the live network: channels, nodes, a plot, a form to publish"
 DEFAULT_LISTEN = "127.0.0.1:8470"
 SNAPSHOT_EVERY = 0.5  #: seconds between snapshots sent to each page
 MAX_PAGES = 32  #: pages followed at once; more are answered 503
+WRITE_TIMEOUT = 5.0  #: seconds a page may take to read a snapshot before it is let go
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
@@ -101,8 +109,10 @@ async def _serve(
                 await node.start()
         return node
 
-    app = web.Application(client_max_size=64 * 1024)
+    app = web.Application(client_max_size=64 * 1024, middlewares=[_guard])
     app["live"], app["publisher"], app["pages"] = live, publisher, 0
+    app["streams"] = set()  # the tasks serving /events: ended at once on shutdown
+    app["hosts"] = None  # the Host headers accepted (None: any), set once bound
     app.add_routes([
         web.get("/", _page), web.get("/events", _events), web.get("/snapshot", _snapshot),
         web.get("/history", _history), web.post("/publish", _publish),
@@ -114,6 +124,7 @@ async def _serve(
         await site.start()
         scheme = "https" if tls is not None else "http"
         bound = runner.addresses[0][1]  # the port, when --listen asked for any (0)
+        app["hosts"] = _hosts(host, bound)
         if broker is not None:  # the page is served first: a port in use is said at once
             node = Node(broker=broker, name="ups-console", join_timeout=args.timeout, tls=tls)
             await node.start()
@@ -126,11 +137,39 @@ async def _serve(
     except asyncio.CancelledError:
         pass  # Ctrl-C, SIGTERM: the way to stop it
     finally:
+        for stream in list(app["streams"]):  # open pages would hold shutdown for minutes
+            stream.cancel()
         await runner.cleanup()
         if node is not None:
             with contextlib.suppress(Exception):
                 await node.close()
     return 0
+
+
+def _hosts(host: str, port: int) -> set[str] | None:
+    """The Host headers a page may come with: this address (and ``localhost`` for loopback),
+    so a web site renamed to 127.0.0.1 (DNS rebinding) cannot read or post. Any, when the
+    console listens on every address (0.0.0.0, ::)."""
+    if host in ("0.0.0.0", "::", ""):
+        return None
+    names = {host, f"[{host}]"} | ({"localhost"} if host in ("127.0.0.1", "::1") else set())
+    return {f"{name}:{port}" for name in names}
+
+
+@_middleware
+async def _guard(request: Any, handler: Any) -> Any:
+    """Refuse requests for another host name (DNS rebinding), and cross-site posts: a POST
+    must come from this console's own page (Origin, when a browser sends one)."""
+    from aiohttp import web
+
+    hosts = request.app["hosts"]
+    if hosts is not None and request.host not in hosts:
+        return web.json_response({"error": f"not this console: {request.host}"}, status=421)
+    origin = request.headers.get("Origin")
+    if request.method == "POST" and origin and origin.split("://", 1)[-1] != request.host:
+        return web.json_response({"error": f"not from this console's page: {origin}"},
+                                 status=403)  # fmt: skip
+    return await handler(request)
 
 
 def _https(tls: Any) -> Any:
@@ -169,18 +208,21 @@ async def _events(request: Any) -> Any:
     if app["pages"] >= MAX_PAGES:
         return web.Response(status=503, text=f"at most {MAX_PAGES} pages at once")
     app["pages"] += 1
+    app["streams"].add(asyncio.current_task())
     try:
         response = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                                "Cache-Control": "no-cache"})  # fmt: skip
         await response.prepare(request)
         while True:
             data = json.dumps(app["live"].snapshot())
-            await response.write(f"data: {data}\n\n".encode())
+            async with asyncio.timeout(WRITE_TIMEOUT):  # a page that does not read is let go
+                await response.write(f"data: {data}\n\n".encode())
             await asyncio.sleep(SNAPSHOT_EVERY)
-    except (ConnectionError, asyncio.CancelledError):
-        return response  # the page went away
+    except (ConnectionError, TimeoutError):
+        return response  # the page went away, or stopped reading
     finally:
         app["pages"] -= 1
+        app["streams"].discard(asyncio.current_task())
 
 
 async def _history(request: Any) -> Any:
@@ -196,15 +238,21 @@ async def _publish(request: Any) -> Any:
     from .._channel import parse_channel
     from .._errors import AccessDenied, UpsError
 
+    if request.content_type != "application/json":  # a form another site posts is not JSON:
+        return web.json_response(  # browsers send JSON across sites only after asking
+            {"error": "send JSON (Content-Type: application/json)"}, status=415
+        )
     try:
         body = await request.json()
+        if not isinstance(body, dict):
+            raise ConfigError("the body must be a JSON object with channel and data")
         channel = parse_channel(str(body["channel"]).strip())
         data = request.app["live"].catalog.payload(channel, str(body.get("data", "")))
         node = await request.app["publisher"]()
         await node.publish(channel, data)
     except AccessDenied as exc:
         return web.json_response({"error": str(exc)}, status=403)
-    except (UpsError, ValueError, KeyError, TypeError) as exc:
+    except (UpsError, ValueError, KeyError) as exc:
         text = str(exc) if isinstance(exc, UpsError | ValueError) else f"missing {exc}"
         return web.json_response({"error": text}, status=400)
     return web.json_response({"ok": True, "channel": str(channel), "data": data.hex()})

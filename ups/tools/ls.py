@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             async def ask_ecb() -> dict[str, Any]:
                 from .._tcpface import query_status
 
-                return await query_status(args.ecb, args.timeout, tls_of(args))
+                return await query_status(args.ecb, args.timeout)  # plain TCP, no TLS
 
             ecb = asyncio.run(ask_ecb())
         db = args.db if args.db is not None else str(default_db(can))
@@ -214,10 +214,16 @@ def can_listing(
     catalog = catalog or Catalog()
     subscribers: dict[int, list[int]] = {}  # uid -> TxNodes, when the CAN-ECB said
     if ecb is not None:
-        txnodes = {int(n["node_id"], 16): int(n["txnode"], 16) for n in ecb.get("nodes", ())}
-        etags = {int(c["uid"], 16): int(c["etag"], 16) for c in ecb.get("channels", ())}
-        subscribers = {int(c["uid"], 16): [int(t, 16) for t in c.get("subscribers", ())]
-                       for c in ecb.get("channels", ())}  # fmt: skip
+        try:
+            txnodes = {int(n["node_id"], 16): int(n["txnode"], 16) for n in ecb["nodes"]}
+            etags = {int(c["uid"], 16): int(c["etag"], 16) for c in ecb["channels"]}
+            subscribers = {int(c["uid"], 16): [int(t, 16) for t in c["subscribers"]]
+                           for c in ecb["channels"]}  # fmt: skip
+        except (KeyError, TypeError, ValueError, AttributeError):
+            from .._errors import ConfigError
+
+            raise ConfigError("--ecb: that is not a CAN-ECB's status port "
+                              "(ups can-broker --status)") from None  # fmt: skip
     else:
         assert db is not None
         bindings = Bindings()
