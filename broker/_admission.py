@@ -32,8 +32,12 @@ class Verdict:
 
 
 class Admission:
-    def __init__(self, bitrate: int) -> None:
+    """The streams of one bus of ``bitrate`` bit/s (CAN FD frames when ``fd``, counted at
+    that rate: bit-rate switching only makes them shorter)."""
+
+    def __init__(self, bitrate: int, fd: bool = False) -> None:
         self.bitrate = bitrate
+        self.fd = fd
         self.declared: dict[Key, MessageSpec] = {}
         self.granted: dict[Key, int] = {}
         self._asked: dict[Key, p.Declare] = {}
@@ -50,14 +54,18 @@ class Admission:
     def decide(self, msg: p.Declare) -> Verdict:
         key = (msg.etag, msg.txnode)
         unit = Fraction(p.TIME_UNIT_US, 1000)
+        size, frames = msg.size_bytes, 1
+        if msg.etag >= p.LARGE_FIRST_ETAG:  # a transfer of ``size_bytes`` full frames
+            size, frames = (64 if self.fd else 8), msg.size_bytes
         spec = MessageSpec(
-            _name(key), msg.size_bytes, msg.period * unit, msg.deadline * unit, msg.jitter * unit
-        )
+            _name(key), size, msg.period * unit, msg.deadline * unit, msg.jitter * unit,
+            frames=frames,
+        )  # fmt: skip
         candidate = {**self.declared, key: spec}
         try:
             values = assign_priorities(
                 [candidate[k] for k in sorted(candidate)], self.bitrate, 29,
-                first=RT_FIRST, last=RT_LAST,
+                first=RT_FIRST, last=RT_LAST, fd=self.fd,
             )  # fmt: skip
         except NotSchedulable as exc:
             miss = _key(exc.channel)
@@ -90,13 +98,21 @@ class Admission:
                 grants.append(p.Grant(k[0], k[1], priority))
         return Verdict(grants, admitted=True)
 
+    def forget_etag(self, etag: int) -> None:
+        """A channel moved away from ``etag``: the streams declared on it are gone."""
+        for key in [k for k in self.declared if k[0] == etag]:
+            self._drop(key)
+
+    def _drop(self, key: Key) -> None:
+        self._refused.clear()
+        del self.declared[key]
+        self.granted.pop(key, None)
+        self._asked.pop(key, None)
+
     def forget(self, txnode: int) -> None:
         """A node joined again: its declarations are gone."""
         for key in [k for k in self.declared if k[1] == txnode]:
-            self._refused.clear()
-            del self.declared[key]
-            self.granted.pop(key, None)
-            self._asked.pop(key, None)
+            self._drop(key)
 
 
 def _name(key: Key) -> str:

@@ -31,6 +31,7 @@ from typing import Any
 import can
 
 from ups import _canproto as p
+from ups import _cantransfer as sizes
 from ups._canlink import CanLink
 from ups._errors import DecodeError
 
@@ -85,20 +86,22 @@ class CanEcb:
         self.recovering = False
         self.standby = False
         self._census = Census(self._send, self._found)
-        self._admission = Admission(bitrate)
+        self._admission = Admission(bitrate, fd=link.fd)
         self.bitrate = bitrate
         self._node_at = {t: n for n, t in self._store.txnodes.items()}  # TxNode -> node id
         self._uid_at = {e: u for u, e in self._store.etags.items()}  # etag -> UID
         self._pending_tx: dict[int, int] = {}  # node id -> TxNode being written
         self._offered: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
-        self._pending_etag: dict[int, tuple[int, list[tuple[int, int]]]] = {}  # uid -> etag, asks
+        #: uid -> the etag being stored for it, and the (kind, TxNode, size class) waiting for it
+        self._pending_etag: dict[int, tuple[int, list[tuple[int, int, int]]]] = {}
         self._pending_etags: set[int] = set()  # the etags of _pending_etag
-        self._free_from = p.FIRST_ETAG  # no etag below it is free
+        #: size class -> no etag of that class below it is free
+        self._free_from = [sizes.class_etags(c).start for c in range(p.SIZE_CLASSES)]
         now = time.monotonic()
         self._seen_tx = dict.fromkeys(range(p.TXNODE_COUNT), now)  # TxNode -> last frame
         self._seen_etag: dict[int, float] = {}  # etag -> last event (default: start time)
         self._started = now
-        self._deferred: dict[tuple[int, int, int], None] = {}
+        self._deferred: dict[tuple[int, int, int, int], None] = {}
         self._knocked = False
         self._recovery_timer: asyncio.TimerHandle | None = None
         self._last_unknown_hello = -HELLO_GAP  # the last Hello sent for an unknown TxNode
@@ -122,6 +125,7 @@ class CanEcb:
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
                 "adopted", "conflicts", "foreign_ecb_frames", "unassigned", "deferred",
                 "limited", "reclaimed", "storage_errors", "handler_errors", "offers_withdrawn",
+                "moved",
             ),
             0,
         )  # fmt: skip
@@ -231,8 +235,8 @@ class CanEcb:
         if self.standby:
             return
         deferred, self._deferred = list(self._deferred), {}
-        for kind, txnode, uid in deferred:
-            self._on_bind_request(p.Request(kind, txnode, uid))
+        for kind, txnode, uid, size_class in deferred:
+            self._on_bind_request(p.Request(kind, txnode, uid, size_class))
         if self._knocked:
             self._knocked = False
             self._census.knock()
@@ -240,10 +244,13 @@ class CanEcb:
     # --- frames ----------------------------------------------------------------------------
 
     def _on_frame(self, frame: can.Message) -> None:
-        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame or frame.is_fd:
+        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
             self.counters["foreign"] += 1
             return
         can_id = frame.arbitration_id
+        if frame.is_fd and p.is_management(can_id):  # management frames are classic frames
+            self.counters["foreign"] += 1
+            return
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
         now = time.monotonic()
         if txnode != p.MGMT_TXNODE:
@@ -517,31 +524,39 @@ class CanEcb:
     # --- binding and subscriptions -------------------------------------------------------------
 
     def _on_bind_request(self, msg: p.Request) -> None:
-        uid, txnode = msg.value, msg.txnode
-        if self.recovering and uid not in self._store.etags:
+        """Bind ``uid`` to an etag of at least the asked size class: the one it has, or a new
+        one (a channel that needs a larger class moves; its nodes see the contradiction and
+        bind it again)."""
+        uid, txnode, size_class = msg.value, msg.txnode, msg.size_class
+        etag = self._store.etags.get(uid)
+        fits = etag is not None and sizes.size_class(etag) >= size_class
+        if self.recovering and not fits:
             if len(self._deferred) < MAX_DEFERRED:
                 self.counters["deferred"] += 1
-                self._deferred[(msg.kind, txnode, uid)] = None
+                self._deferred[(msg.kind, txnode, uid, size_class)] = None
             return
         if not self._within_limit(txnode, uid):
             return
-        etag = self._store.etags.get(uid)
-        if etag is not None:
+        if etag is not None and fits:
             self._bound(msg.kind, txnode, uid, etag)
             return
         pending = self._pending_etag.get(uid)
         if pending is not None:
-            pending[1].append((msg.kind, txnode))
+            pending[1].append((msg.kind, txnode, size_class))
             self._asking[txnode].add(uid)
             return
         writes: list[Write] = []
-        etag = self._free_etag(writes)
+        etag = self._free_etag(writes, size_class)
         if etag is None:
             self.counters["refused"] += 1
-            self._warn("etags", "no etag left for channel %016x", uid)
+            self._warn("etags", "no etag of size class %d left for channel %016x", size_class,
+                       uid)  # fmt: skip
             self._send(p.EtagsFull(uid))
             return
-        self._pending_etag[uid] = (etag, [(msg.kind, txnode)])
+        if uid in self._store.etags:
+            self.counters["moved"] += 1
+            log.info("channel %016x moves to etag %#x (size class %d)", uid, etag, size_class)
+        self._pending_etag[uid] = (etag, [(msg.kind, txnode, size_class)])
         self._pending_etags.add(etag)
         self._asking[txnode].add(uid)
         writes.append(("etags", uid, etag))
@@ -551,18 +566,23 @@ class CanEcb:
         def done(error: BaseException | None) -> None:
             _, asks = self._pending_etag.pop(uid)
             self._pending_etags.discard(etag)
-            for _, txnode in asks:
+            for _, txnode, _ in asks:
                 self._asking[txnode].discard(uid)
                 if not self._asking[txnode]:
                     del self._asking[txnode]
             if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
-                self._free_from = min(self._free_from, etag)
+                cls = sizes.size_class(etag)
+                self._free_from[cls] = min(self._free_from[cls], etag)
                 return
             self.counters["bound"] += 1
             self._hold_etag(uid, etag)
-            for kind, txnode in asks:
-                if txnode in self._node_at:
+            for kind, txnode, size_class in asks:
+                if txnode not in self._node_at:
+                    continue
+                if sizes.size_class(etag) >= size_class:
                     self._bound(kind, txnode, uid, etag)
+                else:  # asked for more while a smaller etag was being stored
+                    self._on_bind_request(p.Request(kind, txnode, uid, size_class))
 
         return done
 
@@ -583,18 +603,20 @@ class CanEcb:
                 await self.bind_gate(uid)
         self._send(p.Bind(etag, uid))
 
-    def _free_etag(self, writes: list[Write]) -> int | None:
+    def _free_etag(self, writes: list[Write], size_class: int) -> int | None:
         pending = self._pending_etags
-        etag = self._free_from  # no etag below it is free
-        while etag <= p.LAST_ETAG and (etag in self._uid_at or etag in pending):
+        etags = sizes.class_etags(size_class)
+        etag = self._free_from[size_class]  # no etag of the class below it is free
+        while etag < etags.stop and (etag in self._uid_at or etag in pending):
             etag += 1
-        self._free_from = etag
-        if etag <= p.LAST_ETAG:
+        self._free_from[size_class] = etag
+        if etag < etags.stop:
             return etag
         now = time.monotonic()
         idle = [
             e for e, u in self._uid_at.items()
-            if e not in pending and not self.subscribers.get(u) and not self.publishers.get(u)
+            if e in etags and e not in pending and not self.subscribers.get(u)
+            and not self.publishers.get(u)
         ]  # fmt: skip
         oldest = min(idle, key=lambda e: self._seen_etag.get(e, self._started), default=None)
         if oldest is None or now - self._seen_etag.get(oldest, self._started) < self._lease:
@@ -607,6 +629,12 @@ class CanEcb:
         return oldest
 
     def _hold_etag(self, uid: int, etag: int) -> None:
+        old = self._store.etags.get(uid)
+        if old is not None and old != etag:  # the channel moved to a larger size class
+            del self._uid_at[old]
+            cls = sizes.size_class(old)
+            self._free_from[cls] = min(self._free_from[cls], old)
+            self._admission.forget_etag(old)
         self._store.etags[uid] = etag
         self._uid_at[etag] = uid
 

@@ -12,9 +12,11 @@ An event is never sent back into the network it came from: what arrives from TCP
 CAN, and what arrives from CAN goes only to TCP. The gateway's own CAN frames come back to it
 as echoes, which the CAN face discards. The priority of every event is kept across the hop.
 
-What the bus cannot carry is not pushed at it. TCP->CAN frames wait in a queue of
-``can_queue`` frames, which is drained no faster than ``bitrate`` allows (worst-case stuffed
-frame lengths). When the queue is full the oldest frame is dropped, and counted.
+What the bus cannot carry is not pushed at it. TCP->CAN events wait in a queue of
+``can_queue`` events, which is drained no faster than ``bitrate`` allows (worst-case stuffed
+frame lengths, every frame of an event larger than one frame). When the queue is full the
+oldest event is dropped, and counted. An event larger than its channel's size class on the
+bus moves the channel to a larger class first (see ``CanFace.grow``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import can
 from broker._store import default_db
 from broker.can_ecb import CanEcb
 from ups import _canproto as p
+from ups import _cantransfer as sizes
 from ups._canlink import CanLink
 from ups._channel import Channel
 from ups._errors import AccessDenied, ConfigError, DecodeError, UpsError
@@ -394,7 +397,7 @@ class Gateway:
         self._tcp_face().send(tcp_state, msg.data, msg.priority)
 
     def _to_can(self, can_state: ChannelState, msg: Message) -> None:
-        if len(msg.data) > p.CLASSIC_MAX_DATA:
+        if len(msg.data) > sizes.MAX_EVENT:
             self.counters["too_large_for_can"] += 1
             return
         queue = self._can_queue
@@ -410,7 +413,11 @@ class Gateway:
         assert self.can is not None
         face = self.can.face
         bits_per_s = float(self.bitrate)
-        capacity = float(_BURST * frame_bits(8))  # the bucket holds bus time, in bits
+        assert self._link is not None
+        fd = self._link.fd
+        mtu = 64 if fd else 8
+        full = frame_bits(mtu, 29, "worst", fd)
+        capacity = float(_BURST * full)  # the bucket holds bus time, in bits
         tokens = capacity
         last = loop.time()
         queue = self._can_queue
@@ -423,9 +430,16 @@ class Gateway:
             last = now
             while queue:
                 state, data, priority = queue[0]
-                cost = frame_bits(len(data))
-                if tokens < cost:
-                    await asyncio.sleep((cost - tokens) / bits_per_s)
+                if len(data) > state.max_size and not await self._grow(state, len(data)):
+                    queue.popleft()
+                    continue
+                if len(data) <= p.CLASSIC_MAX_DATA and state.max_size <= p.CLASSIC_MAX_DATA:
+                    cost = frame_bits(len(data), 29, "worst", fd)
+                else:
+                    cost = sizes.frames_for(len(data), mtu) * full
+                wanted = min(cost, capacity)  # an event longer than the bucket: go into debt
+                if tokens < wanted:
+                    await asyncio.sleep((wanted - tokens) / bits_per_s)
                     break
                 tokens -= cost
                 queue.popleft()
@@ -436,6 +450,17 @@ class Gateway:
                     log.exception("could not send a TCP->CAN frame on %s", state.channel)
                     continue
                 self.counters["to_can"] += 1
+
+    async def _grow(self, state: ChannelState, size: int) -> bool:
+        """Move ``state``'s channel to a size class that carries ``size`` bytes on the bus."""
+        assert self.can is not None
+        try:
+            await self.can.face.grow(state, size)
+        except UpsError as exc:  # no etag of that class left, the CAN-ECB does not answer...
+            self.counters["too_large_for_can"] += 1
+            log.warning("cannot forward a %d-byte event of %s: %s", size, state.channel, exc)
+            return False
+        return True
 
     # --- helpers ---------------------------------------------------------------------------
 

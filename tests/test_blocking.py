@@ -21,7 +21,7 @@ async def test_blocking_nodes_talk_through_the_ecb(bus: str, ecb: CanEcb) -> Non
             first = sub.get_msg(timeout=5)
             assert first.priority == 3
             with pytest.raises(PayloadTooLarge):
-                a.publish("speed", bytes(9))
+                a.publish("speed", bytes(65536))
             got = [first.data, b.get_msg(timeout=5).data]
             sub.close()
             assert list(sub) == []  # iteration ends once closed

@@ -242,8 +242,8 @@ async def test_bad_input_gives_clear_errors(bus: str, ecb: CanEcb) -> None:
     with pytest.raises(ConfigError):
         Node(can=bus, node_id=1 << 64)
     async with Node(can=bus, node_id=1) as node:
-        with pytest.raises(PayloadTooLarge, match="9 bytes"):
-            await node.publish("speed", bytes(9))
+        with pytest.raises(PayloadTooLarge, match="65536 bytes"):
+            await node.publish("speed", bytes(65536))
         await node.publish("speed", bytes(8))
         with pytest.raises(ConfigError):
             node.set_priority("speed", 256)

@@ -232,7 +232,7 @@ async def test_a_flood_towards_can_is_paced_and_its_drops_counted(
         await eventually(lambda: forwarding(gw, "cmd", "can"))
         await tpub.publish("cmd", b"\x00")
         await eventually(lambda: gw.stats()["to_can"] == 1)
-        await tpub.publish("cmd", bytes(9))  # too big for a classic CAN frame
+        await tpub.publish("cmd", bytes(70_000))  # too big for any event on CAN
         for i in range(500):
             await tpub.publish("cmd", i.to_bytes(2, "big"))
         await eventually(lambda: gw.tcp.stats()["received"] == 502)  # type: ignore[union-attr]

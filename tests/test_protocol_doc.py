@@ -60,3 +60,22 @@ def test_tcp_example_frame(raw: str, frame: str) -> None:
 
 def test_tcp_examples_are_found() -> None:
     assert len(TCP_EXAMPLES) == 8
+
+
+TRANSFER_ROW = re.compile(r"^\| `([0-9a-f ]+)` \| (\d+) \| ((?:`[0-9a-f ]+`(?:, )?)+) \|$", re.M)
+TRANSFERS = TRANSFER_ROW.findall(DOC.split("### Events larger than one frame", 1)[1])
+
+
+def test_the_transfer_examples_are_found() -> None:
+    assert len(TRANSFERS) == 2
+
+
+@pytest.mark.parametrize(("event", "tid", "frames"), TRANSFERS)
+def test_transfer_example(event: str, tid: str, frames: str) -> None:
+    from ups import _cantransfer as t
+
+    expected = [bytes.fromhex(f) for f in re.findall(r"`([0-9a-f ]+)`", frames)]
+    assert t.segment(bytes.fromhex(event), int(tid), 8) == expected
+    r = t.Reassembler()
+    got = [r.feed((0, 0x3000), f, False, 64, 0.0) for f in expected]
+    assert got[-1] == bytes.fromhex(event)

@@ -91,7 +91,7 @@ async def test_declarations_survive_a_broker_restart(bus: str, tmp_path: Path) -
 async def test_bad_declarations_are_config_errors(bus: str, slow_ecb: CanEcb) -> None:
     async with Node(can=bus, node_id=1) as node:
         with pytest.raises(ConfigError, match="size_bytes"):
-            await node.declare("x", period_ms=10, deadline_ms=10, size_bytes=9)
+            await node.declare("x", period_ms=10, deadline_ms=10, size_bytes=70_000)
         with pytest.raises(ConfigError, match="period and deadline"):
             await node.declare("x", period_ms=0.01, deadline_ms=10)
         with pytest.raises(ConfigError, match="period and deadline"):

@@ -5,7 +5,9 @@ PUB_AT/SUB_AT, Assign) and from a recording's sidecar file.
 The tools (``ls``, ``record``, ``decode``, ``replay``, ``monitor``, ``dbc``, ``console``) share
 it. A frame reads as one of three things: a management frame (``Management``), an event
 (``Event``: priority, TxNode, etag, payload and the channel UID when the etag is bound), or
-foreign traffic (standard 11-bit ids, error frames, malformed management frames).
+foreign traffic (standard 11-bit ids, error frames, malformed management frames). Frames of
+transfers (events larger than one frame) are reassembled: each reads as a ``Fragment`` until
+the last, which reads as the whole ``Event``.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from . import _canproto as p
+from . import _cantransfer as t
 from ._errors import ConfigError, DecodeError
 
 SIDECAR_FORMAT = "ups-bindings/1"
@@ -36,6 +39,16 @@ class Event:
     data: bytes
 
 
+@dataclass(frozen=True, slots=True)
+class Fragment:
+    """A frame of a transfer that is not (yet) a whole event."""
+
+    priority: int
+    txnode: int
+    etag: int
+    uid: int | None
+
+
 @dataclass
 class Bindings:
     """etag -> channel UID and TxNode -> node id of one bus (or of one recording)."""
@@ -44,9 +57,13 @@ class Bindings:
     txnodes: dict[int, int] = field(default_factory=dict)
     names: dict[int, str] = field(default_factory=dict)  #: UID -> name, when known
     network: str = "can"  #: "can", or "tcp" for a recording of a TCP/IP network
+    transfers: t.Reassembler = field(default_factory=t.Reassembler, repr=False, compare=False)
 
-    def read(self, can_id: int, data: bytes, extended: bool = True) -> Event | p.Management | None:
-        """Read one frame, learning from it; None for foreign or malformed traffic."""
+    def read(
+        self, can_id: int, data: bytes, extended: bool = True, fd: bool = False, now: float = 0.0
+    ) -> Event | Fragment | p.Management | None:
+        """Read one frame (``fd``: a CAN FD frame, received at ``now``), learning from it; None
+        for foreign or malformed traffic. Lost transfers are counted in ``transfers.lost``."""
         if not extended:
             return None
         if p.is_management(can_id):
@@ -57,7 +74,14 @@ class Bindings:
             self.learn(msg)
             return msg
         priority, txnode, etag = p.split_id(can_id)
-        return Event(priority, txnode, etag, self.etags.get(etag), bytes(data))
+        if etag < p.LARGE_FIRST_ETAG:
+            if len(data) > p.CLASSIC_MAX_DATA:
+                return None
+            return Event(priority, txnode, etag, self.etags.get(etag), bytes(data))
+        event = self.transfers.feed((txnode, etag), bytes(data), fd, t.max_size(etag), now)
+        if event is None:
+            return Fragment(priority, txnode, etag, self.etags.get(etag))
+        return Event(priority, txnode, etag, self.etags.get(etag), event)
 
     def learn(self, msg: p.Management) -> None:
         if isinstance(msg, p.Bind | p.Holds):

@@ -17,9 +17,17 @@ from typing import Any
 import can
 
 from . import _canproto as p
+from . import _cantransfer as t
 from ._canjoin import Joiner
 from ._canlink import CanLink
-from ._errors import BrokerUnavailable, ConfigError, DecodeError, Exhausted, Unschedulable
+from ._errors import (
+    BrokerUnavailable,
+    ConfigError,
+    DecodeError,
+    Exhausted,
+    PayloadTooLarge,
+    Unschedulable,
+)
 from ._face import ChannelState, Deliver
 
 log = logging.getLogger("ups.can")
@@ -33,6 +41,10 @@ _IN_FLIGHT = 128  # binding requests a node has outstanding at once (the rest wa
 _ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
 _HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
 _LOG_GAP = 10.0
+#: a publisher waits this long before its first event on a channel of a larger size class (its
+#: binding may have just moved the channel there): the subscribers, who see their binding
+#: contradicted, bind it again and let the answer settle meanwhile, and receive that event
+_GROW_PAUSE = 3 * _SETTLE
 _STAGE_MASK = p.make_id(0xFF, 0x7F, 0x3000)
 _STAGE_ID = p.make_id(p.CONFIG_PRIORITY, p.MGMT_TXNODE, 0)
 _MGMT_FILTER = {
@@ -45,7 +57,7 @@ _MGMT_FILTER = {
 class CanFace:
     """A node's face on one CAN bus (any python-can interface)."""
 
-    max_payload = p.CLASSIC_MAX_DATA
+    max_payload = t.MAX_EVENT
 
     def __init__(
         self,
@@ -56,6 +68,7 @@ class CanFace:
         channels: dict[int, ChannelState],
         join_timeout: float | None,
         filter_limit: int,
+        max_event: int = t.MAX_EVENT,
     ) -> None:
         self._deliver = deliver
         self._channels = channels
@@ -75,6 +88,11 @@ class CanFace:
         self.txnode: int | None = None
         self._joiner = Joiner(node_id, self._send, self.link.channel_info, join_timeout)
         self._filter_limit = filter_limit
+        self._max_event = max_event  # the largest event this node buffers
+        self._reassembly = t.Reassembler()
+        self._expiry: asyncio.TimerHandle | None = None
+        self._tids: dict[int, int] = {}  # etag -> transfer id of this node's next event
+        self._growing: dict[int, asyncio.Future[None]] = {}  # uid -> its move to a larger class
         self._bound: dict[int, int] = {}  # uid -> etag, confirmed to this node by the CAN-ECB
         self._uid_at: dict[int, int] = {}  # etag -> uid, the same, inverted
         self._heard: dict[int, int] = {}  # etag -> uid, every Bind heard (for the counters)
@@ -94,7 +112,7 @@ class CanFace:
         self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
-             "rebinds", "unbound_dropped", "task_errors"),
+             "rebinds", "unbound_dropped", "task_errors", "too_large", "refused_large"),
             0,
         )  # fmt: skip
 
@@ -118,6 +136,8 @@ class CanFace:
             fut.cancel()
         for _, timer in self._candidates.values():
             timer.cancel()
+        if self._expiry is not None:
+            self._expiry.cancel()
         self._candidates.clear()
         self.link.remove_handler(self._handler)
         if self._owns_link:
@@ -127,13 +147,15 @@ class CanFace:
         return {
             **self.counters,
             "tx_failed": self.link.tx_failed,
+            "large_lost": self._reassembly.lost,
+            "large_frames_dropped": self._reassembly.frames_dropped,
             "bindings": len(self._bound),
             "txnode": -1 if self.txnode is None else self.txnode,
         }
 
     # --- the Face protocol -----------------------------------------------------------------
 
-    async def bind(self, state: ChannelState, subscribe: bool) -> None:
+    async def bind(self, state: ChannelState, subscribe: bool, size: int = 0) -> None:
         uid = state.channel.uid
         etag = self._bound.get(uid)
         if etag is not None:  # confirmed already: tell the CAN-ECB our role; it corrects us
@@ -142,11 +164,86 @@ class CanFace:
             if subscribe:  # receive from the moment the Bind is handled, not a loop pass later
                 self._wants_rx[uid] = state
             try:
-                etag = await self._request_etag(p.SUB_BIND if subscribe else p.PUB_BIND, uid)
+                kind, cls = (
+                    (p.SUB_BIND, 0)
+                    if subscribe
+                    else (p.PUB_BIND, t.class_for(min(size, t.MAX_EVENT)))
+                )
+                etag = await self._request_etag(kind, uid, cls)
             finally:
                 self._wants_rx.pop(uid, None)
+        state.max_size = t.max_size(etag)
         if subscribe:
+            self._check_fits(state, etag)
             self._receive(etag, state)
+        elif etag >= p.LARGE_FIRST_ETAG and not state.published:
+            await asyncio.sleep(_GROW_PAUSE)  # it may have moved just now: see _GROW_PAUSE
+
+    async def grow(self, state: ChannelState, size: int) -> None:
+        """Move the channel to the smallest size class that carries ``size`` bytes: ask the
+        CAN-ECB (PUB_BIND of that class), rely on the new etag, and pause ``_GROW_PAUSE`` so
+        that the subscribers, who see the old binding contradicted, bind it again first."""
+        if size > t.MAX_EVENT:
+            raise PayloadTooLarge(
+                f"{size} bytes do not fit one event on {state.channel} (at most {t.MAX_EVENT} "
+                "on CAN)"
+            )
+        uid = state.channel.uid
+        while size > state.max_size:
+            moving = self._growing.get(uid)
+            if moving is not None:  # another publish moves it already
+                await asyncio.shield(moving)
+                continue
+            moving = self._growing[uid] = asyncio.get_running_loop().create_future()
+            try:
+                await self._move(state, t.class_for(size))
+            finally:
+                del self._growing[uid]
+                moving.set_result(None)
+
+    async def _move(self, state: ChannelState, cls: int) -> None:
+        uid = state.channel.uid
+        if state.subs and t.CLASS_MAX[cls] > self._max_event:
+            raise PayloadTooLarge(
+                f"{state.channel} would carry events up to {t.CLASS_MAX[cls]} bytes; this node "
+                f"subscribes to it and buffers at most {self._max_event} (max_event)"
+            )
+        old = self._bound.pop(uid, None)
+        if old is not None:
+            del self._uid_at[old]
+            if self._rx.pop(old, None) is not None:
+                self._suspended.add(old)
+            self._update_filters()
+        if state.subs:
+            self._wants_rx[uid] = state
+        try:
+            etag = await self._request_etag(p.PUB_BIND, uid, cls)
+        finally:
+            self._wants_rx.pop(uid, None)
+        state.max_size = t.max_size(etag)
+        if state.subs:
+            self._send(p.Holds(False, self._my_txnode(), etag, uid))
+        if t.size_class(etag) < cls:
+            raise PayloadTooLarge(
+                f"the CAN-ECB bound {state.channel} to etag {etag:#x}, which carries at most "
+                f"{t.max_size(etag)} bytes: it does not bind larger events (an older CAN-ECB?)"
+            )
+        log.info("channel %s moved to etag %#x (events up to %d bytes)", state.channel, etag,
+                 state.max_size)  # fmt: skip
+        await asyncio.sleep(_GROW_PAUSE)
+
+    def _check_fits(self, state: ChannelState, etag: int) -> None:
+        """Refuse to receive a channel whose events this node would not buffer."""
+        if t.max_size(etag) <= self._max_event:
+            return
+        self.counters["refused_large"] += 1
+        if self._rx.pop(etag, None) is not None:
+            self._update_filters()
+        self._send(p.Request(p.UNSUB, self._my_txnode(), state.channel.uid))
+        raise PayloadTooLarge(
+            f"{state.channel} carries events up to {t.max_size(etag)} bytes on this bus; this "
+            f"node buffers at most {self._max_event} (max_event)"
+        )
 
     async def unsubscribe(self, state: ChannelState) -> None:
         uid = state.channel.uid
@@ -163,7 +260,19 @@ class CanFace:
             return
         priority = max(priority, p.FIRST_EVENT_PRIORITY)
         can_id = (priority << p.PRIORITY_SHIFT) | (self._my_txnode() << p.TXNODE_SHIFT) | etag
-        if self.link.send(can_id, data, self._handler):
+        if etag < p.LARGE_FIRST_ETAG:  # one frame, the event as its data
+            if len(data) > p.CLASSIC_MAX_DATA:
+                self.counters["too_large"] += 1
+            elif self.link.send(can_id, data, self._handler, self.link.fd):
+                self.counters["sent"] += 1
+            return
+        if len(data) > t.max_size(etag):
+            self.counters["too_large"] += 1
+            return
+        tid = self._tids.get(etag, 0)
+        self._tids[etag] = (tid + 1) & t.TID_MASK
+        frames = t.segment(data, tid, self.link.mtu)
+        if self.link.send_transfer(can_id, frames, self._handler, self.link.fd):
             self.counters["sent"] += 1
 
     async def room(self, state: ChannelState) -> None:
@@ -172,13 +281,16 @@ class CanFace:
     # --- receiving -------------------------------------------------------------------------
 
     def _on_frame(self, frame: can.Message) -> None:
-        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame or frame.is_fd:
+        if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
             self.counters["foreign"] += 1
             return
         can_id = frame.arbitration_id
         etag = can_id & p.ETAG_MASK
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
         if txnode == p.MGMT_TXNODE or etag < p.FIRST_ETAG or can_id >> p.PRIORITY_SHIFT < 2:
+            if frame.is_fd:  # management frames are classic frames
+                self.counters["foreign"] += 1
+                return
             if can_id & _STAGE_MASK != _STAGE_ID:
                 self._on_management(can_id, bytes(frame.data))
             elif self.txnode is None:  # another joiner's Stage: ours would be the same frame
@@ -186,16 +298,51 @@ class CanFace:
             return
         state = self._rx.get(etag)
         if state is None:
-            if etag in self._suspended:  # maybe ours, maybe not: delivered as nothing, counted
-                self.counters["unbound_dropped"] += 1
+            if etag in self._suspended or self._rebinding_subscribed(etag):
+                self.counters["unbound_dropped"] += 1  # maybe ours: delivered as nothing
             else:
                 self.counters["filtered" if etag in self._heard else "unknown"] += 1
         elif txnode == self.txnode:
             self.counters["own_echo"] += 1
-        else:
+        elif etag < p.LARGE_FIRST_ETAG:
+            if len(frame.data) > p.CLASSIC_MAX_DATA:
+                self.counters["malformed"] += 1
+                return
             self._deliver(
                 state, bytes(frame.data), can_id >> p.PRIORITY_SHIFT, txnode, frame.timestamp
             )
+        else:
+            self._on_transfer_frame(state, frame, txnode, etag)
+
+    def _rebinding_subscribed(self, etag: int) -> bool:
+        """``etag`` was last heard bound to a channel this node subscribes to and is binding
+        again (it moved to a larger size class, say)."""
+        uid = self._heard.get(etag)
+        if uid is None or uid not in self._rebinding:
+            return False
+        state = self._channels.get(uid)
+        return state is not None and bool(state.subs)
+
+    def _on_transfer_frame(
+        self, state: ChannelState, frame: can.Message, txnode: int, etag: int
+    ) -> None:
+        reassembly = self._reassembly
+        event = reassembly.feed(
+            (txnode, etag), bytes(frame.data), frame.is_fd, t.max_size(etag), time.monotonic()
+        )
+        if event is not None:
+            self._deliver(state, event, frame.arbitration_id >> p.PRIORITY_SHIFT, txnode,
+                          frame.timestamp)  # fmt: skip
+        elif reassembly.pending and self._expiry is None:
+            self._expiry = asyncio.get_running_loop().call_later(t.TRANSFER_TIMEOUT, self._expire)
+
+    def _expire(self) -> None:
+        """Give up (and count) transfers whose next frame is overdue."""
+        self._expiry = None
+        if self._reassembly.expire(time.monotonic()):
+            self._warn("transfer", "gave up CAN transfers whose frames stopped coming")
+        if self._reassembly.pending:
+            self._expiry = asyncio.get_running_loop().call_later(t.TRANSFER_TIMEOUT, self._expire)
 
     def _on_management(self, can_id: int, data: bytes) -> None:
         try:
@@ -337,15 +484,21 @@ class CanFace:
                 delay = min(delay * 2, _REBIND_MAX)
             finally:
                 self._wants_rx.pop(uid, None)
+        state.max_size = t.max_size(etag)
         if state.subs:
+            try:
+                self._check_fits(state, etag)
+            except PayloadTooLarge as exc:
+                log.warning("not receiving %s any more: %s", state.channel, exc)
+                return
             self._receive(etag, state)
             if state.published:
                 self._send(p.Holds(True, self._my_txnode(), etag, uid))
         log.info("channel %s bound again, to etag %#x", state.channel, etag)
 
     def _rebind_done(self, task: asyncio.Task[None]) -> None:
-        for uid, t in list(self._rebinding.items()):
-            if t is task:
+        for uid, running in list(self._rebinding.items()):
+            if running is task:
                 del self._rebinding[uid]
         if not task.cancelled() and task.exception() is not None:
             self.counters["task_errors"] += 1
@@ -359,16 +512,26 @@ class CanFace:
         unit = p.TIME_UNIT_US / 1000
         period, deadline = int(period_ms / unit), int(deadline_ms / unit)  # round down: safe
         jitter = -int(-jitter_ms // unit)  # round up: safe
-        if not 0 <= size <= p.CLASSIC_MAX_DATA:
-            raise ConfigError(f"size_bytes must be 0..{p.CLASSIC_MAX_DATA}, got {size}")
+        if not 0 <= size <= t.MAX_EVENT:
+            raise ConfigError(f"size_bytes must be 0..{t.MAX_EVENT}, got {size}")
         if not (1 <= period <= 0xFFFF and 1 <= deadline <= 0xFFFF and 0 <= jitter <= 0xFF):
             raise ConfigError(
                 "period and deadline must be 0.1..6553.5 ms, jitter 0..25.5 ms; got "
                 f"{period_ms}, {deadline_ms}, {jitter_ms}"
             )
         uid = state.channel.uid
-        self._declared[uid] = (size, period, deadline, jitter)
+        if size > state.max_size:
+            await self.grow(state, size)
         etag = self._bound[uid]
+        if etag >= p.LARGE_FIRST_ETAG:  # a transfer: the analysis counts its frames
+            frames = t.frames_for(size, self.link.mtu)
+            if frames > 0xFF:
+                raise ConfigError(
+                    f"a real-time event takes at most 255 frames; {size} bytes on "
+                    f"{state.channel} take {frames}"
+                )
+            size = frames
+        self._declared[uid] = (size, period, deadline, jitter)
         fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
         msg = p.Declare(self._my_txnode(), etag, size, period, deadline, jitter)
         try:
@@ -411,7 +574,7 @@ class CanFace:
 
     # --- binding ---------------------------------------------------------------------------
 
-    async def _request_etag(self, kind: int, uid: int) -> int:
+    async def _request_etag(self, kind: int, uid: int, size_class: int = 0) -> int:
         fut = self._pending.get(uid)
         if fut is None:
             fut = self._pending[uid] = asyncio.get_running_loop().create_future()
@@ -420,7 +583,7 @@ class CanFace:
                 if fut.done():  # answered while this request waited its turn
                     return fut.result()
                 return await self._ask(
-                    p.Request(kind, self._my_txnode(), uid), fut, f"bind {uid:#018x}"
+                    p.Request(kind, self._my_txnode(), uid, size_class), fut, f"bind {uid:#018x}"
                 )
         finally:
             if self._pending.get(uid) is fut:

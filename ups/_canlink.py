@@ -31,6 +31,9 @@ _RX_BATCH = 256  # frames read per wake-up before yielding to the loop
 _ECHO_WINDOW = 4096  # sent frames remembered while their echo is awaited
 _ECHO_LOOKAHEAD = 8  # echoes may be this many places out of order (or lost)
 _UDP_RCVBUF = 4 << 20
+MAX_BACKLOG = 16384  #: frames of transfers waiting for room in the interface (past it: refused)
+BACKLOG_TIMEOUT = 2.0  #: seconds without the interface taking a frame before the backlog goes
+_RETRY_FIRST, _RETRY_MAX = 0.0005, 0.01  # seconds between tries while the interface is full
 
 Frame = can.Message
 Handler = Callable[[can.Message], None]
@@ -112,8 +115,22 @@ def _widen_udp_buffer(bus: can.BusABC) -> None:
 class CanLink:
     """A bus, the loop that reads it, and the handlers each received frame is given to."""
 
-    def __init__(self, bus: can.BusABC, *, owns_bus: bool = True, spec: str | None = None) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        *,
+        owns_bus: bool = True,
+        spec: str | None = None,
+        fd: bool | None = None,
+    ) -> None:
         self.bus = bus
+        if fd is None:
+            fd = getattr(bus, "protocol", None) in (
+                can.CanProtocol.CAN_FD, can.CanProtocol.CAN_FD_NON_ISO
+            )  # fmt: skip
+        #: CAN FD: events larger than 8 bytes travel in 64-byte frames with bit-rate switching
+        self.fd = bool(fd)
+        self.mtu = 64 if self.fd else 8
         self._spec = spec
         self._owns_bus = owns_bus
         self._handlers: list[Handler] = []
@@ -125,9 +142,12 @@ class CanLink:
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
         self._closed = False
+        self._backlog: deque[tuple[can.Message, Handler | None]] = deque()
+        self._drainer: asyncio.Task[None] | None = None
         self.rx_frames = 0
         self.tx_frames = 0
         self.tx_failed = 0
+        self.backlog_full = 0
         self.rx_errors = 0
         self.handler_errors = 0
 
@@ -136,7 +156,9 @@ class CanLink:
 
     @classmethod
     def open(cls, spec: str) -> CanLink:
-        return cls(open_bus(spec), owns_bus=True, spec=spec)
+        """Open the bus named by ``spec``; it is CAN FD when the spec says ``fd=True``."""
+        fd = parse_bus_spec(spec).get("fd") is True
+        return cls(open_bus(spec), owns_bus=True, spec=spec, fd=fd)
 
     @property
     def channel_info(self) -> str:
@@ -186,23 +208,53 @@ class CanLink:
             self._thread = threading.Thread(target=self._rx_thread, name="ups-can-rx", daemon=True)
             self._thread.start()
 
-    def send(self, can_id: int, data: bytes, origin: Handler | None = None) -> bool:
-        """Send an extended frame now; hand it to the local handlers other than ``origin``.
+    def send(
+        self, can_id: int, data: bytes, origin: Handler | None = None, fd: bool = False
+    ) -> bool:
+        """Send an extended frame now (a CAN FD frame with bit-rate switching if ``fd``); hand
+        it to the local handlers other than ``origin``.
 
         Never blocks: when the interface cannot take the frame (its transmit queue is full or
         the bus is off), the frame is dropped, counted in ``tx_failed`` and False is returned.
+        While frames of a transfer wait in the backlog, the frame waits behind them instead.
         """
-        frame = can.Message(arbitration_id=can_id, data=data, is_extended_id=True)
+        frame = can.Message(
+            arbitration_id=can_id, data=data, is_extended_id=True, is_fd=fd, bitrate_switch=fd
+        )
+        if self._backlog:
+            return self._queue([frame], origin)
+        if self._offer(frame, origin):
+            return True
+        self._failed(1, "CAN send failed")
+        return False
+
+    def send_transfer(
+        self, can_id: int, frames: list[bytes], origin: Handler | None = None, fd: bool = False
+    ) -> bool:
+        """Send the frames of one transfer, in order and none left out: what the interface
+        cannot take now waits in the backlog (``MAX_BACKLOG`` frames) and goes as it makes
+        room. Returns False, sending none of them, when the backlog has no room for them all."""
+        messages = [
+            can.Message(
+                arbitration_id=can_id, data=d, is_extended_id=True, is_fd=fd, bitrate_switch=fd
+            )
+            for d in frames
+        ]
+        if not self._backlog:
+            for i, frame in enumerate(messages):
+                if not self._offer(frame, origin):
+                    return self._queue(messages[i:], origin)
+            return True
+        return self._queue(messages, origin)
+
+    def _offer(self, frame: can.Message, origin: Handler | None) -> bool:
         try:
             self.bus.send(frame, timeout=0)
-        except (can.CanError, OSError) as exc:
-            self.tx_failed += 1
-            if self.tx_failed in (1, 10, 100) or self.tx_failed % 1000 == 0:
-                log.warning("CAN send failed (%d so far): %s", self.tx_failed, exc)
+        except (can.CanError, OSError):
             return False
         self.tx_frames += 1
         if self._echoes:
-            self._awaiting_echo.append((can_id, bytes(frame.data)))
+            self._awaiting_echo.append((frame.arbitration_id, bytes(frame.data)))
             if len(self._awaiting_echo) > _ECHO_WINDOW:
                 self._awaiting_echo.popleft()
         frame.timestamp = time.time()
@@ -210,6 +262,43 @@ class CanLink:
             if handler is not origin:
                 handler(frame)
         return True
+
+    def _queue(self, frames: list[can.Message], origin: Handler | None) -> bool:
+        if len(self._backlog) + len(frames) > MAX_BACKLOG or self._loop is None:
+            self.backlog_full += 1  # (a transfer cut short is broken: its receivers count it)
+            self._failed(len(frames), "CAN backlog full: frames dropped")
+            return False
+        self._backlog.extend((frame, origin) for frame in frames)
+        if self._drainer is None or self._drainer.done():
+            self._drainer = self._loop.create_task(self._drain())
+        return True
+
+    async def _drain(self) -> None:
+        """Hand the backlog to the interface as it makes room; give it up when the interface
+        takes nothing for ``BACKLOG_TIMEOUT`` s (the bus is off, or nobody acknowledges)."""
+        backlog = self._backlog
+        delay = _RETRY_FIRST
+        stuck_since = time.monotonic()
+        while backlog:
+            frame, origin = backlog[0]
+            if self._offer(frame, origin):
+                backlog.popleft()
+                delay = _RETRY_FIRST
+                stuck_since = time.monotonic()
+                continue
+            if time.monotonic() - stuck_since > BACKLOG_TIMEOUT:
+                self._failed(len(backlog), "CAN interface takes no frames: backlog dropped")
+                backlog.clear()
+                return
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, _RETRY_MAX)
+
+    def _failed(self, frames: int, what: str) -> None:
+        before = self.tx_failed
+        self.tx_failed += frames
+        marks = any(before < mark <= self.tx_failed for mark in (1, 10, 100))
+        if marks or before // 1000 != self.tx_failed // 1000:
+            log.warning("%s (%d frames so far)", what, self.tx_failed)
 
     def _dispatch(self, frame: can.Message) -> None:
         self.rx_frames += 1
@@ -273,6 +362,9 @@ class CanLink:
             return
         self._closed = True
         self._stopping.set()
+        if self._drainer is not None:
+            self._drainer.cancel()
+        self._backlog.clear()
         if self._reader_fd >= 0 and self._loop is not None and not self._loop.is_closed():
             self._loop.remove_reader(self._reader_fd)
         if self._thread is not None:

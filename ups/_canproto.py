@@ -33,6 +33,7 @@ DEFAULT_PRIORITY = 0x80  #: events, unless the channel's priority was set
 NIBBLES = 16  #: a 64-bit node id is offered nibble by nibble, most significant first
 EPOCHS = 16
 CLASSIC_MAX_DATA = 8
+LARGE_FIRST_ETAG = 0x3000  #: etags from here carry events larger than one frame (_cantransfer)
 
 
 def make_id(priority: int, txnode: int, etag: int) -> int:
@@ -215,16 +216,20 @@ SUB_BIND = 0x0002  #: bind a channel and subscribe to it
 UNSUB = 0x0003  #: the node's last subscriber of the channel left
 CLAIM = 0x0004  #: "I hold this TxNode": the answer to Hello
 DECLARE = 0x0005  #: a real-time declaration (see Declare)
+PUB_BIND_CLASS = 0x0008  #: 0x0009..0x000C: PUB_BIND for events of size class 1..4
+SIZE_CLASSES = 5  #: size class 0 (one frame) and the four classes of larger events
 _REQUEST_KINDS = (PUB_BIND, SUB_BIND, UNSUB, CLAIM)
 
 
 @dataclass(frozen=True, slots=True)
 class Request:
-    """A configured node's request; ``value`` is a channel UID, or the node id for CLAIM."""
+    """A configured node's request; ``value`` is a channel UID, or the node id for CLAIM.
+    A PUB_BIND asks for an etag of at least ``size_class`` (see ``_cantransfer``)."""
 
     kind: int
     txnode: int
     value: int
+    size_class: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -240,8 +245,9 @@ class Holds:
 
 @dataclass(frozen=True, slots=True)
 class Declare:
-    """``txnode`` publishes on ``etag`` at most one frame of ``size_bytes`` every ``period``,
-    released up to ``jitter`` late, due within ``deadline``; all in units of 100 us."""
+    """``txnode`` publishes on ``etag`` at most one event every ``period``, released up to
+    ``jitter`` late, due within ``deadline``; all in units of 100 us. ``size_bytes`` is the
+    event's size on a one-frame etag (0..8), its number of frames on a larger one (1..255)."""
 
     txnode: int
     etag: int
@@ -326,7 +332,8 @@ def encode(msg: Management) -> tuple[int, bytes]:
     if isinstance(msg, Declare):
         data = struct.pack(">HBHHB", msg.etag, msg.size_bytes, msg.period, msg.deadline, msg.jitter)
         return make_id(CONFIG_PRIORITY, msg.txnode, DECLARE), data
-    return make_id(CONFIG_PRIORITY, msg.txnode, msg.kind), msg.value.to_bytes(8, "big")
+    kind = PUB_BIND_CLASS | msg.size_class if msg.size_class else msg.kind
+    return make_id(CONFIG_PRIORITY, msg.txnode, kind), msg.value.to_bytes(8, "big")
 
 
 def _config_id(op: int, arg: int) -> int:
@@ -415,11 +422,18 @@ def _decode_node_frame(
     if priority == CONFIG_PRIORITY and etag == DECLARE:
         _expect_len(data, 8, can_id)
         etag, size, period, deadline, jitter = struct.unpack(">HBHHB", data)
+        largest = CLASSIC_MAX_DATA if etag < LARGE_FIRST_ETAG else 0xFF
         if not (
-            FIRST_ETAG <= etag <= LAST_ETAG and size <= CLASSIC_MAX_DATA and period and deadline
+            FIRST_ETAG <= etag <= LAST_ETAG
+            and size <= largest
+            and (size or etag < LARGE_FIRST_ETAG)
+            and period
+            and deadline
         ):
             raise DecodeError(f"bad declaration {data.hex()}")
         return Declare(txnode, etag, size, period, deadline, jitter)
+    if priority == CONFIG_PRIORITY and PUB_BIND_CLASS < etag < PUB_BIND_CLASS + SIZE_CLASSES:
+        return Request(PUB_BIND, txnode, _u64(data, can_id), etag - PUB_BIND_CLASS)
     if priority != CONFIG_PRIORITY or etag not in _REQUEST_KINDS:
         raise DecodeError(f"unknown node request {can_id:#010x}")
     return Request(etag, txnode, _u64(data, can_id))

@@ -23,7 +23,7 @@ class Sink(Protocol):
 class ChannelState:
     """What a node knows of one channel: its local subscriptions, priority and publishing."""
 
-    __slots__ = ("channel", "declared", "priority", "published", "subs")
+    __slots__ = ("channel", "declared", "max_size", "priority", "published", "subs")
 
     def __init__(self, channel: Channel, priority: int) -> None:
         self.channel = channel
@@ -31,6 +31,7 @@ class ChannelState:
         self.subs: list[Sink] = []
         self.published = False
         self.declared = False  # a real-time stream: the broker owns its priority
+        self.max_size = 0  # the largest event the channel's binding carries (set by the face)
 
 
 #: ``deliver(state, data, priority, source, timestamp)``: hand one received event to the
@@ -45,8 +46,13 @@ class Face(Protocol):
 
     async def start(self) -> None: ...
     async def close(self) -> None: ...
-    async def bind(self, state: ChannelState, subscribe: bool) -> None:
-        """Make ``state``'s channel usable: to publish on it, or (``subscribe``) to receive it."""
+    async def bind(self, state: ChannelState, subscribe: bool, size: int = 0) -> None:
+        """Make ``state``'s channel usable: to publish on it (events of up to ``size`` bytes
+        expected), or (``subscribe``) to receive it. Sets ``state.max_size``."""
+
+    async def grow(self, state: ChannelState, size: int) -> None:
+        """Make the channel carry events of ``size`` bytes (raise ``PayloadTooLarge`` if the
+        network cannot)."""
 
     async def unsubscribe(self, state: ChannelState) -> None:
         """The node's last local subscriber of the channel left."""

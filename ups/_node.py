@@ -20,7 +20,7 @@ from typing import IO, Any
 
 from ._canproto import DEFAULT_PRIORITY
 from ._channel import Channel, ChannelLike, as_channel
-from ._errors import Closed, ConfigError, PayloadTooLarge
+from ._errors import Closed, ConfigError
 from ._face import ChannelState, Face, Sink
 from ._message import Message
 from ._nodeid import claim_node_id
@@ -135,7 +135,10 @@ class Node:
 
     CAN only: ``filter_limit``: a node subscribed to at most this many channels installs one
     acceptance filter per etag (in the kernel on SocketCAN); beyond it, it receives every frame
-    and filters in software.
+    and filters in software. ``max_event``: the largest event (in bytes) this node buffers; it
+    refuses (``PayloadTooLarge``) to subscribe to a channel whose size class carries larger ones.
+    Events up to 65535 bytes travel as transfers of several frames (CAN FD frames on a bus
+    opened with ``fd=True``).
 
     TCP/IP only: ``listen`` (HOST:PORT) is where publishers reach this node; by default the
     address it reaches the TCP-ECB from, on a free port. Each subscribing peer gets a queue of
@@ -155,6 +158,7 @@ class Node:
         name: str | None = None,
         join_timeout: float | None = 30.0,
         filter_limit: int = 16,
+        max_event: int = 0xFFFF,
         listen: str | None = None,
         peer_queue: int = DEFAULT_QUEUE,
         peer_overflow: Overflow = "drop_oldest",
@@ -173,6 +177,7 @@ class Node:
         self._can = can
         self._join_timeout = join_timeout
         self._filter_limit = filter_limit
+        self._max_event = max_event
         self._broker = broker
         self._listen = listen
         self._peer_queue = peer_queue
@@ -248,6 +253,7 @@ class Node:
                 channels=self._states,
                 join_timeout=self._join_timeout,
                 filter_limit=self._filter_limit,
+                max_event=self._max_event,
             )
         from ._tcpface import TcpFace
 
@@ -301,7 +307,10 @@ class Node:
         Never blocks by default: what a subscriber cannot take is dropped and counted. With
         ``wait=True`` it first waits until every subscriber's queue has room (backpressure, on
         TCP/IP: a publisher that outpaces its subscribers slows down instead of dropping).
-        Raises ``PayloadTooLarge`` when ``data`` does not fit one frame of the network.
+        Raises ``PayloadTooLarge`` when ``data`` is larger than the network carries (65535
+        bytes on CAN, 16 MiB on TCP/IP). On CAN, the first event larger than the channel's
+        binding allows moves the channel to a larger size class first (``advertise`` with
+        ``max_size`` avoids that pause).
         """
         if self._closed:
             raise Closed("node closed")
@@ -311,11 +320,8 @@ class Node:
         payload = bytes(data)
         face = self._face
         assert face is not None
-        if len(payload) > face.max_payload:
-            raise PayloadTooLarge(
-                f"{len(payload)} bytes do not fit one frame on {state.channel} "
-                f"(at most {face.max_payload}); split the data or use a TCP/IP channel"
-            )
+        if len(payload) > state.max_size:  # on CAN: a larger size class, bound once
+            await face.grow(state, len(payload))
         if wait:
             await face.room(state)
         self.published += 1
@@ -323,14 +329,18 @@ class Node:
             self._deliver(state, payload, state.priority, None, time.time())
         face.send(state, payload, state.priority)
 
-    async def advertise(self, channel: ChannelLike) -> None:
+    async def advertise(self, channel: ChannelLike, *, max_size: int = 0) -> None:
         """Bind ``channel`` for publishing now, so that the first ``publish`` is not delayed by
         the network's binding (a round trip to the CAN-ECB or the TCP-ECB). ``publish`` binds
-        by itself when this was not called."""
+        by itself when this was not called. ``max_size``: the largest event to come (on CAN,
+        it picks the channel's size class now, and subscribers learn it before any event)."""
         if self._closed:
             raise Closed("node closed")
-        if channel not in self._publishing:
-            self._publishing[channel] = await self._publishing_state(channel)
+        state = self._publishing.get(channel)
+        if state is None:
+            state = self._publishing[channel] = await self._publishing_state(channel, max_size)
+        if max_size > state.max_size:
+            await self.face.grow(state, max_size)
 
     async def subscribe(
         self,
@@ -496,11 +506,11 @@ class Node:
         if not state.subs and self._face is not None and not self._closed:
             await self._face.unsubscribe(state)
 
-    async def _publishing_state(self, channel: ChannelLike) -> ChannelState:
+    async def _publishing_state(self, channel: ChannelLike, size: int = 0) -> ChannelState:
         self._check_open()
         state = self._state(as_channel(channel))
         if not state.published:
-            await self.face.bind(state, subscribe=False)
+            await self.face.bind(state, subscribe=False, size=size)
             state.published = True
         return state
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
 from ._address import parse_address
-from ._errors import AccessDenied, BrokerUnavailable, ConfigError, UpsError
+from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
 from ._tcpinbox import Inbox
 from ._tcplink import OVERFLOWS, Link, Overflow
 from ._tcpoutbox import Outbox
@@ -179,7 +179,8 @@ class TcpFace:
 
     # --- the Face protocol -----------------------------------------------------------------
 
-    async def bind(self, state: ChannelState, subscribe: bool) -> None:
+    async def bind(self, state: ChannelState, subscribe: bool, size: int = 0) -> None:
+        state.max_size = self.max_payload
         uid = state.channel.uid
         registered = self._subscribed if subscribe else self._advertised
         if uid in registered:
@@ -196,6 +197,12 @@ class TcpFace:
         state = self._channels.get(uid)
         name = state.channel.name if state is not None else None
         return w.Subscribe(uid, name) if subscribe else w.Advertise(uid, name)
+
+    async def grow(self, state: ChannelState, size: int) -> None:
+        """Every channel carries the largest event a frame holds: no more."""
+        raise PayloadTooLarge(
+            f"{size} bytes do not fit one event on {state.channel} (at most {self.max_payload})"
+        )
 
     async def unsubscribe(self, state: ChannelState) -> None:
         uid = state.channel.uid

@@ -159,7 +159,7 @@ async def test_foreign_frames_are_ignored(raw: Wire, can_ecb: CanEcb) -> None:
 
 
 async def test_can_fd_frames_are_ignored(raw: Wire, can_ecb: CanEcb) -> None:
-    """ "Everything else is foreign and is ignored: ... CAN FD frames.\""""
+    """ "Management frames are classic frames: a CAN FD frame there is foreign.\""""
     node, t = await _joined(raw, 0x7106)
     fd: list[tuple[str, can.Message]] = [
         (

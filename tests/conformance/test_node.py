@@ -147,7 +147,7 @@ async def test_node_ignores_foreign_frames_on_its_etag(
         event_id = ident(0x80, 0x33, etag)
         raw.send(
             can.Message(arbitration_id=event_id, is_remote_frame=True, dlc=2),
-            can.Message(arbitration_id=event_id, data=b"\x0f\x0d", is_fd=True),
+            can.Message(arbitration_id=event_id, data=bytes(12), is_fd=True),  # > 8 bytes
             can.Message(arbitration_id=event_id, data=b"\xee", is_error_frame=True),
             can.Message(arbitration_id=etag & 0x7FF, data=b"\x11", is_extended_id=False),
             Event(0x80, 0x33, etag, b"\x42"),

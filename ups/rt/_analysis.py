@@ -31,6 +31,12 @@ paper 000's Table 1 ("this message is, in the worst case, the maximum message si
 (zero for the lowest), the textbook term, valid only when the set is all the bus's traffic. With
 the same blocking choice, ``davis2007`` is never below ``tindell1994``.
 
+A message of ``frames`` > 1 (an event sent as several frames) interferes with lower-priority
+messages by all its frames, ``C_m = frames x C_frame``; it blocks higher-priority ones by one
+frame; its own instance ``q`` waits for its earlier frames too,
+``w(q) = B_m + q C_m + (frames - 1) C_frame + ...``, and responds when its last frame ends,
+``R(q) = J_m + w(q) - q T_m + C_frame``.
+
 All arithmetic is exact (``fractions.Fraction``, times in milliseconds).
 """
 
@@ -57,7 +63,8 @@ class _Msg:
     """One message as the analysis sees it: times in ms, exact."""
 
     spec: MessageSpec
-    c: Fraction
+    c: Fraction  # every frame of an instance
+    cf: Fraction  # one frame
     t: Fraction
     j: Fraction
     d: Fraction
@@ -106,7 +113,8 @@ def _prepare(
     messages = [
         _Msg(
             spec=spec,
-            c=n * tau,
+            c=n * tau * spec.frames,
+            cf=n * tau,
             t=spec.period_ms,
             j=spec.jitter_ms,
             d=spec.deadline_ms,
@@ -119,7 +127,7 @@ def _prepare(
 def _blocking(bus: _Bus, lower: Sequence[_Msg]) -> Fraction:
     if bus.blocking == "max-frame":
         return bus.max_frame
-    return max((msg.c for msg in lower), default=Fraction(0))
+    return max((msg.cf for msg in lower), default=Fraction(0))
 
 
 def _utilisation(msgs: Sequence[_Msg]) -> Fraction:
@@ -158,10 +166,11 @@ def _response_time(bus: _Bus, higher: Sequence[_Msg], m: _Msg, b: Fraction) -> F
     hp = [(scaled(k.c), scaled(k.t), scaled(k.j)) for k in higher]
     hp_sum = sum(c for c, _, _ in hp)
     base, tau = scaled(b), scaled(bus.tau)
-    mc, mt, mj = scaled(m.c), scaled(m.t), scaled(m.j)
+    mc, mt, mj, mcf = scaled(m.c), scaled(m.t), scaled(m.j), scaled(m.cf)
+    before_last = mc - mcf  # the instance's other frames go first, at the same priority
     if bus.method == "tindell1994":
-        w = _queuing(base, hp, base + hp_sum, tau)
-        return Fraction(w + mc, unit)  # paper 000 leaves out J_m, not the J_k inside w_m
+        w = _queuing(base + before_last, hp, base + before_last + hp_sum, tau)
+        return Fraction(w + mcf, unit)  # paper 000 leaves out J_m, not the J_k inside w_m
     everyone = [*hp, (mc, mt, mj)]
     t = base + hp_sum + mc
     while True:
@@ -173,9 +182,9 @@ def _response_time(bus: _Bus, higher: Sequence[_Msg], m: _Msg, b: Fraction) -> F
     worst = 0
     w = 0
     for q in range(instances):
-        start = base + q * mc
+        start = base + q * mc + before_last
         w = _queuing(start, hp, max(w, start + hp_sum), tau)
-        worst = max(worst, mj + w - q * mt + mc)
+        worst = max(worst, mj + w - q * mt + mcf)
     return Fraction(worst, unit)
 
 

@@ -45,6 +45,9 @@ class MessageSpec:
     it, all must, and lower values are higher priorities (as in CAN arbitration). When no message
     has it, the order of the sequence is the priority order, highest first. Times are exact
     fractions after construction; floats are taken at their shortest decimal form.
+
+    ``frames`` > 1 makes each instance a transfer of that many frames of ``size_bytes`` each
+    (a UPS event larger than one frame), queued together at the message's priority.
     """
 
     name: str
@@ -53,6 +56,7 @@ class MessageSpec:
     deadline_ms: Fraction
     jitter_ms: Fraction = Fraction(0)
     priority: int | None = None
+    frames: int = 1
 
     def __init__(
         self,
@@ -62,6 +66,7 @@ class MessageSpec:
         deadline_ms: Number,
         jitter_ms: Number = 0,
         priority: int | None = None,
+        frames: int = 1,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValueError("a message needs a non-empty name")
@@ -87,7 +92,10 @@ class MessageSpec:
         object.__setattr__(self, "period_ms", period)
         object.__setattr__(self, "deadline_ms", deadline)
         object.__setattr__(self, "jitter_ms", jitter)
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+            raise ValueError(f"message {name!r}: frames must be a positive integer, not {frames}")
         object.__setattr__(self, "priority", priority)
+        object.__setattr__(self, "frames", frames)
 
 
 @dataclass(frozen=True)

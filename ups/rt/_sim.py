@@ -87,6 +87,8 @@ def simulate(
     if horizon <= 0:
         raise ValueError(f"duration_ms must be positive, not {duration_ms}")
     order = _ordered(specs)
+    if any(spec.frames != 1 for spec in order):
+        raise ValueError("the simulation sends one frame per instance (frames=1)")
     if id_bits == 11 and len(order) > 2048:
         raise ValueError("more messages than 11-bit identifiers")
     tau = Fraction(1000, bitrate)

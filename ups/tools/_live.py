@@ -318,7 +318,7 @@ def _can_frame(live: Live, bindings: Bindings, msg: can.Message) -> None:
     if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
         live.counters["foreign"] += 1
         return
-    item = bindings.read(msg.arbitration_id, bytes(msg.data))
+    item = bindings.read(msg.arbitration_id, bytes(msg.data), fd=bool(msg.is_fd), now=now)
     if item is None:
         live.counters["malformed"] += 1
     elif isinstance(item, Event):

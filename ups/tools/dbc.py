@@ -162,6 +162,10 @@ def _from_recording(path: str) -> tuple[Bindings, Streams]:
 def _add(streams: Streams, ev: Event) -> None:
     """One event of a stream: the channel it carried (its last, when bound anew) and the
     longest payload."""
+    from .. import _canproto as p
+
+    if ev.etag >= p.LARGE_FIRST_ETAG:  # a transfer of several frames: no DBC message is one
+        return
     stream = (ev.priority, ev.txnode, ev.etag)
     uid, size = streams.get(stream, (ev.uid, 0))
     if ev.uid != uid:

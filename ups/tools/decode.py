@@ -46,6 +46,7 @@ class Tally:
     management: int = 0
     foreign: int = 0  #: 11-bit, error and remote frames, malformed management frames
     unbound: int = 0  #: events on etags bound to no known channel
+    fragments: int = 0  #: frames of transfers (events larger than one frame) before the last
 
 
 def bindings_for(path: str, sidecar: str | None, db: str | None) -> Bindings:
@@ -70,7 +71,7 @@ def read(
     what is not UPS is counted in ``tally`` and left out."""
     import can
 
-    from .._bindings import Event
+    from .._bindings import Event, Fragment
 
     try:
         reader = can.LogReader(path)
@@ -83,9 +84,13 @@ def read(
             if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
                 tally.foreign += 1
                 continue
-            item = bindings.read(msg.arbitration_id, bytes(msg.data))
+            item = bindings.read(
+                msg.arbitration_id, bytes(msg.data), fd=msg.is_fd, now=msg.timestamp
+            )
             if item is None:
                 tally.foreign += 1
+            elif isinstance(item, Fragment):
+                tally.fragments += 1
             elif isinstance(item, Event):
                 tally.events += 1
                 tally.unbound += item.uid is None

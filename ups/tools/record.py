@@ -48,7 +48,6 @@ if TYPE_CHECKING:
 
 HELP = "record a network's events to a python-can log file (.asc, .blf, .log)"
 FORMATS = (".asc", ".blf", ".log")
-FD_MAX_DATA = 64  #: the largest frame these log formats hold (CAN FD)
 QUEUE = 65536  #: TCP/IP: events held while the file is written; beyond, counted as lost
 FOLLOW_EVERY = 1.0  #: TCP/IP: seconds between looks at the TCP-ECB for new channels
 
@@ -144,16 +143,21 @@ class _Recorder:
             self.full.set()
 
     def _frame(self, msg: can.Message) -> None:
-        from .._bindings import Event
+        from .._bindings import Event, Fragment
 
         if msg.is_error_frame or not msg.is_extended_id or msg.is_remote_frame:
             self.skip("not UPS frames (11-bit, error or remote)")
             return
-        item = self.bindings.read(msg.arbitration_id, bytes(msg.data))
+        item = self.bindings.read(
+            msg.arbitration_id, bytes(msg.data), fd=msg.is_fd, now=msg.timestamp
+        )
         if item is None:
             self.skip("malformed management frames")
             return
-        if isinstance(item, Event):
+        if isinstance(item, Fragment):  # a frame of a larger event: kept, counted with it
+            if self.full.is_set() or (self.only and item.uid not in self.only):
+                return
+        elif isinstance(item, Event):
             if self.only and item.uid not in self.only:
                 if item.uid is None:
                     self.skip("events on etags not bound to a known channel")
@@ -174,11 +178,11 @@ class _Recorder:
         self.first_use.setdefault(etag, self.bindings.etags.get(etag))
         self.first_node.setdefault(txnode, self.bindings.txnodes.get(txnode))
 
-    def write(self, timestamp: float, can_id: int, data: bytes) -> None:
+    def write(self, timestamp: float, can_id: int, data: bytes, fd: bool = False) -> None:
         self._writer.on_message_received(
             self._msg(
                 timestamp=timestamp, arbitration_id=can_id, is_extended_id=True,
-                is_fd=len(data) > 8, data=data,
+                is_fd=fd or len(data) > 8, bitrate_switch=fd, data=data,
             )
         )  # fmt: skip
 
@@ -298,7 +302,12 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
 
     loop = asyncio.get_running_loop()
     tls = tls_of(args)
-    etags = _StandIns(p.FIRST_ETAG, p.LAST_ETAG - p.FIRST_ETAG + 1)
+    from .. import _cantransfer as t
+
+    small, large = t.class_etags(0), t.class_etags(4)
+    etags = _StandIns(small.start, len(small))  # events of 8 bytes or fewer: one frame
+    large_etags = _StandIns(large.start, len(large))  # larger ones: transfers of FD frames
+    tids: dict[int, int] = {}
     txnodes = _StandIns(0, p.TXNODE_COUNT)
     names = rec.bindings.names
     async with Node(broker=broker, name="ups-record", join_timeout=args.timeout, tls=tls) as node:
@@ -331,10 +340,11 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
                     msg = await node.get_msg(timeout=left)
                 except TimeoutError:
                     continue
-                if len(msg.data) > FD_MAX_DATA:
-                    rec.skip(f"events above {FD_MAX_DATA} bytes")
+                if len(msg.data) > t.MAX_EVENT:
+                    rec.skip(f"events above {t.MAX_EVENT} bytes")
                     continue
-                etag, new = etags.get(msg.uid)
+                pool = etags if len(msg.data) <= p.CLASSIC_MAX_DATA else large_etags
+                etag, new = pool.get(msg.uid)
                 if new:
                     rec.bindings.etags[etag] = msg.uid
                     rec.write(msg.timestamp, *p.encode(p.Bind(etag, msg.uid)))
@@ -346,7 +356,13 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
                     rec.write(msg.timestamp, *p.encode(p.Assign(txnode, source)))
                     rec.management += 1
                 priority = max(msg.priority, p.FIRST_EVENT_PRIORITY)
-                rec.write(msg.timestamp, p.make_id(priority, txnode, etag), msg.data)
+                can_id = p.make_id(priority, txnode, etag)
+                if pool is etags:
+                    rec.write(msg.timestamp, can_id, msg.data)
+                else:
+                    tid = tids[etag] = (tids.get(etag, -1) + 1) & t.TID_MASK
+                    for frame in t.segment(msg.data, tid, 64):
+                        rec.write(msg.timestamp, can_id, frame, fd=True)
                 rec.used(etag, txnode)
                 if rec.events == rec.count:
                     break
