@@ -115,3 +115,14 @@ def test_bounded_reassembly_gives_up_the_oldest() -> None:
     assert (r.pending, r.evicted, r.lost) == (2, 1, 1)
     assert r.expire(5.0) == 2
     assert r.lost == 3
+
+
+@pytest.mark.parametrize("missing", [1, 2, 5])
+def test_one_broken_transfer_is_one_loss(missing: int) -> None:
+    frames = t.segment(bytes(range(100)), 4, 8)
+    r = t.Reassembler()
+    for f in frames[:missing] + frames[missing + 1 :]:
+        assert r.feed((1, 0x3400), f, False, 1024, 0.0) is None
+    assert (r.lost, r.pending) == (1, 0)
+    assert r.feed((1, 0x3400), t.segment(b"next", 5, 8)[0], False, 1024, 0.0) == b"next"
+    assert r.lost == 1

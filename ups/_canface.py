@@ -138,6 +138,7 @@ class CanFace:
             timer.cancel()
         if self._expiry is not None:
             self._expiry.cancel()
+        await self.link.flush()  # the frames of transfers still waiting for the interface
         self._candidates.clear()
         self.link.remove_handler(self._handler)
         if self._owns_link:

@@ -293,6 +293,13 @@ class CanLink:
             await asyncio.sleep(delay)
             delay = min(delay * 2, _RETRY_MAX)
 
+    async def flush(self, timeout: float = BACKLOG_TIMEOUT) -> None:
+        """Wait (at most ``timeout`` s) until the backlog has gone to the interface."""
+        drainer = self._drainer
+        if drainer is not None and not drainer.done():
+            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(asyncio.shield(drainer), timeout)
+
     def _failed(self, frames: int, what: str) -> None:
         before = self.tx_failed
         self.tx_failed += frames

@@ -176,7 +176,11 @@ class Reassembler:
         ):
             del self._open[key]
             self._give_up(transfer)
-            self.frames_dropped += 1
+            if header & TID_MASK == transfer.tid:  # the rest of it: dropped, lost once
+                self._orphans[key] = transfer.tid
+                self.frames_dropped += 1
+            else:  # a frame of a transfer whose first frame never came: lost too
+                self._drop_orphan(key, header & TID_MASK)
             return None
         transfer.toggle ^= TOGGLE
         transfer.frames -= 1

@@ -448,11 +448,13 @@ def _run_sub(args: argparse.Namespace) -> int:
                     print(_event_line(msg, args.json, args.on_can), flush=True)
             except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
                 pass
-            dropped, skipped = sub.dropped, node.stats().get("lost", 0)
+            stats = node.stats()
+            dropped, skipped = sub.dropped, stats.get("lost", 0) + stats.get("large_lost", 0)
         if dropped or skipped:  # every loss is reported, however the run ended
             print(
                 f"ups sub: lost {dropped + skipped} events: {dropped} dropped from its full "
-                f"queue (--queue {args.queue}), {skipped} missing on the way (sequence gaps)",
+                f"queue (--queue {args.queue}), {skipped} missing on the way (sequence gaps, "
+                "broken CAN transfers)",
                 file=sys.stderr,
             )
             return code or EXIT_LOST
