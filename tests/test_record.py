@@ -210,3 +210,37 @@ def test_a_dbc_of_odd_channel_names_loads_in_cantools(tmp_path: Path) -> None:
     loaded = cantools.database.load_file(str(tmp_path / "odd.dbc"))
     labels = [m.name for m in loaded.messages]
     assert len(set(labels)) == len(names) + 1 and all(label.isascii() for label in labels)
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log"])
+def test_large_events_record_decode_and_replay_whole(tmp_path: Path, suffix: str) -> None:
+    """TCP/IP events of 9 bytes to 60 KiB are recorded as transfers of CAN FD frames, and
+    read back whole by decode and replay."""
+    sizes = (9, 64, 1000, 60_000)
+    events = [bytes((i * 7 + n) & 0xFF for i in range(n)) for n in sizes]
+    recording = str(tmp_path / f"big{suffix}")
+    first, address = start_tcp_broker("--recovery", "0")
+    with first, Proc("record", recording, "big", "--broker", address, "--count",
+                     str(len(sizes))) as rec:  # fmt: skip
+        rec.wait_for_line("recording")
+        for data in events:
+            code, _, err = ups("pub", "big", data.hex(), "--broker", address, "--count", "1")
+            assert code == 0, err
+        code, _ = rec.finish()
+        assert code == 0, rec.stderr_lines
+
+    code, out, err = ups("decode", recording, "--json")
+    assert code == 0, err
+    decoded = [json.loads(line) for line in out.splitlines()]
+    got = [bytes.fromhex(e["data"]) for e in decoded if e.get("channel") == "big"]
+    assert got == events
+
+    second, address = start_tcp_broker("--recovery", "0")
+    with second, Proc("sub", "big", "--broker", address, "--count", str(len(sizes)), "--json",
+                      "--timeout", "30") as sub:  # fmt: skip
+        sub.wait_for_line("subscribed to")
+        code, _, err = ups("replay", recording, "--broker", address, "--speed", "4")
+        assert code == 0, err
+        code, out = sub.finish(timeout=30)
+        assert code == 0, sub.stderr_lines
+        assert [bytes.fromhex(json.loads(x)["data"]) for x in out.splitlines()] == events

@@ -20,13 +20,13 @@ from . import _canproto as p
 from . import _cantransfer as t
 from ._canjoin import Joiner
 from ._canlink import CanLink
+from ._canstreams import declaration, refusal
 from ._errors import (
     BrokerUnavailable,
     ConfigError,
     DecodeError,
     Exhausted,
     PayloadTooLarge,
-    Unschedulable,
 )
 from ._face import ChannelState, Deliver
 
@@ -93,6 +93,7 @@ class CanFace:
         self._expiry: asyncio.TimerHandle | None = None
         self._tids: dict[int, int] = {}  # etag -> transfer id of this node's next event
         self._growing: dict[int, asyncio.Future[None]] = {}  # uid -> its move to a larger class
+        self._min_class: dict[int, int] = {}  # uid -> the size class its pending request needs
         self._bound: dict[int, int] = {}  # uid -> etag, confirmed to this node by the CAN-ECB
         self._uid_at: dict[int, int] = {}  # etag -> uid, the same, inverted
         self._heard: dict[int, int] = {}  # etag -> uid, every Bind heard (for the counters)
@@ -400,6 +401,8 @@ class CanFace:
             return
         fut = self._pending.get(uid)
         if fut is not None and not fut.done():
+            if t.size_class(etag) < self._min_class.get(uid, 0):
+                return  # an answer to an earlier request, for a smaller class: ours follows
             if heard is not None and heard != uid:  # last heard as another channel's etag:
                 self.counters["rebinds"] += 1  # doubt it; adopt it when it comes again
                 self._warn("doubt", "Bind(%#x, %016x) names an etag last heard bound to "
@@ -510,31 +513,15 @@ class CanFace:
     async def declare(
         self, state: ChannelState, size: int, period_ms: float, deadline_ms: float, jitter_ms: float
     ) -> int:
-        unit = p.TIME_UNIT_US / 1000
-        period, deadline = int(period_ms / unit), int(deadline_ms / unit)  # round down: safe
-        jitter = -int(-jitter_ms // unit)  # round up: safe
-        if not 0 <= size <= t.MAX_EVENT:
-            raise ConfigError(f"size_bytes must be 0..{t.MAX_EVENT}, got {size}")
-        if not (1 <= period <= 0xFFFF and 1 <= deadline <= 0xFFFF and 0 <= jitter <= 0xFF):
-            raise ConfigError(
-                "period and deadline must be 0.1..6553.5 ms, jitter 0..25.5 ms; got "
-                f"{period_ms}, {deadline_ms}, {jitter_ms}"
-            )
+        declaration(size, period_ms, deadline_ms, jitter_ms, etag=0, mtu=self.link.mtu)  # checks
         uid = state.channel.uid
         if size > state.max_size:
             await self.grow(state, size)
         etag = self._bound[uid]
-        if etag >= p.LARGE_FIRST_ETAG:  # a transfer: the analysis counts its frames
-            frames = t.frames_for(size, self.link.mtu)
-            if frames > 0xFF:
-                raise ConfigError(
-                    f"a real-time event takes at most 255 frames; {size} bytes on "
-                    f"{state.channel} take {frames}"
-                )
-            size = frames
-        self._declared[uid] = (size, period, deadline, jitter)
+        fields = declaration(size, period_ms, deadline_ms, jitter_ms, etag=etag, mtu=self.link.mtu)
+        self._declared[uid] = fields
         fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
-        msg = p.Declare(self._my_txnode(), etag, size, period, deadline, jitter)
+        msg = p.Declare(self._my_txnode(), etag, *fields)
         try:
             priority = await self._ask(msg, fut, f"admit {state.channel}")
         except BaseException:  # refused, unanswered or cancelled: nothing to re-announce
@@ -552,26 +539,8 @@ class CanFace:
                 state.priority = msg.priority
             if fut is not None and not fut.done():
                 fut.set_result(msg.priority)
-            return
-        if fut is None or fut.done():
-            return
-        if (msg.miss_etag, msg.miss_txnode) == (msg.etag, msg.txnode):
-            culprit = "it"
-        else:
-            other = self._heard.get(msg.miss_etag)
-            name = f"0x{other:016x}" if other is not None else f"etag {msg.miss_etag:#x}"
-            culprit = f"channel {name} of TxNode 0x{msg.miss_txnode:02x}"
-        if msg.response_10us == p.RESPONSE_UNBOUNDED:
-            response = "no bounded response time"
-        else:
-            response = f"worst-case response {msg.response_10us / 100:g} ms"
-        channel = f"0x{uid:016x}" if uid is not None else f"etag {msg.etag:#x}"
-        fut.set_exception(
-            Unschedulable(
-                f"the CAN-ECB refused real-time channel {channel}: with it, {culprit} would "
-                f"miss its deadline ({response})"
-            )
-        )
+        elif fut is not None and not fut.done():
+            fut.set_exception(refusal(msg, uid, self._heard))
 
     # --- binding ---------------------------------------------------------------------------
 
@@ -579,6 +548,8 @@ class CanFace:
         fut = self._pending.get(uid)
         if fut is None:
             fut = self._pending[uid] = asyncio.get_running_loop().create_future()
+        if size_class:
+            self._min_class[uid] = max(size_class, self._min_class.get(uid, 0))
         try:
             async with self._in_flight:
                 if fut.done():  # answered while this request waited its turn
@@ -589,6 +560,7 @@ class CanFace:
         finally:
             if self._pending.get(uid) is fut:
                 del self._pending[uid]
+                self._min_class.pop(uid, None)
 
     async def _ask(self, msg: p.Management, fut: asyncio.Future[int], what: str) -> int:
         """Send ``msg`` until ``fut`` has the CAN-ECB's answer: 50 ms, doubling, 5 s in all."""
