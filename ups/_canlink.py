@@ -30,7 +30,7 @@ _ECHOING_INTERFACES = frozenset({"udp_multicast"})
 _RX_BATCH = 256  # frames read per wake-up before yielding to the loop
 _ECHO_WINDOW = 4096  # sent frames remembered while their echo is awaited
 _ECHO_LOOKAHEAD = 8  # echoes may be this many places out of order (or lost)
-_UDP_RCVBUF = 4 << 20
+_RCVBUF = 4 << 20
 MAX_BACKLOG = 16384  #: frames of transfers waiting for room in the interface (past it: refused)
 BACKLOG_TIMEOUT = 2.0  #: seconds without the interface taking a frame before the backlog goes
 _RETRY_FIRST, _RETRY_MAX = 0.0005, 0.01  # seconds between tries while the interface is full
@@ -100,16 +100,24 @@ def open_bus(spec: str) -> can.BusABC:
         bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
         raise ConfigError(f"cannot open CAN bus {spec!r}: {exc}") from exc
-    _widen_udp_buffer(bus)
+    _widen_receive_buffer(bus)
     return bus
 
 
-def _widen_udp_buffer(bus: can.BusABC) -> None:
-    """udp_multicast's default 212 KB receive buffer overflows on bursts of a few hundred frames."""
-    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+def _widen_receive_buffer(bus: can.BusABC) -> None:
+    """The default 212 KB socket receive buffer (udp_multicast, SocketCAN) overflows on bursts
+    of a few hundred frames, such as the transfers of a few 1 KiB events on a vcan, which has
+    no bit rate to pace them. Beyond net.core.rmem_max only root may widen it (RCVBUFFORCE)."""
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None) or getattr(
+        bus, "socket", None
+    )
     if isinstance(sock, socket.socket):
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _UDP_RCVBUF)
+        for option in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, option, _RCVBUF)
+                return
+            except OSError:
+                continue
 
 
 class CanLink:
