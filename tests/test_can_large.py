@@ -68,6 +68,7 @@ async def test_a_growing_channel_moves_its_subscribers_along(bus: str, ecb: CanE
         await pub.publish("grow", b"tiny again")  # a large channel carries small events too
         assert (await sub.get_msg(timeout=5)).data == b"tiny again"
         assert ecb.counters["moved"] == 1
+        assert sub_node.stats()["moves"] == 1 and sub_node.stats()["rebinds"] == 0
 
 
 async def test_a_small_node_refuses_a_channel_it_cannot_buffer(bus: str, ecb: CanEcb) -> None:

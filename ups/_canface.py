@@ -113,7 +113,7 @@ class CanFace:
         self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
-             "rebinds", "unbound_dropped", "task_errors", "too_large", "refused_large"),
+             "rebinds", "moves", "unbound_dropped", "task_errors", "too_large", "refused_large"),
             0,
         )  # fmt: skip
 
@@ -392,9 +392,14 @@ class CanFace:
         old_uid = self._uid_at.get(etag)
         old_etag = self._bound.get(uid)
         if (old_uid is not None and old_uid != uid) or (old_etag is not None and old_etag != etag):
-            self.counters["rebinds"] += 1
-            self._warn("rebind", "Bind(%#x, %016x) contradicts this node's bindings: binding "
-                       "the channels involved again", etag, uid)  # fmt: skip
+            if old_uid is None and old_etag is not None and _grows(old_etag, etag):
+                self.counters["moves"] += 1  # a channel moved to a larger size class: expected
+                log.info("%016x moved to etag %#x (size class %d): binding it again", uid, etag,
+                         t.size_class(etag))  # fmt: skip
+            else:
+                self.counters["rebinds"] += 1
+                self._warn("rebind", "Bind(%#x, %016x) contradicts this node's bindings: "
+                           "binding the channels involved again", etag, uid)  # fmt: skip
             for involved in {old_uid, uid if old_etag is not None else None}:
                 if involved is not None:
                     self._suspend(involved)
@@ -643,3 +648,9 @@ class CanFace:
                 {"can_id": etag, "can_mask": p.ETAG_MASK, "extended": True} for etag in etags
             ]
         self.link.set_filters(self._handler, filters)
+
+
+def _grows(old_etag: int, etag: int) -> bool:
+    """A Bind moving a channel from ``old_etag`` to a larger size class (still a contradiction:
+    the node binds again, but it counts a move, not a rebind, and does not warn)."""
+    return t.size_class(etag) > t.size_class(old_etag)
