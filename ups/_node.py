@@ -14,7 +14,7 @@ import contextlib
 import logging
 import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -30,6 +30,8 @@ from ._tls import Tls
 log = logging.getLogger("ups")
 
 DEFAULT_QUEUE = 1024
+_LOG_GAP = 1.0  # seconds between two warnings about failing callbacks of one subscription
+_new_message = tuple.__new__  # Message(...) without NamedTuple's Python-level __new__
 #: ``get_msg`` gives the event loop a turn every this many events, even when events are queued:
 #: a consumer draining a deep queue must not starve the node's own heartbeats and reads
 YIELD_EVERY = 64
@@ -42,15 +44,30 @@ class Subscription:
     ``"drop_oldest"`` (the default: the freshest data wins, as a control loop wants) discards the
     oldest queued event, ``"drop_newest"`` discards the arriving one. Either way ``dropped``
     counts it. Iterate with ``async for``; iteration ends when the subscription or node closes.
+
+    A subscription made with a ``callback`` queues nothing: each event is handed to the callback
+    as it arrives, in the event loop's thread, with no task switch (``get_msg`` is not for it).
+    An exception the callback raises is logged and counted (``errors``); the next event comes
+    all the same.
     """
 
     def __init__(
-        self, node: Node, channels: tuple[Channel, ...], maxlen: int, overflow: Overflow
+        self,
+        node: Node,
+        channels: tuple[Channel, ...],
+        maxlen: int,
+        overflow: Overflow,
+        callback: Callable[[Message], object] | None = None,
     ) -> None:
         self.channels = channels
         self.maxlen = maxlen
         self.overflow: Overflow = overflow
+        self.callback = callback
         self.dropped = 0
+        self.errors = 0
+        self._logged = -_LOG_GAP
+        if callback is not None:
+            self._push = self._call  # type: ignore[method-assign]
         self._node = node
         self._queue: collections.deque[Message] = collections.deque()
         self._loop = asyncio.get_running_loop()
@@ -81,8 +98,20 @@ class Subscription:
             if not waiter.done():
                 waiter.set_result(None)
 
+    def _call(self, msg: Message) -> None:
+        try:
+            self.callback(msg)  # type: ignore[misc]
+        except Exception:
+            self.errors += 1
+            now = time.monotonic()
+            if now - self._logged >= _LOG_GAP:
+                self._logged = now
+                log.exception("the callback of %r failed (%d so far)", self, self.errors)
+
     async def get_msg(self, timeout: float | None = None) -> Message:
         """The next event; raises ``TimeoutError`` after ``timeout`` s, ``Closed`` once closed."""
+        if self.callback is not None:
+            raise ConfigError("this subscription hands its events to its callback")
         self._served += 1
         if self._served >= YIELD_EVERY:  # draining a deep queue still lets the loop run
             self._served = 0
@@ -93,7 +122,10 @@ class Subscription:
             waiter = self._loop.create_future()
             self._waiter = waiter
             try:
-                await _wait(self._loop, waiter, timeout)
+                if timeout is None:
+                    await waiter  # the common case, without _wait's coroutine
+                else:
+                    await _wait(self._loop, waiter, timeout)
             finally:
                 self._waiter = None
         return self._queue.popleft()
@@ -329,6 +361,36 @@ class Node:
             self._deliver(state, payload, state.priority, None, time.time())
         face.send(state, payload, state.priority)
 
+    def publish_nowait(self, channel: ChannelLike, data: bytes | bytearray | memoryview) -> None:
+        """``publish`` without awaiting, for callbacks and tight loops: the channel must be
+        bound already (``advertise``, or an earlier ``publish``), for events this large.
+
+        Raises ``ConfigError`` when it is not; never blocks, never waits for room (what a
+        subscriber cannot take is dropped and counted, as with ``publish``).
+        """
+        state = self._publishing.get(channel)
+        payload = bytes(data)
+        if state is None or len(payload) > state.max_size or self._closed:
+            state = self._bound(channel, len(payload))
+        self.published += 1
+        if state.subs:
+            self._deliver(state, payload, state.priority, None, time.time())
+        self._face.send(state, payload, state.priority)  # type: ignore[union-attr]
+
+    def _bound(self, channel: ChannelLike, size: int) -> ChannelState:
+        """``channel``'s state, if it is bound for publishing events of ``size`` bytes."""
+        self._check_open()
+        state = self._states.get(as_channel(channel).uid)
+        if state is None or not state.published:
+            raise ConfigError(f"{channel!r} is not bound yet: await advertise() first")
+        if size > state.max_size:
+            raise ConfigError(
+                f"{size} bytes is more than {state.channel}'s binding carries "
+                f"({state.max_size}): await advertise(..., max_size={size}) first"
+            )
+        self._publishing[channel] = state  # named this way too, from now on
+        return state
+
     async def advertise(self, channel: ChannelLike, *, max_size: int = 0) -> None:
         """Bind ``channel`` for publishing now, so that the first ``publish`` is not delayed by
         the network's binding (a round trip to the CAN-ECB or the TCP-ECB). ``publish`` binds
@@ -347,8 +409,10 @@ class Node:
         *channels: ChannelLike,
         maxlen: int = DEFAULT_QUEUE,
         overflow: Overflow = "drop_oldest",
+        callback: Callable[[Message], object] | None = None,
     ) -> Subscription:
-        """Subscribe to one or more channels; events arrive in the returned Subscription."""
+        """Subscribe to one or more channels; events arrive in the returned Subscription, or
+        (with ``callback``) are handed to ``callback(msg)`` as they arrive, without a queue."""
         self._check_open()
         if not channels:
             raise ConfigError("subscribe needs at least one channel")
@@ -357,7 +421,7 @@ class Node:
         if overflow not in OVERFLOWS:
             raise ConfigError(f"overflow must be one of {OVERFLOWS}, got {overflow!r}")
         chans = tuple(dict.fromkeys(as_channel(c) for c in channels))
-        sub = Subscription(self, chans, maxlen, overflow)
+        sub = Subscription(self, chans, maxlen, overflow, callback)
         attached: list[Channel] = []
         try:
             for chan in chans:
@@ -467,6 +531,7 @@ class Node:
             "published": self.published,
             "delivered": self.delivered,
             "dropped": sum(sub.dropped for sub in self._subs),
+            "callback_errors": sum(sub.errors for sub in self._subs),
         }
         if self._face is not None:
             counters.update(self._face.stats())
@@ -518,7 +583,7 @@ class Node:
         self, state: ChannelState, data: bytes, priority: int, source: int | None, ts: float
     ) -> None:
         """Hand one event to every local subscription of its channel (the face calls this)."""
-        msg = Message(state.channel, data, ts, priority, source)
+        msg: Message = _new_message(Message, (state.channel, data, ts, priority, source))
         for sub in state.subs:
             sub._push(msg)
         self.delivered += 1

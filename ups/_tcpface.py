@@ -32,7 +32,6 @@ SILENCE = 6 * HEARTBEAT  # an ECB link that said nothing for this long is dead
 _RETRY_FIRST = 0.05
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
-_EVENT_OVERHEAD = 32  # frame header + msgpack array, kind, uid, bin header, priority, seq
 
 
 def _hex(value: int) -> str:
@@ -42,7 +41,7 @@ def _hex(value: int) -> str:
 class TcpFace:
     """A node's face on a TCP/IP network served by one TCP-ECB at ``broker`` (HOST:PORT)."""
 
-    max_payload = w.DEFAULT_MAX_FRAME - _EVENT_OVERHEAD
+    max_payload = w.MAX_DATA
 
     def __init__(
         self,

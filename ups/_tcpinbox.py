@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import ssl
-import time
 from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
@@ -36,11 +35,12 @@ _HeldEvent = tuple[int, bytes, int, int]
 class _Publisher:
     """The other side of one incoming link: who says it is, and who its certificate says."""
 
-    __slots__ = ("allowed", "held", "identity", "node_id", "timer")
+    __slots__ = ("allowed", "expected", "held", "identity", "node_id", "timer")
 
-    def __init__(self, node_id: int, identity: str | None) -> None:
+    def __init__(self, node_id: int, identity: str | None, expected: dict[int, int]) -> None:
         self.node_id = node_id
         self.identity = identity
+        self.expected = expected  # uid -> the number expected next: the inbox's, for node_id
         self.allowed: set[int] = set()  # channels vouched for on this link, for its lifetime
         self.held: list[_HeldEvent | w.Start] | None = None  # read while waiting for a voucher
         self.timer: asyncio.TimerHandle | None = None
@@ -73,7 +73,7 @@ class Inbox:
         self._holding: set[Link] = set()
         self._doorman = Doorman(MAX_PUBLISHERS)
         self._server: asyncio.AbstractServer | None = None
-        self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
+        self._expected: dict[int, dict[int, int]] = {}  # publisher -> uid -> next number
         self._unreported: dict[int, int] = {}  # publisher -> events lost, not logged yet
 
     async def listen(self, host: str, port: int, tls: ssl.SSLContext | None) -> tuple[str, int]:
@@ -115,11 +115,14 @@ class Inbox:
         for link in self._links:
             if link.peer is not None:
                 link.peer.allowed.discard(uid)
-        for key in [k for k in self._expected if k[1] == uid]:
-            del self._expected[key]
+        for numbers in self._expected.values():
+            numbers.pop(uid, None)
 
     def report(self) -> None:
-        """Log the events lost since the last report (called once a second)."""
+        """Log the events lost since the last report (called once a second); give back the
+        receive buffers that big events grew and that no big event needed since."""
+        for link in self._links:
+            link.trim()
         for publisher, count in self._unreported.items():
             log.warning("lost %d events from publisher %016x (numbers skipped)", count, publisher)
         self._unreported.clear()
@@ -128,6 +131,7 @@ class Inbox:
 
     def _new_link(self) -> Link:
         link = Link(self._event, self._frame, self._lost)
+        link.keep_big = True  # events of up to 1 MiB may come one after the other
         self._links.add(link)
         self._doorman.admit(link)
         return link
@@ -148,19 +152,20 @@ class Inbox:
         if self._checking and uid not in pub.allowed and not self._allow(pub, uid):
             self._hold(link, (uid, data, priority, seq))
             return
-        key = (pub.node_id, uid)
-        expected = self._expected.get(key)
+        numbers = pub.expected
+        expected = numbers.get(uid)
         if expected is not None and seq > expected:  # numbers skipped: events lost on the way
             self._lost_from(pub.node_id, seq - expected)
-        self._expected[key] = seq + 1  # (a lower number: the publisher started again)
+        numbers[uid] = seq + 1  # (a lower number: the publisher started again)
         self._counters["received"] += 1
-        self._deliver(state, data, priority, pub.node_id, time.time())
+        self._deliver(state, data, priority, pub.node_id, link.read_at)
 
     def _frame(self, link: Link, frame: w.Frame) -> None:
         pub: _Publisher | None = link.peer
         if isinstance(frame, w.Hello):
             if pub is None:
-                pub = link.peer = _Publisher(frame.node_id, identity(link.transport))
+                numbers = self._expected.setdefault(frame.node_id, {})
+                pub = link.peer = _Publisher(frame.node_id, identity(link.transport), numbers)
                 if not self._checking or (pub.node_id, pub.identity) in self._known:
                     self._doorman.greeted(link)
                 else:  # full-sized frames, but out at the doorman's timeout unless vouched for
@@ -187,13 +192,12 @@ class Inbox:
             return
         if frame.uid not in self._subscribed:  # nothing to count for a channel we do not want
             return
-        key = (pub.node_id, frame.uid)
-        expected = self._expected.get(key)
+        expected = pub.expected.get(frame.uid)
         state = self._channels.get(frame.uid)
         if expected is not None and frame.seq > expected and state is not None and state.subs:
             self._lost_from(pub.node_id, frame.seq - expected)  # published while we were away
         if expected is None or frame.seq > expected:
-            self._expected[key] = frame.seq
+            pub.expected[frame.uid] = frame.seq
 
     def _lost(self, link: Link, reason: str | None) -> None:
         self._links.discard(link)
@@ -202,6 +206,15 @@ class Inbox:
         pub: _Publisher | None = link.peer
         if pub is not None and pub.held is not None:
             self._refuse(link, pub)
+        if (
+            pub is not None
+            and not pub.expected
+            and not any(
+                other.peer is not None and other.peer.node_id == pub.node_id
+                for other in self._links
+            )
+        ):  # nothing to carry over to the publisher's next link: the table stays bounded
+            self._expected.pop(pub.node_id, None)
         if reason is not None and reason.startswith("bad frame"):
             self._counters["malformed"] += 1
 

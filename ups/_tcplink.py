@@ -3,10 +3,13 @@
 Receiving: a ``BufferedProtocol`` whose one buffer is reused for every read; whole frames are
 decoded in place (``_tcpwire.parse``), events without building a frame object. Bad bytes close
 this connection only. Sending: the first frame of an event-loop iteration is written at once;
-the frames that follow it in the same iteration are queued and written together at its end
-(or as soon as ``limit`` of them are waiting), so a burst costs two system calls, not one each. The
-event queue is bounded: while the peer does not read (the transport paused us) it fills up to
-``limit`` frames, then ``overflow`` decides which event is lost, and ``dropped`` counts it.
+the frames that follow it in the same iteration are queued and written at its end (or as soon
+as the queue is full), joined into writes of about 64 KiB, so a burst costs a few system calls,
+not one each. A large event is queued as its header and its data, and the data is handed to
+the transport as it is (never joined, never copied here). Writing stops while the transport
+is paused (its buffer is full) and goes on when it resumes. The event queue is bounded: while
+the peer does not read it fills up to ``limit`` frames or ``limit_bytes`` bytes, then
+``overflow`` decides which event is lost, and ``dropped`` counts it.
 Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of
 their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them,
 or ``CONTROL_BYTES`` of them, unread is cut off.
@@ -20,6 +23,8 @@ import contextlib
 import functools
 import logging
 import resource
+import struct
+import time
 from collections.abc import Callable
 from typing import Any, Literal, cast
 
@@ -30,9 +35,11 @@ log = logging.getLogger("ups.tcp")
 
 Overflow = Literal["drop_oldest", "drop_newest"]
 OVERFLOWS: tuple[Overflow, ...] = ("drop_oldest", "drop_newest")
-_BUFFER = 1 << 14  # receive buffer to begin with; grown for bigger frames ...
-_BUFFER_KEEP = 1 << 18  # ... and given back once empty, when it grew past this
+_BUFFER = 1 << 14  # receive buffer to begin with; grown to hold a bigger frame whole ...
+_BUFFER_KEEP = 1 << 18  # ... and given back once empty, when it grew past this (see trim)
 _WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us
+QUEUE_BYTES = 64 << 20  #: events queued for a peer that does not read, in bytes (with ``limit``)
+_BATCH = 1 << 16  # small frames joined into one write of about this many bytes
 CONTROL_LIMIT = 1 << 14  #: control frames queued for a peer that does not read: then cut off
 CONTROL_BYTES = 8 << 20  #: ... or this many bytes of them
 
@@ -50,6 +57,7 @@ class Link(asyncio.BufferedProtocol):
         *,
         max_frame: int = w.DEFAULT_MAX_FRAME,
         limit: int = 1024,
+        limit_bytes: int = QUEUE_BYTES,
         overflow: Overflow = "drop_oldest",
     ) -> None:
         self.peer: Any = None
@@ -66,7 +74,13 @@ class Link(asyncio.BufferedProtocol):
         self._buf = bytearray(_BUFFER)
         self._start = 0
         self._end = 0
-        self._out: collections.deque[bytes] = collections.deque()  # events
+        #: events: encoded frames, or (header, data) for a large one, its data written as it is
+        self._out: collections.deque[bytes | tuple[bytes, bytes]] = collections.deque()
+        self._out_bytes = 0  # what _out holds, in bytes
+        self.limit_bytes = limit_bytes
+        #: keep a grown receive buffer until ``trim`` (a link that big frames keep coming on)
+        self.keep_big = False
+        self._big_since_trim = False
         self._control: list[bytes] = []  # control frames, written before the events
         self._control_bytes = 0
         self._room: asyncio.Future[None] | None = None  # awaited by a publisher for room
@@ -74,6 +88,7 @@ class Link(asyncio.BufferedProtocol):
         self._paused = False
         self._closing = False
         self._loop = asyncio.get_running_loop()
+        self.read_at = 0.0  #: ``time.time()`` of the latest read: the events' receive time
         self.lost: asyncio.Future[str | None] = self._loop.create_future()
         self.full_frame = max_frame  # what max_frame becomes once a Doorman lets it in
 
@@ -108,7 +123,7 @@ class Link(asyncio.BufferedProtocol):
 
     async def room(self) -> None:
         """Wait until the event queue has room (or the link is gone): backpressure."""
-        while len(self._out) >= self.limit and not self._closing and not self.lost.done():
+        while self._full() and not self._closing and not self.lost.done():
             if self._room is None or self._room.done():
                 self._room = self._loop.create_future()
             waiters: set[asyncio.Future[Any]] = {self._room, self.lost}
@@ -116,39 +131,46 @@ class Link(asyncio.BufferedProtocol):
 
     # --- sending ---------------------------------------------------------------------------
 
-    def send(self, frame: bytes) -> bool:
-        """Queue one encoded frame; never blocks. False if it was dropped: the queue was full
-        (and ``overflow`` is drop_newest), or the link is closing."""
+    def send(self, frame: bytes | tuple[bytes, bytes]) -> bool:
+        """Queue one encoded event frame (or its header and its data); never blocks. False if
+        it was dropped: the queue was full (and ``overflow`` is drop_newest), or the link is
+        closing."""
         out = self._out
         if self._closing:
             self.dropped += 1
             return False
-        if len(out) >= self.limit:
+        if len(out) >= self.limit or self._out_bytes >= self.limit_bytes:
             if self._writable():  # a producer that never yields: write the batch now
                 self._flush()
-            else:
+            while out and self._full():  # the peer does not read fast enough
                 self.dropped += 1
                 if self.overflow == "drop_newest":
                     return False
-                out.popleft()
+                self._out_bytes -= _size(out.popleft())
         if not self._flush_pending and self._writable():
             self._flush_pending = True  # frames sent later in this loop iteration are batched
             self._loop.call_soon(self._flush)
             if not out and not self._control:  # the first frame goes out at once: no delay
-                self.transport.write(frame)  # type: ignore[union-attr]
+                _write(self.transport, frame)  # type: ignore[arg-type]
                 return True
         out.append(frame)
+        self._out_bytes += _size(frame)
         return True
+
+    def _full(self) -> bool:
+        return len(self._out) >= self.limit or self._out_bytes >= self.limit_bytes
 
     def adopt(self, other: Link) -> None:
         """Queue what ``other`` (a lost link to the same peer) had not written yet."""
         frames = list(other._out)
         other._out.clear()
+        other._out_bytes = 0
         excess = len(frames) - max(0, self.limit - len(self._out))
         if excess > 0:
             self.dropped += excess
             frames = frames[excess:] if self.overflow == "drop_oldest" else frames[:-excess]
         self._out.extend(frames)
+        self._out_bytes += sum(_size(frame) for frame in frames)
 
     def _writable(self) -> bool:
         return self.transport is not None and not self._paused and not self.lost.done()
@@ -162,13 +184,31 @@ class Link(asyncio.BufferedProtocol):
                 self.transport.write(b"".join(self._control))
                 self._control.clear()
                 self._control_bytes = 0
-            if out:
-                self.transport.write(out[0] if len(out) == 1 else b"".join(out))
-                out.clear()
-            if self._room is not None and not self._room.done():
+            self._write_out()
+            if self._room is not None and not self._room.done() and not self._full():
                 self._room.set_result(None)
         if self._closing and not out and not self._control and self.transport is not None:
             self.transport.close()  # writes what the transport holds, then closes
+
+    def _write_out(self) -> None:
+        """Write queued events until none is left or the transport pauses us (its buffer is
+        full): what stays queued goes out when it resumes, so nothing is ever copied in bulk."""
+        out, transport = self._out, self.transport
+        assert transport is not None
+        while out and not self._paused:
+            if not isinstance(out[0], bytes):  # a large event: header, then data as it is
+                frame = out.popleft()
+                self._out_bytes -= _size(frame)
+                _write(transport, frame)
+                continue
+            batch: list[bytes] = []
+            size = 0
+            while out and size < _BATCH and isinstance(out[0], bytes):
+                small = out.popleft()
+                batch.append(small)  # type: ignore[arg-type]
+                size += len(small)
+            self._out_bytes -= size
+            transport.write(batch[0] if len(batch) == 1 else b"".join(batch))
 
     def pause_writing(self) -> None:
         self._paused = True
@@ -217,12 +257,17 @@ class Link(asyncio.BufferedProtocol):
                 rest = self._end - self._start
                 buf[:rest] = buf[self._start : self._end]
                 self._start, self._end = 0, rest
-            else:
-                buf.extend(bytes(len(buf)))
+            if self._end == len(buf):  # one frame fills it: room for all of it, at once
+                need = len(buf) * 2
+                if self._end >= w.HEADER:
+                    (head,) = _HEAD.unpack_from(buf, 0)
+                    need = max(need, w.HEADER + (head & w.MAX_BODY))
+                buf.extend(bytes(need - len(buf)))
         return memoryview(buf)[self._end :]
 
     def buffer_updated(self, nbytes: int) -> None:
         self._end += nbytes
+        self.read_at = time.time()  # once per read, for every event in it
         try:
             pos = self._start
             while True:  # frame by frame while a Doorman limits it: a Hello lifts the limit
@@ -238,11 +283,22 @@ class Link(asyncio.BufferedProtocol):
             self.abort(f"bad frame: {exc}")
             return
         if pos == self._end:
-            self._start = self._end = 0
             if len(self._buf) > _BUFFER_KEEP:  # a big frame is through: give the memory back
-                self._buf = bytearray(_BUFFER)
+                if not self.keep_big:
+                    self._buf = bytearray(_BUFFER)
+                elif self._end > _BUFFER_KEEP:
+                    self._big_since_trim = True
+            self._start = self._end = 0
         else:
             self._start = pos
+
+    def trim(self) -> None:
+        """With ``keep_big``: give a grown receive buffer back if no big frame came since the
+        last call (call it now and then, e.g. once a second)."""
+        if not self._big_since_trim and len(self._buf) > _BUFFER_KEEP and self._start == self._end:
+            self._buf = bytearray(_BUFFER)
+            self._start = self._end = 0
+        self._big_since_trim = False
 
     def eof_received(self) -> bool:
         return False  # close our side too
@@ -255,6 +311,21 @@ class Link(asyncio.BufferedProtocol):
     def _lost(self, reason: str | None) -> None:
         self.lost.set_result(reason)
         self._on_lost(self, reason)
+
+
+_HEAD = struct.Struct(">I")
+
+
+def _size(frame: bytes | tuple[bytes, bytes]) -> int:
+    return len(frame) if isinstance(frame, bytes) else len(frame[0]) + len(frame[1])
+
+
+def _write(transport: asyncio.Transport, frame: bytes | tuple[bytes, bytes]) -> None:
+    if isinstance(frame, bytes):
+        transport.write(frame)
+    else:  # a large event: its header, then its data as it is
+        transport.write(frame[0])
+        transport.write(frame[1])
 
 
 class Doorman:

@@ -23,6 +23,7 @@ from ._tls import identity
 
 log = logging.getLogger("ups.tcp")
 
+SPLIT = 1 << 14  #: an event with more data than this is queued as (header, data), not joined
 _RETRY_FIRST = 0.05
 _RETRY_MAX = 1.0
 _DIAL_TIMEOUT = 5.0
@@ -92,7 +93,11 @@ class Outbox:
         seq = self._seq[uid] = self._seq.get(uid, 0) + 1  # numbered even with nobody to hear
         peers = self._targets.get(uid)
         if peers:
-            frame = w.encode_event(uid, data, priority, seq)
+            frame: bytes | tuple[bytes, bytes]
+            if len(data) > SPLIT:  # written after its header as it is: never copied here
+                frame = (w.event_header(uid, len(data), priority, seq), data)
+            else:
+                frame = w.encode_event(uid, data, priority, seq)
             for peer in peers:
                 assert peer.link is not None
                 peer.link.send(frame)

@@ -24,7 +24,6 @@ import asyncio
 import contextlib
 import importlib.metadata
 import importlib.util
-import itertools
 import os
 import subprocess
 import sys
@@ -38,7 +37,7 @@ from benchmarks.peers import PROBE, STOP, Control, Link, SinkResult, seq
 from benchmarks.peers._common import Counter
 
 if TYPE_CHECKING:
-    from ups import Node
+    from ups import Message, Node
 
 PING, PONG, DATA = "bench/ping", "bench/pong", "bench/data"
 SETUP_TIMEOUT = 10.0
@@ -145,19 +144,25 @@ def run_pong(link: Link, ctl: Control) -> None:
 
     async def main() -> None:
         async with _node(link, "bench-pong", PONG_ID) as node:
-            sub = await node.subscribe(PING)
-            ctl.ready()
-            publish, get_msg = node.publish, sub.get_msg
+            await node.advertise(PONG)
             loop = asyncio.get_running_loop()
-            # One deadline, moved on now and then: a timeout per get_msg would add its cost.
-            async with asyncio.timeout_at(loop.time() + IDLE_TIMEOUT) as deadline:
-                for i in itertools.count():
-                    data = (await get_msg()).data
-                    await publish(PONG, data)
-                    if data == STOP:
-                        return
-                    if not i % 256:
-                        deadline.reschedule(loop.time() + IDLE_TIMEOUT)
+            stopped = loop.create_future()
+            publish = node.publish_nowait
+            heard = [loop.time()]
+
+            def echo(msg: Message) -> None:  # in the read callback: no task switch
+                publish(PONG, msg.data)
+                heard[0] = loop.time()
+                if msg.data == STOP and not stopped.done():
+                    stopped.set_result(None)
+
+            await node.subscribe(PING, callback=echo)
+            ctl.ready()
+            while not stopped.done():  # up to IDLE_TIMEOUT without a ping: give up
+                idle = loop.time() - heard[0]
+                if idle > IDLE_TIMEOUT:
+                    raise TimeoutError(f"no ping for {IDLE_TIMEOUT} s")
+                await asyncio.wait([stopped], timeout=IDLE_TIMEOUT - idle)
 
     _run(link, main)
 
@@ -168,7 +173,11 @@ def run_ping(link: Link, ctl: Control, warmup: int, rounds: int) -> list[float]:
     async def main() -> list[float]:
         async with _node(link, "bench-ping", PING_ID) as node:
             sub = await node.subscribe(PONG)
-            publish, get_msg = node.publish, sub.get_msg
+            await node.advertise(PING)
+            publish_nowait, get_msg = node.publish_nowait, sub.get_msg
+
+            async def publish(channel: str, data: bytes) -> None:
+                publish_nowait(channel, data)
 
             async def wait_echo(t: float) -> bytes | None:
                 try:
@@ -184,11 +193,11 @@ def run_ping(link: Link, ctl: Control, warmup: int, rounds: int) -> list[float]:
                 for i in range(warmup + rounds):
                     msg = seq(i)
                     t0 = clock()
-                    await publish(PING, msg)
+                    publish_nowait(PING, msg)
                     while (await get_msg()).data != msg:  # a surplus probe's echo
                         pass
                     rtts.append(clock() - t0)
-                await publish(PING, STOP)
+                publish_nowait(PING, STOP)
                 while (await get_msg()).data != STOP:
                     pass
             return rtts[warmup:]
