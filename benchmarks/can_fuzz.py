@@ -70,7 +70,7 @@ from ups._canface import CanFace
 from ups._canlink import CanLink
 from ups._errors import DecodeError
 from ups._message import Message
-from ups._node import Subscription
+from ups._subscription import Subscription
 
 U64 = (1 << 64) - 1
 BIG = 1 << 20  #: subscription queues that never drop during a flood

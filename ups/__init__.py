@@ -25,7 +25,8 @@ if TYPE_CHECKING:
         UpsError,
     )
     from ._message import Message
-    from ._node import Node, Subscription
+    from ._node import Node
+    from ._subscription import Subscription
     from ._tcplink import Overflow
     from ._tls import Tls
 
@@ -47,7 +48,7 @@ _WHERE = {
     "UpsError": "_errors",
     "Message": "_message",
     "Node": "_node",
-    "Subscription": "_node",
+    "Subscription": "_subscription",
     "Overflow": "_tcplink",
     "Tls": "_tls",
 }

@@ -9,7 +9,8 @@ from typing import Any, TypeVar
 
 from ._channel import ChannelLike
 from ._message import Message
-from ._node import DEFAULT_QUEUE, Node, Subscription
+from ._node import Node
+from ._subscription import DEFAULT_QUEUE, Subscription
 from ._tcplink import Overflow
 
 T = TypeVar("T")
