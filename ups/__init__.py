@@ -24,10 +24,10 @@ if TYPE_CHECKING:
         Unschedulable,
         UpsError,
     )
+    from ._face import Overflow
     from ._message import Message
     from ._node import Node
     from ._subscription import Subscription
-    from ._tcplink import Overflow
     from ._tls import Tls
 
 _WHERE = {
@@ -49,7 +49,7 @@ _WHERE = {
     "Message": "_message",
     "Node": "_node",
     "Subscription": "_subscription",
-    "Overflow": "_tcplink",
+    "Overflow": "_face",
     "Tls": "_tls",
 }
 

@@ -8,10 +8,10 @@ from collections.abc import Callable, Coroutine, Iterator
 from typing import Any, TypeVar
 
 from ._channel import ChannelLike
+from ._face import Overflow
 from ._message import Message
 from ._node import Node
 from ._subscription import DEFAULT_QUEUE, Subscription
-from ._tcplink import Overflow
 
 T = TypeVar("T")
 

@@ -15,6 +15,7 @@ import struct
 from dataclasses import dataclass
 
 from ._errors import DecodeError
+from ._face import DEFAULT_PRIORITY as DEFAULT_PRIORITY  # events, unless the channel's is set
 
 PRIORITY_SHIFT = 21
 TXNODE_SHIFT = 14
@@ -29,7 +30,6 @@ LAST_ETAG = 0x3FFF
 CONFIG_PRIORITY = 0x00  #: configuration frames, node requests, SUB_AT
 BIND_PRIORITY = 0x01  #: Bind from the CAN-ECB, PUB_AT from nodes
 FIRST_EVENT_PRIORITY = 0x02  #: events use 0x02..0xFF
-DEFAULT_PRIORITY = 0x80  #: events, unless the channel's priority was set
 NIBBLES = 16  #: a 64-bit node id is offered nibble by nibble, most significant first
 EPOCHS = 16
 CLASSIC_MAX_DATA = 8

@@ -8,10 +8,15 @@ the events it receives. It never imports the node.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
+from typing import Literal, Protocol
 
 from ._channel import Channel
 from ._message import Message
+
+DEFAULT_PRIORITY = 0x80  #: events, unless the channel's priority was set
+#: what a full queue drops: the oldest event queued, or the one arriving
+Overflow = Literal["drop_oldest", "drop_newest"]
+OVERFLOWS: tuple[Overflow, ...] = ("drop_oldest", "drop_newest")
 
 
 class Sink(Protocol):

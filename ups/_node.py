@@ -17,14 +17,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from ._canproto import DEFAULT_PRIORITY
 from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError
-from ._face import ChannelState, Face, Sink
+from ._face import DEFAULT_PRIORITY, OVERFLOWS, ChannelState, Face, Overflow, Sink
 from ._message import Message
 from ._nodeid import claim_node_id
 from ._subscription import DEFAULT_QUEUE, YIELD_EVERY, Subscription, wait
-from ._tcplink import OVERFLOWS, Overflow
 from ._tls import Tls
 
 log = logging.getLogger("ups")

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 from ._channel import Channel
 from ._errors import Closed, ConfigError
+from ._face import Overflow
 from ._message import Message
-from ._tcplink import Overflow
 
 if TYPE_CHECKING:
     from ._node import Node

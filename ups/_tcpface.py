@@ -17,8 +17,9 @@ from typing import TYPE_CHECKING, Any
 from . import _tcpwire as w
 from ._address import parse_address
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
+from ._face import OVERFLOWS, Overflow
 from ._tcpinbox import Inbox
-from ._tcplink import OVERFLOWS, Link, Overflow
+from ._tcplink import Link
 from ._tcpoutbox import Outbox
 from ._tls import Tls, identity
 

@@ -26,15 +26,14 @@ import resource
 import struct
 import time
 from collections.abc import Callable
-from typing import Any, Literal, cast
+from typing import Any, cast
 
 from . import _tcpwire as w
 from ._errors import DecodeError
+from ._face import Overflow
 
 log = logging.getLogger("ups.tcp")
 
-Overflow = Literal["drop_oldest", "drop_newest"]
-OVERFLOWS: tuple[Overflow, ...] = ("drop_oldest", "drop_newest")
 _BUFFER = 1 << 14  # receive buffer to begin with; grown to hold a bigger frame whole ...
 _BUFFER_KEEP = 1 << 18  # ... and given back once empty, when it grew past this (see trim)
 _WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us

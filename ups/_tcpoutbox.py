@@ -18,7 +18,8 @@ from collections.abc import Callable
 from typing import Any
 
 from . import _tcpwire as w
-from ._tcplink import Link, Overflow
+from ._face import Overflow
+from ._tcplink import Link
 from ._tls import identity
 
 log = logging.getLogger("ups.tcp")
