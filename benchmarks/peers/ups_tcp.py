@@ -7,14 +7,16 @@ afterwards. Each role is one ``Node``; events go from the publishing node straig
 subscribing node over the direct TCP link that the publisher dials (its frames coalesced
 once per loop iteration), never through the ECB.
 
-Round trip: the pong subscribes ``bench/ping`` and publishes each event's data back on
-``bench/pong``; the ping subscribes ``bench/pong`` and, as every pub/sub peer here, probes
-until an echo comes back before it measures. Throughput: the sink subscribes
-``bench/data``; the source publishes probes until its link to the sink is up (the sink does
-not count them), then ``count`` events, yielding to the loop every :data:`YIELD_EVERY`
-publishes so the coalesced writes go out. Queues are large enough that nothing is dropped
-(as zmq with HWM=0): the sink's subscription holds ``count`` events, the source's queue to
-the sink ``count`` frames. ``link.options["loop"]`` picks ``"uvloop"`` or ``"asyncio"``
+UPS's fast path, as an application that counts microseconds uses it (zenoh's peer uses its
+callbacks too): callback subscriptions and ``publish_nowait`` on advertised channels.
+Round trip: the pong subscribes ``bench/ping`` with a callback that publishes each event's
+data back on ``bench/pong``; the ping subscribes ``bench/pong`` (``get_msg``: its task waits
+for each echo) and, as every pub/sub peer here, probes until an echo comes back before it
+measures. Throughput: the sink counts ``bench/data`` in a callback; the source publishes
+probes until its link to the sink is up (the sink does not count them), then ``count``
+events, yielding to the loop every :data:`YIELD_EVERY` publishes so the coalesced writes go
+out. Queues are large enough that nothing is dropped (as zmq with HWM=0): the source's queue
+to the sink holds ``count`` frames. ``link.options["loop"]`` picks ``"uvloop"`` or ``"asyncio"``
 (the stdlib loop) for the roles; the broker runs on uvloop when it is installed.
 """
 
@@ -207,24 +209,26 @@ def run_ping(link: Link, ctl: Control, warmup: int, rounds: int) -> list[float]:
 
 
 def run_sink(link: Link, ctl: Control, count: int, idle_timeout: float) -> SinkResult:
-    """Count ``bench/data`` events (probes aside) until ``count`` or nothing came for a while."""
+    """Count ``bench/data`` events (probes aside) in a callback subscription, as they arrive,
+    until ``count`` or nothing came for a while."""
 
     async def main() -> SinkResult:
         counter = Counter(count, idle_timeout)
         async with _node(link, "bench-sink", SINK_ID) as node:
-            sub = await node.subscribe(DATA, maxlen=count + 1024)
-            ctl.ready()
-            get_msg, add = sub.get_msg, counter.add
-            while not counter.finished():
-                try:  # wait for the next event, with a timeout
-                    msg = await get_msg(timeout=max(counter.remaining(), 1e-3))
-                except TimeoutError:
-                    break
+            loop = asyncio.get_running_loop()
+            done = loop.create_future()
+            add = counter.add
+
+            def on_event(msg: Message) -> None:  # in the read callback: no queue, no task
                 if msg.data != PROBE:
                     add()
-                while sub.pending and not counter.done:  # then take what is queued
-                    if (await get_msg()).data != PROBE:
-                        add()
+                    if counter.done and not done.done():
+                        done.set_result(None)
+
+            await node.subscribe(DATA, callback=on_event)
+            ctl.ready()
+            while not counter.finished():
+                await asyncio.wait([done], timeout=min(0.1, max(counter.remaining(), 1e-3)))
         return counter.result()
 
     result: SinkResult = _run(link, main)
@@ -244,9 +248,9 @@ def run_source(link: Link, ctl: Control, count: int) -> None:
                 if time.monotonic() > deadline:
                     raise TimeoutError(f"no link to the sink within {SETUP_TIMEOUT} s")
                 await asyncio.sleep(0.005)
-            publish = node.publish
+            publish = node.publish_nowait
             for i in range(count):
-                await publish(DATA, seq(i))
+                publish(DATA, seq(i))
                 if i % YIELD_EVERY == YIELD_EVERY - 1:
                     await asyncio.sleep(0)  # let the coalesced writes go out
             await asyncio.to_thread(ctl.wait_release)  # a drop would show at the sink
