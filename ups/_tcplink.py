@@ -2,14 +2,15 @@
 
 Receiving: a ``BufferedProtocol`` whose one buffer is reused for every read; whole frames are
 decoded in place (``_tcpwire.parse``), events without building a frame object. Bad bytes close
-this connection only. Sending: the first frame of an event-loop iteration is written at once;
-the frames that follow it in the same iteration are queued and written at its end (or as soon
-as the queue is full), joined into writes of about 64 KiB, so a burst costs a few system calls,
-not one each. A large event is queued as its header and its data, and the data is handed to
-the transport as it is (never joined, never copied here). Writing stops while the transport
-is paused (its buffer is full) and goes on when it resumes. The event queue is bounded: while
-the peer does not read it fills up to ``limit`` frames or ``limit_bytes`` bytes, then
-``overflow`` decides which event is lost, and ``dropped`` counts it.
+this connection only. Sending: the first frame after a read (on any link: an answer, a
+forwarded event) is written at once, with nothing scheduled; the frames that follow it are
+queued and written at the end of the loop iteration (or as soon as the queue is full), joined
+into writes of about 64 KiB, so a burst costs a few system calls, not one each. A large event
+is queued as its header and its data, and the data is handed to the transport as it is (never
+joined, never copied here). Writing stops while the transport is paused (its buffer is full)
+and goes on when it resumes. The event queue is bounded: while the peer does not read it
+fills up to ``limit`` frames or ``limit_bytes`` bytes, then ``overflow`` decides which event
+is lost, and ``dropped`` counts it.
 Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of
 their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them,
 or ``CONTROL_BYTES`` of them, unread is cut off.
@@ -84,6 +85,7 @@ class Link(asyncio.BufferedProtocol):
         self._control_bytes = 0
         self._room: asyncio.Future[None] | None = None  # awaited by a publisher for room
         self._flush_pending = False
+        self._epoch = -1  # _reads when this link last wrote a frame at once
         self._paused = False
         self._closing = False
         self._loop = asyncio.get_running_loop()
@@ -146,12 +148,24 @@ class Link(asyncio.BufferedProtocol):
                 if self.overflow == "drop_newest":
                     return False
                 self._out_bytes -= _size(out.popleft())
+        transport = self.transport
+        if (
+            not out
+            and not self._control
+            and self._epoch != _reads[0]
+            and transport is not None
+            and not self._paused
+            and not self.lost.done()
+        ):  # the first frame since something was read: no batch to join, out at once
+            self._epoch = _reads[0]
+            if type(frame) is bytes:
+                transport.write(frame)
+            else:
+                _write(transport, frame)
+            return True
         if not self._flush_pending and self._writable():
             self._flush_pending = True  # frames sent later in this loop iteration are batched
             self._loop.call_soon(self._flush)
-            if not out and not self._control:  # the first frame goes out at once: no delay
-                _write(self.transport, frame)  # type: ignore[arg-type]
-                return True
         out.append(frame)
         self._out_bytes += _size(frame)
         return True
@@ -265,6 +279,7 @@ class Link(asyncio.BufferedProtocol):
         return memoryview(buf)[self._end :]
 
     def buffer_updated(self, nbytes: int) -> None:
+        _reads[0] += 1
         self._end += nbytes
         self.read_at = time.time()  # once per read, for every event in it
         try:
@@ -313,6 +328,10 @@ class Link(asyncio.BufferedProtocol):
 
 
 _HEAD = struct.Struct(">I")
+#: reads on any link of this process: a frame sent after a read is written at once (an answer,
+#: a forwarded event), further frames until the next read are batched at the end of the
+#: loop iteration (a burst). Counted, not timed: the loop has no iteration number.
+_reads = [0]
 
 
 def _size(frame: bytes | tuple[bytes, bytes]) -> int:

@@ -35,6 +35,7 @@ MAX_SEQ = (1 << 64) - 1
 _HEAD = struct.Struct(">I")
 _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, seq
 _EVENT_KIND = 0x01
+_pack_event = _EVENT_HEAD.pack
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,7 +189,10 @@ def encode(frame: Frame) -> bytes:
 
 def encode_event(uid: int, data: bytes, priority: int, seq: int) -> bytes:
     """The bytes of an Event frame: the publish hot path (no dataclass, no msgpack)."""
-    return event_header(uid, len(data), priority, seq) + data
+    size = len(data)
+    if size > MAX_BODY - 18:
+        raise ValueError(f"event of {size} bytes exceeds {MAX_BODY - 18}")
+    return _pack_event(VERSION << 24 | (18 + size), _EVENT_KIND, priority, uid, seq) + data
 
 
 def event_header(uid: int, size: int, priority: int, seq: int) -> bytes:
