@@ -230,10 +230,10 @@ class CanEcb:
     def _recovered(self) -> None:
         self._recovery_timer = None
         self.recovering = False
-        self._started_up = True
         self._strays.clear()
         if self.standby:
             return
+        self._started_up = True
         deferred, self._deferred = list(self._deferred), {}
         for kind, txnode, uid, size_class in deferred:
             self._on_bind_request(p.Request(kind, txnode, uid, size_class))
@@ -371,6 +371,7 @@ class CanEcb:
         if time.monotonic() - self._other_heard > 2 * STANDBY_PROBE:
             log.warning("the other CAN-ECB is silent: this one serves the bus again")
             self.standby = False
+            self._started_up = False  # it heard nothing while standing by: learn the bus anew
             self._hello()
             return
         self._send(p.Serving(self.instance))  # a CAN-ECB that serves answers with its own

@@ -122,6 +122,11 @@ async def test_a_second_can_ecb_stands_by_and_takes_over_when_the_first_goes(
                     await third.subscribe("new/after")
                     await third.publish("kept", b"2")
                     assert (await sub.get_msg(timeout=5)).data == b"2"
+                    # it learnt the bus from the nodes' claims: it gave no TxNode twice ...
+                    assert third.stats()["txnode"] != node.stats()["txnode"]
+                # ... and contradicted no binding
+                assert node.stats()["rebinds"] == 0
+                assert not any("asked nothing" in line for line in b.stderr_lines)
         assert any("another CAN-ECB" in line for line in a.stderr_lines)
 
 
