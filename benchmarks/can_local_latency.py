@@ -1,9 +1,12 @@
-"""Local notification latency on CAN, as in Table 3 of the paper.
+"""Local notification and publish latency on CAN, as in Tables 3 and 4 of the paper.
 
-From the moment a frame reaches the node (the kernel's receive timestamp) until every one of
-N local subscribers (N = 1..4, each an asyncio task awaiting ``get_msg``) holds the event.
+Table 3: from the moment a frame reaches the node (the kernel's receive timestamp) until every
+one of N local subscribers (N = 1..4, each an asyncio task awaiting ``get_msg``) holds the event.
 Beside it, in the same run, the floor: a plain python-can bus in a blocking ``recv`` loop (the
 same interface and kernel timestamp, no middleware).
+
+Table 4: from a ``publish`` call until the frame is on the bus (the kernel's receive time of
+its datagram at a python-can listener in the same process).
 
 The frames come from a separate ``ups pub`` process, 1-byte payloads (as in the paper), paced so
 that the receiver is idle when each one arrives. Runs on udp_multicast, so it must run inside a
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import statistics
 import subprocess
 import sys
@@ -80,6 +84,30 @@ def raw_latency(bus: str, count: int, rate: float) -> list[float]:
     return lat
 
 
+async def publish_latency(bus: str, count: int, rate: float) -> list[float]:
+    """Table 4: from the ``publish`` call until the frame is on the bus, i.e. the kernel's
+    receive time of its datagram at a plain python-can listener on the same interface."""
+    listener = open_bus(bus)
+    try:
+        async with Node(can=bus, node_id=0x1A7D) as node:
+            await node.advertise("bench/publish")
+            lat: list[float] = []
+            for i in range(count):
+                called = time.time()
+                await node.publish("bench/publish", bytes([i & 0xFF]))
+                while True:  # the listener hears every frame on the bus: find ours
+                    frame = await asyncio.to_thread(listener.recv, 5)
+                    if frame is None:
+                        raise TimeoutError("the published frame never reached the listener")
+                    if frame.data == bytes([i & 0xFF]) and frame.arbitration_id & 0x3FFF >= 0x10:
+                        break
+                lat.append(frame.timestamp - called)
+                await asyncio.sleep(1 / rate)
+            return lat
+    finally:
+        listener.shutdown()
+
+
 def summary(values: list[float]) -> tuple[float, float, float, float, float]:
     us = sorted(v * 1e6 for v in values)
     p99 = us[min(len(us) - 1, int(len(us) * 0.99))]
@@ -91,6 +119,7 @@ async def main() -> None:
     parser.add_argument("--can", default="udp_multicast:239.74.163.2,port=43190")
     parser.add_argument("--count", type=int, default=500, help="events per configuration")
     parser.add_argument("--rate", type=float, default=500.0, help="events per second")
+    parser.add_argument("--json", type=Path, help="also write every summary as JSON here")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         link = CanLink.open(args.can)
@@ -102,6 +131,7 @@ async def main() -> None:
             for n in range(1, 5):
                 lat = await ups_latency(args.can, n, args.count, args.rate)
                 rows.append((f"UPS, {n} local subscriber(s)", summary(lat), n))
+            published = summary(await publish_latency(args.can, args.count, args.rate))
         finally:
             ecb.close()
             link.close()
@@ -112,6 +142,16 @@ async def main() -> None:
         paper = f"{PAPER_RTLINUX_AVG_US[n]:>6.1f} µs" if n else ""
         print(f"{label:28} {lo:7.1f} {avg:7.1f} {p50:7.1f} {p99:7.1f} {hi:7.1f}  {paper}")
     print(f"(µs; p50 of UPS with 1 subscriber = {rows[1][1][2] / floor_p50:.2f}x the floor)")
+    lo, avg, p50, p99, hi = published
+    print(f"publish call -> frame on the bus (Table 4): min {lo:.1f} avg {avg:.1f} p50 {p50:.1f} "
+          f"p99 {p99:.1f} max {hi:.1f} µs; paper (RTLinux) avg 153 µs")  # fmt: skip
+    if args.json:
+        keys = ("min", "avg", "p50", "p99", "max")
+        doc = {"floor_us": dict(zip(keys, rows[0][1], strict=True)),
+               "local_notify_us": {str(n): dict(zip(keys, r, strict=True))
+                                   for _, r, n in rows if n},
+               "publish_latency_us": dict(zip(keys, published, strict=True))}  # fmt: skip
+        args.json.write_text(json.dumps(doc, indent=1))
 
 
 if __name__ == "__main__":

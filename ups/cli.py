@@ -271,6 +271,14 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_demo)
 
+    cmd = command(
+        "bench", help="measure everything beside the paper and the peers (pyzmq, MQTT, zenoh)"
+    )
+    cmd.add_argument("--quick", action="store_true", help="fewer samples (about 4 minutes)")
+    cmd.add_argument("--json", metavar="PATH", help="write every figure as JSON here")
+    cmd.add_argument("--report", metavar="DIR", help="write report.md, results.json and plots")
+    cmd.set_defaults(run=_run_bench)
+
     cmd = command("completion", help='print a bash completion script: eval "$(ups completion)"')
     cmd.set_defaults(run=_run_completion)
     return parser
@@ -482,6 +490,20 @@ def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
             }
         )
     return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}  from={source or '-'}"
+
+
+def _run_bench(args: argparse.Namespace) -> int:
+    try:
+        from benchmarks import bench
+    except ImportError as exc:
+        raise ConfigError(
+            f"the benchmarks are not installed ({exc}): pip install 'ups-pubsub[bench]', or run "
+            "from a checkout of the repository"
+        ) from None
+    argv = ["--quick"] if args.quick else []
+    argv += ["--json", args.json] if args.json else []
+    argv += ["--report", args.report] if args.report else []
+    return bench.main(argv)
 
 
 def _run_demo(args: argparse.Namespace) -> int:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from .._cliargs import add_catalog
@@ -38,15 +37,18 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument("--json", action="store_true", help="one JSON object per line")
 
 
-@dataclass
 class Tally:
-    """What reading a recording found, beyond its events."""
+    """What reading a recording found, beyond its events (a plain class: ``ups --help``
+    imports this module, and dataclasses is a heavy import)."""
 
-    events: int = 0
-    management: int = 0
-    foreign: int = 0  #: 11-bit, error and remote frames, malformed management frames
-    unbound: int = 0  #: events on etags bound to no known channel
-    fragments: int = 0  #: frames of transfers (events larger than one frame) before the last
+    __slots__ = ("events", "foreign", "fragments", "management", "unbound")
+
+    def __init__(self) -> None:
+        self.events = 0
+        self.management = 0
+        self.foreign = 0  #: 11-bit, error and remote frames, malformed management frames
+        self.unbound = 0  #: events on etags bound to no known channel
+        self.fragments = 0  #: frames of transfers (events larger than one frame) before the last
 
 
 def bindings_for(path: str, sidecar: str | None, db: str | None) -> Bindings:

@@ -1,0 +1,236 @@
+"""Lossless fan-out on loopback: one publisher, N subscriber processes, UPS against pyzmq.
+
+For each N, in one run: the publisher sends M 8-byte messages to N subscribers, each a process
+that counts what arrives. Lossless: UPS publishes with ``wait=True`` (backpressure), pyzmq runs
+with HWM=0 (no limit). Reported: messages delivered per second in all (N x M over the time from
+the first arrival anywhere to the last), and per subscriber; and UPS / pyzmq. Every child is
+spawned here, every wait bounded, every child stopped by its PID.
+
+    .venv/bin/python -m benchmarks.fanout [--subscribers 1,2,4,8,16,32] [--messages M]
+        [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import importlib.util
+import json
+import multiprocessing
+import sys
+import time
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from benchmarks._daemons import free_port, process
+
+HOST = "127.0.0.1"
+TIMEOUT = 120.0
+PROBE = b"probe"
+_SPAWN = multiprocessing.get_context("spawn")
+
+
+def _loop_run(main: Any) -> Any:
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(main)
+    return uvloop.run(main)
+
+
+# --- UPS -------------------------------------------------------------------------------------
+
+
+def _ups_sink(address: str, index: int, count: int, pipe: Connection) -> None:
+    from ups import Message, Node
+
+    async def main() -> None:
+        seen = [0, 0.0, 0.0]  # count, first, last
+        loop = asyncio.get_running_loop()
+        done = loop.create_future()
+
+        def on_event(msg: Message) -> None:
+            seen[2] = time.perf_counter()
+            if not seen[0]:
+                seen[1] = seen[2]
+            seen[0] += 1
+            if seen[0] == count and not done.done():
+                done.set_result(None)
+
+        async with Node(broker=address, name=f"fan-{index}", node_id=0xFA0000 + index) as node:
+            await node.subscribe("bench/fanout", callback=on_event)
+            pipe.send("ready")
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(done, TIMEOUT)
+        pipe.send(tuple(seen))
+
+    _loop_run(main())
+
+
+def _ups_source(address: str, subscribers: int, count: int, pipe: Connection) -> None:
+    from ups import Node
+
+    async def main() -> None:
+        async with Node(broker=address, name="fan-source", node_id=0xFAFFFF) as node:
+            await node.advertise("bench/fanout")
+            deadline = time.monotonic() + TIMEOUT
+            while node.stats()["peers"] < subscribers:
+                if time.monotonic() > deadline:
+                    raise TimeoutError("not every subscriber was reached")
+                await asyncio.sleep(0.01)
+            data = bytes(8)
+            for _ in range(count):
+                await node.publish("bench/fanout", data, wait=True)
+            await asyncio.to_thread(pipe.recv)  # until the sinks are done
+
+    _loop_run(main())
+
+
+def ups(subscribers: int, count: int) -> dict[str, Any]:
+    address = f"{HOST}:{free_port()}"
+    cmd = [sys.executable, "-m", "ups.cli", "broker", "--listen", address, "--recovery", "0"]
+    with process(cmd, "TCP-ECB on"):
+        return _measure(_ups_sink, _ups_source, address, subscribers, count)
+
+
+# --- pyzmq -----------------------------------------------------------------------------------
+
+
+def _zmq_sink(address: str, index: int, count: int, pipe: Connection) -> None:
+    import zmq
+
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.SUB)
+    sock.setsockopt(zmq.RCVHWM, 0)
+    sock.setsockopt(zmq.SUBSCRIBE, b"")
+    sock.connect(address)
+    sock.setsockopt(zmq.RCVTIMEO, int(TIMEOUT * 1000))
+    try:
+        while sock.recv() != PROBE:  # the publisher probes until every subscriber is in
+            pass
+        pipe.send("ready")
+        seen = [0, 0.0, 0.0]
+        while seen[0] < count:
+            if sock.recv() == PROBE:
+                continue
+            seen[2] = time.perf_counter()
+            if not seen[0]:
+                seen[1] = seen[2]
+            seen[0] += 1
+    except zmq.Again:
+        pass
+    finally:
+        sock.close(linger=0)
+        ctx.term()
+    pipe.send(tuple(seen))
+
+
+def _zmq_source(address: str, subscribers: int, count: int, pipe: Connection) -> None:
+    import zmq
+
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.PUB)
+    sock.setsockopt(zmq.SNDHWM, 0)
+    sock.bind(address)
+    try:
+        deadline = time.monotonic() + TIMEOUT
+        while not pipe.poll(0.01):  # "all ready", from the parent
+            sock.send(PROBE)
+            if time.monotonic() > deadline:
+                raise TimeoutError("not every subscriber joined")
+        pipe.recv()
+        data = bytes(8)
+        for _ in range(count):
+            sock.send(data)
+        pipe.recv()
+    finally:
+        sock.close(linger=0)
+        ctx.term()
+
+
+def zmq(subscribers: int, count: int) -> dict[str, Any]:
+    return _measure(_zmq_sink, _zmq_source, f"tcp://{HOST}:{free_port()}", subscribers, count)
+
+
+# --- both ------------------------------------------------------------------------------------
+
+
+def _measure(sink: Any, source: Any, address: str, subscribers: int, count: int) -> dict[str, Any]:
+    pipes, procs = [], []
+    src_pipe, src_theirs = _SPAWN.Pipe()
+    src = _SPAWN.Process(target=source, args=(address, subscribers, count, src_theirs))
+    try:
+        if source is _zmq_source:  # zmq: the publisher binds first
+            src.start()
+        for i in range(subscribers):
+            mine, theirs = _SPAWN.Pipe()
+            proc = _SPAWN.Process(target=sink, args=(address, i, count, theirs))
+            proc.start()
+            pipes.append(mine)
+            procs.append(proc)
+        for pipe in pipes:
+            if not pipe.poll(TIMEOUT) or pipe.recv() != "ready":
+                raise TimeoutError("a subscriber did not get ready")
+        if source is _zmq_source:
+            src_pipe.send("go")
+        else:
+            src.start()
+        results = []
+        for pipe in pipes:
+            if not pipe.poll(TIMEOUT + 30):
+                raise TimeoutError("a subscriber did not report")
+            results.append(pipe.recv())
+        src_pipe.send("done")
+    finally:
+        for proc in [src, *procs]:
+            if proc.pid is not None:
+                proc.join(10)
+                if proc.is_alive():
+                    proc.kill()
+                    proc.join(5)
+    received = sum(r[0] for r in results)
+    span = max(r[2] for r in results) - min(r[1] for r in results)
+    return {
+        "subscribers": subscribers,
+        "sent": count,
+        "received": received,
+        "lost": subscribers * count - received,
+        "total_msgs_per_s": received / span if span > 0 else 0.0,
+        "per_subscriber_msgs_per_s": received / span / subscribers if span > 0 else 0.0,
+    }
+
+
+def run(subscribers: tuple[int, ...], count: int) -> list[dict[str, Any]]:
+    have_zmq = importlib.util.find_spec("zmq") is not None
+    rows = []
+    for n in subscribers:
+        row: dict[str, Any] = {"subscribers": n, "ups": ups(n, count)}
+        row["zmq"] = zmq(n, count) if have_zmq else None
+        if row["zmq"] and row["zmq"]["total_msgs_per_s"]:
+            row["ratio"] = row["ups"]["total_msgs_per_s"] / row["zmq"]["total_msgs_per_s"]
+        rows.append(row)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--subscribers", default="1,2,4,8,16,32")
+    parser.add_argument("--messages", type=int, default=100_000, help="per subscriber")
+    parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON here")
+    args = parser.parse_args()
+    rows = run(tuple(int(n) for n in args.subscribers.split(",")), args.messages)
+    print(f"{'subs':>5}{'UPS msg/s':>12}{'lost':>6}{'pyzmq msg/s':>13}{'lost':>6}{'x zmq':>7}")
+    for r in rows:
+        z = r["zmq"] or {"total_msgs_per_s": 0.0, "lost": "-"}
+        print(
+            f"{r['subscribers']:>5}{r['ups']['total_msgs_per_s']:>12,.0f}{r['ups']['lost']:>6}"
+            f"{z['total_msgs_per_s']:>13,.0f}{z['lost']:>6}{r.get('ratio', 0.0):>7.2f}"
+        )
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
