@@ -124,7 +124,7 @@ class Link(asyncio.BufferedProtocol):
 
     async def room(self) -> None:
         """Wait until the event queue has room (or the link is gone): backpressure."""
-        while self._full() and not self._closing and not self.lost.done():
+        while self.full and not self._closing and not self.lost.done():
             if self._room is None or self._room.done():
                 self._room = self._loop.create_future()
             waiters: set[asyncio.Future[Any]] = {self._room, self.lost}
@@ -143,7 +143,7 @@ class Link(asyncio.BufferedProtocol):
         if len(out) >= self.limit or self._out_bytes >= self.limit_bytes:
             if self._writable():  # a producer that never yields: write the batch now
                 self._flush()
-            while out and self._full():  # the peer does not read fast enough
+            while out and self.full:  # the peer does not read fast enough
                 self.dropped += 1
                 if self.overflow == "drop_newest":
                     return False
@@ -170,7 +170,9 @@ class Link(asyncio.BufferedProtocol):
         self._out_bytes += _size(frame)
         return True
 
-    def _full(self) -> bool:
+    @property
+    def full(self) -> bool:
+        """The event queue holds ``limit`` frames or ``limit_bytes`` bytes: ``room`` waits."""
         return len(self._out) >= self.limit or self._out_bytes >= self.limit_bytes
 
     def adopt(self, other: Link) -> None:
@@ -198,7 +200,7 @@ class Link(asyncio.BufferedProtocol):
                 self._control.clear()
                 self._control_bytes = 0
             self._write_out()
-            if self._room is not None and not self._room.done() and not self._full():
+            if self._room is not None and not self._room.done() and not self.full:
                 self._room.set_result(None)
         if self._closing and not out and not self._control and self.transport is not None:
             self.transport.close()  # writes what the transport holds, then closes

@@ -106,7 +106,13 @@ class Outbox:
 
     async def room(self, uid: int) -> None:
         """Wait until every subscriber of the channel has room in its queue."""
-        for peer in list(self._targets.get(uid, ())):
+        peers = self._targets.get(uid, ())
+        for peer in peers:  # the common case: all have room, and nothing is awaited
+            if peer.link is not None and peer.link.full:
+                break
+        else:
+            return
+        for peer in list(peers):
             if peer.link is not None:
                 await peer.link.room()
 
