@@ -137,6 +137,15 @@ class Link(asyncio.BufferedProtocol):
         it was dropped: the queue was full (and ``overflow`` is drop_newest), or the link is
         closing."""
         out = self._out
+        if (
+            self._flush_pending  # a batch is being gathered for the end of this iteration
+            and not self._closing
+            and len(out) < self.limit
+            and self._out_bytes < self.limit_bytes
+        ):  # the fast path of a burst, and of fan-out to many subscribers
+            out.append(frame)
+            self._out_bytes += len(frame) if type(frame) is bytes else _size(frame)
+            return True
         if self._closing:
             self.dropped += 1
             return False
