@@ -1,26 +1,41 @@
-"""What ``ups bench`` prints and writes: tables beside the paper's figures, the issue's targets
-met or missed with their ratios, and plots (matplotlib, when installed)."""
+"""What ``ups bench`` prints and writes: tables beside the paper's figures and the floors and
+peers of the same run, issue 11's targets met or missed with their ratios, and plots
+(matplotlib, when installed). The same tables go to the terminal (aligned text) and to
+report.md (Markdown)."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
-#: the paper's section 6 (PERFORMANCE.md): Pentium III 800 MHz, RTLinux, C167 CAN nodes
+from benchmarks._plots import plots
+
+#: the paper's section 6 (PERFORMANCE.md, table5.PAPER): Pentium III 800 MHz, RTLinux, C167
 PAPER: dict[str, Any] = {
     "local_notify_us": {"1": 17.5, "2": 22.6, "3": 27.9, "4": 34.3},  # Table 3, RTLinux avg
     "publish_latency_us": 153.0,  # Table 4, RTLinux avg
-    "rtt_us": {
-        "tcp_same_host": 421.0,
-        "tcp_two_hosts": 1020.0,
-        "tcp_gateway_can": 4099.0,
-        "can_gateway_tcp": 4099.0,
+    "rtt_us": {  # Table 5, averages
+        "tcp_same_host": 421.0,  # PC1 -> PC1
+        "tcp_two_hosts": 1020.0,  # PC1 -> PC2, Ethernet
+        "tcp_gateway_can": 4099.0,  # PC1 -> gw -> C167
+        "can_gateway_tcp": 4350.0,  # C167 -> gw -> PC1
+        "can_can": 3769.0,  # C167 -> RTLinux
     },
     # Table 6: ECH/TCP 53 + ECH/CAN 45 KB, ECB 47 KB, gateway 177 KB (compiled)
     "code_kb": {"ECB (broker)": 47, "ECH (ups, without tools and rt)": 98, "gateway": 177},
 }
+RTT_LABELS = {
+    "tcp_same_host": "TCP same host",
+    "tcp_two_hosts": "TCP two hosts (netns + veth)",
+    "tcp_gateway_can": "TCP -> gateway -> CAN node",
+    "can_gateway_tcp": "CAN node -> gateway -> TCP",
+    "can_can": "CAN node -> CAN node",
+}
+UPS_ROWS = ("UPS TCP, uvloop", "UPS TCP, stdlib loop")
+BUS = 7634  # a saturated 1 Mbit/s classic bus, 8-byte extended frames, no stuffing
 _PEER_PACKAGES = {
     "zmq": "pyzmq",
     "paho": "paho-mqtt",
@@ -28,290 +43,266 @@ _PEER_PACKAGES = {
     "uvloop": "uvloop",
     "matplotlib": "matplotlib",
 }
+#: what each figure of the paper's section is, exactly
+NOTES = [
+    "local notification (Table 3): from the kernel's receive timestamp of the frame's "
+    "datagram (udp_multicast, SO_TIMESTAMPNS) until the last of N subscriber tasks holds the "
+    "event; floor: python-can's blocking recv of the same frames, same run.",
+    "publish -> frame on the bus (Table 4): from the publish() call until the kernel's receive "
+    "timestamp of the frame at a plain python-can listener on the same bus, same process.",
+    "round trips (Table 5): 8 B, one at a time, pinger/echo/gateway pinned to one CPU, UPS's "
+    "default path (get_msg, awaited publish); floors: blocking TCP and python-can echoes. "
+    "The peers' table runs UPS's fast path instead (callback subscriptions, publish_nowait).",
+    "one way: the rate at the sink, first to last arrival, every event counted (lost); UPS "
+    "publishes with backpressure (wait=True) in the payload and fan-out tables, pyzmq with "
+    "HWM=0; raw TCP is a blocking socket with a 4-byte length before each message.",
+    "code size (Table 6): Python source here, compiled C (RTLinux modules) in the paper.",
+]
+Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
 
 
 def missing_peers() -> list[str]:
-    return [dist for mod, dist in _PEER_PACKAGES.items() if importlib.util.find_spec(mod) is None]
+    """The bench extra's packages (and the mosquitto binary) that are not installed."""
+    gone = [d for mod, d in _PEER_PACKAGES.items() if importlib.util.find_spec(mod) is None]
+    if not (shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin:/sbin")):
+        gone.append("mosquitto")
+    return gone
 
 
 def _ratio(a: float | None, b: float | None) -> float | None:
     return a / b if a and b else None
 
 
-def targets(r: dict[str, Any]) -> list[tuple[str, float | None, str, bool | None]]:
-    """(target, measured ratio, what it is measured against, met) for each of issue 11's."""
+def _f(value: float | None, spec: str = ".0f", suffix: str = "") -> str:
+    return "-" if value is None else format(value, spec) + suffix
+
+
+def _x(a: float | None, b: float | None) -> str:
+    return _f(_ratio(a, b), ".2f", "x")
+
+
+def _ups_row(r: dict[str, Any]) -> dict[str, Any]:
     rows = r.get("tcp_compare", {}).get("rows", {})
-    ups = rows.get("UPS TCP, uvloop") or rows.get("UPS TCP, stdlib loop") or {}
-    raw = rows.get("raw TCP", {})
+    return next((rows[k] for k in UPS_ROWS if rows.get(k, {}).get("rtt_p50_us")), {})
+
+
+def targets(r: dict[str, Any]) -> list[tuple[str, float | None, str, bool | None]]:
+    """(target, measured, against what, met) for each of issue 11's; met is None when the
+    figure was not measured in this run."""
+    rows = r.get("tcp_compare", {}).get("rows", {})
+    ups, raw = _ups_row(r), rows.get("raw TCP", {})
     out: list[tuple[str, float | None, str, bool | None]] = []
+
+    def add(name: str, value: float | None, against: str, ok: bool) -> None:
+        out.append((name, value, against, None if value is None else ok))
+
     rtt = _ratio(ups.get("rtt_p50_us"), raw.get("rtt_p50_us"))
-    out.append(("round trip p50 <= 2x raw TCP", rtt, "raw TCP", None if rtt is None else rtt <= 2))
+    add("round trip p50 <= 2x raw TCP", rtt, "x raw TCP", rtt is not None and rtt <= 2)
     others = [
-        row.get("rtt_p50_us")
+        row["rtt_p50_us"]
         for label, row in rows.items()
         if not label.startswith(("UPS", "raw", "asyncio")) and row.get("rtt_p50_us")
     ]
-    if others and ups.get("rtt_p50_us"):
-        best = min(others)
-        out.append(
-            (
-                "round trip below every peer",
-                ups["rtt_p50_us"] / best,
-                "the fastest peer",
-                ups["rtt_p50_us"] < best,
-            )
-        )
+    best = _ratio(ups.get("rtt_p50_us"), min(others, default=None))
+    add("round trip p50 below every peer", best, "x fastest peer", best is not None and best < 1)
     zmq, zenoh = rows.get("pyzmq PUB/SUB, HWM=0", {}), rows.get("zenoh peer-to-peer", {})
-    tput = _ratio(ups.get("rate_msg_s"), zmq.get("rate_msg_s"))
     lossless = not ups.get("lost")
-    out.append(
-        (
-            "throughput >= 0.6x pyzmq, zero loss",
-            tput,
-            "pyzmq",
-            None if tput is None else tput >= 0.6 and lossless,
-        )
-    )
-    vs_zenoh = _ratio(ups.get("rate_msg_s"), zenoh.get("rate_msg_s"))
-    out.append(
-        ("throughput above zenoh", vs_zenoh, "zenoh", None if vs_zenoh is None else vs_zenoh > 1)
-    )
-    fan = [row for row in r.get("fanout", []) if row["subscribers"] == 16]
-    fan_ratio = fan[0].get("ratio") if fan else None
-    out.append(
-        (
-            "lossless fan-out >= 0.5x pyzmq at 16",
-            fan_ratio,
-            "pyzmq, HWM=0",
-            None if fan_ratio is None else fan_ratio >= 0.5 and not fan[0]["ups"]["lost"],
-        )
-    )
-    mib = [row for row in r.get("payload", []) if row["size"] == 1 << 20]
-    mib_ratio = mib[0]["ratio"] if mib else None
-    out.append(
-        (
-            "1 MiB events >= 0.6x raw TCP",
-            mib_ratio,
-            "raw TCP",
-            None if mib_ratio is None else mib_ratio >= 0.6,
-        )
-    )
-    start = r.get("startup", {}).get("ratio")
-    out.append(
-        (
-            "ups --help <= 3x python -c pass",
-            start,
-            "python -c pass",
-            None if start is None else start <= 3,
-        )
-    )
-    idle = r.get("rss_mb", {}).get("idle_tcp_node")
-    out.append(("idle TCP node <= 20 MB RSS", idle, "MB", None if idle is None else idle <= 20))
+    tput = _ratio(ups.get("rate_msg_s"), zmq.get("rate_msg_s"))
+    add("throughput >= 0.6x pyzmq, zero loss", tput, "x pyzmq",
+        bool(tput and tput >= 0.6 and lossless))  # fmt: skip
+    vz = _ratio(ups.get("rate_msg_s"), zenoh.get("rate_msg_s"))
+    add("throughput above zenoh, zero loss", vz, "x zenoh", bool(vz and vz > 1 and lossless))
+    fan = next((row for row in r.get("fanout") or [] if row["subscribers"] == 16), None)
+    fr = fan.get("ratio") if fan else None
+    add("lossless fan-out >= 0.5x pyzmq at 16", fr, "x pyzmq HWM=0",
+        bool(fan and fr and fr >= 0.5 and not fan["ups"]["lost"]))  # fmt: skip
+    mib = next((row for row in r.get("payload") or [] if row["size"] == 1 << 20), None)
+    mr = mib["ratio"] if mib else None
+    add("1 MiB events >= 0.6x raw TCP", mr, "x raw TCP", bool(mr and mr >= 0.6))
+    start = (r.get("startup_s") or {}).get("ratio")
+    add("ups --help <= 3x python -c pass", start, "x python -c pass", bool(start and start <= 3))
+    idle = (r.get("rss_mb") or {}).get("idle_tcp_node")
+    add("idle TCP node <= 20 MB RSS", idle, "MB", bool(idle and idle <= 20))
     return out
-
-
-def text(r: dict[str, Any]) -> str:
-    """The tables, as the terminal shows them."""
-    m = r["machine"]
-    lines = [
-        f"ups bench ({'quick' if m['quick'] else 'full'}): {m['cpu']}, {m['cpus']} CPUs, "
-        f"Linux {m['kernel']}, Python {m['python']}, {m['date']}",
-        "",
-    ]
-    lines += _section(
-        "Paper, section 6 (ours: median µs; paper: average on 2003 hardware)", _paper_rows(r)
-    )
-    rows = r.get("tcp_compare", {}).get("rows", {})
-    if rows:
-        raw = rows.get("raw TCP", {})
-        lines += _section(
-            "Round trip and one-way throughput, 8 B, loopback (same run)",
-            [
-                (
-                    label,
-                    f"{_f(row.get('rtt_p50_us'))} µs",
-                    f"{_f(_ratio(row.get('rtt_p50_us'), raw.get('rtt_p50_us')), '.2f')}x raw",
-                    f"{_f(row.get('rate_msg_s'), ',.0f')} msg/s",
-                    f"lost {row.get('lost')}",
-                )
-                for label, row in rows.items()
-                if not row.get("error")
-            ],
-        )
-    if r.get("payload"):
-        lines += _section(
-            "Payload size, one way, UPS vs raw TCP (same run)",
-            [
-                (
-                    f"{row['size']} B",
-                    f"{row['ups']['mb_per_s']:,.0f} MB/s",
-                    f"raw {row['raw_tcp']['mb_per_s']:,.0f} MB/s",
-                    f"{row['ratio']:.2f}x",
-                    f"lost {row['count'] - row['ups']['received']}",
-                )
-                for row in r["payload"]
-            ],
-        )
-    if r.get("fanout"):
-        lines += _section(
-            "Lossless fan-out, 8 B, one publisher (deliveries/s in all)",
-            [
-                (
-                    f"{row['subscribers']} subscribers",
-                    f"UPS {row['ups']['total_msgs_per_s']:,.0f}",
-                    f"pyzmq {_f((row['zmq'] or {}).get('total_msgs_per_s'), ',.0f')}",
-                    f"{_f(row.get('ratio'), '.2f')}x",
-                    f"lost {row['ups']['lost']}",
-                )
-                for row in r["fanout"]
-            ],
-        )
-    gw = r.get("throughput_msgs_per_s", {}).get("gateway_can_to_tcp")
-    if gw:
-        lines += [
-            f"gateway CAN->TCP, zero loss: {gw:,.0f} events/s = "
-            f"{gw / 7634:.1f}x a saturated 1 Mbit/s bus of 8-byte frames",
-            "",
-        ]
-    if r.get("rss_mb"):
-        lines += _section("Resident memory (MB)", [(k, f"{v:.1f}") for k, v in r["rss_mb"].items()])
-    if r.get("startup"):
-        s = r["startup"]
-        lines += [
-            f"start-up: ups --help {s['ups_help_s'] * 1000:.0f} ms, python -c pass "
-            f"{s['python_c_pass_s'] * 1000:.0f} ms ({s['ratio']:.1f}x)",
-            "",
-        ]
-    lines += _section(
-        "Targets (issue 11)",
-        [
-            (name, f"{_f(value, '.2f')} ({against})", _met(met))
-            for name, value, against, met in targets(r)
-        ],
-    )
-    for key, why in {**r.get("skipped", {}), **r.get("failed", {})}.items():
-        lines.append(f"{key}: {why.splitlines()[0] if why else ''}")
-    return "\n".join(lines)
-
-
-def _paper_rows(r: dict[str, Any]) -> list[tuple[str, ...]]:
-    rows: list[tuple[str, ...]] = []
-    for n, ours in (r.get("local_notify_us") or {}).items():
-        rows.append(
-            (
-                f"local notification, {n} subscriber(s)",
-                f"{ours:.0f}",
-                f"paper {PAPER['local_notify_us'][n]}",
-            )
-        )
-    if r.get("publish_latency_us"):
-        rows.append(
-            (
-                "publish -> frame on the bus",
-                f"{r['publish_latency_us']:.0f}",
-                f"paper {PAPER['publish_latency_us']:.0f}",
-            )
-        )
-    for key, value in r.get("rtt_us", {}).items():
-        rows.append(
-            (
-                f"round trip {key}",
-                f"p50 {value['p50']:.0f} p99 {value['p99']:.0f}",
-                f"paper {PAPER['rtt_us'][key]:.0f}",
-            )
-        )
-    for label, size in r.get("code_size", {}).items():
-        paper = PAPER["code_kb"].get(label)
-        rows.append(
-            (
-                f"code: {label}",
-                f"{size['kb']} KB of source, {size['lines']} lines",
-                f"paper {paper} KB compiled" if paper else "",
-            )
-        )
-    return rows
-
-
-def _section(title: str, rows: list[tuple[str, ...]]) -> list[str]:
-    if not rows:
-        return []
-    widths = [max(len(row[i]) for row in rows if i < len(row)) for i in range(len(rows[0]))]
-    body = [
-        "  " + "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=False))
-        for row in rows
-    ]
-    return [title, *body, ""]
-
-
-def _f(value: float | None, spec: str = ".0f") -> str:
-    return "-" if value is None else format(value, spec)
 
 
 def _met(met: bool | None) -> str:
     return "not measured" if met is None else "met" if met else "MISSED"
 
 
+# --- the tables ------------------------------------------------------------------------------
+
+
+def tables(r: dict[str, Any]) -> list[Table]:
+    """Every table of the run, in order; a part that did not run has none."""
+    out: list[Table] = []
+    p = _paper_rows(r)
+    if p:
+        head = ["measurement", "UPS p50", "p99", "floor (same run)", "x floor", "paper", "x paper"]
+        out.append(("The paper's section 6 on this machine (µs; paper: 2003, averages)", head, p))
+    rows = r.get("tcp_compare", {}).get("rows", {})
+    if rows:
+        raw, ups = rows.get("raw TCP", {}), _ups_row(r)
+        body = []
+        for label, row in rows.items():
+            if row.get("error"):
+                status = row["error"] if row["error"].startswith("skipped") else "FAILED"
+                body.append([label, "-", "-", "-", "-", "-", "-", "-", status.splitlines()[0]])
+                continue
+            body.append([
+                label, _f(row.get("rtt_p50_us"), ".1f"), _f(row.get("rtt_p99_us"), ".1f"),
+                _x(row.get("rtt_p50_us"), raw.get("rtt_p50_us")),
+                _x(ups.get("rtt_p50_us"), row.get("rtt_p50_us")),
+                _f(row.get("rate_msg_s"), ",.0f"),
+                _x(ups.get("rate_msg_s"), row.get("rate_msg_s")), str(row.get("lost")), "ok",
+            ])  # fmt: skip
+        head = ["peer", "RTT p50 µs", "p99", "x raw TCP", "UPS RTT / it", "msg/s one way",
+                "UPS msg/s / it", "lost", ""]  # fmt: skip
+        out.append(("Round trip (pinned) and one-way throughput, 8 B, loopback", head, body))
+    if r.get("payload"):
+        body = [
+            [f"{row['size']:,} B", f"{row['count']:,}", f"{row['ups']['events_per_s']:,.0f}",
+             f"{row['ups']['mb_per_s']:,.0f}", f"{row['raw_tcp']['events_per_s']:,.0f}",
+             f"{row['raw_tcp']['mb_per_s']:,.0f}", f"{row['ratio']:.2f}x",
+             str(row["count"] - row["ups"]["received"])]
+            for row in r["payload"]
+        ]  # fmt: skip
+        head = ["payload", "events", "UPS ev/s", "UPS MB/s", "raw ev/s", "raw MB/s", "x raw",
+                "UPS lost"]  # fmt: skip
+        out.append(("One way by payload size, UPS (wait=True) vs raw TCP (length-prefixed)",
+                    head, body))  # fmt: skip
+    if r.get("fanout"):
+        body = []
+        for row in r["fanout"]:
+            z = row.get("zmq") or {}
+            body.append([
+                str(row["subscribers"]), f"{row['ups']['total_msgs_per_s']:,.0f}",
+                f"{row['ups']['per_subscriber_msgs_per_s']:,.0f}",
+                _f(z.get("total_msgs_per_s"), ",.0f"), _f(z.get("per_subscriber_msgs_per_s"),
+                ",.0f"), _f(row.get("ratio"), ".2f", "x"), str(row["ups"]["lost"]),
+                str(z.get("lost", "skipped" if not z else z.get("error", "-"))),
+            ])  # fmt: skip
+        head = ["subscribers", "UPS total/s", "UPS per sub/s", "pyzmq total/s",
+                "pyzmq per sub/s", "x pyzmq", "UPS lost", "pyzmq lost"]  # fmt: skip
+        out.append(("Lossless fan-out, 8 B, one publisher, N subscriber processes", head, body))
+    rate = r.get("table5", {}).get("rate") or []
+    if rate:
+        body = [
+            [f"{s['pacing']} {s['rate']:,.0f}/s" if s["rate"] else f"{s['pacing']} flat out",
+             f"{s['send_rate']:,.0f}", f"{s['recv_rate']:,.0f}", str(s["lost"]),
+             f"{s['gw_cpu_pct']:.0f} %", f"{s['recv_rate'] / BUS:.2f}x"]
+            for s in rate
+        ]  # fmt: skip
+        head = ["offered", "sent/s", "forwarded/s", "lost", "gateway CPU", "x saturated bus"]
+        out.append((f"Gateway CAN -> TCP (a saturated 1 Mbit/s bus: {BUS:,} frames/s)",
+                    head, body))  # fmt: skip
+    if r.get("rss_mb"):
+        bare = r["rss_mb"].get("python_bare")
+        body = [[k, f"{v:.1f}", _x(v, bare)] for k, v in r["rss_mb"].items()]
+        out.append(("Resident memory once started (VmRSS)", ["process", "MB", "x python"], body))
+    s = r.get("startup_s")
+    if s:
+        body = [["python -c pass", f"{s['python_c_pass'] * 1000:.0f}", "1.00x"],
+                ["ups --help", f"{s['ups_help'] * 1000:.0f}", f"{s['ratio']:.2f}x"]]  # fmt: skip
+        out.append((f"Start-up, median of {s.get('runs', '?')}", ["command", "ms", "x"], body))
+    body = [[n, _f(v, ".2f", f" {a}"), _met(m)] for n, v, a, m in targets(r)]
+    out.append(("Issue 11's targets", ["target", "measured", ""], body))
+    return out
+
+
+def _paper_rows(r: dict[str, Any]) -> list[list[str]]:
+    rows: list[list[str]] = []
+    can = r.get("can_latency") or {}
+    floor = (r.get("floors") or {}).get("python_can_recv_us")
+    for n, ours in (r.get("local_notify_us") or {}).items():
+        p99 = can.get("local_notify_us", {}).get(n, {}).get("p99")
+        paper = PAPER["local_notify_us"][n]
+        rows.append([f"local notification, {n} subscriber(s)", f"{ours:.0f}", _f(p99),
+                     _f(floor), _x(ours, floor), f"{paper}", _x(ours, paper)])  # fmt: skip
+    if r.get("publish_latency_us"):
+        ours, paper = r["publish_latency_us"], PAPER["publish_latency_us"]
+        p99 = can.get("publish_latency_us", {}).get("p99")
+        rows.append(["publish -> frame on the bus", f"{ours:.0f}", _f(p99), "-", "-",
+                     f"{paper:.0f}", _x(ours, paper)])  # fmt: skip
+    floors = r.get("floors") or {}
+    floor_of = {
+        "tcp_same_host": floors.get("raw_tcp_rtt_us"),
+        "can_can": floors.get("raw_can_rtt_us"),
+    }
+    for key, value in (r.get("rtt_us") or {}).items():
+        fl = (floor_of.get(key) or {}).get("p50")
+        paper = PAPER["rtt_us"].get(key)
+        label = f"round trip, {RTT_LABELS.get(key, key)}"
+        rows.append([label, f"{value['p50']:.0f}", f"{value['p99']:.0f}", _f(fl),
+                     _x(value["p50"], fl), _f(paper), _x(value["p50"], paper)])  # fmt: skip
+    for label, size in (r.get("code_size") or {}).items():
+        kb = PAPER["code_kb"].get(label)
+        rows.append([f"code: {label}", f"{size['kb']} KB", f"{size['lines']} lines", "-", "-",
+                     f"{kb} KB" if kb else "-", _x(size["kb"], kb)])  # fmt: skip
+    return rows
+
+
+# --- text and Markdown -----------------------------------------------------------------------
+
+
+def _machine_line(r: dict[str, Any]) -> str:
+    m = r["machine"]
+    packages = ", ".join(f"{k} {v}" for k, v in (m.get("packages") or {}).items() if v)
+    return (
+        f"ups bench ({'quick' if m['quick'] else 'full'}, {m.get('seconds', '?')} s): "
+        f"{m['cpu']}, {m['cpus']} CPUs, Linux {m['kernel']}, Python {m['python']}, "
+        f"{m['date']}; {packages}; mosquitto {m.get('mosquitto') or '-'}"
+    )
+
+
+def _skips(r: dict[str, Any]) -> list[str]:
+    lines = [f"note: {n}" for n in r.get("notes", [])]
+    lines += [f"skipped {k}: {why}" for k, why in r.get("skipped", {}).items()]
+    lines += [f"FAILED {k}: {why.splitlines()[0] if why else ''}" for k, why in r["failed"].items()]
+    return lines
+
+
+def text(r: dict[str, Any]) -> str:
+    """The tables, as the terminal shows them."""
+    lines = [_machine_line(r), ""]
+    for title, head, rows in tables(r):
+        every = [head, *rows]
+        widths = [max(len(row[i]) for row in every) for i in range(len(head))]
+        lines.append(title)
+        for row in every:
+            lines.append("  " + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+        lines.append("")
+    return "\n".join(lines + _skips(r)).rstrip() + "\n"
+
+
+def markdown(r: dict[str, Any], images: list[str]) -> str:
+    """report.md: the machine, every table, what the figures are, the plots."""
+    m = r["machine"]
+    md = ["# ups bench", "", f"{'Quick' if m['quick'] else 'Full'} run of {m['date']}, "
+          f"{m.get('seconds', '?')} s.", "", "## Machine", ""]  # fmt: skip
+    md += [f"- CPU: {m['cpu']}, {m['cpus']} CPUs; Linux {m['kernel']}; Python {m['python']}"]
+    md += [f"- {k}: {v or 'not installed'}" for k, v in (m.get("packages") or {}).items()]
+    md += [f"- mosquitto: {m.get('mosquitto') or 'not installed'}; run as root: {m.get('root')}"]
+    md.append("")
+    for title, head, rows in tables(r):
+        md += [f"## {title}", "", "| " + " | ".join(head) + " |"]
+        md += ["| " + " | ".join("---" for _ in head) + " |"]
+        md += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in rows]
+        md.append("")
+    md += ["## What is measured", "", *[f"- {n}" for n in NOTES], ""]
+    skips = _skips(r)
+    if skips:
+        md += ["## Not measured in this run", "", *[f"- {s}" for s in skips], ""]
+    if images:
+        md += ["## Plots", "", *[f"![{name}]({name})" for name in images], ""]
+    elif importlib.util.find_spec("matplotlib") is None:
+        md += ["No plots: matplotlib is not installed (pip install 'ups-pubsub[bench]').", ""]
+    return "\n".join(md)
+
+
 def write(r: dict[str, Any], where: Path) -> None:
     """report.md, results.json and PNG plots in ``where``."""
     where.mkdir(parents=True, exist_ok=True)
     (where / "results.json").write_text(json.dumps(r, indent=1, default=str))
-    plots = _plots(r, where)
-    md = ["# ups bench", "", "```", text(r), "```", ""]
-    md += [f"![{name}]({name})" for name in plots]
-    (where / "report.md").write_text("\n".join(md) + "\n")
-
-
-def _plots(r: dict[str, Any], where: Path) -> list[str]:
-    if importlib.util.find_spec("matplotlib") is None:
-        return []
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    made = []
-    rows = {
-        k: v for k, v in r.get("tcp_compare", {}).get("rows", {}).items() if v.get("rtt_p50_us")
-    }
-    if rows:
-        fig, ax = plt.subplots(figsize=(8, 4))
-        ax.barh(list(rows), [v["rtt_p50_us"] for v in rows.values()])
-        ax.set_xlabel("round trip p50 (µs), 8 B, loopback, pinned")
-        made.append(_save(fig, where, "rtt.png"))
-    if r.get("fanout"):
-        fig, ax = plt.subplots(figsize=(6, 4))
-        n = [row["subscribers"] for row in r["fanout"]]
-        ax.plot(n, [row["ups"]["total_msgs_per_s"] for row in r["fanout"]], "o-", label="UPS")
-        if all(row["zmq"] for row in r["fanout"]):
-            ax.plot(n, [row["zmq"]["total_msgs_per_s"] for row in r["fanout"]], "s-", label="pyzmq")
-        ax.set_xscale("log", base=2)
-        ax.set(xlabel="subscribers", ylabel="deliveries/s, lossless")
-        ax.legend()
-        made.append(_save(fig, where, "fanout.png"))
-    if r.get("payload"):
-        fig, ax = plt.subplots(figsize=(6, 4))
-        sizes = [row["size"] for row in r["payload"]]
-        ax.plot(sizes, [row["ups"]["mb_per_s"] for row in r["payload"]], "o-", label="UPS")
-        ax.plot(sizes, [row["raw_tcp"]["mb_per_s"] for row in r["payload"]], "s-", label="raw")
-        ax.set_xscale("log", base=2)
-        ax.set(xlabel="payload (bytes)", ylabel="MB/s one way")
-        ax.legend()
-        made.append(_save(fig, where, "payload.png"))
-    if r.get("local_notify_us"):
-        fig, ax = plt.subplots(figsize=(6, 4))
-        n = list(r["local_notify_us"])
-        ax.plot(n, list(r["local_notify_us"].values()), "o-", label="UPS today (p50)")
-        ax.plot(n, [PAPER["local_notify_us"][k] for k in n], "s--", label="paper (RTLinux avg)")
-        ax.set(xlabel="local subscribers", ylabel="µs")
-        ax.legend()
-        made.append(_save(fig, where, "local_notify.png"))
-    return made
-
-
-def _save(fig: Any, where: Path, name: str) -> str:
-    fig.tight_layout()
-    fig.savefig(where / name, dpi=100)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return name
+    images = plots(r, where, PAPER)
+    (where / "report.md").write_text(markdown(r, images))

@@ -27,6 +27,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -35,6 +36,8 @@ from ups import Node
 from ups._canlink import CanLink, open_bus
 
 PAPER_RTLINUX_AVG_US = {1: 17.5, 2: 22.6, 3: 27.9, 4: 34.3}  # Table 3
+Summary = tuple[float, float, float, float, float]  # min, avg, p50, p99, max (µs)
+_KEYS = ("min", "avg", "p50", "p99", "max")
 
 
 def publisher(bus: str, count: int, rate: float) -> subprocess.Popen[bytes]:
@@ -108,10 +111,60 @@ async def publish_latency(bus: str, count: int, rate: float) -> list[float]:
         listener.shutdown()
 
 
-def summary(values: list[float]) -> tuple[float, float, float, float, float]:
+def summary(values: list[float]) -> Summary:
     us = sorted(v * 1e6 for v in values)
     p99 = us[min(len(us) - 1, int(len(us) * 0.99))]
     return us[0], statistics.fmean(us), statistics.median(us), p99, us[-1]
+
+
+async def measure(bus: str, count: int, rate: float) -> dict[str, Any]:
+    """Tables 3 and 4 on ``bus``, with a CAN-ECB of its own: the floor, UPS with 1..4 local
+    subscribers, and the publish latency, each as {min, avg, p50, p99, max} in µs."""
+    with tempfile.TemporaryDirectory() as tmp:
+        link = CanLink.open(bus)
+        ecb = CanEcb(link, Path(tmp) / "ecb.db")
+        await ecb.start()
+        try:
+            raw = summary(await asyncio.to_thread(raw_latency, bus, count, rate))
+            notify: dict[str, Summary] = {}
+            for n in range(1, 5):
+                notify[str(n)] = summary(await ups_latency(bus, n, count, rate))
+            published = summary(await publish_latency(bus, count, rate))
+        finally:
+            ecb.close()
+            link.close()
+    return {
+        "bus": bus,
+        "count": count,
+        "floor_us": dict(zip(_KEYS, raw, strict=True)),
+        "local_notify_us": {n: dict(zip(_KEYS, r, strict=True)) for n, r in notify.items()},
+        "publish_latency_us": dict(zip(_KEYS, published, strict=True)),
+    }
+
+
+def report(doc: dict[str, Any]) -> str:
+    """``measure``'s figures as the table this module prints."""
+    rows: list[tuple[str, dict[str, float], str]] = [
+        ("python-can recv (floor)", doc["floor_us"], "")
+    ]
+    for n, figures in doc["local_notify_us"].items():
+        rows.append((f"UPS, {n} local subscriber(s)", figures, n))
+    lines = [
+        f"local notification latency on {doc['bus']}, {doc['count']} events of 1 byte each",
+        f"{'':28} {'min':>7} {'avg':>7} {'p50':>7} {'p99':>7} {'max':>7}  paper avg (RTLinux)",
+    ]
+    for label, f, n in rows:
+        paper = f"{PAPER_RTLINUX_AVG_US[int(n)]:>6.1f} µs" if n else ""
+        cells = " ".join(f"{f[k]:7.1f}" for k in _KEYS)
+        lines.append(f"{label:28} {cells}  {paper}")
+    ratio = doc["local_notify_us"]["1"]["p50"] / doc["floor_us"]["p50"]
+    lines.append(f"(µs; p50 of UPS with 1 subscriber = {ratio:.2f}x the floor)")
+    p = doc["publish_latency_us"]
+    lines.append(
+        f"publish call -> frame on the bus (Table 4): min {p['min']:.1f} avg {p['avg']:.1f} "
+        f"p50 {p['p50']:.1f} p99 {p['p99']:.1f} max {p['max']:.1f} µs; paper (RTLinux) avg 153 µs"
+    )
+    return "\n".join(lines)
 
 
 async def main() -> None:
@@ -121,36 +174,9 @@ async def main() -> None:
     parser.add_argument("--rate", type=float, default=500.0, help="events per second")
     parser.add_argument("--json", type=Path, help="also write every summary as JSON here")
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        link = CanLink.open(args.can)
-        ecb = CanEcb(link, Path(tmp) / "ecb.db")
-        await ecb.start()
-        try:
-            raw = await asyncio.to_thread(raw_latency, args.can, args.count, args.rate)
-            rows = [("python-can recv (floor)", summary(raw), None)]
-            for n in range(1, 5):
-                lat = await ups_latency(args.can, n, args.count, args.rate)
-                rows.append((f"UPS, {n} local subscriber(s)", summary(lat), n))
-            published = summary(await publish_latency(args.can, args.count, args.rate))
-        finally:
-            ecb.close()
-            link.close()
-    print(f"local notification latency on {args.can}, {args.count} events of 1 byte each")
-    print(f"{'':28} {'min':>7} {'avg':>7} {'p50':>7} {'p99':>7} {'max':>7}  paper avg (RTLinux)")
-    floor_p50 = rows[0][1][2]
-    for label, (lo, avg, p50, p99, hi), n in rows:
-        paper = f"{PAPER_RTLINUX_AVG_US[n]:>6.1f} µs" if n else ""
-        print(f"{label:28} {lo:7.1f} {avg:7.1f} {p50:7.1f} {p99:7.1f} {hi:7.1f}  {paper}")
-    print(f"(µs; p50 of UPS with 1 subscriber = {rows[1][1][2] / floor_p50:.2f}x the floor)")
-    lo, avg, p50, p99, hi = published
-    print(f"publish call -> frame on the bus (Table 4): min {lo:.1f} avg {avg:.1f} p50 {p50:.1f} "
-          f"p99 {p99:.1f} max {hi:.1f} µs; paper (RTLinux) avg 153 µs")  # fmt: skip
+    doc = await measure(args.can, args.count, args.rate)
+    print(report(doc))
     if args.json:
-        keys = ("min", "avg", "p50", "p99", "max")
-        doc = {"floor_us": dict(zip(keys, rows[0][1], strict=True)),
-               "local_notify_us": {str(n): dict(zip(keys, r, strict=True))
-                                   for _, r, n in rows if n},
-               "publish_latency_us": dict(zip(keys, published, strict=True))}  # fmt: skip
         args.json.write_text(json.dumps(doc, indent=1))
 
 

@@ -119,10 +119,7 @@ def _raw(size: int, fd: bool, samples: int, burst: int) -> dict[str, float]:
 def _efficiency(size: int, fd: bool) -> dict[str, float]:
     frames = _frames(size, fd)
     payload = 8 * size
-    bits = {
-        s: sum(frame_bits(len(f), 29, s, fd) for f in frames)  # type: ignore[arg-type]
-        for s in ("none", "worst")
-    }
+    bits = {s: sum(frame_bits(len(f), 29, s, fd) for f in frames) for s in ("none", "worst")}
     return {
         "frames": len(frames),
         "efficiency_none": payload / bits["none"],

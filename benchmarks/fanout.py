@@ -203,12 +203,18 @@ def _measure(sink: Any, source: Any, address: str, subscribers: int, count: int)
 
 
 def run(subscribers: tuple[int, ...], count: int) -> list[dict[str, Any]]:
+    """A row per N: UPS (its failure ends the run), and pyzmq beside it (``None`` when pyzmq is
+    not installed; ``{"error": ...}`` when it failed, which does not end the run)."""
     have_zmq = importlib.util.find_spec("zmq") is not None
     rows = []
     for n in subscribers:
-        row: dict[str, Any] = {"subscribers": n, "ups": ups(n, count)}
-        row["zmq"] = zmq(n, count) if have_zmq else None
-        if row["zmq"] and row["zmq"]["total_msgs_per_s"]:
+        row: dict[str, Any] = {"subscribers": n, "ups": ups(n, count), "zmq": None}
+        if have_zmq:
+            try:
+                row["zmq"] = zmq(n, count)
+            except (TimeoutError, OSError, RuntimeError) as exc:
+                row["zmq"] = {"error": f"{type(exc).__name__}: {exc}"}
+        if row["zmq"] and row["zmq"].get("total_msgs_per_s"):
             row["ratio"] = row["ups"]["total_msgs_per_s"] / row["zmq"]["total_msgs_per_s"]
         rows.append(row)
     return rows
@@ -223,7 +229,7 @@ def main() -> None:
     rows = run(tuple(int(n) for n in args.subscribers.split(",")), args.messages)
     print(f"{'subs':>5}{'UPS msg/s':>12}{'lost':>6}{'pyzmq msg/s':>13}{'lost':>6}{'x zmq':>7}")
     for r in rows:
-        z = r["zmq"] or {"total_msgs_per_s": 0.0, "lost": "-"}
+        z = {"total_msgs_per_s": 0.0, "lost": "-", **(r["zmq"] or {})}
         print(
             f"{r['subscribers']:>5}{r['ups']['total_msgs_per_s']:>12,.0f}{r['ups']['lost']:>6}"
             f"{z['total_msgs_per_s']:>13,.0f}{z['lost']:>6}{r.get('ratio', 0.0):>7.2f}"

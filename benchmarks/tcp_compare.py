@@ -285,27 +285,34 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    """Every selected peer, one after the other; the document ``--json`` writes (settings,
+    environment, and a row per peer, a peer that failed or was skipped with its ``error``)."""
     specs = [spec for name in args.peers.split(",") for spec in PEERS[name]]
-    print(f"loopback {HOST}, 8-byte payloads, {args.roundtrips} round trips "
-          f"(+{args.warmup} warm-up) pinned to CPU {args.cpu}, {args.messages} messages "
-          f"one way ({'pinned' if args.pin_throughput else 'unpinned'})", flush=True)  # fmt: skip
     rows: list[Row] = []
-    started = time.monotonic()
     for spec in specs:
         t0 = time.monotonic()
         rows.append(run_spec(spec, args))
         status = rows[-1].error.splitlines()[0] if rows[-1].error else "ok"
         print(f"  {spec.label}: {status} ({time.monotonic() - t0:.1f} s)", flush=True)
     add_ratios(rows)
+    return {"settings": {k: v for k, v in vars(args).items() if k != "json"},
+            "environment": environment(), "rows": [asdict(r) for r in rows]}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    print(f"loopback {HOST}, 8-byte payloads, {args.roundtrips} round trips "
+          f"(+{args.warmup} warm-up) pinned to CPU {args.cpu}, {args.messages} messages "
+          f"one way ({'pinned' if args.pin_throughput else 'unpinned'})", flush=True)  # fmt: skip
+    started = time.monotonic()
+    doc = measure(args)
+    rows = [Row(**r) for r in doc["rows"]]
     print(f"\n{table(rows)}\n{LEGEND}\ntotal {time.monotonic() - started:.0f} s")
     for r in rows:
         if r.error and "\n" in r.error:
             print(f"\n{r.peer}:\n{r.error}", file=sys.stderr)
     if args.json:
-        doc = {"settings": {k: v for k, v in vars(args).items() if k != "json"},
-               "environment": environment(), "rows": [asdict(r) for r in rows]}  # fmt: skip
         with open(args.json, "w") as f:
             json.dump(doc, f, indent=2)
     return 0 if all(not r.error or r.error.startswith("skipped") for r in rows) else 1

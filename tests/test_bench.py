@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import _report, bench, tcp_payload
+from benchmarks import _report, bench, fanout, tcp_payload
 
 from .procs import ROOT
 
@@ -34,22 +34,51 @@ def test_a_report_from_real_parts_says_what_it_measured_and_what_it_did_not(
         "machine": bench.machine(quick=True),
         "skipped": {"table5": "needs root (in this test: not run)"},
         "failed": {},
-        "startup": bench.startup(quick=True),
+        "startup_s": bench.startup(quick=True),
         "code_size": bench.code_size(),
         "payload": tcp_payload.run((8, 1024), mib=0.25),
+        "fanout": fanout.run((1, 2), 2000),
     }
     results.update(bench.summary(results))
     assert set(REQUIRED) <= set(results)
     assert results["local_notify_us"] is None and results["rtt_us"] == {}  # not run: not made up
     assert all(row["ups"]["received"] == row["count"] for row in results["payload"])
+    assert all(row["ups"]["lost"] == 0 for row in results["fanout"])
+    targets = {t["target"]: t for t in results["targets"]}
+    assert targets["round trip p50 <= 2x raw TCP"]["met"] is None  # tcp_compare did not run
+    assert targets["ups --help <= 3x python -c pass"]["met"] == (results["startup_s"]["ratio"] <= 3)
     _report.write(results, tmp_path / "report")
     text = (tmp_path / "report" / "report.md").read_text()
-    met = "met" if results["startup"]["ratio"] <= 3 else "MISSED"
-    assert "ups --help <= 3x python -c pass" in text and met in text
+    met = "met" if results["startup_s"]["ratio"] <= 3 else "MISSED"
+    assert "ups --help <= 3x python -c pass" in text and f"| {met} |" in text
     assert "round trip p50 <= 2x raw TCP" in text and "not measured" in text
-    assert "table5: needs root" in text
-    assert json.loads((tmp_path / "report" / "results.json").read_text())["payload"]
+    assert "skipped table5: needs root" in text
+    assert results["machine"]["python"] in text and "## Machine" in text
+    doc = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert doc["payload"] and doc["targets"] and set(REQUIRED) <= set(doc)
     if importlib.util.find_spec("matplotlib") is None:
         pytest.skip("matplotlib is not installed: the report has no plots (ups-pubsub[bench])")
-    png = (tmp_path / "report" / "payload.png").read_bytes()
-    assert png.startswith(b"\x89PNG") and "payload.png" in text
+    for name in ("payload.png", "fanout.png"):
+        png = (tmp_path / "report" / name).read_bytes()
+        assert png.startswith(b"\x89PNG") and f"]({name})" in text
+
+
+def test_the_text_table_shows_a_peer_that_could_not_run_as_skipped() -> None:
+    rows = {
+        "raw TCP": {"rtt_p50_us": 15.0, "rtt_p99_us": 40.0, "rate_msg_s": 2e5, "lost": 0,
+                    "error": ""},
+        "zenoh peer-to-peer": {"error": "skipped: eclipse-zenoh is not installed"},
+        "UPS TCP, uvloop": {"rtt_p50_us": 30.0, "rtt_p99_us": 80.0, "rate_msg_s": 3e5,
+                            "lost": 0, "error": ""},
+    }  # fmt: skip
+    results = {"machine": bench.machine(quick=True), "skipped": {}, "failed": {},
+               "tcp_compare": {"rows": rows, "environment": {}}}  # fmt: skip
+    results.update(bench.summary(results))
+    out = _report.text(results)
+    assert "skipped: eclipse-zenoh is not installed" in out
+    assert results["peers"]["zenoh"]["rtt_p50_us"] is None
+    assert results["peers"]["raw_tcp"]["rtt_p50_us"] == 15.0
+    targets = {t["target"]: t for t in results["targets"]}
+    assert targets["round trip p50 <= 2x raw TCP"]["measured"] == 2.0
+    assert targets["round trip p50 <= 2x raw TCP"]["met"] is True
+    assert targets["throughput above zenoh, zero loss"]["met"] is None

@@ -274,7 +274,7 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     cmd = command(
         "bench", help="measure everything beside the paper and the peers (pyzmq, MQTT, zenoh)"
     )
-    cmd.add_argument("--quick", action="store_true", help="fewer samples (about 4 minutes)")
+    cmd.add_argument("--quick", action="store_true", help="fewer samples (1-2 minutes here)")
     cmd.add_argument("--json", metavar="PATH", help="write every figure as JSON here")
     cmd.add_argument("--report", metavar="DIR", help="write report.md, results.json and plots")
     cmd.set_defaults(run=_run_bench)
