@@ -47,7 +47,7 @@ def rss_mb(pid: int) -> float:
 @contextlib.contextmanager
 def process(cmd: list[str], ready: str) -> Iterator[subprocess.Popen[bytes]]:
     """``cmd`` started with its stderr in a file, once it logged ``ready``; stopped after."""
-    with tempfile.TemporaryDirectory(prefix="ups-bench-rss-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="ups-bench-") as tmp:
         log = Path(tmp, "log")
         with log.open("wb") as out:
             proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.DEVNULL, stdout=out, stderr=out)

@@ -27,26 +27,19 @@ import multiprocessing
 import os
 import socket
 import struct
-import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from benchmarks._daemons import free_port, process
+
 HOST = "127.0.0.1"
 SIZES = (8, 64, 1024, 65536, 1 << 20)
 TIMEOUT = 60.0  # for any one measurement
-_ROOT = Path(__file__).resolve().parents[1]
 _SPAWN = multiprocessing.get_context("spawn")
 _LEN = struct.Struct(">I")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return int(s.getsockname()[1])
 
 
 def _count(size: int, mib: float) -> int:
@@ -171,8 +164,18 @@ def _ups_sink(port: int, size: int, count: int, pipe: Connection) -> None:
 
 
 def ups_tcp(size: int, count: int) -> dict[str, Any]:
-    port = _free_port()
-    with _broker(port):
+    port = free_port()
+    cmd = [
+        sys.executable,
+        "-m",
+        "ups.cli",
+        "broker",
+        "--listen",
+        f"{HOST}:{port}",
+        "--recovery",
+        "0",
+    ]
+    with process(cmd, "TCP-ECB on"):
         mine, theirs = _SPAWN.Pipe()
         sink = _SPAWN.Process(target=_ups_sink, args=(port, size, count, theirs))
         sink.start()
@@ -190,30 +193,6 @@ def ups_tcp(size: int, count: int) -> dict[str, Any]:
         finally:
             _stop(sink)
     return _rates(result, size, count)
-
-
-@contextlib.contextmanager
-def _broker(port: int) -> Iterator[None]:
-    cmd = [sys.executable, "-m", "ups.cli", "broker", "--listen", f"{HOST}:{port}",
-           "--recovery", "0"]  # fmt: skip
-    proc = subprocess.Popen(cmd, cwd=_ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)  # fmt: skip
-    try:
-        deadline = time.monotonic() + 10
-        while True:  # ready once it accepts connections
-            with contextlib.suppress(OSError), socket.create_connection((HOST, port), 0.2):
-                break
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"the TCP-ECB did not start: {proc.stderr.read()!r}")  # type: ignore[union-attr]
-            time.sleep(0.02)
-        yield
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 def _stop(proc: multiprocessing.process.BaseProcess) -> None:

@@ -17,7 +17,7 @@ from ups import _tcpwire as w
 from ups._tcplink import QUEUE_BYTES
 
 from .conftest import eventually
-from .test_tcp_node import tcp_ecb, tcp_node  # noqa: F401  (the fixture)
+from .test_tcp_node import stalled_subscriber, tcp_ecb, tcp_node  # noqa: F401  (the fixture)
 
 
 async def test_a_callback_gets_every_event_in_order_and_survives_its_own_errors(
@@ -83,12 +83,8 @@ async def test_mebibyte_events_arrive_whole_while_a_stalled_peer_holds_a_bounded
     """Large events are queued as header and data, never copied in bulk: the subscriber that
     reads gets every one intact; the one that does not read costs a queue bounded in bytes,
     and every event dropped from it is counted."""
-    stalled = socket.socket()  # listens, accepts (the kernel does), never reads
-    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    stalled.bind(("127.0.0.1", 0))
-    stalled.listen()
-    host, port = stalled.getsockname()
-    with stalled:
+    with stalled_subscriber() as stalled:
+        host, port = stalled.getsockname()
         async with tcp_node(tcp_ecb, "pub") as pub, tcp_node(tcp_ecb, "fast") as fast:
             sub = await fast.subscribe("big", maxlen=4)
             uid = sub.channels[0].uid

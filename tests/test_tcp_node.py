@@ -39,6 +39,16 @@ def addr(ecb: TcpEcb) -> str:
     return f"127.0.0.1:{ecb.port}"
 
 
+def stalled_subscriber() -> socket.socket:
+    """A listening socket for a subscriber that never reads (the kernel accepts for it), with
+    a small receive buffer, so that its publishers' queues fill at once."""
+    stalled = socket.socket()
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    stalled.bind(("127.0.0.1", 0))
+    stalled.listen()
+    return stalled
+
+
 def tcp_node(ecb: TcpEcb, name: str, **options: Any) -> Node:
     options.setdefault("node_id", hash(name) & 0xFFFF_FFFF_FFFF)
     return Node(broker=addr(ecb), name=name, **options)
@@ -239,12 +249,8 @@ async def test_a_node_back_under_the_same_id_keeps_only_what_it_registers_again(
 
 
 async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -> None:
-    stalled = socket.socket()  # listens, accepts (the kernel does), never reads
-    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    stalled.bind(("127.0.0.1", 0))
-    stalled.listen()
-    host, port = stalled.getsockname()
-    with stalled:
+    with stalled_subscriber() as stalled:
+        host, port = stalled.getsockname()
         async with (
             tcp_node(tcp_ecb, "pub", peer_queue=1000, peer_overflow="drop_newest") as pub,
             tcp_node(tcp_ecb, "fast") as fast,

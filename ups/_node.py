@@ -236,10 +236,7 @@ class Node:
             await face.grow(state, len(payload))
         if wait:
             await face.room(state)
-        self.published += 1
-        if state.subs:
-            self._deliver(state, payload, state.priority, None, time.time())
-        face.send(state, payload, state.priority)
+        self.publish_nowait(channel, payload)  # bound now, for events this large
 
     def publish_nowait(self, channel: ChannelLike, data: bytes | bytearray | memoryview) -> None:
         """``publish`` without awaiting, for callbacks and tight loops: the channel must be

@@ -149,7 +149,7 @@ class Link(asyncio.BufferedProtocol):
         if self._closing:
             self.dropped += 1
             return False
-        if len(out) >= self.limit or self._out_bytes >= self.limit_bytes:
+        if self.full:
             if self._writable():  # a producer that never yields: write the batch now
                 self._flush()
             while out and self.full:  # the peer does not read fast enough

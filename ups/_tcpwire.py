@@ -31,10 +31,8 @@ DEFAULT_MAX_FRAME = MAX_DATA + 18  #: ... in the longest body a receiver accepts
     _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
     _STATUS_REQUEST, _STATUS, _START, _PUBLISHERS, _REFUSED,
 ) = range(14)  # fmt: skip
-MAX_SEQ = (1 << 64) - 1
 _HEAD = struct.Struct(">I")
 _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, seq
-_EVENT_KIND = 0x01
 _pack_event = _EVENT_HEAD.pack
 
 
@@ -192,7 +190,7 @@ def encode_event(uid: int, data: bytes, priority: int, seq: int) -> bytes:
     size = len(data)
     if size > MAX_BODY - 18:
         raise ValueError(f"event of {size} bytes exceeds {MAX_BODY - 18}")
-    return _pack_event(VERSION << 24 | (18 + size), _EVENT_KIND, priority, uid, seq) + data
+    return _pack_event(VERSION << 24 | (18 + size), _EVENT, priority, uid, seq) + data
 
 
 def event_header(uid: int, size: int, priority: int, seq: int) -> bytes:
@@ -200,7 +198,7 @@ def event_header(uid: int, size: int, priority: int, seq: int) -> bytes:
     event's data is written after them as it is, never copied into one buffer with them."""
     if size > MAX_BODY - 18:
         raise ValueError(f"event of {size} bytes exceeds {MAX_BODY - 18}")
-    return _EVENT_HEAD.pack(VERSION << 24 | (18 + size), _EVENT_KIND, priority, uid, seq)
+    return _EVENT_HEAD.pack(VERSION << 24 | (18 + size), _EVENT, priority, uid, seq)
 
 
 def _fields(frame: Frame) -> tuple[Any, ...]:
@@ -297,10 +295,10 @@ def parse(
             if end - start < length:
                 break
             pos = start + length
-            if kind == _EVENT_KIND and length >= 18:
+            if kind == _EVENT and length >= 18:
                 on_event(uid, bytes(view[start + 18 : pos]), priority, seq)
                 continue
-            if length and buf[start] == _EVENT_KIND:
+            if length and buf[start] == _EVENT:
                 raise DecodeError(f"event frame of {length} bytes: at least 18 expected")
             on_frame(_checked(_unpack(view[start:pos])))
             if one_frame:
