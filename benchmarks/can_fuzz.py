@@ -885,7 +885,7 @@ async def scenario_gateway(
             gw = Gateway(bus, tcp_addr, db=workdir / "gw.db", node_id=0x6A7E)
             stack.push_async_callback(gw.close)
             await gw.start()
-            ecb, link, gw_can, gw_tcp = gw._ecb, gw._link, gw.can, gw.tcp
+            ecb, link, gw_can, gw_tcp = gw._ecb, gw._link, gw.can, gw.ip
             assert ecb is not None and link is not None and gw_can and gw_tcp
             watch = EcbWatch(ecb)
             cp = Node(can=bus, node_id=0xC0, name="can-pub", join_timeout=10)
@@ -956,9 +956,9 @@ async def scenario_gateway(
 def _gateway_sizes(gw: Gateway, tcp_ecb: TcpEcb) -> dict[str, int]:
     return {
         "forwarding_to_can": len(gw._to_can_sinks),
-        "forwarding_to_tcp": len(gw._to_tcp_sinks),
+        "forwarding_to_tcp": len(gw._to_ip_sinks),
         "gateway_can_channels": len(gw.can._states) if gw.can else 0,
-        "gateway_tcp_channels": len(gw.tcp._states) if gw.tcp else 0,
+        "gateway_tcp_channels": len(gw.ip._states) if gw.ip else 0,
         "tcp_ecb_subscribed_channels": len(tcp_ecb._subscribers),
         "gateway_reconcile_backlog": len(gw._dirty),
     }

@@ -1,6 +1,8 @@
-"""The gateway: one ECH with a CAN face and a TCP face, forwarding only what is subscribed.
+"""The gateway: one ECH with a CAN face and an IP face (TCP/IP or Zenoh), forwarding only what
+is subscribed.
 
-As in section 4.3 of the paper:
+As in section 4.3 of the paper (where the IP side is TCP/IP; on Zenoh, the same with Zenoh's
+matching subscribers in place of the TCP-ECB's lists):
 
 - TCP -> CAN, for a channel that some CAN node subscribes to. The gateway subscribes on the
   TCP side on the CAN nodes' behalf, and withdraws when the last of them leaves.
@@ -42,7 +44,6 @@ from ups._face import ChannelState
 from ups._message import Message
 from ups._node import Node
 from ups._nodeid import claim_node_id
-from ups._tcpface import TcpFace
 from ups._tls import Tls
 from ups.rt import frame_bits
 
@@ -115,7 +116,8 @@ class _Forward:
 
 
 class Gateway:
-    """A gateway between the CAN bus ``can`` and the TCP/IP network of the TCP-ECB ``broker``.
+    """A gateway between the CAN bus ``can`` and the TCP/IP network of the TCP-ECB ``broker``,
+    or the Zenoh network of the router at ``zenoh`` (with ``zenoh_config``, a Zenoh config file).
 
     By default it hosts the bus's CAN-ECB, its tables in the SQLite file ``db`` (by default the
     bus's own file, ``broker._store.default_db``, the same a standalone CAN-ECB would use);
@@ -129,8 +131,10 @@ class Gateway:
     def __init__(
         self,
         can: str | CanLink,
-        broker: str,
+        broker: str | None = None,
         *,
+        zenoh: str | None = None,
+        zenoh_config: str | Path | None = None,
         db: str | Path | None = None,
         host_can_ecb: bool = True,
         bitrate: int = 500_000,
@@ -145,9 +149,17 @@ class Gateway:
             raise ConfigError(f"can_queue must be at least 1, got {can_queue}")
         if bitrate <= 0:
             raise ConfigError(f"bitrate must be positive, got {bitrate}")
+        if (broker is None) == (zenoh is None and zenoh_config is None):
+            raise ConfigError("a gateway joins one IP network: broker='HOST:PORT' or zenoh=...")
+        if tls is not None and broker is None:
+            raise ConfigError("tls= is for the TCP/IP side; on Zenoh, TLS is in its config")
         self._can_spec = can
         self._tls = tls
-        self._broker = broker
+        #: the IP side: ("broker", HOST:PORT) or ("zenoh", ENDPOINT)
+        self._ip_network = ("broker", broker) if broker is not None else ("zenoh", zenoh or "")
+        self._zenoh_config = zenoh_config
+        self.side = "tcp" if broker is not None else "zenoh"  #: the IP side, in counters
+        self._to_ip_counter = f"to_{self.side}"
         self._db = db
         self._host_can_ecb = host_can_ecb
         self.bitrate = bitrate
@@ -163,9 +175,9 @@ class Gateway:
         self._tables: CanEcb | _Tables | None = None
         self._id_lock: IO[bytes] | None = None
         self.can: Node | None = None
-        self.tcp: Node | None = None
-        self._to_tcp_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the CAN side
-        self._to_can_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the TCP side
+        self.ip: Node | None = None  #: the IP side's node (TCP/IP or Zenoh)
+        self._to_ip_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the CAN side
+        self._to_can_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the IP side
         self._dirty: set[int] = set()
         self._settled: dict[int, list[asyncio.Future[None]]] = {}  # uid -> awaiting its reconcile
         self._current: int | None = None  # the channel being reconciled
@@ -174,7 +186,7 @@ class Gateway:
         self._pacer_wake = asyncio.Event()
         self.counters = dict.fromkeys(
             (
-                "to_tcp",
+                f"to_{self.side}",
                 "to_can",
                 "can_dropped",
                 "too_large_for_can",
@@ -225,18 +237,21 @@ class Gateway:
             can=self._link, node_id=self._node_id, name=self.name, join_timeout=self._join_timeout
         )
         await self.can.start()
-        self.tcp = Node(
-            broker=self._broker,
+        kind, where = self._ip_network
+        self.ip = Node(
+            broker=where if kind == "broker" else None,
+            zenoh=where if kind == "zenoh" else None,
             node_id=self._node_id,
             name=self.name,
             listen=self._listen,
             join_timeout=self._join_timeout,
             tls=self._tls,
+            zenoh_config=self._zenoh_config,
         )
-        await self.tcp.start()
-        tcp_face = self._tcp_face()
-        tcp_face.on_targets = self._changed
-        tcp_face.extra_status = self.status
+        await self.ip.start()
+        ip_face = self._ip_face()
+        ip_face.on_targets = self._changed
+        ip_face.extra_status = self.status
         self._tables.on_change = self._changed
         if self._ecb is not None:
             self._ecb.bind_gate = self._until_settled
@@ -245,15 +260,14 @@ class Gateway:
         loop = asyncio.get_running_loop()
         self._tasks = [loop.create_task(self._reconcile_loop()), loop.create_task(self._pace())]
         self._wake.set()
-        host, port = tcp_face.address or ("?", 0)
+        address = getattr(ip_face, "address", None)  # where TCP publishers reach us
         log.info(
-            "gateway %016x between %s (TxNode %s) and the TCP-ECB at %s, listening on %s:%d",
+            "gateway %016x between %s (TxNode %s) and %s%s",
             self._node_id,
             self._link.channel_info,
             self.can.stats().get("txnode"),
-            self._broker,
-            host,
-            port,
+            ip_face.where,
+            ", listening on {}:{}".format(*address) if address else "",
         )
 
     async def close(self) -> None:
@@ -265,7 +279,7 @@ class Gateway:
         self._tasks.clear()
         if self._tables is not None:
             self._tables.on_change = None
-        for node in (self.tcp, self.can):
+        for node in (self.ip, self.can):
             if node is not None:
                 await node.close()
         if isinstance(self._tables, _Tables):
@@ -283,14 +297,15 @@ class Gateway:
     def stats(self) -> dict[str, int]:
         """Events forwarded each way, drops, and the channels forwarded."""
         can_stats = self.can.stats() if self.can else {}
-        tcp_stats = self.tcp.stats() if self.tcp else {}
+        ip_stats = self.ip.stats() if self.ip else {}
         return {
             **self.counters,
             "can_queued": len(self._can_queue),
-            "tcp_dropped": tcp_stats.get("peer_dropped", 0),
+            f"{self.side}_dropped": ip_stats.get("peer_dropped", 0),
+            f"{self.side}_lost": ip_stats.get("lost", 0),
             "can_tx_failed": can_stats.get("tx_failed", 0),
             "bindings": can_stats.get("bindings", 0),
-            "forwarding_to_tcp": len(self._to_tcp_sinks),
+            f"forwarding_to_{self.side}": len(self._to_ip_sinks),
             "forwarding_to_can": len(self._to_can_sinks),
             "txnode": can_stats.get("txnode", -1),
         }
@@ -302,7 +317,7 @@ class Gateway:
                 **self.stats(),
                 "can_bus": self._link.channel_info if self._link else None,
                 "txnode": self.can.stats().get("txnode") if self.can else None,
-                "channels_to_tcp": [f"0x{uid:016x}" for uid in sorted(self._to_tcp_sinks)],
+                f"channels_to_{self.side}": [f"0x{uid:016x}" for uid in sorted(self._to_ip_sinks)],
                 "channels_to_can": [f"0x{uid:016x}" for uid in sorted(self._to_can_sinks)],
                 "can_node": self.can.stats() if self.can else {},
                 "can_ecb": self._ecb.stats() if self._ecb else "external",
@@ -347,42 +362,42 @@ class Gateway:
         await fut
 
     async def _reconcile(self, uid: int) -> None:
-        assert self._tables is not None and self.can is not None and self.tcp is not None
+        assert self._tables is not None and self.can is not None and self.ip is not None
         me = self._can_face_txnode()
         can_subs = self._tables.subscribers.get(uid, set()) - {me}
         can_pubs = self._tables.publishers.get(uid, set()) - {me}
         channel = Channel(uid)
 
-        if can_subs and uid not in self._to_can_sinks:  # TCP -> CAN
+        if can_subs and uid not in self._to_can_sinks:  # IP -> CAN
             can_state = await self.can._publishing_state(channel)
             sink = _Forward(self._to_can, can_state)
             try:
-                await self.tcp._attach(channel, sink)
+                await self.ip._attach(channel, sink)
             except AccessDenied as exc:  # nothing the gateway may not receive reaches the bus
                 self._denied(uid, exc)
             else:
                 self._to_can_sinks[uid] = sink  # listed once it works
-                log.info("forwarding %016x from TCP to CAN", uid)
+                log.info("forwarding %016x from %s to CAN", uid, self.side)
         elif not can_subs and uid in self._to_can_sinks:
-            await self.tcp._detach(channel, self._to_can_sinks.pop(uid))
-            log.info("stopped forwarding %016x from TCP to CAN", uid)
+            await self.ip._detach(channel, self._to_can_sinks.pop(uid))
+            log.info("stopped forwarding %016x from %s to CAN", uid, self.side)
 
-        tcp_state = None
-        if can_pubs:  # advertise it on TCP, to learn who subscribes
+        ip_state = None
+        if can_pubs:  # advertise it on the IP side, to learn who subscribes
             try:
-                tcp_state = await self.tcp._publishing_state(channel)
+                ip_state = await self.ip._publishing_state(channel)
             except AccessDenied as exc:
                 self._denied(uid, exc)
-        wanted = tcp_state is not None and self._tcp_face().subscribed_elsewhere(uid)
-        if wanted and uid not in self._to_tcp_sinks:  # CAN -> TCP
-            assert tcp_state is not None
-            sink_tcp = _Forward(self._to_tcp, tcp_state)
-            await self.can._attach(channel, sink_tcp)
-            self._to_tcp_sinks[uid] = sink_tcp  # listed once it works
-            log.info("forwarding %016x from CAN to TCP", uid)
-        elif not wanted and uid in self._to_tcp_sinks:
-            await self.can._detach(channel, self._to_tcp_sinks.pop(uid))
-            log.info("stopped forwarding %016x from CAN to TCP", uid)
+        wanted = ip_state is not None and self._ip_face().subscribed_elsewhere(uid)
+        if wanted and uid not in self._to_ip_sinks:  # CAN -> IP
+            assert ip_state is not None
+            sink_ip = _Forward(self._to_ip, ip_state)
+            await self.can._attach(channel, sink_ip)
+            self._to_ip_sinks[uid] = sink_ip  # listed once it works
+            log.info("forwarding %016x from CAN to %s", uid, self.side)
+        elif not wanted and uid in self._to_ip_sinks:
+            await self.can._detach(channel, self._to_ip_sinks.pop(uid))
+            log.info("stopped forwarding %016x from CAN to %s", uid, self.side)
 
     def _denied(self, uid: int, exc: AccessDenied) -> None:
         """The TCP-ECB's ACL does not let the gateway's identity carry ``uid`` this way."""
@@ -391,10 +406,9 @@ class Gateway:
 
     # --- forwarding ------------------------------------------------------------------------
 
-    def _to_tcp(self, tcp_state: ChannelState, msg: Message) -> None:
-        assert self.tcp is not None
-        self.counters["to_tcp"] += 1
-        self._tcp_face().send(tcp_state, msg.data, msg.priority)
+    def _to_ip(self, ip_state: ChannelState, msg: Message) -> None:
+        self.counters[self._to_ip_counter] += 1
+        self._ip_face().send(ip_state, msg.data, msg.priority)
 
     def _to_can(self, can_state: ChannelState, msg: Message) -> None:
         if len(msg.data) > sizes.MAX_EVENT:
@@ -464,11 +478,11 @@ class Gateway:
 
     # --- helpers ---------------------------------------------------------------------------
 
-    def _tcp_face(self) -> TcpFace:
-        assert self.tcp is not None
-        face = self.tcp.face
-        assert isinstance(face, TcpFace)
-        return face
+    def _ip_face(self) -> Any:
+        """The IP side's face: a ``TcpFace`` or a ``ZenohFace`` (both tell who subscribes
+        elsewhere, ``subscribed_elsewhere``, and call ``on_targets`` when that changes)."""
+        assert self.ip is not None
+        return self.ip.face
 
     def _can_face_txnode(self) -> int:
         assert self.can is not None

@@ -50,7 +50,7 @@ def tcp_node(ecb: TcpEcb, node_id: int) -> Node:
 
 def forwarding(gw: Gateway, channel: str, to: str) -> bool:
     uid = name_to_uid(channel)
-    return uid in (gw._to_tcp_sinks if to == "tcp" else gw._to_can_sinks)
+    return uid in (gw._to_ip_sinks if to == "tcp" else gw._to_can_sinks)
 
 
 async def test_can_publisher_to_tcp_subscriber_keeps_the_priority(
@@ -203,7 +203,7 @@ async def test_wan_of_cans(bus: str, tcp_ecb: TcpEcb, tmp_path: Path) -> None:
         await eventually(
             lambda: forwarding(gw_a, "from-b", "can") and forwarding(gw_b, "from-a", "can")
         )
-        await eventually(lambda: gw_a._tcp_face().subscribed_elsewhere(name_to_uid("from-a")))
+        await eventually(lambda: gw_a._ip_face().subscribed_elsewhere(name_to_uid("from-a")))
         await on_a.publish("from-a", b"\xaa")
         await on_b.publish("from-b", b"\xbb")
         assert await _next_not_zero(b_hears) == b"\xaa"
@@ -235,7 +235,7 @@ async def test_a_flood_towards_can_is_paced_and_its_drops_counted(
         await tpub.publish("cmd", bytes(70_000))  # too big for any event on CAN
         for i in range(500):
             await tpub.publish("cmd", i.to_bytes(2, "big"))
-        await eventually(lambda: gw.tcp.stats()["received"] == 502)  # type: ignore[union-attr]
+        await eventually(lambda: gw.ip.stats()["received"] == 502)  # type: ignore[union-attr]
         stats = gw.stats()
         assert stats["too_large_for_can"] == 1
         assert stats["can_dropped"] > 400  # 20 kbit/s carries ~200 frames a second
@@ -299,7 +299,7 @@ async def test_gateway_status_is_readable(bus: str, tcp_ecb: TcpEcb, tmp_path: P
     async with gateway(bus, tcp_ecb, tmp_path / "gw.db") as gw, can_node(bus, 0xC9) as csub:
         await csub.subscribe("cmd")
         await eventually(lambda: forwarding(gw, "cmd", "can"))
-        host, port = gw._tcp_face().address  # type: ignore[misc]
+        host, port = gw._ip_face().address  # type: ignore[misc]
         info = (await query_status(f"{host}:{port}"))["gateway"]
         assert info["channels_to_can"] == (f"0x{name_to_uid('cmd'):016x}",)
         assert info["forwarding_to_can"] == 1

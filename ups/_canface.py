@@ -28,7 +28,7 @@ from ._errors import (
     Exhausted,
     PayloadTooLarge,
 )
-from ._face import ChannelState, Deliver
+from ._face import ChannelState, Deliver, FaceContext
 
 log = logging.getLogger("ups.can")
 
@@ -52,6 +52,28 @@ _MGMT_FILTER = {
     "can_mask": p.TXNODE_MASK << p.TXNODE_SHIFT,
     "extended": True,
 }
+
+
+#: the Node options a CAN face takes (see ``Node``)
+OPTIONS = frozenset({"filter_limit", "max_event"})
+
+
+def build(
+    bus: str | can.BusABC | CanLink,
+    context: FaceContext,
+    *,
+    filter_limit: int = 16,
+    max_event: int = t.MAX_EVENT,
+) -> CanFace:
+    return CanFace(
+        bus,
+        context.node_id,
+        deliver=context.deliver,
+        channels=context.channels,
+        join_timeout=context.join_timeout,
+        filter_limit=filter_limit,
+        max_event=max_event,
+    )
 
 
 class CanFace:
@@ -85,6 +107,7 @@ class CanFace:
         else:
             raise ConfigError(f"can= takes 'INTERFACE:CHANNEL' or a python-can bus, not {bus!r}")
         self.node_id = node_id
+        self.where = f"the CAN-ECB on {self.link}"
         self.txnode: int | None = None
         self._joiner = Joiner(node_id, self._send, self.link.channel_info, join_timeout)
         self._filter_limit = filter_limit

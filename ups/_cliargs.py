@@ -28,17 +28,18 @@ def add_can(cmd: argparse.ArgumentParser) -> None:
 
 
 def add_node_options(cmd: argparse.ArgumentParser) -> None:
-    network = cmd.add_mutually_exclusive_group()  # or $UPS_BROKER, or $UPS_CAN
+    network = cmd.add_mutually_exclusive_group()  # or $UPS_BROKER, $UPS_ZENOH, $UPS_CAN
     network.add_argument(
         "--can",
         metavar="INTERFACE:CHANNEL[,key=value...]",
         help="python-can bus, e.g. socketcan:vcan0 or udp_multicast:239.74.163.2,port=43114 "
-        "(default: $UPS_CAN, when $UPS_BROKER is not set)",
+        "(default: $UPS_CAN, when neither $UPS_BROKER nor $UPS_ZENOH is set)",
     )
     network.add_argument(
         "--broker", metavar="HOST:PORT",
         help="TCP/IP network served by the TCP-ECB at HOST:PORT (default: $UPS_BROKER)",
     )  # fmt: skip
+    add_zenoh(network)
     cmd.add_argument(
         "--listen", metavar="HOST:PORT", default=None,
         help="TCP/IP: where publishers reach this node (default: towards the broker, any port)",
@@ -50,7 +51,24 @@ def add_node_options(cmd: argparse.ArgumentParser) -> None:
         default=30.0,
         help="seconds to wait for the broker",
     )
+    add_zenoh_config(cmd)
     add_tls(cmd, node=True)
+
+
+def add_zenoh(group: Any, required: bool = False) -> None:
+    group.add_argument(
+        "--zenoh", metavar="ENDPOINT", required=required,
+        help="Zenoh network, through the router at ENDPOINT, e.g. tcp/127.0.0.1:7447 "
+        "(default: $UPS_ZENOH)",
+    )  # fmt: skip
+
+
+def add_zenoh_config(cmd: argparse.ArgumentParser) -> None:
+    cmd.add_argument(
+        "--zenoh-config", metavar="FILE", default=None,
+        help="Zenoh JSON5 config (TLS, user/password, access control, scouting); with it "
+        "alone, the node joins Zenoh as the file says",
+    )  # fmt: skip
 
 
 def add_tls(cmd: argparse.ArgumentParser, node: bool = False) -> None:
@@ -141,33 +159,61 @@ def run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
 
 def network_of(args: argparse.Namespace) -> tuple[str | None, str | None]:
     """(--can, --broker), or else the environment's (UPS_BROKER first); exactly one is set."""
-    can, broker = args.can, args.broker
-    if can is None and broker is None:
-        broker = os.environ.get("UPS_BROKER") or None
-        can = None if broker else os.environ.get("UPS_CAN") or None
-    if can is None and broker is None:
-        raise ConfigError(
-            "which network? give --can INTERFACE:CHANNEL or --broker HOST:PORT "
-            "(or set UPS_CAN or UPS_BROKER)"
+    kind, where = network_choice(args)
+    if kind == "zenoh":
+        raise ConfigError(f"ups {args.command} does not work on Zenoh yet: use --can or --broker")
+    return (where, None) if kind == "can" else (None, where)
+
+
+def network_choice(args: argparse.Namespace) -> tuple[str, str]:
+    """The network a command joins: ("can", BUS), ("broker", HOST:PORT) or ("zenoh",
+    ENDPOINT), from the options, else the environment (UPS_BROKER, UPS_ZENOH, UPS_CAN)."""
+    zenoh_config = getattr(args, "zenoh_config", None)
+    given = [
+        (kind, where)
+        for kind, where in (
+            ("can", args.can),
+            ("broker", args.broker),
+            ("zenoh", getattr(args, "zenoh", None)),
         )
-    return can, broker
+        if where is not None
+    ]
+    if not given and zenoh_config is not None:
+        given = [("zenoh", os.environ.get("UPS_ZENOH") or "")]
+    for kind, variable in (("broker", "UPS_BROKER"), ("zenoh", "UPS_ZENOH"), ("can", "UPS_CAN")):
+        if not given and os.environ.get(variable):
+            given = [(kind, os.environ[variable])]
+    if not given:
+        raise ConfigError(
+            "which network? give --can INTERFACE:CHANNEL, --broker HOST:PORT or --zenoh "
+            "ENDPOINT (or set UPS_CAN, UPS_BROKER or UPS_ZENOH)"
+        )
+    kind, where = given[0]
+    if zenoh_config is not None and kind != "zenoh":
+        raise ConfigError("--zenoh-config is for Zenoh nodes (with --zenoh)")
+    return kind, where
 
 
 def open_node(args: argparse.Namespace) -> Node:
     from ._node import Node
 
-    can, broker = network_of(args)
-    if args.listen is not None and broker is None:
+    kind, where = network_choice(args)
+    if args.listen is not None and kind != "broker":
         raise ConfigError("--listen is for TCP/IP nodes (with --broker)")
-    args.on_can = can is not None  # what ``source`` is: a TxNode or a node id
+    tls = tls_of(args)
+    if tls is not None and kind != "broker":
+        raise ConfigError("--tls-* is for TCP/IP nodes; on Zenoh, TLS is in --zenoh-config")
+    args.on_can = kind == "can"  # what ``source`` is: a TxNode or a node id
     return Node(
-        can=can,
-        broker=broker,
+        can=where if kind == "can" else None,
+        broker=where if kind == "broker" else None,
+        zenoh=where if kind == "zenoh" else None,
         listen=args.listen,
         node_id=args.node_id,
         name=f"ups-{args.command}",
         join_timeout=args.join_timeout,
-        tls=tls_of(args),
+        tls=tls,
+        zenoh_config=getattr(args, "zenoh_config", None),
     )
 
 

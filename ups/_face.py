@@ -8,7 +8,7 @@ the events it receives. It never imports the node.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Literal, Protocol
+from typing import Literal, NamedTuple, Protocol
 
 from ._channel import Channel
 from ._message import Message
@@ -44,10 +44,23 @@ class ChannelState:
 Deliver = Callable[[ChannelState, bytes, int, int | None, float], None]
 
 
+class FaceContext(NamedTuple):
+    """What a node hands the face it builds (each face module has
+    ``build(where, context, **options) -> Face`` and the set ``OPTIONS`` it accepts)."""
+
+    node_id: int
+    name: str
+    deliver: Deliver
+    channels: dict[int, ChannelState]
+    node_stats: Callable[[], dict[str, int]]
+    join_timeout: float | None
+
+
 class Face(Protocol):
     """One network as seen by a node. A face calls its ``Deliver`` for each event it receives."""
 
     max_payload: int
+    where: str  #: what the node joins, for messages ("the TCP-ECB at 10.0.0.1:7411")
 
     async def start(self) -> None: ...
     async def close(self) -> None: ...

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import logging
 import sys
 import time
@@ -19,7 +20,7 @@ from typing import IO, Any
 
 from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError
-from ._face import DEFAULT_PRIORITY, OVERFLOWS, ChannelState, Face, Overflow, Sink
+from ._face import DEFAULT_PRIORITY, OVERFLOWS, ChannelState, Face, FaceContext, Overflow, Sink
 from ._message import Message
 from ._nodeid import claim_node_id
 from ._subscription import DEFAULT_QUEUE, YIELD_EVERY, Subscription, wait
@@ -27,15 +28,20 @@ from ._tls import Tls
 
 log = logging.getLogger("ups")
 
+#: the module of each kind of network's face; each has ``OPTIONS`` and ``build()``
+_FACES = {"can": "._canface", "broker": "._tcpface", "zenoh": "._zenohface"}
+
 _new_message = tuple.__new__  # Message(...) without NamedTuple's Python-level __new__
 
 
 class Node:
-    """An Event Channel Handler on one network: a CAN bus, or a TCP/IP network with a TCP-ECB.
+    """An Event Channel Handler on one network: a CAN bus, a TCP/IP network with a TCP-ECB, or
+    a Zenoh network.
 
-    Use it as an async context manager; the API is the same on both networks::
+    Use it as an async context manager; the API is the same on every network::
 
-        async with Node(can="virtual:demo") as node:  # or Node(broker="127.0.0.1:7411")
+        async with Node(can="virtual:demo") as node:  # or broker="127.0.0.1:7411", or
+            # zenoh="tcp/127.0.0.1:7447"
             sub = await node.subscribe("robot/speed")
             await node.publish("robot/speed", b"\\x10")
             msg = await sub.get_msg(timeout=1.0)
@@ -59,6 +65,13 @@ class Node:
     ``stats()["peer_dropped"]`` counts it: a stalled subscriber never holds up the publisher
     or the other subscribers. ``tls`` (``ups.Tls(ca, cert, key)``) runs every link over TLS
     with the fleet's certificates, both sides authenticated.
+
+    Zenoh only: ``zenoh`` is the endpoint of a Zenoh router to join as a client (e.g.
+    ``tcp/10.0.0.1:7447``); ``zenoh_config``, a Zenoh JSON5 config file (TLS, user/password,
+    access control, scouting), alone or beside it. Needs ``pip install 'ups-pubsub[zenoh]'``.
+
+    An option of another network than the node's (``listen`` on a CAN node, say) is a
+    ``ConfigError``.
     """
 
     def __init__(
@@ -66,34 +79,51 @@ class Node:
         *,
         can: Any = None,
         broker: str | None = None,
+        zenoh: str | None = None,
         node_id: int | None = None,
         name: str | None = None,
         join_timeout: float | None = 30.0,
-        filter_limit: int = 16,
-        max_event: int = 0xFFFF,
+        filter_limit: int | None = None,
+        max_event: int | None = None,
         listen: str | None = None,
-        peer_queue: int = DEFAULT_QUEUE,
-        peer_overflow: Overflow = "drop_oldest",
+        peer_queue: int | None = None,
+        peer_overflow: Overflow | None = None,
         tls: Tls | None = None,
+        zenoh_config: str | Path | None = None,
     ) -> None:
-        if (can is None) == (broker is None):
+        networks = {
+            kind: where
+            for kind, where in (("can", can), ("broker", broker), ("zenoh", zenoh))
+            if where is not None
+        }
+        if zenoh_config is not None:
+            networks.setdefault("zenoh", "")  # the config file names where to connect
+        if len(networks) != 1:
             raise ConfigError(
-                "a node needs one network: Node(can='INTERFACE:CHANNEL') or "
-                "Node(broker='HOST:PORT')"
+                "a node needs one network: Node(can='INTERFACE:CHANNEL'), "
+                "Node(broker='HOST:PORT') or Node(zenoh='tcp/HOST:PORT')"
             )
         if node_id is not None and not 0 <= node_id < 1 << 64:
             raise ConfigError(f"node_id must fit in 64 bits, got {node_id!r}")
+        ((self._network, self._where),) = networks.items()
+        # the options of one kind of network: its face refuses those that are not its own
+        self._options: dict[str, Any] = {
+            key: value
+            for key, value in (
+                ("filter_limit", filter_limit),
+                ("max_event", max_event),
+                ("listen", listen),
+                ("peer_queue", peer_queue),
+                ("peer_overflow", peer_overflow),
+                ("tls", tls),
+                ("config", zenoh_config),
+            )
+            if value is not None
+        }
         self.name = name or _program_name()
         self._node_id = node_id
         self._id_lock: IO[bytes] | None = None
-        self._can = can
         self._join_timeout = join_timeout
-        self._filter_limit = filter_limit
-        self._max_event = max_event
-        self._broker = broker
-        self._listen = listen
-        self._peer_queue = peer_queue
-        self._peer_overflow: Overflow = peer_overflow
         self._tls = tls
         self._face: Face | None = None
         self._states: dict[int, ChannelState] = {}
@@ -138,9 +168,8 @@ class Node:
             key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
             self._node_id, self._id_lock = claim_node_id(key)
         face = self._build_face(self._node_id)
-        where = f"the CAN-ECB on {self._can}" if self._can else f"the TCP-ECB at {self._broker}"
         waiting = asyncio.get_running_loop().call_later(
-            1.0, log.warning, "waiting for %s (up to %s s)", where, self._join_timeout
+            1.0, log.warning, "waiting for %s (up to %s s)", face.where, self._join_timeout
         )  # a second of silence is long enough to say why
         try:
             await face.start()
@@ -153,36 +182,16 @@ class Node:
         self._face = face
 
     def _build_face(self, node_id: int) -> Face:
-        """The face of this node's network, handed what it needs (imported only when used: a
-        TCP/IP node does not load python-can)."""
-        if self._can is not None:
-            from ._canface import CanFace
-
-            return CanFace(
-                self._can,
-                node_id,
-                deliver=self._deliver,
-                channels=self._states,
-                join_timeout=self._join_timeout,
-                filter_limit=self._filter_limit,
-                max_event=self._max_event,
-            )
-        from ._tcpface import TcpFace
-
-        assert self._broker is not None
-        return TcpFace(
-            self._broker,
-            node_id,
-            name=self.name,
-            deliver=self._deliver,
-            channels=self._states,
-            node_stats=self.stats,
-            listen=self._listen,
-            join_timeout=self._join_timeout,
-            peer_queue=self._peer_queue,
-            peer_overflow=self._peer_overflow,
-            tls=self._tls,
-        )
+        """The face of this node's network, handed what it needs (its module is imported only
+        when used: a TCP/IP node does not load python-can)."""
+        module = importlib.import_module(_FACES[self._network], __package__)
+        stray = set(self._options) - module.OPTIONS
+        if stray:
+            raise ConfigError(f"{', '.join(sorted(stray))}: not an option of {self._network} nodes")
+        context = FaceContext(node_id, self.name, self._deliver, self._states, self.stats,
+                              self._join_timeout)  # fmt: skip
+        face: Face = module.build(self._where, context, **self._options)
+        return face
 
     async def close(self) -> None:
         """Close every subscription and the network. Safe to call twice."""
@@ -220,7 +229,7 @@ class Node:
         ``wait=True`` it first waits until every subscriber's queue has room (backpressure, on
         TCP/IP: a publisher that outpaces its subscribers slows down instead of dropping).
         Raises ``PayloadTooLarge`` when ``data`` is larger than the network carries (65535
-        bytes on CAN, 16 MiB on TCP/IP). On CAN, the first event larger than the channel's
+        bytes on CAN, 1 MiB on TCP/IP and Zenoh). On CAN, the first event larger than the channel's
         binding allows moves the channel to a larger size class first (``advertise`` with
         ``max_size`` avoids that pause).
         """

@@ -18,13 +18,14 @@ from . import _tcpwire as w
 from ._address import parse_address
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
 from ._face import OVERFLOWS, Overflow
+from ._subscription import DEFAULT_QUEUE
 from ._tcpinbox import Inbox
 from ._tcplink import Link
 from ._tcpoutbox import Outbox
 from ._tls import Tls, identity
 
 if TYPE_CHECKING:
-    from ._face import ChannelState, Deliver
+    from ._face import ChannelState, Deliver, FaceContext
 
 log = logging.getLogger("ups.tcp")
 
@@ -33,6 +34,34 @@ SILENCE = 6 * HEARTBEAT  # an ECB link that said nothing for this long is dead
 _RETRY_FIRST = 0.05
 _RETRY_MAX = 1.0
 _BIND_TIMEOUT = 5.0
+
+
+#: the Node options a TCP/IP face takes (see ``Node``)
+OPTIONS = frozenset({"listen", "peer_queue", "peer_overflow", "tls"})
+
+
+def build(
+    broker: str,
+    context: FaceContext,
+    *,
+    listen: str | None = None,
+    peer_queue: int = DEFAULT_QUEUE,
+    peer_overflow: Overflow = "drop_oldest",
+    tls: Tls | None = None,
+) -> TcpFace:
+    return TcpFace(
+        broker,
+        context.node_id,
+        name=context.name,
+        deliver=context.deliver,
+        channels=context.channels,
+        node_stats=context.node_stats,
+        listen=listen,
+        join_timeout=context.join_timeout,
+        peer_queue=peer_queue,
+        peer_overflow=peer_overflow,
+        tls=tls,
+    )
 
 
 def _hex(value: int) -> str:
@@ -69,6 +98,7 @@ class TcpFace:
         self._channels = channels
         self._node_stats = node_stats
         self.broker = parse_address(broker)
+        self.where = f"the TCP-ECB at {broker}"
         self._listen = parse_address(listen, "") if listen is not None else None
         self.node_id = node_id
         self._join_timeout = join_timeout

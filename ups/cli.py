@@ -21,6 +21,8 @@ from ._cliargs import (
     add_catalog,
     add_node_options,
     add_tls,
+    add_zenoh,
+    add_zenoh_config,
     channel_arg,
     hex_arg,
     nonnegative_float,
@@ -40,7 +42,8 @@ if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help st
 EXIT_TIMEOUT = 1
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
 EXIT_USAGE = 2
-DAEMONS = ("can-broker", "broker", "gateway")  #: log at INFO; the other commands at WARNING
+#: log at INFO; the other commands at WARNING
+DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -156,12 +159,12 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     add_tls(cmd)
     cmd.set_defaults(run=_run_broker)
 
-    cmd = command("gateway", help="forward subscribed events between a CAN bus and TCP/IP")
+    cmd = command("gateway", help="forward subscribed events between a CAN bus and TCP/IP or Zenoh")
     add_can(cmd)
-    cmd.add_argument(
-        "--broker", metavar="HOST:PORT", default=os.environ.get("UPS_BROKER") or None,
-        required=not os.environ.get("UPS_BROKER"), help="the TCP-ECB (default: $UPS_BROKER)",
-    )  # fmt: skip
+    ip_side = cmd.add_mutually_exclusive_group()
+    ip_side.add_argument("--broker", metavar="HOST:PORT", help="the TCP-ECB (default: $UPS_BROKER)")
+    add_zenoh(ip_side)
+    add_zenoh_config(cmd)
     cmd.add_argument(
         "--listen", metavar="HOST:PORT", default=None,
         help="where TCP publishers and 'ups status' reach the gateway (default: any port)",
@@ -182,11 +185,28 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     add_tls(cmd, node=True)
     cmd.set_defaults(run=_run_gateway)
 
-    cmd = command("status", help="print the tables and counters of a TCP daemon")
-    cmd.add_argument("address", metavar="HOST:PORT", help="a TCP-ECB, gateway or node")
+    cmd = command("status", help="print the tables and counters of a TCP daemon, or of every "
+                  "UPS node and gateway on Zenoh")  # fmt: skip
+    cmd.add_argument("address", metavar="HOST:PORT", nargs="?", help="a TCP-ECB, gateway or node")
+    add_zenoh(cmd)
+    add_zenoh_config(cmd)
     cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
     add_tls(cmd)
     cmd.set_defaults(run=_run_status)
+
+    cmd = command("zenoh-router", help="run a Zenoh router (Zenoh's own), for a UPS Zenoh network")
+    cmd.add_argument(
+        "--listen", metavar="ENDPOINT", action="append", default=None,
+        help="where clients and other routers reach it (default tcp/127.0.0.1:7447; "
+        "repeat for several)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--connect", metavar="ENDPOINT", action="append", default=[],
+        help="another router to link with (repeat for several): routers so linked make one "
+        "Zenoh network across hosts and sites",
+    )  # fmt: skip
+    add_zenoh_config(cmd)
+    cmd.set_defaults(run=_run_zenoh_router)
 
     cmd = command("certs", help="make the fleet CA and certificates for TLS")
     certs = cmd.add_subparsers(dest="certs_command", required=True, metavar="ACTION")
@@ -353,9 +373,20 @@ def _run_broker(args: argparse.Namespace) -> int:
 def _run_gateway(args: argparse.Namespace) -> int:
     from gateway import Gateway, serve
 
+    broker, zenoh = args.broker, args.zenoh
+    if broker is None and zenoh is None and args.zenoh_config is None:
+        broker = os.environ.get("UPS_BROKER") or None
+        zenoh = None if broker else os.environ.get("UPS_ZENOH") or None
+        if broker is None and zenoh is None:
+            raise ConfigError("which IP side? give --broker HOST:PORT or --zenoh ENDPOINT "
+                              "(or set UPS_BROKER or UPS_ZENOH)")  # fmt: skip
+    if args.listen is not None and broker is None:
+        raise ConfigError("--listen is for a gateway to TCP/IP (with --broker)")
     gateway = Gateway(
         args.can,
-        args.broker,
+        broker,
+        zenoh=zenoh,
+        zenoh_config=args.zenoh_config,
         db=args.db,
         host_can_ecb=not args.external_can_ecb,
         bitrate=args.bitrate,
@@ -385,11 +416,30 @@ def _run_certs(args: argparse.Namespace) -> int:
 def _run_status(args: argparse.Namespace) -> int:
     import json
 
-    from ._tcpface import query_status
+    if (args.address is None) == (args.zenoh is None and args.zenoh_config is None):
+        raise ConfigError("ups status HOST:PORT (a TCP daemon) or ups status --zenoh ENDPOINT")
 
     async def run() -> int:
-        info = await query_status(args.address, args.timeout, tls_of(args))
+        info: Any
+        if args.address is None:
+            from ._zenohface import query_status as query_zenoh
+
+            info = await query_zenoh(args.zenoh or "", args.zenoh_config, args.timeout)
+        else:
+            from ._tcpface import query_status
+
+            info = await query_status(args.address, args.timeout, tls_of(args))
         print(json.dumps(info, indent=2))
+        return 0
+
+    return run_until_signal(run())
+
+
+def _run_zenoh_router(args: argparse.Namespace) -> int:
+    from broker.zenoh_router import serve
+
+    async def run() -> int:
+        await serve(args.listen or ["tcp/127.0.0.1:7447"], args.connect, args.zenoh_config)
         return 0
 
     return run_until_signal(run())

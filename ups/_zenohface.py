@@ -1,0 +1,433 @@
+"""The Zenoh face of a node: UPS channels as Zenoh key expressions, routed by Zenoh.
+
+A node opens a Zenoh session (a client of the router at ``zenoh=``, or whatever its Zenoh
+config file says) and maps each channel onto one key expression: ``ups/<uid>`` and, when the
+channel was named, ``ups/<uid>/<name>``. A subscription covers ``ups/<uid>/**``, so it hears
+publishers that know the name and those that know only the UID (a gateway forwarding from
+CAN). The payload is the event's data as it is, so plain Zenoh programs read and write UPS
+channels; the attachment carries what UPS adds: the UPS priority, the publishing node and a
+sequence number per channel, from which subscribers count what never arrived. See
+docs/protocol.md, "UPS on Zenoh".
+
+Zenoh calls back from its own threads: received samples wait in a queue of ``RX_QUEUE``
+(counted when full, ``rx_overflow``) until the event loop hands them to the node.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import struct
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ._errors import BrokerUnavailable, ConfigError, PayloadTooLarge
+
+if TYPE_CHECKING:
+    from ._face import ChannelState, FaceContext
+
+log = logging.getLogger("ups.zenoh")
+
+PREFIX = "ups"  #: the first chunk of every UPS key expression
+STATUS_PREFIX = f"{PREFIX}/@node"  #: ``<prefix>/<node id>`` answers a get with the status
+MAX_DATA = 1 << 20  #: the largest event (as on TCP/IP)
+RX_QUEUE = 65536  #: samples received, not yet handed to the node (then: rx_overflow)
+MAX_SOURCES = 4096  #: (publisher, channel) pairs whose numbers are followed (then: forgotten)
+#: the attachment of a UPS event: version 1, UPS priority, publishing node id, sequence number
+ATTACHMENT = struct.Struct(">BBQQ")
+VERSION = 1
+_DRAIN_BATCH = 512  # samples handed over per event-loop pass
+_RETRY_FIRST = 0.05
+_RETRY_MAX = 1.0
+
+#: the node options a Zenoh face takes (see ``Node``)
+OPTIONS = frozenset({"config"})
+
+
+def build(where: str, context: FaceContext, *, config: str | Path | None = None) -> ZenohFace:
+    return ZenohFace(where, context, config=config)
+
+
+def channel_key(uid: int, name: str | None) -> str:
+    """The key expression a channel's events are put on."""
+    key = f"{PREFIX}/{uid:016x}"
+    return f"{key}/{name}" if name is not None and _plain_key(name) else key
+
+
+def subscription_key(uid: int) -> str:
+    """The key expression a subscription to a channel covers."""
+    return f"{PREFIX}/{uid:016x}/**"
+
+
+def _plain_key(name: str) -> bool:
+    """Whether ``name`` can be chunks of a key expression as it is (no wildcard or verbatim
+    chunk, no empty chunk); other names leave the key at the UID."""
+    return all(
+        chunk and chunk[0] != "@" and not any(c in chunk for c in "*$?#")
+        for chunk in name.split("/")
+    )
+
+
+def to_zenoh_priority(priority: int) -> int:
+    """UPS priority 0..255 (0 highest) onto Zenoh's 1 (RealTime) .. 7 (Background)."""
+    return 1 + priority * 7 // 256
+
+
+def from_zenoh_priority(band: int) -> int:
+    """The lowest UPS priority that maps onto Zenoh priority ``band`` (for events that come
+    without a UPS attachment)."""
+    return -(-(band - 1) * 256 // 7)
+
+
+def zenoh_config(endpoint: str, config: str | Path | None, mode: str = "client") -> Any:
+    """A Zenoh config: the file's when given, else Zenoh's defaults; ``endpoint`` added to
+    connect to, and multicast scouting off unless the file turns it on."""
+    import zenoh
+
+    try:
+        conf = zenoh.Config.from_file(str(config)) if config is not None else zenoh.Config()
+    except (zenoh.ZError, OSError, ValueError) as exc:
+        raise ConfigError(f"bad Zenoh config {config}: {exc}") from None
+    conf_json = json.loads(conf.get_json("")) if config is not None else {}
+    if "mode" not in conf_json:
+        conf.insert_json5("mode", json.dumps(mode))
+    if "multicast" not in conf_json.get("scouting", {}):
+        conf.insert_json5("scouting/multicast/enabled", "false")  # never onto a real LAN unasked
+    if endpoint:
+        try:
+            conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        except zenoh.ZError as exc:
+            raise ConfigError(f"bad Zenoh endpoint {endpoint!r}: {exc}") from None
+    return conf
+
+
+class ZenohFace:
+    """A node's face on a Zenoh network."""
+
+    max_payload = MAX_DATA
+
+    def __init__(
+        self, endpoint: str, context: FaceContext, *, config: str | Path | None = None
+    ) -> None:
+        if not endpoint and config is None:
+            raise ConfigError("a Zenoh node needs an endpoint (zenoh='tcp/HOST:PORT') or a config")
+        self.where = f"the Zenoh router at {endpoint}" if endpoint else f"Zenoh as {config} says"
+        self._endpoint = endpoint
+        self._config = zenoh_config(endpoint, config)  # a bad file fails before anything opens
+        self.node_id = context.node_id
+        self.name = context.name
+        self._deliver = context.deliver
+        self._channels = context.channels
+        self._node_stats = context.node_stats
+        self._join_timeout = context.join_timeout
+        self._session: Any = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._publishers: dict[int, dict[int, Any]] = {}  # uid -> Zenoh priority -> publisher
+        self._keys: dict[int, str] = {}  # uid -> the key its events are put on
+        self._matching: dict[int, bool] = {}  # uid -> whether a remote subscriber matches
+        self._listeners: dict[int, Any] = {}  # uid -> matching listener
+        self._subscribers: dict[int, Any] = {}  # uid -> Zenoh subscriber
+        self._seq: dict[int, int] = {}  # uid -> this node's next number on it
+        self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
+        self._rx: collections.deque[tuple[int, bytes, bytes | None, int, float]] = (
+            collections.deque()
+        )
+        self._rx_scheduled = False
+        self._rx_lock = threading.Lock()  # Zenoh may call back from several threads
+        self._queryable: Any = None
+        self._closed = False
+        self._unreported = 0
+        self._reporter: asyncio.TimerHandle | None = None
+        #: called with a UID when its first remote subscriber comes or its last one goes
+        self.on_targets: Any = None
+        #: more for the status (the gateway's)
+        self.extra_status: Any = None
+        self.counters = dict.fromkeys(
+            ("sent", "received", "lost", "foreign", "too_large", "rx_overflow", "unsubscribed",
+             "forgotten", "restarts"), 0,
+        )  # fmt: skip
+
+    # --- life cycle ------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        import zenoh
+
+        self._loop = loop = asyncio.get_running_loop()
+        deadline = None if self._join_timeout is None else loop.time() + self._join_timeout
+        delay = _RETRY_FIRST
+        while True:
+            try:  # opening connects (or fails at once when nothing listens): not on the loop
+                self._session = await asyncio.to_thread(zenoh.open, self._config)
+                break
+            except zenoh.ZError as exc:
+                if deadline is not None and loop.time() + delay > deadline:
+                    raise BrokerUnavailable(
+                        f"could not join {self.where} within {self._join_timeout:g} s ({exc}); "
+                        "start a router with 'ups zenoh-router'"
+                    ) from None
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, _RETRY_MAX)
+        self._queryable = self._session.declare_queryable(
+            f"{STATUS_PREFIX}/{self.node_id:016x}", self._on_status_query
+        )
+        self._reporter = loop.call_later(1.0, self._report)
+        log.info("node %016x joined %s (Zenoh id %s)", self.node_id, self.where,
+                 self._session.zid())  # fmt: skip
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._reporter is not None:
+            self._reporter.cancel()
+        session, self._session = self._session, None
+        if session is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.to_thread(session.close)
+        self._report()
+
+    def stats(self) -> dict[str, int]:
+        return {
+            **self.counters,
+            "router_connected": int(self._connected()),
+            "rx_queued": len(self._rx),
+        }
+
+    def status(self) -> dict[str, Any]:
+        """What a get on ``ups/@node/<node id>`` is answered with (``ups status --zenoh``)."""
+        return {
+            "node_id": f"0x{self.node_id:016x}",
+            "name": self.name,
+            "zenoh_id": str(self._session.zid()) if self._session is not None else None,
+            "stats": self._node_stats(),
+            "subscribed": [f"0x{uid:016x}" for uid in sorted(self._subscribers)],
+            "published": [f"0x{uid:016x}" for uid in sorted(self._keys)],
+            **(self.extra_status() if self.extra_status is not None else {}),
+        }
+
+    # --- the Face protocol -----------------------------------------------------------------
+
+    async def bind(self, state: ChannelState, subscribe: bool, size: int = 0) -> None:
+        state.max_size = self.max_payload
+        uid = state.channel.uid
+        session = self._live_session()
+        if subscribe:
+            if uid not in self._subscribers:
+                self._subscribers[uid] = session.declare_subscriber(
+                    subscription_key(uid), self._sample_handler(uid)
+                )
+            return
+        if uid not in self._keys:
+            self._keys[uid] = channel_key(uid, state.channel.name)
+            self._seq.setdefault(uid, 0)
+            publisher = self._publisher(uid, to_zenoh_priority(state.priority))
+            self._matching[uid] = bool(publisher.matching_status.matching)
+            self._listeners[uid] = publisher.declare_matching_listener(
+                lambda status, uid=uid: self._threadsafe(self._on_matching, uid, status.matching)
+            )
+
+    async def grow(self, state: ChannelState, size: int) -> None:
+        raise PayloadTooLarge(
+            f"{size} bytes do not fit one event on {state.channel} (at most {self.max_payload})"
+        )
+
+    async def unsubscribe(self, state: ChannelState) -> None:
+        uid = state.channel.uid
+        subscriber = self._subscribers.pop(uid, None)
+        if subscriber is not None and self._session is not None:
+            with contextlib.suppress(Exception):
+                subscriber.undeclare()
+        for key in [key for key in self._expected if key[1] == uid]:
+            del self._expected[key]
+
+    def send(self, state: ChannelState, data: bytes, priority: int) -> None:
+        uid = state.channel.uid
+        band = to_zenoh_priority(priority)
+        publisher = self._publishers[uid].get(band) or self._publisher(uid, band)
+        seq = self._seq[uid]
+        self._seq[uid] = seq + 1
+        publisher.put(data, attachment=ATTACHMENT.pack(VERSION, priority, self.node_id, seq))
+        self.counters["sent"] += 1
+
+    async def room(self, state: ChannelState) -> None:
+        """Zenoh queues and drops on its own (congestion control "drop"): nothing to wait for
+        here; what a subscriber misses it counts from the sequence numbers."""
+
+    def subscribed_elsewhere(self, uid: int) -> bool:
+        """Whether a subscriber outside this session matches ``uid`` (for published channels)."""
+        return self._matching.get(uid, False)
+
+    # --- publishing ------------------------------------------------------------------------
+
+    def _publisher(self, uid: int, band: int) -> Any:
+        """``uid``'s publisher at Zenoh priority ``band``: events go only to other sessions
+        (the node delivers locally itself), dropped by Zenoh rather than blocking the loop."""
+        import zenoh
+
+        P = zenoh.Priority
+        priorities = (P.REAL_TIME, P.INTERACTIVE_HIGH, P.INTERACTIVE_LOW, P.DATA_HIGH, P.DATA,
+                      P.DATA_LOW, P.BACKGROUND)  # fmt: skip
+        publisher = self._live_session().declare_publisher(
+            self._keys[uid],
+            priority=priorities[band - 1],
+            congestion_control=zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE,
+            allowed_destination=zenoh.Locality.REMOTE,
+        )
+        self._publishers.setdefault(uid, {})[band] = publisher
+        return publisher
+
+    def _on_matching(self, uid: int, matching: bool) -> None:
+        if self._matching.get(uid) == matching or uid not in self._keys:
+            return
+        self._matching[uid] = matching
+        if self.on_targets is not None:
+            self.on_targets(uid)
+
+    # --- receiving -------------------------------------------------------------------------
+
+    def _sample_handler(self, uid: int) -> Any:
+        rx, limit, counters = self._rx, RX_QUEUE, self.counters
+
+        def on_sample(sample: Any) -> None:  # in a Zenoh thread
+            if len(rx) >= limit:
+                counters["rx_overflow"] += 1
+                return
+            attachment = sample.attachment
+            rx.append((
+                uid,
+                sample.payload.to_bytes(),
+                None if attachment is None else attachment.to_bytes(),
+                int(sample.priority),
+                time.time(),
+            ))  # fmt: skip
+            if not self._rx_scheduled:
+                with self._rx_lock:
+                    if not self._rx_scheduled:
+                        self._rx_scheduled = True
+                        self._threadsafe(self._drain)
+
+        return on_sample
+
+    def _threadsafe(self, callback: Any, *args: Any) -> None:
+        loop = self._loop
+        if loop is not None and not self._closed:
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+                loop.call_soon_threadsafe(callback, *args)
+
+    def _drain(self) -> None:
+        """Hand received samples to the node, a batch per event-loop pass."""
+        self._rx_scheduled = False
+        rx, channels, counters = self._rx, self._channels, self.counters
+        for _ in range(_DRAIN_BATCH):
+            if not rx:
+                return
+            uid, data, attachment, band, ts = rx.popleft()
+            state = channels.get(uid)
+            if state is None or not state.subs or uid not in self._subscribers:
+                counters["unsubscribed"] += 1
+                continue
+            if len(data) > MAX_DATA:
+                counters["too_large"] += 1
+                continue
+            if attachment is not None and len(attachment) == ATTACHMENT.size:
+                version, priority, source, seq = ATTACHMENT.unpack(attachment)
+                if version == VERSION:
+                    self._follow(source, uid, seq)
+                    counters["received"] += 1
+                    self._deliver(state, data, priority, source, ts)
+                    continue
+            counters["foreign"] += 1  # a plain Zenoh publisher's: no UPS numbers to follow
+            counters["received"] += 1
+            self._deliver(state, data, from_zenoh_priority(band), None, ts)
+        with self._rx_lock:  # more than a batch: the rest on the next pass
+            if rx and not self._rx_scheduled:
+                self._rx_scheduled = True
+                asyncio.get_running_loop().call_soon(self._drain)
+
+    def _follow(self, source: int, uid: int, seq: int) -> None:
+        """Count the numbers ``source`` skipped on ``uid``: events lost on the way."""
+        key = (source, uid)
+        expected = self._expected.get(key)
+        if expected is None:
+            if len(self._expected) >= MAX_SOURCES:
+                del self._expected[next(iter(self._expected))]
+                self.counters["forgotten"] += 1
+        elif seq > expected:
+            self.counters["lost"] += seq - expected
+            self._unreported += seq - expected
+        elif seq < expected:  # the publisher started again: its numbers too
+            self.counters["restarts"] += 1
+        self._expected[key] = seq + 1
+
+    # --- status ------------------------------------------------------------------------------
+
+    def _on_status_query(self, query: Any) -> None:  # in a Zenoh thread
+        self._threadsafe(self._answer_status, query)
+
+    def _answer_status(self, query: Any) -> None:
+        try:
+            query.reply(query.key_expr, json.dumps(self.status()))
+        except Exception:  # a querier that left: nothing to answer
+            log.debug("could not answer a status query", exc_info=True)
+        finally:
+            with contextlib.suppress(Exception):
+                query.drop()
+
+    def _report(self) -> None:
+        """Log what was lost since the last report, once a second."""
+        if self._unreported:
+            log.warning("lost %d events on the way (numbers skipped)", self._unreported)
+            self._unreported = 0
+        if not self._closed and self._loop is not None:
+            self._reporter = self._loop.call_later(1.0, self._report)
+
+    def _connected(self) -> bool:
+        session = self._session
+        if session is None:
+            return False
+        with contextlib.suppress(Exception):
+            return bool(session.info.routers_zid() or session.info.peers_zid())
+        return False
+
+    def _live_session(self) -> Any:
+        if self._session is None:
+            raise BrokerUnavailable("the Zenoh session is closed")
+        return self._session
+
+
+async def query_status(
+    endpoint: str, config: str | Path | None = None, timeout: float = 5.0
+) -> list[dict[str, Any]]:
+    """The status of every UPS node and gateway on the Zenoh network at ``endpoint``."""
+    import zenoh
+
+    conf = zenoh_config(endpoint, config)
+
+    def ask() -> list[dict[str, Any]]:
+        try:
+            session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            raise BrokerUnavailable(f"could not join Zenoh at {endpoint}: {exc}") from None
+        try:
+            answers = []
+            replies = session.get(
+                f"{STATUS_PREFIX}/*",
+                target=zenoh.QueryTarget.ALL,  # every node's, not the best matching one's
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=timeout,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    with contextlib.suppress(ValueError):
+                        answers.append(json.loads(reply.ok.payload.to_string()))
+            return answers
+        finally:
+            session.close()  # type: ignore[no-untyped-call]
+
+    return await asyncio.to_thread(ask)
