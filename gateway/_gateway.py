@@ -179,6 +179,7 @@ class Gateway:
         self._to_ip_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the CAN side
         self._to_can_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the IP side
         self._dirty: set[int] = set()
+        self._unwanted_since: dict[int, float] = {}  # uid -> when its IP subscribers went
         self._settled: dict[int, list[asyncio.Future[None]]] = {}  # uid -> awaiting its reconcile
         self._current: int | None = None  # the channel being reconciled
         self._wake = asyncio.Event()
@@ -389,6 +390,10 @@ class Gateway:
             except AccessDenied as exc:
                 self._denied(uid, exc)
         wanted = ip_state is not None and self._ip_face().subscribed_elsewhere(uid)
+        if wanted:
+            self._unwanted_since.pop(uid, None)
+        elif uid in self._to_ip_sinks and self._lingers(uid):
+            return  # forwarded a while longer: the subscribers may be back soon
         if wanted and uid not in self._to_ip_sinks:  # CAN -> IP
             assert ip_state is not None
             sink_ip = _Forward(self._to_ip, ip_state)
@@ -398,6 +403,20 @@ class Gateway:
         elif not wanted and uid in self._to_ip_sinks:
             await self.can._detach(channel, self._to_ip_sinks.pop(uid))
             log.info("stopped forwarding %016x from CAN to %s", uid, self.side)
+
+    def _lingers(self, uid: int) -> bool:
+        """Whether ``uid``, no longer subscribed on the IP side, is still forwarded: for the
+        face's ``linger`` seconds (Zenoh: 5 s, a router restarting) its events keep their
+        numbers, so that subscribers back in time count what they missed."""
+        linger = float(getattr(self._ip_face(), "linger", 0.0))
+        loop = asyncio.get_running_loop()
+        since = self._unwanted_since.setdefault(uid, loop.time())
+        left = since + linger - loop.time()
+        if left <= 0:
+            del self._unwanted_since[uid]
+            return False
+        loop.call_later(left, self._changed, uid)  # look again then
+        return True
 
     def _denied(self, uid: int, exc: AccessDenied) -> None:
         """The TCP-ECB's ACL does not let the gateway's identity carry ``uid`` this way."""

@@ -110,6 +110,9 @@ class ZenohFace:
     """A node's face on a Zenoh network."""
 
     max_payload = MAX_DATA
+    #: seconds a gateway keeps forwarding a channel whose last subscriber stopped matching (a
+    #: router restarting): events keep their numbers, and subscribers count what they missed
+    linger = 5.0
 
     def __init__(
         self, endpoint: str, context: FaceContext, *, config: str | Path | None = None
@@ -148,8 +151,8 @@ class ZenohFace:
         #: more for the status (the gateway's)
         self.extra_status: Any = None
         self.counters = dict.fromkeys(
-            ("sent", "received", "lost", "foreign", "too_large", "rx_overflow", "unsubscribed",
-             "forgotten", "restarts"), 0,
+            ("sent", "unmatched", "received", "lost", "foreign", "too_large", "rx_overflow",
+             "unsubscribed", "forgotten", "restarts"), 0,
         )  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
@@ -253,6 +256,8 @@ class ZenohFace:
         self._seq[uid] = seq + 1
         publisher.put(data, attachment=ATTACHMENT.pack(VERSION, priority, self.node_id, seq))
         self.counters["sent"] += 1
+        if not self._matching[uid]:  # no subscriber reached (e.g. its router restarting)
+            self.counters["unmatched"] += 1
 
     async def room(self, state: ChannelState) -> None:
         """Zenoh queues and drops on its own (congestion control "drop"): nothing to wait for
