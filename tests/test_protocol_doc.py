@@ -46,7 +46,7 @@ def test_documented_constants() -> None:
 
 
 TCP_ROW = re.compile(r"^\| `([0-9a-f ]+)` \| `([^`]+)`", re.M)
-TCP_EXAMPLES = TCP_ROW.findall(DOC.split("## TCP/IP framing", 1)[1])
+TCP_EXAMPLES = TCP_ROW.findall(DOC.split("## TCP/IP framing", 1)[1].split("## UPS on Zenoh")[0])
 
 
 @pytest.mark.parametrize(("raw", "frame"), TCP_EXAMPLES)
@@ -79,3 +79,42 @@ def test_transfer_example(event: str, tid: str, frames: str) -> None:
     r = t.Reassembler()
     got = [r.feed((0, 0x3000), f, False, 64, 0.0) for f in expected]
     assert got[-1] == bytes.fromhex(event)
+
+
+ZENOH = DOC.split("## UPS on Zenoh", 1)[1]
+ZENOH_ROW = re.compile(
+    r"^\| channel `([^`]+)`, priority (0x[0-9A-F]+), node (0x[0-9A-F]+), number (\d+) "
+    r"\| `(ups/[^`]+)` \| `([0-9a-f ]+)` \|$",
+    re.M,
+)
+ZENOH_EXAMPLES = ZENOH_ROW.findall(ZENOH)
+
+
+def test_zenoh_examples_are_found() -> None:
+    assert len(ZENOH_EXAMPLES) == 3
+
+
+@pytest.mark.parametrize(("channel", "priority", "node", "seq", "key", "raw"), ZENOH_EXAMPLES)
+def test_zenoh_example(
+    channel: str, priority: str, node: str, seq: str, key: str, raw: str
+) -> None:
+    from ups import _zenohface as z
+    from ups._channel import parse_channel
+
+    chan = parse_channel(channel)
+    assert z.channel_key(chan.uid, chan.name) == key
+    assert z.ATTACHMENT.pack(
+        z.VERSION, int(priority, 16), int(node, 16), int(seq)
+    ) == bytes.fromhex(raw)
+
+
+def test_zenoh_priority_table() -> None:
+    from ups import _zenohface as z
+
+    rows = re.findall(r"^\| 0x([0-9A-F]{2})\u20130x([0-9A-F]{2}) \| (\d) ", ZENOH, re.M)
+    assert len(rows) == 7
+    for low, high, band in rows:
+        assert {z.to_zenoh_priority(p) for p in range(int(low, 16), int(high, 16) + 1)} == {
+            int(band)
+        }
+        assert z.from_zenoh_priority(int(band)) == int(low, 16)
