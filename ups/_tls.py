@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime
 import os
 import ssl
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -128,9 +129,11 @@ def make_ca(directory: str | Path, name: str = "ups fleet CA") -> tuple[Path, Pa
     return crt, key_path
 
 
-def issue(directory: str | Path, name: str) -> tuple[Path, Path]:
+def issue(directory: str | Path, name: str, hosts: Sequence[str] = ()) -> tuple[Path, Path]:
     """Make ``DIR/NAME.crt`` and ``DIR/NAME.key``, signed by ``DIR/ca.crt``; ``name`` becomes
-    the certificate's common name: the identity of whoever holds it."""
+    the certificate's common name: the identity of whoever holds it. ``hosts`` (DNS names or
+    IP addresses) go into its subject alternative names, for clients that check the name of
+    the host they connect to (a Zenoh router's certificate: ``tls/HOST:PORT``)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -151,7 +154,7 @@ def issue(directory: str | Path, name: str) -> tuple[Path, Path]:
     _refuse_overwrite(crt, key_path)
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.UTC)
-    cert = (
+    builder = (
         x509.CertificateBuilder()
         .subject_name(x509.Name([x509.NameAttribute(x509.oid.NameOID.COMMON_NAME, name)]))
         .issuer_name(ca_cert.subject)
@@ -167,10 +170,25 @@ def issue(directory: str | Path, name: str) -> tuple[Path, Path]:
             ),
             critical=False,
         )
-        .sign(ca_key, hashes.SHA256())
     )
+    if hosts:
+        builder = builder.add_extension(
+            x509.SubjectAlternativeName([_general_name(host) for host in hosts]), critical=False
+        )
+    cert = builder.sign(ca_key, hashes.SHA256())
     _write(folder, crt, cert, key_path, key)
     return crt, key_path
+
+
+def _general_name(host: str) -> Any:
+    import ipaddress
+
+    from cryptography import x509
+
+    try:
+        return x509.IPAddress(ipaddress.ip_address(host))
+    except ValueError:
+        return x509.DNSName(host)
 
 
 def _key_usage(*, ca: bool) -> Any:

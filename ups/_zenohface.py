@@ -20,6 +20,7 @@ import collections
 import contextlib
 import json
 import logging
+import re
 import struct
 import threading
 import time
@@ -85,19 +86,24 @@ def from_zenoh_priority(band: int) -> int:
 
 
 def zenoh_config(endpoint: str, config: str | Path | None, mode: str = "client") -> Any:
-    """A Zenoh config: the file's when given, else Zenoh's defaults; ``endpoint`` added to
-    connect to, and multicast scouting off unless the file turns it on."""
+    """A Zenoh config: the file's when given, else Zenoh's defaults, with ``endpoint`` added
+    to connect to. ``mode`` and multicast scouting off, unless the file names them (a key
+    ``mode``, a key ``multicast``): UPS never scouts a real LAN unasked."""
     import zenoh
 
+    text = ""
     try:
-        conf = zenoh.Config.from_file(str(config)) if config is not None else zenoh.Config()
+        if config is not None:
+            text = Path(config).read_text()
+            conf = zenoh.Config.from_file(str(config))
+        else:
+            conf = zenoh.Config()
     except (zenoh.ZError, OSError, ValueError) as exc:
         raise ConfigError(f"bad Zenoh config {config}: {exc}") from None
-    conf_json = json.loads(conf.get_json("")) if config is not None else {}
-    if "mode" not in conf_json:
+    if not re.search(r"""\bmode["']?\s*:""", text):
         conf.insert_json5("mode", json.dumps(mode))
-    if "multicast" not in conf_json.get("scouting", {}):
-        conf.insert_json5("scouting/multicast/enabled", "false")  # never onto a real LAN unasked
+    if not re.search(r"""\bmulticast["']?\s*:""", text):
+        conf.insert_json5("scouting/multicast/enabled", "false")
     if endpoint:
         try:
             conf.insert_json5("connect/endpoints", json.dumps([endpoint]))

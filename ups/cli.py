@@ -215,6 +215,11 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     act = certs.add_parser("issue", help="make DIR/NAME.crt and DIR/NAME.key, signed by DIR's CA")
     act.add_argument("dir", metavar="DIR")
     act.add_argument("name", metavar="NAME", help="the identity (the certificate's common name)")
+    act.add_argument(
+        "--host", action="append", default=[], metavar="HOST",
+        help="a DNS name or IP address clients reach its holder at (repeat; e.g. for a Zenoh "
+        "router's certificate, which clients check against tls/HOST:PORT)",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_certs)
 
     cmd = command("pub", help="publish events on a channel")
@@ -408,7 +413,7 @@ def _run_certs(args: argparse.Namespace) -> int:
     if args.certs_command == "ca":
         crt, key = make_ca(args.dir)
     else:
-        crt, key = issue(args.dir, args.name)
+        crt, key = issue(args.dir, args.name, args.host)
     print(f"{crt}\n{key}")
     return 0
 
