@@ -157,14 +157,6 @@ def run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
     return uvloop.run(wrapper())
 
 
-def network_of(args: argparse.Namespace) -> tuple[str | None, str | None]:
-    """(--can, --broker), or else the environment's (UPS_BROKER first); exactly one is set."""
-    kind, where = network_choice(args)
-    if kind == "zenoh":
-        raise ConfigError(f"ups {args.command} does not work on Zenoh yet: use --can or --broker")
-    return (where, None) if kind == "can" else (None, where)
-
-
 def network_choice(args: argparse.Namespace) -> tuple[str, str]:
     """The network a command joins: ("can", BUS), ("broker", HOST:PORT) or ("zenoh",
     ENDPOINT), from the options, else the environment (UPS_BROKER, UPS_ZENOH, UPS_CAN)."""
@@ -217,15 +209,21 @@ def open_node(args: argparse.Namespace) -> Node:
     )
 
 
-def add_network(cmd: argparse.ArgumentParser, can_help: str, broker_help: str) -> None:
-    """``--can BUS | --broker HOST:PORT`` (else $UPS_BROKER, else $UPS_CAN: see network_of)."""
+def add_network(cmd: argparse.ArgumentParser, can_help: str, ip_help: str) -> None:
+    """``--can BUS | --broker HOST:PORT | --zenoh ENDPOINT`` (else the environment: see
+    network_choice), and ``--zenoh-config``."""
     network = cmd.add_mutually_exclusive_group()
     network.add_argument(
         "--can", metavar="INTERFACE:CHANNEL[,key=value...]", help=f"{can_help} (default: $UPS_CAN)"
     )
     network.add_argument(
-        "--broker", metavar="HOST:PORT", help=f"{broker_help} (default: $UPS_BROKER)"
+        "--broker", metavar="HOST:PORT", help=f"{ip_help}: ask its TCP-ECB (default: $UPS_BROKER)"
     )
+    network.add_argument(
+        "--zenoh", metavar="ENDPOINT",
+        help=f"{ip_help} on Zenoh, through the router at ENDPOINT (default: $UPS_ZENOH)",
+    )  # fmt: skip
+    add_zenoh_config(cmd)
 
 
 def add_catalog(cmd: argparse.ArgumentParser) -> None:

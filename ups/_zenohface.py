@@ -216,6 +216,11 @@ class ZenohFace:
             "stats": self._node_stats(),
             "subscribed": [f"0x{uid:016x}" for uid in sorted(self._subscribers)],
             "published": [f"0x{uid:016x}" for uid in sorted(self._keys)],
+            "names": {
+                f"0x{uid:016x}": state.channel.name
+                for uid, state in self._channels.items()
+                if state.channel.name is not None and (uid in self._keys or state.subs)
+            },
             **(self.extra_status() if self.extra_status is not None else {}),
         }
 
@@ -442,3 +447,37 @@ async def query_status(
             session.close()  # type: ignore[no-untyped-call]
 
     return await asyncio.to_thread(ask)
+
+
+async def network_status(
+    endpoint: str, config: str | Path | None = None, timeout: float = 5.0
+) -> dict[str, Any]:
+    """The UPS nodes and channels of a Zenoh network, from every node's status, in the shape
+    of a TCP-ECB's Status (``nodes``, ``channels``), for the operators' tools."""
+    answers = await query_status(endpoint, config, timeout)
+    channels: dict[str, dict[str, Any]] = {}
+    nodes = []
+    for answer in answers:
+        node_id = answer.get("node_id")
+        if not isinstance(node_id, str):
+            continue
+        names = answer.get("names") or {}
+        for role, key in (("subscribed", "subscribers"), ("published", "publishers")):
+            for uid in answer.get(role) or ():
+                entry = channels.setdefault(
+                    uid, {"uid": uid, "name": None, "publishers": [], "subscribers": []}
+                )
+                entry[key].append(node_id)
+                entry["name"] = entry["name"] or names.get(uid)
+        nodes.append({
+            "node_id": node_id,
+            "name": answer.get("name"),
+            "address": answer.get("zenoh_id"),
+            "connected": True,
+            "subscribed": list(answer.get("subscribed") or ()),
+            "published": list(answer.get("published") or ()),
+        })  # fmt: skip
+    return {
+        "nodes": sorted(nodes, key=lambda n: n["node_id"]),
+        "channels": [channels[uid] for uid in sorted(channels)],
+    }

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
     from .._bindings import Bindings
     from .._node import Node
+    from ._net import IpNetwork
 
 WINDOW = 5.0  #: seconds over which rates and the bus load are averaged
 SILENT = 5.0  #: a CAN node not heard for this long is shown as silent
@@ -337,16 +338,16 @@ def _can_frame(live: Live, bindings: Bindings, msg: can.Message) -> None:
             live.node(now, f"0x{node_id:016x}", txnode=item.txnode)
 
 
-async def feed_tcp(
-    live: Live, node: Node, broker: str, channels: list[int], timeout: float, tls: Any
-) -> None:
-    """Follow the TCP/IP network of ``broker`` through ``node`` until cancelled: its nodes from
-    the TCP-ECB's Status, every second; the events of ``channels`` (all listed, if empty)."""
+async def feed_tcp(live: Live, node: Node, net: IpNetwork, channels: list[int]) -> None:
+    """Follow the IP network ``net`` (TCP/IP or Zenoh) through ``node`` until cancelled: its
+    nodes from its status (the TCP-ECB's, or on Zenoh every node's), every second; the events
+    of ``channels`` (all listed, if empty)."""
     import asyncio
 
     from .._channel import Channel
     from .._errors import BrokerUnavailable
-    from .._tcpface import query_status
+
+    who = "the TCP-ECB" if net.kind == "broker" else "the Zenoh network"
 
     subscribed: set[int] = set()
     if channels:
@@ -358,16 +359,16 @@ async def feed_tcp(
         reachable = True
         while True:
             try:
-                info = await query_status(broker, timeout, tls)
+                info = await net.status()
             except BrokerUnavailable as exc:  # it restarts, say: keep watching, and say so
                 live.counters["status_failures"] += 1
                 if reachable:
-                    live.recent.append(f"{_clock(time.time())} no status from the TCP-ECB: {exc}")
+                    live.recent.append(f"{_clock(time.time())} no status from {who}: {exc}")
                 reachable = False
                 await asyncio.sleep(1.0)
                 continue
             if not reachable:
-                live.recent.append(f"{_clock(time.time())} the TCP-ECB answers again")
+                live.recent.append(f"{_clock(time.time())} {who} answers again")
             reachable = True
             now = time.time()
             listed = set()

@@ -26,7 +26,6 @@ from .._cliargs import (
     add_catalog,
     add_network,
     add_tls,
-    network_of,
     positive_float,
     positive_int,
     run_until_signal,
@@ -34,6 +33,7 @@ from .._cliargs import (
     tls_of,
 )
 from .._errors import ConfigError
+from ._net import IpNetwork, network_of
 
 
 def _middleware(function: Any) -> Any:
@@ -54,7 +54,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
         "--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
         help=f"where the page is served (default {DEFAULT_LISTEN})",
     )  # fmt: skip
-    add_network(cmd, "a CAN bus (listening; joins to publish)", "a TCP/IP network")
+    add_network(cmd, "a CAN bus (listening; joins to publish)", "an IP network")
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
     add_catalog(cmd)
     cmd.add_argument(
@@ -76,17 +76,17 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         raise ConfigError("ups console needs aiohttp: pip install 'ups-pubsub[tools]'") from None
     host, port = parse_address(args.listen)
-    can, broker = network_of(args)
-    live = Live(load_catalog(args.catalog), "can" if can else "tcp", can or broker or "",
+    can, net = network_of(args)
+    live = Live(load_catalog(args.catalog), net.label if net else "can", can or str(net),
                 args.bitrate)  # fmt: skip
     bindings = Bindings()
     if can is not None:
         bindings.load_bus_db(can, args.db)
-    return run_until_signal(_serve(args, live, bindings, can, broker, host, port))
+    return run_until_signal(_serve(args, live, bindings, can, net, host, port))
 
 
 async def _serve(
-    args: argparse.Namespace, live: Any, bindings: Any, can: str | None, broker: str | None,
+    args: argparse.Namespace, live: Any, bindings: Any, can: str | None, net: IpNetwork | None,
     host: str, port: int,
 ) -> int:  # fmt: skip
     import asyncio
@@ -125,15 +125,15 @@ async def _serve(
         scheme = "https" if tls is not None else "http"
         bound = runner.addresses[0][1]  # the port, when --listen asked for any (0)
         app["hosts"] = _hosts(host, bound)
-        if broker is not None:  # the page is served first: a port in use is said at once
-            node = Node(broker=broker, name="ups-console", join_timeout=args.timeout, tls=tls)
+        if net is not None:  # the page is served first: a port in use is said at once
+            node = net.node("ups-console")
             await node.start()
         say(args, f"console on {scheme}://{host}:{bound}")
         if can is not None:
             await feed_can(live, can, bindings)
         else:
-            assert node is not None and broker is not None
-            await feed_tcp(live, node, broker, [], args.timeout, tls)
+            assert node is not None and net is not None
+            await feed_tcp(live, node, net, [])
     except asyncio.CancelledError:
         pass  # Ctrl-C, SIGTERM: the way to stop it
     finally:

@@ -1,7 +1,8 @@
 """``ups ls``: the nodes and channels of a network in UPS terms.
 
-On TCP/IP from the TCP-ECB's Status. The TCP-ECB is not on the data path, so it knows who
-subscribes to and publishes on what (and the channel names nodes gave it), not event rates:
+On TCP/IP from the TCP-ECB's Status; on Zenoh from every node's status. Neither is on the
+data path, so they know who subscribes to and publishes on what (and the channel names nodes
+gave), not event rates:
 ``--rates`` subscribes to every channel for ``--listen-for`` seconds and counts.
 On CAN from the CAN-ECB's database (TxNodes, etags) and a moment of listening to the bus (who
 sends what, how often); names come from the catalog.
@@ -13,26 +14,19 @@ import argparse
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from .._cliargs import (
-    add_catalog,
-    add_network,
-    add_tls,
-    network_of,
-    positive_float,
-    run_until_signal,
-    tls_of,
-)
+from .._cliargs import add_catalog, add_network, add_tls, positive_float, run_until_signal
+from ._net import network_of
 
 if TYPE_CHECKING:
     from .._catalog import Catalog
+    from ._net import IpNetwork
 
 HELP = "list the nodes and channels of a network"
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
     add_network(
-        cmd, "a CAN bus: read its CAN-ECB's database and listen",
-        "a TCP/IP network: ask its TCP-ECB",
+        cmd, "a CAN bus: read its CAN-ECB's database and listen", "an IP network",
     )  # fmt: skip
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
     cmd.add_argument(
@@ -46,7 +40,8 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     cmd.add_argument(
         "--rates", action="store_true",
-        help="TCP/IP: join, subscribe to every channel for --listen-for seconds, count events",
+        help="TCP/IP, Zenoh: join, subscribe to every channel for --listen-for seconds, count "
+        "events",
     )  # fmt: skip
     add_catalog(cmd)
     cmd.add_argument("--json", action="store_true", help="one JSON object")
@@ -60,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
 
     from .._catalog import load_catalog
 
-    can, broker = network_of(args)
+    can, net = network_of(args)
     catalog = load_catalog(args.catalog)
     if can is not None:
         from .._bindings import default_db
@@ -78,14 +73,12 @@ def run(args: argparse.Namespace) -> int:
         table = can_listing(can, None if ecb else db, args.listen_for, catalog, ecb)
         print(json.dumps(table, indent=2) if args.json else render_can(table))
         return 0
-    assert broker is not None
+    assert net is not None
 
     async def ask() -> int:
-        from .._tcpface import query_status
-
-        table = listing(await query_status(broker, args.timeout, tls_of(args)), catalog)
+        table = listing(await net.status(), catalog)
         if args.rates:
-            await _count_rates(table, broker, args)
+            await _count_rates(table, net, args)
         print(json.dumps(table, indent=2) if args.json else render(table))
         return 0
 
@@ -95,19 +88,17 @@ def run(args: argparse.Namespace) -> int:
 MAX_RATED = 1024  #: --rates subscribes to at most as many channels (the rest show no rate)
 
 
-async def _count_rates(table: dict[str, Any], broker: str, args: argparse.Namespace) -> None:
+async def _count_rates(table: dict[str, Any], net: IpNetwork, args: argparse.Namespace) -> None:
     """Add ``events_per_s`` to the channels of ``table``: events heard in ``--listen-for`` s."""
     import asyncio
 
     from .._channel import Channel
-    from .._node import Node
 
     channels = table["channels"][:MAX_RATED]
     counts = {int(c["uid"], 16): 0 for c in channels}
     if not counts:
         return
-    async with Node(broker=broker, name="ups-ls", join_timeout=args.timeout,
-                    tls=tls_of(args)) as node:  # fmt: skip
+    async with net.node("ups-ls") as node:
         await node.subscribe(*[Channel(u) for u in counts], maxlen=65536)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + args.listen_for

@@ -11,19 +11,21 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .._cliargs import (
     add_catalog,
     add_network,
     add_tls,
     channel_arg,
-    network_of,
     positive_float,
     positive_int,
     run_until_signal,
-    tls_of,
 )
+from ._net import network_of
+
+if TYPE_CHECKING:
+    from ._net import IpNetwork
 
 HELP = "a live view of a network: channels, rates, last values, nodes, drops, bus load"
 
@@ -33,7 +35,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
         "channels", nargs="*", type=channel_arg, metavar="CHANNEL",
         help="TCP/IP: watch only these (default: every channel the TCP-ECB lists)",
     )  # fmt: skip
-    add_network(cmd, "watch a CAN bus (listening only)", "watch a TCP/IP network")
+    add_network(cmd, "watch a CAN bus (listening only)", "watch an IP network")
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
     add_catalog(cmd)
     cmd.add_argument(
@@ -54,9 +56,9 @@ def run(args: argparse.Namespace) -> int:
     from .._catalog import load_catalog
     from ._live import Live
 
-    can, broker = network_of(args)
+    can, net = network_of(args)
     catalog = load_catalog(args.catalog)
-    live = Live(catalog, "can" if can else "tcp", can or broker or "", args.bitrate)
+    live = Live(catalog, net.label if net else "can", can or str(net), args.bitrate)
     bindings = Bindings()
     if can is not None:
         bindings.load_bus_db(can, args.db)
@@ -69,11 +71,11 @@ def run(args: argparse.Namespace) -> int:
 
             raise ConfigError("the live screen needs rich: pip install 'ups-pubsub[tools]' "
                               "(or use --plain)") from None  # fmt: skip
-    return run_until_signal(_watch(args, live, bindings, can, broker, screen))
+    return run_until_signal(_watch(args, live, bindings, can, net, screen))
 
 
 async def _watch(
-    args: argparse.Namespace, live: Any, bindings: Any, can: str | None, broker: str | None,
+    args: argparse.Namespace, live: Any, bindings: Any, can: str | None, net: IpNetwork | None,
     screen: bool,
 ) -> int:  # fmt: skip
     import asyncio
@@ -85,13 +87,9 @@ async def _watch(
         if can is not None:
             await feed_can(live, can, bindings)
             return
-        from .._node import Node
-
-        assert broker is not None
-        async with Node(broker=broker, name="ups-monitor", join_timeout=args.timeout,
-                        tls=tls_of(args)) as node:  # fmt: skip
-            await feed_tcp(live, node, broker, [c.uid for c in args.channels], args.timeout,
-                           tls_of(args))  # fmt: skip
+        assert net is not None
+        async with net.node("ups-monitor") as node:
+            await feed_tcp(live, node, net, [c.uid for c in args.channels])
 
     feeder = asyncio.create_task(feed())
     loop = asyncio.get_running_loop()

@@ -29,14 +29,13 @@ from .._cliargs import (
     add_network,
     add_tls,
     channel_arg,
-    network_of,
     positive_float,
     positive_int,
     run_until_signal,
     say,
-    tls_of,
 )
 from .._errors import ConfigError, UpsError
+from ._net import network_of
 
 if TYPE_CHECKING:
     import asyncio
@@ -44,6 +43,7 @@ if TYPE_CHECKING:
     import can
 
     from .._bindings import Bindings
+    from ._net import IpNetwork
 
 
 HELP = "record a network's events to a python-can log file (.asc, .blf, .log)"
@@ -58,7 +58,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
         "channels", nargs="*", type=channel_arg, metavar="CHANNEL",
         help="record only these (name or 0xUID; default: every channel)",
     )  # fmt: skip
-    add_network(cmd, "record a CAN bus", "record a TCP/IP network")
+    add_network(cmd, "record a CAN bus", "record an IP network")
     cmd.add_argument("--duration", type=positive_float, default=None, help="stop after S seconds")
     cmd.add_argument("--count", type=positive_int, default=None, help="stop after N events")
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
@@ -81,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
     from .._catalog import load_catalog
 
     check_format(args.file)
-    can_bus, broker = network_of(args)
+    can_bus, net = network_of(args)
     catalog = load_catalog(args.catalog)
-    bindings = Bindings(network="can" if can_bus is not None else "tcp")
+    bindings = Bindings(network=net.label if net is not None else "can")
     if can_bus is not None:
         bindings.load_bus_db(can_bus, args.db)
     bindings.names.update({s.uid: s.name for s in catalog if s.name})
@@ -93,8 +93,8 @@ def run(args: argparse.Namespace) -> int:
         if can_bus is not None:
             code = run_until_signal(_record_can(args, can_bus, recorder))
         else:
-            assert broker is not None
-            code = run_until_signal(_record_tcp(args, broker, recorder))
+            assert net is not None
+            code = run_until_signal(_record_ip(args, net, recorder))
     finally:
         recorder.close()
         if recorder.started:  # also when it stopped on an error: what it kept, and where
@@ -293,15 +293,12 @@ class _StandIns:
         return number, True
 
 
-async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> int:
+async def _record_ip(args: argparse.Namespace, net: IpNetwork, rec: _Recorder) -> int:
     import asyncio
 
     from .. import _canproto as p
-    from .._node import Node
-    from .._tcpface import query_status
 
     loop = asyncio.get_running_loop()
-    tls = tls_of(args)
     from .. import _cantransfer as t
 
     small, large = t.class_etags(0), t.class_etags(4)
@@ -310,14 +307,14 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
     tids: dict[int, int] = {}
     txnodes = _StandIns(0, p.TXNODE_COUNT)
     names = rec.bindings.names
-    async with Node(broker=broker, name="ups-record", join_timeout=args.timeout, tls=tls) as node:
+    async with net.node("ups-record") as node:
         subscribed = set(rec.only)
         if rec.only:
             await node.subscribe(*[Channel(u, names.get(u)) for u in rec.only], maxlen=QUEUE)
 
-        async def follow() -> None:  # every channel: subscribe to those the TCP-ECB lists
+        async def follow() -> None:  # every channel: subscribe to those the network lists
             while True:
-                status = await query_status(broker, args.timeout, tls)
+                status = await net.status()
                 for c in status.get("channels", ()):
                     uid = int(c["uid"], 16)
                     if c.get("name"):
@@ -329,7 +326,7 @@ async def _record_tcp(args: argparse.Namespace, broker: str, rec: _Recorder) -> 
 
         follower = None if rec.only else asyncio.create_task(follow())
         rec.started = True
-        say(args, f"recording {broker} to {args.file}")
+        say(args, f"recording {net} to {args.file}")
         deadline = None if args.duration is None else loop.time() + args.duration
         try:
             while deadline is None or loop.time() < deadline:
