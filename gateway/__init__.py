@@ -1,4 +1,4 @@
-"""The UPS gateway: one ECH with a CAN face and a TCP face (``ups gateway``)."""
+"""The UPS gateway: one ECH with a CAN face and an IP face, TCP/IP or Zenoh (``ups gateway``)."""
 
 from ._gateway import Gateway, serve
 

@@ -31,15 +31,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-import can
-
 from broker._store import default_db
 from broker.can_ecb import CanEcb
 from ups import _canproto as p
 from ups import _cantransfer as sizes
 from ups._canlink import CanLink
 from ups._channel import Channel
-from ups._errors import AccessDenied, ConfigError, DecodeError, UpsError
+from ups._errors import AccessDenied, ConfigError, UpsError
 from ups._face import ChannelState
 from ups._message import Message
 from ups._node import Node
@@ -47,60 +45,11 @@ from ups._nodeid import claim_node_id
 from ups._tls import Tls
 from ups.rt import frame_bits
 
+from ._tables import Tables
+
 log = logging.getLogger("ups.gateway")
 
-#: node requests (etags below 0x10) and SUB_AT / PUB_AT (priorities 0x00 and 0x01)
-_REQUEST_FILTERS = [
-    {"can_id": 0, "can_mask": p.ETAG_MASK & ~(p.FIRST_ETAG - 1), "extended": True},
-    {"can_id": 0, "can_mask": 0xFE << p.PRIORITY_SHIFT, "extended": True},
-]
 _BURST = 4  # frames the pacer may send back to back after an idle spell
-
-
-class _Tables:
-    """Who subscribes to and publishes on each channel of the bus, learnt from the requests
-    that nodes send (when the CAN-ECB is not ours). Same interface as ``CanEcb``'s tables."""
-
-    def __init__(self, link: CanLink) -> None:
-        self.link = link
-        self.subscribers: collections.defaultdict[int, set[int]] = collections.defaultdict(set)
-        self.publishers: collections.defaultdict[int, set[int]] = collections.defaultdict(set)
-        self.on_change: Callable[[int], None] | None = None
-        self._handler = self._on_frame
-
-    def start(self) -> None:
-        self.link.add_handler(self._handler, _REQUEST_FILTERS)
-
-    def close(self) -> None:
-        self.link.remove_handler(self._handler)
-
-    def _on_frame(self, frame: can.Message) -> None:
-        can_id = frame.arbitration_id
-        if not frame.is_extended_id or (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK == p.MGMT_TXNODE:
-            return
-        if not p.is_management(can_id):
-            return
-        try:
-            msg = p.decode(can_id, bytes(frame.data))
-        except DecodeError:
-            return
-        if isinstance(msg, p.Holds):
-            table, uid, add = self.publishers if msg.publish else self.subscribers, msg.uid, True
-        elif isinstance(msg, p.Request) and msg.kind != p.CLAIM:
-            table = self.subscribers if msg.kind in (p.SUB_BIND, p.UNSUB) else self.publishers
-            uid, add = msg.value, msg.kind != p.UNSUB
-        else:
-            return
-        nodes = table[uid]
-        before = len(nodes)
-        if add:
-            nodes.add(msg.txnode)
-        else:
-            nodes.discard(msg.txnode)
-        if not nodes:
-            del table[uid]
-        if before != len(nodes) and self.on_change is not None:
-            self.on_change(uid)
 
 
 class _Forward:
@@ -172,7 +121,7 @@ class Gateway:
         self._link: CanLink | None = None
         self._owns_link = False
         self._ecb: CanEcb | None = None
-        self._tables: CanEcb | _Tables | None = None
+        self._tables: CanEcb | Tables | None = None
         self._id_lock: IO[bytes] | None = None
         self.can: Node | None = None
         self.ip: Node | None = None  #: the IP side's node (TCP/IP or Zenoh)
@@ -229,7 +178,7 @@ class Gateway:
             self._ecb = self._tables = CanEcb(self._link, db, bitrate=self.bitrate)
             await self._ecb.start()
         else:
-            self._tables = _Tables(self._link)
+            self._tables = Tables(self._link)
             self._tables.start()
             self._link.start()
         if self._node_id is None:
@@ -283,7 +232,7 @@ class Gateway:
         for node in (self.ip, self.can):
             if node is not None:
                 await node.close()
-        if isinstance(self._tables, _Tables):
+        if isinstance(self._tables, Tables):
             self._tables.close()
         if self._ecb is not None:
             self._ecb.close()
