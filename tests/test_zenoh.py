@@ -87,6 +87,23 @@ async def test_events_reach_subscribers_with_source_and_priority(pair: tuple[Nod
     assert a.stats()["sent"] == 5
 
 
+async def test_bound_means_bound_a_subscription_is_known_when_subscribe_returns(
+    pair: tuple[Node, Node],
+) -> None:
+    """``subscribe`` returns once the router has the subscription, and ``advertise`` once
+    the router told the publisher who subscribes: the first event is not lost."""
+    a, b = pair
+    for i in range(5):
+        channel = f"first/{i}"
+        sub = await b.subscribe(channel)
+        await a.advertise(channel)
+        face: Any = a.face
+        assert face.subscribed_elsewhere(name_to_uid(channel))
+        await a.publish(channel, b"first")
+        assert (await sub.get_msg(timeout=5)).data == b"first"
+    assert a.stats()["sync_timeouts"] == b.stats()["sync_timeouts"] == 0
+
+
 async def test_a_named_publisher_reaches_a_uid_subscriber_and_back(pair: tuple[Node, Node]) -> None:
     a, b = pair
     uid = name_to_uid("arm/joint")

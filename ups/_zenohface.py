@@ -36,6 +36,8 @@ log = logging.getLogger("ups.zenoh")
 
 PREFIX = "ups"  #: the first chunk of every UPS key expression
 STATUS_PREFIX = f"{PREFIX}/@node"  #: ``<prefix>/<node id>`` answers a get with the status
+SYNC_KEY = f"{PREFIX}/@sync"  #: queried (nobody answers) for a round trip through the router
+SYNC_TIMEOUT = 2.0  #: seconds a bind waits for that round trip (then: sync_timeouts)
 MAX_DATA = 1 << 20  #: the largest event (as on TCP/IP)
 RX_QUEUE = 65536  #: samples received, not yet handed to the node (then: rx_overflow)
 MAX_SOURCES = 4096  #: (publisher, channel) pairs whose numbers are followed (then: forgotten)
@@ -158,7 +160,7 @@ class ZenohFace:
         self.extra_status: Any = None
         self.counters = dict.fromkeys(
             ("sent", "unmatched", "received", "lost", "foreign", "too_large", "rx_overflow",
-             "unsubscribed", "forgotten", "restarts"), 0,
+             "unsubscribed", "forgotten", "restarts", "sync_timeouts"), 0,
         )  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
@@ -235,15 +237,18 @@ class ZenohFace:
                 self._subscribers[uid] = session.declare_subscriber(
                     subscription_key(uid), self._sample_handler(uid)
                 )
+                await self._sync()  # the router has it: what is put from now on reaches us
             return
         if uid not in self._keys:
             self._keys[uid] = channel_key(uid, state.channel.name)
             self._seq.setdefault(uid, 0)
             publisher = self._publisher(uid, to_zenoh_priority(state.priority))
-            self._matching[uid] = bool(publisher.matching_status.matching)
+            self._matching[uid] = False
             self._listeners[uid] = publisher.declare_matching_listener(
                 lambda status, uid=uid: self._threadsafe(self._on_matching, uid, status.matching)
             )
+            await self._sync()  # the router told us of the subscribers it knows
+            self._matching[uid] = bool(publisher.matching_status.matching)
 
     async def grow(self, state: ChannelState, size: int) -> None:
         raise PayloadTooLarge(
@@ -273,6 +278,28 @@ class ZenohFace:
     async def room(self, state: ChannelState) -> None:
         """Zenoh queues and drops on its own (congestion control "drop"): nothing to wait for
         here; what a subscriber misses it counts from the sequence numbers."""
+
+    async def _sync(self) -> None:
+        """One round trip through the router: a get that nobody answers ends when the router
+        says so, after everything it sent us before (its answer to our declarations: who
+        subscribes to what we just declared to publish)."""
+        import zenoh
+
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[None] = loop.create_future()
+
+        def finished() -> None:  # in a Zenoh thread
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(_resolve, done)
+
+        self._live_session().get(
+            SYNC_KEY, zenoh.handlers.Callback(lambda reply: None, finished), timeout=SYNC_TIMEOUT
+        )
+        try:
+            async with asyncio.timeout(SYNC_TIMEOUT + 1.0):
+                await done
+        except TimeoutError:
+            self.counters["sync_timeouts"] += 1
 
     def subscribed_elsewhere(self, uid: int) -> bool:
         """Whether a subscriber outside this session matches ``uid`` (for published channels)."""
@@ -415,6 +442,11 @@ class ZenohFace:
         if self._session is None:
             raise BrokerUnavailable("the Zenoh session is closed")
         return self._session
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)
 
 
 async def query_status(
