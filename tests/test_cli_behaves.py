@@ -14,7 +14,7 @@ import pytest
 from .procs import ROOT, Proc
 from .test_tcp_processes import start_tcp_broker
 
-NO_NETWORK = {"UPS_BROKER": "", "UPS_CAN": ""}
+NO_NETWORK = {"UPS_BROKER": "", "UPS_CAN": "", "UPS_ZENOH": ""}
 
 
 def one_line_error(proc: Proc) -> str:
@@ -56,10 +56,30 @@ def test_a_port_in_use_is_one_line() -> None:
         (["sub", "x", "--can", "nosuch:x"], "cannot open CAN bus"),
         (["sub", "x", "--can", "virtual:x,bogus=1"], "unknown option 'bogus'"),
         (["gateway", "--can", "virtual:x"], "--broker"),
+        (["sub", "x", "--zenoh", "nonsense"], "bad Zenoh endpoint"),
+        (["sub", "x", "--zenoh", "tcp/127.0.0.1:1", "--listen", "127.0.0.1:0"], "--listen is for"),
+        (["sub", "x", "--can", "virtual:x", "--zenoh-config", "c.json5"], "for Zenoh nodes"),
+        (["sub", "x", "--zenoh-config", "/no/such.json5"], "bad Zenoh config"),
+        (["zenoh-router", "--listen", "nonsense"], "bad Zenoh endpoint"),
+        (["status"], "ups status HOST:PORT"),
+        (["status", "127.0.0.1:1", "--zenoh", "tcp/127.0.0.1:1"], "ups status HOST:PORT"),
+        (
+            ["gateway", "--can", "virtual:x", "--zenoh", "tcp/127.0.0.1:1", "--listen", ":0"],
+            "--listen is for a",
+        ),
     ],
 )
 def test_bad_input_is_one_line(args: list[str], message: str) -> None:
     assert message in one_line_error(Proc(*args, env=NO_NETWORK))
+
+
+def test_a_missing_zenoh_router_is_announced_and_then_given_up() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens here
+    proc = Proc("sub", "x", "--zenoh", f"tcp/127.0.0.1:{port}", "--join-timeout", "2.5")
+    proc.wait_for_line(f"waiting for the Zenoh router at tcp/127.0.0.1:{port}")
+    assert "could not join the Zenoh router" in one_line_error(proc)
 
 
 def test_a_missing_broker_is_announced_and_then_given_up() -> None:
