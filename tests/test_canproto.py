@@ -67,11 +67,20 @@ management = st.one_of(
         st.integers(0, 126),
         st.integers(0, 0xFFFF),
     ),
-    st.builds(
+    st.builds(  # a one-frame etag: the event's size, 0..8 bytes
         p.Declare,
         st.integers(0, 126),
-        st.integers(p.FIRST_ETAG, p.LAST_ETAG),
+        st.integers(p.FIRST_ETAG, p.LARGE_FIRST_ETAG - 1),
         st.integers(0, 8),
+        st.integers(1, 0xFFFF),
+        st.integers(1, 0xFFFF),
+        st.integers(0, 255),
+    ),
+    st.builds(  # a larger size class's etag: the event's frames, 1..255
+        p.Declare,
+        st.integers(0, 126),
+        st.integers(p.LARGE_FIRST_ETAG, p.LAST_ETAG),
+        st.integers(1, 255),
         st.integers(1, 0xFFFF),
         st.integers(1, 0xFFFF),
         st.integers(0, 255),
