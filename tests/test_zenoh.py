@@ -214,6 +214,21 @@ async def test_unsubscribed_channels_are_not_delivered_and_matching_follows(
     assert b.stats()["delivered"] == 0
 
 
+async def test_async_for_and_a_full_queue_counted(pair: tuple[Node, Node]) -> None:
+    a, b = pair
+    sub = await b.subscribe("iter", maxlen=4, overflow="drop_oldest")
+    await a.advertise("iter")
+    for i in range(10):
+        a.publish_nowait("iter", bytes([i]))
+    await eventually(lambda: b.stats()["received"] == 10)
+    got = []
+    async for msg in sub:
+        got.append(msg.data[0])
+        if len(got) == 4:
+            break
+    assert got == [6, 7, 8, 9] and sub.dropped == 6 and b.stats()["dropped"] == 6
+
+
 async def test_callback_subscriptions_and_publish_nowait(pair: tuple[Node, Node]) -> None:
     a, b = pair
     seen: list[bytes] = []

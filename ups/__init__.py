@@ -1,4 +1,4 @@
-"""UPS: the Ulm Publisher/Subscriber protocol, one API across CAN buses and TCP/IP.
+"""UPS: the Ulm Publisher/Subscriber protocol, one API across CAN buses, TCP/IP and Zenoh.
 
 The whole public API is here; modules whose names start with ``_`` are internals. Names are
 loaded on first use, so a tool that needs only part of UPS (``ups --help``, a TCP/IP-only
