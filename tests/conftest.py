@@ -97,3 +97,24 @@ def wire(mbus: str) -> Iterator[can.BusABC]:
     listener = open_bus(mbus)
     yield listener
     listener.shutdown()
+
+
+@pytest.fixture(scope="module")
+def zenoh_router() -> Iterator[str]:
+    """A Zenoh router (Zenoh's own, as ``ups zenoh-router`` runs it) on loopback; its
+    endpoint. Multicast scouting off: nothing leaves loopback."""
+    import json
+    import socket
+
+    import zenoh
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    session = zenoh.open(conf)
+    yield endpoint
+    session.close()  # type: ignore[no-untyped-call]

@@ -13,7 +13,6 @@ from gateway import Gateway
 from ups import ConfigError, Node, name_to_uid
 
 from .conftest import eventually
-from .test_zenoh import router  # noqa: F401 (the fixture)
 
 
 @contextlib.asynccontextmanager
@@ -31,13 +30,13 @@ def forwarding(gw: Gateway, channel: str, to: str) -> bool:
 
 async def test_can_to_zenoh_only_while_someone_subscribes(
     bus: str,
-    router: str,
-    tmp_path: Path,  # noqa: F811
+    zenoh_router: str,
+    tmp_path: Path,
 ) -> None:
     async with (
-        gateway(bus, router, tmp_path / "gw.db") as gw,
+        gateway(bus, zenoh_router, tmp_path / "gw.db") as gw,
         Node(can=bus, node_id=0xC1) as cpub,
-        Node(zenoh=router, node_id=0x71) as znode,
+        Node(zenoh=zenoh_router, node_id=0x71) as znode,
     ):
         cpub.set_priority("speed", 0x30)
         await cpub.publish("speed", b"\x00")
@@ -56,13 +55,13 @@ async def test_can_to_zenoh_only_while_someone_subscribes(
 
 async def test_a_new_can_publishers_first_event_reaches_zenoh(
     bus: str,
-    router: str,
-    tmp_path: Path,  # noqa: F811
+    zenoh_router: str,
+    tmp_path: Path,
 ) -> None:
     async with (
-        gateway(bus, router, tmp_path / "gw.db"),
+        gateway(bus, zenoh_router, tmp_path / "gw.db"),
         Node(can=bus, node_id=0xCA) as cpub,
-        Node(zenoh=router, node_id=0x7A) as znode,
+        Node(zenoh=zenoh_router, node_id=0x7A) as znode,
     ):
         sub = await znode.subscribe("first")
         await cpub.publish("first", b"\x01")  # its very first event on a fresh channel
@@ -71,14 +70,14 @@ async def test_a_new_can_publishers_first_event_reaches_zenoh(
 
 async def test_zenoh_to_can_for_can_subscribers_never_back(
     bus: str,
-    router: str,
-    tmp_path: Path,  # noqa: F811
+    zenoh_router: str,
+    tmp_path: Path,
 ) -> None:
     async with (
-        gateway(bus, router, tmp_path / "gw.db") as gw,
+        gateway(bus, zenoh_router, tmp_path / "gw.db") as gw,
         Node(can=bus, node_id=0xC2) as cnode,
-        Node(zenoh=router, node_id=0x72) as zpub,
-        Node(zenoh=router, node_id=0x73) as zwatch,
+        Node(zenoh=zenoh_router, node_id=0x72) as zpub,
+        Node(zenoh=zenoh_router, node_id=0x73) as zwatch,
     ):
         csub = await cnode.subscribe("cmd")
         watch = await zwatch.subscribe("cmd")

@@ -39,12 +39,8 @@ def config(mode: str, **endpoints: list[str]) -> zenoh.Config:
 
 
 @pytest.fixture(scope="module")
-def router() -> Iterator[str]:
-    """A Zenoh router on loopback; its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = zenoh.open(config("router", listen=[endpoint]))
-    yield endpoint
-    session.close()  # type: ignore[no-untyped-call]
+def router(zenoh_router: str) -> str:
+    return zenoh_router
 
 
 @pytest.fixture
