@@ -57,6 +57,14 @@ NOTES = [
     "publishes with backpressure (wait=True) in the payload and fan-out tables, pyzmq with "
     "HWM=0; raw TCP is a blocking socket with a 4-byte length before each message.",
     "code size (Table 6): Python source here, compiled C (RTLinux modules) in the paper.",
+    "Zenoh face (benchmarks/zenoh_face.py): every client through one `ups zenoh-router` "
+    "process. Round trip pinned as above; raw zenoh is two plain client sessions with the "
+    "face's publisher settings (reliable, congestion DROP). One way, lossless: flat out, then "
+    "paced (1 ms ticks) below what the subscriber took until nothing is lost; the figure is "
+    "the subscriber's rate in the best lossless step (UPS TCP: flat out with backpressure). "
+    "Gateway: a Gateway on a python-can virtual bus, the whole blast of frames on the bus "
+    "before it reads any, then drained to a UPS subscriber process (median of the runs); raw "
+    "= a thread reading the same bus and putting each frame on the channel's key.",
 ]
 Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
 
@@ -196,6 +204,10 @@ def tables(r: dict[str, Any]) -> list[Table]:
         head = ["offered", "sent/s", "forwarded/s", "lost", "gateway CPU", "x saturated bus"]
         out.append((f"Gateway CAN -> TCP (a saturated 1 Mbit/s bus: {BUS:,} frames/s)",
                     head, body))  # fmt: skip
+    if r.get("zenoh_face"):
+        from benchmarks.zenoh_face import tables as zenoh_tables
+
+        out += zenoh_tables(r["zenoh_face"])
     if r.get("rss_mb"):
         bare = r["rss_mb"].get("python_bare")
         body = [[k, f"{v:.1f}", _x(v, bare)] for k, v in r["rss_mb"].items()]

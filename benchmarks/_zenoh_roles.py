@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import importlib.metadata
-import importlib.util
 import json
 import struct
 import sys
@@ -34,7 +34,7 @@ from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 from benchmarks._daemons import process
-from benchmarks.peers import STOP, Control, Link, seq
+from benchmarks.peers import PROBE, STOP, Control, Link, seq
 from benchmarks.peers._common import probe_until_echoed
 from benchmarks.table5 import set_affinity
 
@@ -85,19 +85,29 @@ def _raw_publisher(session: Any, key: str, options: dict[str, Any]) -> Any:
     )
 
 
+def _raw_matched(pub: Any) -> None:
+    """Wait until a subscriber matches ``pub`` (a plain zenoh publisher)."""
+    deadline = time.monotonic() + SETUP_TIMEOUT
+    while not pub.matching_status.matching:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no subscriber matched within {SETUP_TIMEOUT} s")
+        time.sleep(0.005)
+
+
 def _ups_node(kind: str, endpoint: str, role: str) -> Node:
     from ups import Node
 
-    where = {"zenoh": endpoint} if kind == "ups" else {"broker": endpoint}
-    return Node(**where, name=f"bench-z{role}", node_id=IDS[role], join_timeout=SETUP_TIMEOUT)
+    zenoh, broker = (endpoint, None) if kind == "ups" else (None, endpoint)
+    return Node(zenoh=zenoh, broker=broker, name=f"bench-z{role}", node_id=IDS[role],
+                join_timeout=SETUP_TIMEOUT)  # fmt: skip
 
 
-async def _until(predicate: Callable[[], bool], what: str) -> None:
-    deadline = time.monotonic() + SETUP_TIMEOUT
+async def _until(predicate: Callable[[], bool], what: str, interval: float = 0.005) -> None:
+    deadline = time.monotonic() + (limit := SETUP_TIMEOUT + REPORT_LIMIT)
     while not predicate():
         if time.monotonic() > deadline:
-            raise TimeoutError(f"{what} within {SETUP_TIMEOUT} s")
-        await asyncio.sleep(0.005)
+            raise TimeoutError(f"{what} within {limit:.0f} s")
+        await asyncio.sleep(interval)
 
 
 def _matched(node: Node, channel: str) -> Callable[[], bool]:
@@ -113,10 +123,6 @@ def _matched(node: Node, channel: str) -> Callable[[], bool]:
 
 def endpoint_of(link: Link) -> str:
     return f"tcp/{link.host}:{link.ports[0]}"
-
-
-def missing(link: Link) -> str | None:
-    return None if importlib.util.find_spec("zenoh") else "eclipse-zenoh is not installed"
 
 
 def describe(link: Link) -> str:
@@ -190,14 +196,12 @@ def run_ping(link: Link, ctl: Control, warmup: int, rounds: int) -> list[float]:
             await node.advertise(PING)
             await _until(_matched(node, PING), "no subscriber matched")
             publish, get_msg = node.publish_nowait, sub.get_msg
-            deadline = time.monotonic() + SETUP_TIMEOUT
-            while True:  # the pong's publisher may not know our subscription yet
-                publish(PING, b"\xfe" * 8)
-                with contextlib.suppress(TimeoutError):
-                    if (await get_msg(timeout=0.02)).data == b"\xfe" * 8:
-                        break
-                if time.monotonic() > deadline:
-                    raise TimeoutError("no echo of a probe")
+            async with asyncio.timeout(SETUP_TIMEOUT):  # until the pong's publisher knows us
+                while True:
+                    publish(PING, PROBE)
+                    with contextlib.suppress(TimeoutError):
+                        if (await get_msg(timeout=0.02)).data == PROBE:
+                            break
             rtts: list[float] = []
             clock = time.perf_counter
             async with asyncio.timeout(SETUP_TIMEOUT + (warmup + rounds) * 2e-3):
@@ -222,11 +226,7 @@ def _raw_ping(link: Link, warmup: int, rounds: int) -> list[float]:
     try:
         replies = session.declare_subscriber(PONG)
         pub = _raw_publisher(session, PING, link.options)
-        deadline = time.monotonic() + SETUP_TIMEOUT
-        while not pub.matching_status.matching:
-            if time.monotonic() > deadline:
-                raise TimeoutError("no subscriber matched")
-            time.sleep(0.005)
+        _raw_matched(pub)
 
         def wait_echo(timeout: float) -> bytes | None:
             until = time.monotonic() + timeout
@@ -277,14 +277,9 @@ class Tally:
         self.steps: dict[int, list[float]] = {}
 
     def add(self, data: bytes) -> None:
-        now = time.perf_counter()
-        if len(data) != TAG.size:
-            return
-        step = TAG.unpack(data)[1]
-        st = self.steps.get(step)
-        if st is None:
-            self.steps[step] = [1, now, now]
-        else:
+        if len(data) == TAG.size:
+            now = time.perf_counter()
+            st = self.steps.setdefault(TAG.unpack(data)[1], [0, now, now])
             st[0] += 1
             st[2] = now
 
@@ -316,12 +311,12 @@ def sink(cfg: dict[str, Any], conn: Connection) -> None:
         session = _raw_session(cfg["endpoint"])
         try:
             add = tally.add
-            key = cfg.get("key", DATA)
+            key = cfg.get("key") or DATA
             session.declare_subscriber(key, lambda sample: add(sample.payload.to_bytes()))
             conn.send(("ready", None))
             while (cmd := _pipe_recv(conn))[0] == "report":
-                started = time.perf_counter()
-                while not tally.done(cmd[1], cmd[2], started):
+                done = functools.partial(tally.done, cmd[1], cmd[2], time.perf_counter())
+                while not done():
                     time.sleep(0.01)
                 conn.send(("result", {**tally.result(cmd[1]), "stats": {}}))
         finally:
@@ -331,29 +326,25 @@ def sink(cfg: dict[str, Any], conn: Connection) -> None:
     async def main() -> None:
         async with _ups_node(cfg["kind"], cfg["endpoint"], "sink") as node:
             add = tally.add
-            await node.subscribe(cfg.get("channel", DATA), callback=lambda m: add(m.data))
+            await node.subscribe(DATA, callback=lambda m: add(m.data))
             conn.send(("ready", None))
             while (cmd := await asyncio.to_thread(_pipe_recv, conn))[0] == "report":
-                started = time.perf_counter()
-                while not tally.done(cmd[1], cmd[2], started):
-                    await asyncio.sleep(0.01)
+                done = functools.partial(tally.done, cmd[1], cmd[2], time.perf_counter())
+                await _until(done, "no report", 0.01)
                 conn.send(("result", {**tally.result(cmd[1]), "stats": node.stats()}))
 
     _run(main())
 
 
-def _paced(count: int, rate: float, put: Callable[[int], None]) -> Iterator[float]:
-    """Call ``put(i)`` for every i below ``count``: flat out (``rate`` 0), or what is due at
-    ``rate`` per tick; yields the seconds to sleep (0: only let others run)."""
-    clock = time.perf_counter
+def _paced(step: int, count: int, rate: float, put: Callable[[bytes], Any]) -> Iterator[float]:
+    """``put`` events 0 to ``count`` - 1 of ``step``: flat out (``rate`` 0), or what is due at
+    ``rate`` each tick; yields the seconds to sleep (0: only let others run)."""
+    clock, pack = time.perf_counter, TAG.pack
     start, i = clock(), 0
     while i < count:
-        if rate <= 0:
-            due = min(count, i + YIELD_EVERY)
-        else:
-            due = min(count, int((clock() - start) * rate) + 1)
+        due = min(count, i + YIELD_EVERY if rate <= 0 else int((clock() - start) * rate) + 1)
         while i < due:
-            put(i)
+            put(pack(i, step))
             i += 1
         yield 0.0 if rate <= 0 else max(0.0, TICK - (clock() - start) % TICK)
 
@@ -361,22 +352,16 @@ def _paced(count: int, rate: float, put: Callable[[int], None]) -> Iterator[floa
 def source(cfg: dict[str, Any], conn: Connection) -> None:
     """Wait until the sink matches; then, for each ``("run", step, rate, count)``, send
     ``count`` events of the step and answer how long it took."""
-    pack = TAG.pack
     if cfg["kind"] == "raw":
         session = _raw_session(cfg["endpoint"])
         try:
-            pub = _raw_publisher(session, DATA, cfg)
-            deadline = time.monotonic() + SETUP_TIMEOUT
-            while not pub.matching_status.matching:
-                if time.monotonic() > deadline:
-                    raise TimeoutError("no subscriber matched")
-                time.sleep(0.005)
+            pub = _raw_publisher(session, cfg.get("key") or DATA, cfg)
+            _raw_matched(pub)
             conn.send(("ready", None))
             while (cmd := _pipe_recv(conn))[0] == "run":
                 _, step, rate, count = cmd
-                put = pub.put
                 t0 = time.perf_counter()
-                for pause in _paced(count, rate, lambda i: put(pack(i, step))):
+                for pause in _paced(step, count, rate, pub.put):
                     if pause:
                         time.sleep(pause)
                 conn.send(("done", {"sent": count, "seconds": time.perf_counter() - t0}))
@@ -393,7 +378,7 @@ def source(cfg: dict[str, Any], conn: Connection) -> None:
             while (cmd := await asyncio.to_thread(_pipe_recv, conn))[0] == "run":
                 _, step, rate, count = cmd
                 t0 = time.perf_counter()
-                for pause in _paced(count, rate, lambda i: publish(DATA, pack(i, step))):
+                for pause in _paced(step, count, rate, functools.partial(publish, DATA)):
                     await asyncio.sleep(pause)
                 conn.send(("done", {"sent": count, "seconds": time.perf_counter() - t0,
                                     "stats": node.stats()}))  # fmt: skip
@@ -406,18 +391,24 @@ def source(cfg: dict[str, Any], conn: Connection) -> None:
 
 def _blaster(bus: Any, can_id: int) -> Callable[[int, int], dict[str, float]]:
     """``blast(step, count)``: ``count`` frames of ``step`` onto the bus as fast as python-can
-    sends them; the seconds (wall and this thread's CPU) it took."""
+    sends them, before the gateway reads any: this thread keeps the interpreter meanwhile
+    (``sys.setswitchinterval``), so the gateway then drains a full receive queue, alone."""
     import can
 
     def blast(step: int, count: int) -> dict[str, float]:
         frames = [can.Message(arbitration_id=can_id, data=TAG.pack(i, step), is_extended_id=True)
                   for i in range(count)]  # fmt: skip
-        send = bus.send
-        t0, cpu0 = time.perf_counter(), time.thread_time()
-        for frame in frames:
-            send(frame)
-        return {"sent": count, "seconds": time.perf_counter() - t0,
-                "blaster_cpu_s": time.thread_time() - cpu0, "end": time.perf_counter()}  # fmt: skip
+        send, interval = bus.send, sys.getswitchinterval()
+        sys.setswitchinterval(min(10.0, 1.0 + count * 20e-6))
+        time.sleep(0.05)  # threads already waiting for the interpreter: theirs is the old one
+        t0 = time.perf_counter()
+        try:
+            for frame in frames:
+                send(frame)
+        finally:
+            sys.setswitchinterval(interval)
+        end = time.perf_counter()
+        return {"sent": count, "seconds": end - t0, "end": end, "cpu_s": time.process_time()}
 
     return blast
 
@@ -441,11 +432,16 @@ def gateway(cfg: dict[str, Any], conn: Connection) -> None:
         raw.shutdown()
 
 
-def _serve_blasts(
-    conn: Connection, blast: Callable[[int, int], dict[str, float]], stats: Callable[[], Any]
-) -> None:
+def _serve_blasts(conn: Connection, raw: Any, can_id: int, stats: Callable[[], Any]) -> None:
+    """Answer ``("blast", step, count)`` and ``("stats",)`` (with this process's CPU time) until
+    ``("quit",)``."""
+    conn.send(("ready", None))
+    blast = _blaster(raw, can_id)
     while (cmd := _pipe_recv(conn))[0] != "quit":
-        conn.send(("done", blast(cmd[1], cmd[2])) if cmd[0] == "blast" else ("stats", stats()))
+        if cmd[0] == "blast":
+            conn.send(("done", blast(cmd[1], cmd[2])))
+        else:
+            conn.send(("stats", {**stats(), "cpu_s": time.process_time()}))
 
 
 def _bridge(cfg: dict[str, Any], conn: Connection, raw: Any, uid: int, can_id: int) -> None:
@@ -467,8 +463,7 @@ def _bridge(cfg: dict[str, Any], conn: Connection, raw: Any, uid: int, can_id: i
 
         thread = threading.Thread(target=forward, name="bench-bridge", daemon=True)
         thread.start()
-        conn.send(("ready", None))
-        _serve_blasts(conn, _blaster(raw, can_id), lambda: {"to_zenoh": forwarded[0]})
+        _serve_blasts(conn, raw, can_id, lambda: {"to_zenoh": forwarded[0]})
         stop.set()
         thread.join(1.0)
     finally:
@@ -479,13 +474,12 @@ def _bridge(cfg: dict[str, Any], conn: Connection, raw: Any, uid: int, can_id: i
 async def _gateway(cfg: dict[str, Any], conn: Connection, raw: Any) -> None:
     from gateway import Gateway
     from ups import Node
-    from ups import _canproto as p
     from ups._canlink import CanLink
 
     link = CanLink.open(f"virtual:{cfg['bus']}")
-    where = {"zenoh": cfg["endpoint"]} if cfg["ip"] == "zenoh" else {"broker": cfg["endpoint"]}
-    gw = Gateway(link, **where, db=cfg["db"], node_id=IDS["gateway"], bitrate=1_000_000,
-                 name="bench-zgateway", join_timeout=SETUP_TIMEOUT)  # fmt: skip
+    zenoh, broker = (cfg["endpoint"], None) if cfg["ip"] == "zenoh" else (None, cfg["endpoint"])
+    gw = Gateway(link, broker, zenoh=zenoh, db=cfg["db"], node_id=IDS["gateway"],
+                 bitrate=1_000_000, name="bench-zgateway", join_timeout=SETUP_TIMEOUT)  # fmt: skip
     async with gw:
         side = gw.side
         async with Node(can=link, node_id=IDS["canpub"], name="bench-zcanpub") as pub:
@@ -495,18 +489,11 @@ async def _gateway(cfg: dict[str, Any], conn: Connection, raw: Any) -> None:
             deadline = time.monotonic() + SETUP_TIMEOUT
             while True:  # the publisher's CAN id, as any node on the bus sees it
                 frame = await asyncio.to_thread(raw.recv, 0.1)
-                if frame is not None and not p.is_management(frame.arbitration_id):
-                    if bytes(frame.data) == marker:
-                        can_id = frame.arbitration_id
-                        break
+                if frame is not None and bytes(frame.data) == marker:
+                    can_id = frame.arbitration_id
+                    break
                 if time.monotonic() > deadline:
                     raise TimeoutError("the publisher's event never reached the bus")
         # the publisher node is gone from this process; its binding stays: from here on the
-        # raw bus sends its frames, as a node elsewhere on the bus would
-        conn.send(("ready", None))
-        blast = _blaster(raw, can_id)
-        while (cmd := await asyncio.to_thread(_pipe_recv, conn))[0] != "quit":
-            if cmd[0] == "blast":
-                conn.send(("done", await asyncio.to_thread(blast, cmd[1], cmd[2])))
-            else:
-                conn.send(("stats", gw.stats()))
+        # raw bus sends its frames, as a node elsewhere on the bus would (from another thread)
+        await asyncio.to_thread(_serve_blasts, conn, raw, can_id, gw.stats)

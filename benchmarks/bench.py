@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import importlib.util
 import json
 import os
 import platform
@@ -171,6 +172,23 @@ def fanout(quick: bool) -> list[dict[str, Any]]:
     return result
 
 
+def zenoh(quick: bool) -> dict[str, Any]:
+    """UPS's Zenoh face beside raw zenoh and UPS TCP: round trip, lossless one way, and the
+    gateway's CAN -> Zenoh rate (a virtual bus: no namespace needed). Raw zenoh failing is
+    shown as failed; UPS failing, or running out of time, fails the part."""
+    limit = _limit(quick)
+    args = ["--time-limit", f"{limit - 30:.0f}", *(["--quick"] if quick else [])]
+    doc: dict[str, Any] = _run_json("zenoh_face", args, limit, tolerate_exit=True)
+    broken = [
+        f"{part}: {why.splitlines()[0]}"
+        for part, why in doc["errors"].items()
+        if "UPS" in part or part.startswith("gateway") or part == "time limit"
+    ]
+    if broken:
+        raise Failed("zenoh_face: " + "; ".join(broken))
+    return doc
+
+
 def table5(quick: bool, netns: list[str], as_root: bool) -> dict[str, Any]:
     """The paper's Table 5 round trips (pinned) and the gateway's CAN->TCP rate."""
     args = ["--pin", "on"]
@@ -246,6 +264,7 @@ def run(quick: bool) -> dict[str, Any]:
         results["notes"] = [netns_note]
         results["skipped"]["tcp_two_hosts"] = "needs root (ip netns add, a veth pair)"
     why_not_can = None if prefix else netns_note
+    why_not_zenoh = None if importlib.util.find_spec("zenoh") else "eclipse-zenoh is not installed"
     ns = prefix or []
     as_root = os.geteuid() == 0
     parts: list[tuple[str, Callable[[], Any], str | None]] = [
@@ -255,6 +274,7 @@ def run(quick: bool) -> dict[str, Any]:
         ("tcp_compare", lambda: peers(quick), None),
         ("payload", lambda: payload(quick), None),
         ("fanout", lambda: fanout(quick), None),
+        ("zenoh_face", lambda: zenoh(quick), why_not_zenoh),
         ("table5", lambda: table5(quick, ns, as_root), why_not_can),
         ("can_latency", lambda: can_latency(quick, ns), why_not_can),
     ]
@@ -370,11 +390,30 @@ def summary(r: dict[str, Any]) -> dict[str, Any]:
                 "lost": row.get("lost"),
                 "error": row.get("error") or None,
             }
+    if "zenoh_face" in r:
+        out["zenoh"] = _zenoh_summary(r["zenoh_face"])
+        out["throughput_msgs_per_s"]["zenoh"] = out["zenoh"]["throughput_msgs_per_s"]
+        out["throughput_msgs_per_s"]["gateway_can_to_zenoh"] = out["zenoh"]["gateway_can_to_zenoh"]
     out["targets"] = [
         {"target": name, "measured": value, "against": against, "met": met}
         for name, value, against, met in _report.targets({**r, **out})
     ]
     return out
+
+
+def _zenoh_summary(doc: dict[str, Any]) -> dict[str, Any]:
+    """The Zenoh face's figures (None where not measured, or where the gateway lost events),
+    and each over raw zenoh's and over UPS TCP's (``ratios``)."""
+    from benchmarks.zenoh_face import GW_ZENOH, UPS_ZENOH
+
+    rtt = doc["rtt"].get(UPS_ZENOH) or {}
+    gw = doc["gateway"].get(GW_ZENOH) or {}
+    return {
+        "rtt_us": {"p50": rtt["p50_us"], "p99": rtt["p99_us"]} if rtt else None,
+        "throughput_msgs_per_s": (doc["one_way"].get(UPS_ZENOH) or {}).get("rate"),
+        "gateway_can_to_zenoh": gw.get("rate") if gw and not gw["lost"] else None,
+        "ratios": doc.get("ratios", {}),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
