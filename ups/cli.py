@@ -267,6 +267,17 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         module.add_arguments(cmd)
         cmd.set_defaults(run=module.run)
 
+    cmd = command("jaus", help="JAUS interoperability: check a mapping file")
+    jaus_commands = cmd.add_subparsers(dest="jaus_command", required=True, metavar="ACTION")
+    act = jaus_commands.add_parser(
+        "check", help="check a mapping of JAUS messages onto UPS channels; exit 2 naming the line"
+    )
+    act.add_argument(
+        "file", metavar="FILE", help="the mapping (TOML), e.g. examples/robot.jaus.toml"
+    )
+    add_catalog(act)
+    cmd.set_defaults(run=_run_jaus)
+
     cmd = command("analyze", help="CAN response-time analysis of a message set")
     if analyze:
         from .rt import cli as rt_cli
@@ -438,6 +449,20 @@ def _run_status(args: argparse.Namespace) -> int:
         return 0
 
     return run_until_signal(run())
+
+
+def _run_jaus(args: argparse.Namespace) -> int:
+    from jaus._mapping import load_mapping
+
+    from ._catalog import Catalog
+
+    catalog = Catalog.load(args.catalog) if args.catalog else None
+    bridge = load_mapping(args.file, catalog)
+    for name, entry in bridge.items():
+        way = "JAUS -> UPS" if entry.command else "UPS -> JAUS"
+        fields = ", ".join(f"{f.jaus}->{f.ups}" for f in entry.fields)
+        print(f"{name}: {way} on {entry.channel.channel} ({fields})")
+    return 0
 
 
 def _run_zenoh_router(args: argparse.Namespace) -> int:

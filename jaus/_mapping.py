@@ -1,0 +1,244 @@
+"""The mapping file: which UPS channel each JAUS message stands for, field by field (paper
+003's textual mapping of application messages, in TOML).
+
+::
+
+    catalog = "robots.toml"              # the channel catalog, relative to this file
+
+    [message.SetWrenchEffort]            # a command: JAUS -> UPS
+    channel = "robot/max-speed"          # a catalog channel, by name or 0xUID
+    fields.propulsive_linear_x = { field = "limit", scale = 2.0 }   # ups = jaus*scale + offset
+    constants = {}                       # UPS fields given a fixed value
+    ignore = ["propulsive_rotational_z"] # JAUS fields deliberately not carried
+
+    [message.ReportGlobalPose]           # a report: UPS -> JAUS
+    channel = "robot/pose"
+    rate = 10.0                          # the most reports per second a connection gets
+    fields.latitude = { field = "lat" }
+
+A command (``Set…``, ``Request…``) is published on its channel from the JAUS fields; every
+field of the channel must then be mapped or constant. A report (``Report…``) is made from the
+channel's latest event; every field of the JAUS message must then be mapped, constant or
+ignored. :func:`load_mapping` checks all of it once, at start, and raises
+:class:`MappingError` naming the file and line of the first problem; the result converts
+with plain arithmetic, nothing read from the file on the way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import tomllib
+import typing
+from collections.abc import Mapping as MappingABC
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ups import ConfigError, parse_channel
+from ups._catalog import Catalog, ChannelSpec
+
+from . import _payloads
+
+#: the JAUS messages a mapping can name: the payload classes with fields
+MESSAGES: dict[str, type] = {
+    name: cls
+    for name, cls in vars(_payloads).items()
+    if isinstance(cls, type) and dataclasses.is_dataclass(cls) and not name.startswith("_")
+    and name.startswith(("Set", "Request", "Report")) and dataclasses.fields(cls)
+}  # fmt: skip
+_NUMERIC = ("u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64")
+
+
+class MappingError(ConfigError):
+    """A mapping file that cannot be used; ``str()`` starts with ``FILE:LINE:``."""
+
+
+@dataclass(frozen=True, slots=True)
+class FieldMap:
+    """``ups = jaus * scale + offset``, and back."""
+
+    jaus: str
+    ups: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class MessageMap:
+    message: str
+    command: bool  #: JAUS -> UPS (a command); else UPS -> JAUS (a report)
+    channel: ChannelSpec
+    fields: tuple[FieldMap, ...]
+    constants: MappingABC[str, float]
+    ignored: frozenset[str]
+    rate: float | None
+    line: int
+
+    def to_ups(self, payload: Any) -> bytes:
+        """A command's payload as the channel's event."""
+        values = dict(self.constants)
+        for f in self.fields:
+            value = getattr(payload, f.jaus)
+            values[f.ups] = 0.0 if value is None else value * f.scale + f.offset
+        return self.channel.encode(values)
+
+    def from_ups(self, data: bytes) -> Any:
+        """A report's payload from the channel's event."""
+        values = self.channel.decode(data)
+        out: dict[str, Any] = dict(self.constants)
+        for f in self.fields:
+            value = values[f.ups]
+            out[f.jaus] = (float(value) - f.offset) / f.scale
+        return MESSAGES[self.message](**out)
+
+
+Bridge = dict[str, MessageMap]  #: JAUS message name -> its mapping
+
+
+def load_mapping(path: str | Path, catalog: Catalog | None = None) -> Bridge:
+    """Read and check the mapping at ``path``; its ``catalog`` key (relative to the file)
+    names the channel catalog unless one is given."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+        doc = tomllib.loads(text)
+    except OSError as exc:
+        raise MappingError(f"{path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise MappingError(f"{path}: {exc}") from None
+    where = _Where(path, text)
+    unknown = set(doc) - {"catalog", "message"}
+    if unknown:
+        key = sorted(unknown)[0]
+        raise where.error(f"unknown key {key!r} (catalog, message)", key)
+    if catalog is None:
+        if "catalog" not in doc:
+            raise where.error('no catalog: give catalog = "FILE" or --catalog', None)
+        try:
+            catalog = Catalog.load(path.parent / str(doc["catalog"]))
+        except ConfigError as exc:
+            raise where.error(str(exc), "catalog") from None
+    messages = doc.get("message", {})
+    if not isinstance(messages, dict) or not messages:
+        raise where.error("no [message.NAME] table", None)
+    return {name: _message(name, entry, catalog, where) for name, entry in messages.items()}
+
+
+class _Where:
+    """Lines of the file, to name where a problem is."""
+
+    def __init__(self, path: Path, text: str) -> None:
+        self.path = path
+        self.lines = text.splitlines()
+
+    def line(self, section: str | None, key: str | None) -> int:
+        start = 0
+        if section is not None:
+            header = re.compile(rf"^\s*\[\s*message\.\"?{re.escape(section)}\"?\s*\]")
+            start = next((i for i, ln in enumerate(self.lines) if header.match(ln)), 0)
+        if key is None:
+            return start + 1
+        pattern = re.compile(rf"(^|[\s.{{,\[\"]){re.escape(key)}\"?\s*[=,\]\}}]")
+        for i in range(start, len(self.lines)):
+            if i > start and section is not None and self.lines[i].lstrip().startswith("["):
+                break
+            if pattern.search(self.lines[i]):
+                return i + 1
+        return start + 1
+
+    def error(self, text: str, key: str | None, section: str | None = None) -> MappingError:
+        return MappingError(f"{self.path}:{self.line(section, key)}: {text}")
+
+
+def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageMap:
+    def fail(text: str, key: str | None = None) -> MappingError:
+        return where.error(f"[message.{name}]: {text}", key, name)
+
+    cls = MESSAGES.get(name)
+    if cls is None:
+        raise fail(f"unknown JAUS message {name!r} (known: {', '.join(sorted(MESSAGES))})")
+    if not isinstance(entry, dict):
+        raise fail("must be a table")
+    extra = set(entry) - {"channel", "fields", "constants", "ignore", "rate"}
+    if extra:
+        raise fail(f"unknown key {sorted(extra)[0]!r}", sorted(extra)[0])
+    if "channel" not in entry:
+        raise fail("no channel")
+    try:
+        channel = parse_channel(str(entry["channel"]))
+    except ConfigError as exc:
+        raise fail(str(exc), "channel") from None
+    spec = catalog.get(channel.uid)
+    if spec is None or not spec.fields:
+        raise fail(f"channel {entry['channel']} has no payload layout in the catalog", "channel")
+    ups_fields = {f.name: f for f in spec.fields}
+    hints = typing.get_type_hints(cls)
+    jaus_fields = {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+    command = not name.startswith("Report")
+    maps = []
+    raw_fields = entry.get("fields", {})
+    if not isinstance(raw_fields, dict):
+        raise fail("fields must be a table", "fields")
+    for jaus_name, target in raw_fields.items():
+        if jaus_name not in jaus_fields:
+            raise fail(f"{name} has no field {jaus_name!r} (it has: "
+                       f"{', '.join(jaus_fields)})", jaus_name)  # fmt: skip
+        if isinstance(target, str):
+            target = {"field": target}
+        if not isinstance(target, dict) or "field" not in target:
+            raise fail(f'fields.{jaus_name}: give {{ field = "NAME", scale, offset }}', jaus_name)
+        ups_name = str(target["field"])
+        if ups_name not in ups_fields:
+            raise fail(f"channel {spec.channel} has no field {ups_name!r} (it has: "
+                       f"{', '.join(ups_fields)})", jaus_name)  # fmt: skip
+        if not _numeric(jaus_fields[jaus_name]) or ups_fields[ups_name].type not in _NUMERIC:
+            raise fail(f"type mismatch: {name}.{jaus_name} ({_show(jaus_fields[jaus_name])}) "
+                       f"and {spec.channel}.{ups_name} ({ups_fields[ups_name].type})",
+                       jaus_name)  # fmt: skip
+        scale, offset = target.get("scale", 1.0), target.get("offset", 0.0)
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (scale, offset)):
+            raise fail(f"fields.{jaus_name}: scale and offset are numbers", jaus_name)
+        if scale == 0:
+            raise fail(f"fields.{jaus_name}: scale 0 cannot be turned back", jaus_name)
+        maps.append(FieldMap(jaus_name, ups_name, float(scale), float(offset)))
+    constants = entry.get("constants", {})
+    ignored = entry.get("ignore", [])
+    if not isinstance(constants, dict) or not isinstance(ignored, list):
+        raise fail("constants is a table, ignore a list", "constants")
+    side = ups_fields if command else jaus_fields
+    for key, value in constants.items():
+        if key not in side:
+            raise fail(f"constant {key!r} is not a field of "
+                       f"{spec.channel if command else name}", key)  # fmt: skip
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            raise fail(f"constant {key!r} must be a number", key)
+    for key in ignored:
+        if key not in jaus_fields:
+            raise fail(f"ignore: {name} has no field {key!r}", str(key))
+    covered = {m.ups for m in maps} if command else {m.jaus for m in maps}
+    if command:
+        missing = sorted(set(ups_fields) - covered - set(constants))
+    else:
+        missing = sorted(set(jaus_fields) - covered - set(constants) - set(ignored))
+    if missing:
+        what = f"field {missing[0]!r} of {spec.channel if command else name}"
+        raise fail(f"{what} is neither mapped, constant{'' if command else ' nor ignored'}")
+    rate = entry.get("rate")
+    if rate is not None and (not isinstance(rate, int | float) or isinstance(rate, bool)
+                             or not rate > 0):  # fmt: skip
+        raise fail("rate must be a number of reports per second above 0", "rate")
+    return MessageMap(
+        name, command, spec, tuple(maps), dict(constants), frozenset(map(str, ignored)),
+        None if rate is None else float(rate), where.line(name, None),
+    )  # fmt: skip
+
+
+def _numeric(hint: Any) -> bool:
+    args = typing.get_args(hint) or (hint,)
+    return all(a in (int, float, type(None)) or (isinstance(a, type) and issubclass(a, int))
+               for a in args)  # fmt: skip
+
+
+def _show(hint: Any) -> str:
+    return "text" if hint is str else getattr(hint, "__name__", str(hint))

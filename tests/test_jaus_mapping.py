@@ -1,0 +1,155 @@
+"""The JAUS mapping file: checked once at start, every problem named by file and line, and the
+shipped demo mapping converts as it says."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from jaus import ReportGlobalPose, SetWrenchEffort
+from jaus._mapping import MappingError, load_mapping
+from ups._catalog import Catalog
+
+from .procs import ROOT, Proc
+
+CATALOG = """
+[channel."robot/max-speed"]
+byte_order = "big"
+fields = [{ name = "limit", type = "i16", unit = "cm/s" }]
+
+[channel."robot/pose"]
+fields = [{ name = "lat", type = "f64" }, { name = "lon", type = "f64" },
+          { name = "heading", type = "f32" }]
+
+[channel."robot/raw"]
+"""
+
+GOOD = """catalog = "catalog.toml"
+
+[message.SetWrenchEffort]
+channel = "robot/max-speed"
+fields.propulsive_linear_x = { field = "limit", scale = 2.0 }
+
+[message.ReportGlobalPose]
+channel = "robot/pose"
+rate = 10
+fields.latitude = "lat"
+fields.longitude = { field = "lon" }
+fields.yaw = { field = "heading", scale = 57.29577951308232 }
+constants = { altitude = 0 }
+ignore = ["position_rms", "roll", "pitch", "attitude_rms", "timestamp"]
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    (tmp_path / "catalog.toml").write_text(CATALOG)
+    path = tmp_path / "map.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_demo_robots_mapping_checks_and_converts() -> None:
+    bridge = load_mapping(ROOT / "examples" / "robot.jaus.toml")
+    effort = bridge["SetWrenchEffort"]
+    assert effort.command
+    data = effort.to_ups(SetWrenchEffort(propulsive_linear_x=50.0))
+    assert effort.channel.decode(data) == {"limit": 100}  # 50 % of full: 100 cm/s
+
+
+def test_a_report_is_made_from_the_channels_event(tmp_path: Path) -> None:
+    bridge = load_mapping(write(tmp_path, GOOD))
+    pose = bridge["ReportGlobalPose"]
+    assert not pose.command and pose.rate == 10.0
+    event = pose.channel.encode({"lat": 48.4, "lon": 9.95, "heading": 1.5})
+    report = pose.from_ups(event)
+    assert isinstance(report, ReportGlobalPose)
+    assert (report.latitude, report.longitude, report.altitude) == (48.4, 9.95, 0)
+    assert report.yaw == pytest.approx(1.5 / 57.29577951308232)
+
+
+@given(st.floats(-100, 100))
+def test_commands_convert_with_the_scale(effort: float) -> None:
+    bridge = load_mapping(ROOT / "examples" / "robot.jaus.toml")
+    entry = bridge["SetWrenchEffort"]
+    limit = entry.channel.decode(entry.to_ups(SetWrenchEffort(propulsive_linear_x=effort)))
+    assert abs(limit["limit"] - effort * 2.0) <= 1  # an i16 of cm/s
+
+
+BAD = [
+    ("[message.SetWrenchEfort]\nchannel = 'robot/max-speed'\n", 3, "unknown JAUS message"),
+    ("[message.SetWrenchEffort]\nchannel = 'robot/nope'\n", 4, "has no payload layout"),
+    ("[message.SetWrenchEffort]\nchannel = 'robot/raw'\n", 4, "has no payload layout"),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\nfields.thrust = 'limit'\n",
+        5,
+        "has no field 'thrust'",
+    ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n\nfields.propulsive_linear_x"
+        " = 'speed'\n",
+        6,
+        "has no field 'speed'",
+    ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n",
+        3,
+        "field 'limit' of robot/max-speed is neither mapped, constant",
+    ),
+    (
+        "[message.ReportGlobalPose]\nchannel = 'robot/pose'\nfields.latitude = 'lat'\n",
+        3,
+        "is neither mapped, constant nor ignored",
+    ),
+    (
+        "[message.ReportIdentification]\nchannel = 'robot/pose'\nfields.identification = 'lat'\n",
+        5,
+        "type mismatch: ReportIdentification.identification (text)",
+    ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\nrate = -1\n"
+        "fields.propulsive_linear_x = 'limit'\n",
+        5,
+        "rate must be",
+    ),
+    ("[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\nspeed = 3\n", 5, "unknown key"),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n"
+        "fields.propulsive_linear_x = { field = 'limit', scale = 0 }\n",
+        5,
+        "scale 0",
+    ),
+]
+
+
+@pytest.mark.parametrize(("body", "line", "says"), BAD)
+def test_every_problem_is_named_with_its_line(
+    tmp_path: Path, body: str, line: int, says: str
+) -> None:
+    path = write(tmp_path, f'catalog = "catalog.toml"\n\n{body}')
+    with pytest.raises(MappingError) as caught:
+        load_mapping(path)
+    assert str(caught.value).startswith(f"{path}:{line}: ")
+    assert says in str(caught.value)
+
+
+def test_a_broken_file_or_catalog_is_named(tmp_path: Path) -> None:
+    path = write(tmp_path, "[message.SetWrenchEffort\n")
+    with pytest.raises(MappingError, match=r"map\.toml"):
+        load_mapping(path)
+    path.write_text("[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n")
+    with pytest.raises(MappingError, match="no catalog"):
+        load_mapping(path)
+    assert load_mapping(write(tmp_path, GOOD), Catalog.from_text(CATALOG))
+
+
+def test_ups_jaus_check(tmp_path: Path) -> None:
+    ok = Proc("jaus", "check", str(ROOT / "examples" / "robot.jaus.toml"))
+    code, out = ok.finish()
+    assert code == 0 and "SetWrenchEffort: JAUS -> UPS on robot/max-speed" in out
+    bad = Proc("jaus", "check", str(write(tmp_path, BAD[0][0])))
+    code, _ = bad.finish()
+    assert code == 2 and len(bad.stderr_lines) == 1
+    assert f"{tmp_path / 'map.toml'}:1: " in bad.stderr_lines[0]
