@@ -19,6 +19,7 @@ from ._address import DEFAULT_PORT
 from ._cliargs import (
     add_can,
     add_catalog,
+    add_network,
     add_node_options,
     add_tls,
     add_zenoh,
@@ -43,7 +44,7 @@ EXIT_TIMEOUT = 1
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
-DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router")
+DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -267,8 +268,21 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         module.add_arguments(cmd)
         cmd.set_defaults(run=module.run)
 
-    cmd = command("jaus", help="JAUS interoperability: check a mapping file")
-    jaus_commands = cmd.add_subparsers(dest="jaus_command", required=True, metavar="ACTION")
+    cmd = command("jaus", help="a JAUS component on a UPS node, over JUDP; or check a mapping")
+    cmd.add_argument(
+        "--listen", default="127.0.0.1:3794", metavar="HOST:PORT",
+        help="where JAUS OCUs reach the component (UDP; default 127.0.0.1:3794, JUDP's port)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--id", default="1.1.1", metavar="S.N.C",
+        help="the component's JAUS id: subsystem.node.component (default 1.1.1)",
+    )  # fmt: skip
+    cmd.add_argument("--map", metavar="FILE", help="the mapping of JAUS messages onto channels")
+    cmd.add_argument("--name", default="UPS robot", help="what Report Identification says")
+    add_network(cmd, "the robot's CAN bus", "the robot's IP network")
+    cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    cmd.add_argument("--timeout", type=positive_float, default=30.0, help="seconds to join")
+    jaus_commands = cmd.add_subparsers(dest="jaus_command", required=False, metavar="ACTION")
     act = jaus_commands.add_parser(
         "check", help="check a mapping of JAUS messages onto UPS channels; exit 2 naming the line"
     )
@@ -454,6 +468,13 @@ def _run_status(args: argparse.Namespace) -> int:
 def _run_jaus(args: argparse.Namespace) -> int:
     from jaus._mapping import load_mapping
 
+    if args.jaus_command is None:
+        if args.map is None:
+            raise ConfigError("ups jaus needs --map FILE (or: ups jaus check FILE)")
+        bridge = load_mapping(args.map)
+        from jaus._serve import serve
+
+        return run_until_signal(serve(args, bridge))
     from ._catalog import Catalog
 
     catalog = Catalog.load(args.catalog) if args.catalog else None

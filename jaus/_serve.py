@@ -1,0 +1,56 @@
+"""``ups jaus --listen HOST:PORT --id S.N.C --map FILE (--can BUS | --broker | --zenoh)``: run
+a ``JausHost`` on a node of the robot's network until a signal."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+
+from ups import ConfigError
+from ups._address import parse_address
+from ups._cliargs import network_choice, say
+
+from ._codec import JausId
+from ._host import JausHost
+from ._mapping import Bridge
+
+log = logging.getLogger("ups.jaus")
+
+
+def parse_jaus_id(text: str) -> JausId:
+    try:
+        subsystem, node, component = (int(part, 0) for part in text.split("."))
+        return JausId(subsystem, node, component)
+    except ValueError:
+        raise ConfigError(f"a JAUS id is subsystem.node.component, e.g. 1.1.1: {text!r}") from None
+
+
+async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
+    from ups import Node
+
+    me = parse_jaus_id(args.id)
+    host, port = parse_address(args.listen)
+    kind, where = network_choice(args)
+    node = Node(
+        can=where if kind == "can" else None,
+        broker=where if kind == "broker" else None,
+        zenoh=where if kind == "zenoh" else None,
+        zenoh_config=getattr(args, "zenoh_config", None),
+        node_id=args.node_id,
+        name="ups-jaus",
+        join_timeout=args.timeout,
+    )
+    async with node:
+        component = JausHost(node, bridge, me, name=args.name)
+        try:
+            bound = await component.start(host or "0.0.0.0", port)
+        except OSError as exc:
+            raise ConfigError(f"cannot listen on {args.listen} (UDP): {exc.strerror}") from None
+        say(args, f"JAUS component {me} on {bound[0]}:{bound[1]} (JUDP)")
+        try:
+            await asyncio.Event().wait()
+        finally:
+            component.close()
+            log.info("JAUS component stopping: %s", component.stats())
+    return 0

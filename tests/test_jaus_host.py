@@ -1,0 +1,161 @@
+"""``JausHost`` on a CAN node (virtual bus, a real CAN-ECB), driven over real UDP by a JAUS
+OCU written here from the public message definitions (docs/jaus.md's sources), not with the
+project's codec."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+from collections.abc import AsyncIterator
+
+import pytest
+
+from broker.can_ecb import CanEcb
+from jaus import JausId
+from jaus._host import JausHost
+from jaus._mapping import load_mapping
+from ups import Node
+
+from .procs import ROOT
+
+ROBOT = (1, 1, 1)  # subsystem.node.component
+REQUEST_CONTROL, RELEASE_CONTROL, CONFIRM_CONTROL, REJECT_CONTROL = 0x000D, 0x000E, 0x000F, 0x0010
+QUERY_CONTROL, REPORT_CONTROL = 0x200D, 0x400D
+QUERY_HEARTBEAT, REPORT_HEARTBEAT = 0x2202, 0x4202
+SET_WRENCH_EFFORT = 0x0405
+
+
+def jaus_id(subsystem: int, node: int, component: int) -> bytes:
+    return struct.pack("<I", subsystem << 16 | node << 8 | component)
+
+
+def judp(source: tuple[int, int, int], code: int, payload: bytes = b"", seq: int = 0) -> bytes:
+    """One JUDP datagram: version 2; message type 0; data size (the message from its first
+    byte to its sequence number); properties: priority standard (1), no broadcast, no ACK/NAK,
+    a single message; destination, source; the code, payload and sequence number."""
+    body = jaus_id(*ROBOT) + jaus_id(*source) + struct.pack("<H", code) + payload
+    size = 1 + 2 + 1 + len(body) + 2
+    return bytes((2, 0)) + struct.pack("<HB", size, 0x01) + body + struct.pack("<H", seq)
+
+
+def parse(datagram: bytes) -> tuple[int, bytes, tuple[int, int, int]]:
+    assert datagram[0] == 2
+    size = struct.unpack_from("<H", datagram, 2)[0]
+    dest = struct.unpack_from("<I", datagram, 5)[0]
+    code = struct.unpack_from("<H", datagram, 13)[0]
+    payload = datagram[15 : 1 + size - 2]
+    return code, payload, (dest >> 16, dest >> 8 & 0xFF, dest & 0xFF)
+
+
+def effort(percent: float) -> bytes:
+    """Set Wrench Effort with only propulsive linear x: presence vector bit 0, then the value
+    as an unsigned 16-bit scaled integer over [-100, 100] %."""
+    return struct.pack("<HH", 0x0001, round((percent + 100) / 200 * 0xFFFF))
+
+
+class Ocu:
+    def __init__(self, address: tuple[str, int], me: tuple[int, int, int]) -> None:
+        self.address, self.me = address, me
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+
+    async def ask(self, code: int, payload: bytes = b"") -> tuple[int, bytes]:
+        loop = asyncio.get_running_loop()
+        await loop.sock_sendto(self.sock, judp(self.me, code, payload), self.address)
+        async with asyncio.timeout(5):
+            data = await loop.sock_recv(self.sock, 65536)
+        code, body, to = parse(data)
+        assert to == self.me
+        return code, body
+
+    async def send(self, code: int, payload: bytes) -> None:
+        loop = asyncio.get_running_loop()
+        await loop.sock_sendto(self.sock, judp(self.me, code, payload), self.address)
+
+
+@pytest.fixture
+async def robot(bus: str, ecb: CanEcb) -> AsyncIterator[tuple[JausHost, tuple[str, int], Node]]:
+    bridge = load_mapping(ROOT / "examples" / "robot.jaus.toml")
+    async with Node(can=bus, node_id=0x1A) as face_node, Node(can=bus, node_id=0x1B) as wheels:
+        host = JausHost(face_node, bridge, JausId(*ROBOT), control_timeout=1.0)
+        address = await host.start("127.0.0.1", 0)
+        yield host, address, wheels
+        host.close()
+
+
+async def test_an_ocu_takes_control_and_drives_a_can_node(
+    robot: tuple[JausHost, tuple[str, int], Node],
+) -> None:
+    host, address, wheels = robot
+    limit = await wheels.subscribe("robot/max-speed")
+    first, second = Ocu(address, (2, 1, 1)), Ocu(address, (3, 1, 1))
+    assert await first.ask(QUERY_HEARTBEAT) == (REPORT_HEARTBEAT, b"")
+    await first.send(SET_WRENCH_EFFORT, effort(50))  # no control yet: refused, counted
+    assert await first.ask(REQUEST_CONTROL, bytes([10])) == (CONFIRM_CONTROL, bytes([0]))
+    assert await second.ask(REQUEST_CONTROL, bytes([5])) == (CONFIRM_CONTROL, bytes([1]))
+    code, body = await second.ask(QUERY_CONTROL)
+    # the holder (subsystem u16, node, component) and its authority
+    assert (code, body) == (REPORT_CONTROL, struct.pack("<HBBB", 2, 1, 1, 10))
+    await second.send(SET_WRENCH_EFFORT, effort(-20))  # not the holder: refused
+    await first.send(SET_WRENCH_EFFORT, effort(50))
+    msg = await limit.get_msg(timeout=5)  # 50 % of full: 100 cm/s, big-endian i16
+    assert msg.data == struct.pack(">h", 100)
+    assert await first.ask(RELEASE_CONTROL) == (REJECT_CONTROL, bytes([0]))
+    await first.send(SET_WRENCH_EFFORT, effort(80))  # released: refused again
+    assert await first.ask(QUERY_HEARTBEAT) == (REPORT_HEARTBEAT, b"")  # all handled by now
+    with pytest.raises(TimeoutError):
+        await limit.get_msg(timeout=0.3)
+    stats = host.stats()
+    assert stats["commands"] == 1 and stats["refused_without_control"] == 3
+    assert stats["control_granted"] == 1 and stats["control_refused"] == 1
+
+
+async def test_control_lapses_and_junk_is_counted(
+    robot: tuple[JausHost, tuple[str, int], Node],
+) -> None:
+    host, address, _ = robot
+    first, second = Ocu(address, (2, 1, 1)), Ocu(address, (3, 1, 1))
+    assert await first.ask(REQUEST_CONTROL, bytes([10])) == (CONFIRM_CONTROL, bytes([0]))
+    host.control.heard -= 2.0  # type: ignore[union-attr]  # silent past the 1 s timeout
+    assert await second.ask(REQUEST_CONTROL, bytes([5])) == (CONFIRM_CONTROL, bytes([0]))
+    loop = asyncio.get_running_loop()
+    for junk in (b"", b"\x02", b"JAUS01.0", bytes(range(40)), b"\x02\x00\xff\xff"):
+        await loop.sock_sendto(first.sock, junk, address)
+    assert await first.ask(QUERY_HEARTBEAT) == (REPORT_HEARTBEAT, b"")  # still serving
+    assert host.stats()["malformed"] == 5
+
+
+@pytest.mark.netns
+def test_ups_jaus_as_a_process_drives_a_can_node_in_another(tmp_path: object) -> None:
+    """``ups jaus`` on the robot's bus (udp_multicast), a CAN node as another process, and the
+    OCU over UDP: control, then Set Wrench Effort reaches the CAN node converted."""
+    import json
+
+    from .procs import Proc, private_multicast_bus
+
+    bus = private_multicast_bus()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    mapping = str(ROOT / "examples" / "robot.jaus.toml")
+    with (
+        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", "--recovery", "0.2"),
+        Proc("sub", "robot/max-speed", "--can", bus, "--json", "--count", "1", "--timeout",
+             "60") as wheels,
+        Proc("jaus", "--listen", f"127.0.0.1:{port}", "--id", "1.1.1", "--map", mapping,
+             "--can", bus) as component,
+    ):  # fmt: skip
+        wheels.wait_for_line("subscribed to")
+        component.wait_for_line("JAUS component 1.1.1 on 127.0.0.1")
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as ocu:
+            ocu.settimeout(5)
+            ocu.sendto(judp((2, 1, 1), REQUEST_CONTROL, bytes([10])), ("127.0.0.1", port))
+            code, body, _ = parse(ocu.recv(65536))
+            assert (code, body) == (CONFIRM_CONTROL, bytes([0]))
+            ocu.sendto(judp((2, 1, 1), SET_WRENCH_EFFORT, effort(25)), ("127.0.0.1", port))
+        code, out = wheels.finish(timeout=60)
+        assert code == 0
+        (event,) = [json.loads(line) for line in out.splitlines()]
+        assert event["data"] == struct.pack(">h", 50).hex()  # 25 % of full: 50 cm/s
