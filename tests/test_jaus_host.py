@@ -8,6 +8,7 @@ import asyncio
 import socket
 import struct
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import pytest
 
@@ -17,6 +18,7 @@ from jaus._host import JausHost
 from jaus._mapping import load_mapping
 from ups import Node
 
+from .conftest import eventually
 from .procs import ROOT
 
 ROBOT = (1, 1, 1)  # subsystem.node.component
@@ -159,3 +161,40 @@ def test_ups_jaus_as_a_process_drives_a_can_node_in_another(tmp_path: object) ->
         assert code == 0
         (event,) = [json.loads(line) for line in out.splitlines()]
         assert event["data"] == struct.pack(">h", 50).hex()  # 25 % of full: 50 cm/s
+
+
+QUERY_IDENTIFICATION, REPORT_IDENTIFICATION = 0x2B00, 0x4B00
+QUERY_GLOBAL_POSE, REPORT_GLOBAL_POSE = 0x2402, 0x4402
+
+
+async def test_queries_are_answered_from_the_latest_event(
+    bus: str, ecb: CanEcb, tmp_path: Path
+) -> None:
+    from .test_jaus_mapping import GOOD, write
+
+    bridge = load_mapping(write(tmp_path, GOOD))
+    async with Node(can=bus, node_id=0x1C) as face_node, Node(can=bus, node_id=0x1D) as gps:
+        host = JausHost(face_node, bridge, JausId(*ROBOT), name="rover")
+        address = await host.start("127.0.0.1", 0)
+        try:
+            ocu = Ocu(address, (2, 1, 1))
+            code, body = await ocu.ask(QUERY_IDENTIFICATION, bytes([4]))  # of the component
+            # query type, identification type 60001 (component), string length, the name
+            assert (code, body) == (
+                REPORT_IDENTIFICATION,
+                struct.pack("<BHB", 4, 60001, 5) + b"rover",
+            )
+            await ocu.send(QUERY_GLOBAL_POSE, struct.pack("<H", 0x01FF))  # no fix yet: counted
+            pose = bridge["ReportGlobalPose"].channel
+            await gps.publish("robot/pose", pose.encode({"lat": 48.4, "lon": 9.95, "heading": 0}))
+            await eventually(lambda: "ReportGlobalPose" in host.latest)
+            code, body = await ocu.ask(QUERY_GLOBAL_POSE, struct.pack("<H", 0x01FF))
+            assert code == REPORT_GLOBAL_POSE
+            presence, lat, lon = struct.unpack_from("<HII", body)
+            assert presence & 0b11 == 0b11  # latitude and longitude present
+            # unsigned 32-bit scaled integers over [-90, 90] and [-180, 180] degrees
+            assert -90 + lat * 180 / 0xFFFFFFFF == pytest.approx(48.4, abs=1e-6)
+            assert -180 + lon * 360 / 0xFFFFFFFF == pytest.approx(9.95, abs=1e-6)
+            assert host.stats()["not_yet"] == 1
+        finally:
+            host.close()
