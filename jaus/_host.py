@@ -1,22 +1,25 @@
-"""``ups jaus``: a JAUS component on a UPS node, over JUDP.
+"""``ups jaus``: a JAUS component on a UPS node, answering JUDP and RA 3.3 datagrams.
 
-A first step of the component host: it answers what any JAUS operator control unit (OCU)
-asks first and lets one of them drive the robot through the mapping file.
+The host owns the UDP socket and the table of clients (operator control units); what the
+component does with a message is ``_component.Component``'s. Each datagram is recognised by
+its first bytes: ``JAUS01.0`` is the RA 3.3 framing of paper 001, a first byte 2 is JUDP
+(AS5669A). A client is answered in the framing it spoke last.
 
-- AccessControl: Request Control (granted when nobody holds control, when the holder asks
-  again, or when the asker's authority is higher; else Confirm Control "not available" or
-  "insufficient authority"), Release Control (Reject Control "control released"), Query
-  Control (Report Control: the holder and its authority). Control lapses when its holder has
-  sent nothing for ``control_timeout`` seconds.
-- Liveness: Query Heartbeat Pulse -> Report Heartbeat Pulse.
-- Discovery: Query Identification -> Report Identification (the component's name).
-- The mapping's commands (``Set…``): published on their channel, only from the controlling
-  OCU; from anyone else they are counted (``refused_without_control``) and dropped.
-- The mapping's reports: a ``Query…`` is answered from the channel's latest event; before
-  any has arrived it is counted (``not_yet``) and left unanswered (JAUS has no error reply).
+Messages are served when addressed to this component or broadcast (a part of the
+destination 0xFFFF/0xFF in JUDP, 0xFF in RA 3.3); others are counted (``not_for_me``).
 
-Bad datagrams are counted (``malformed``), messages this host does not serve too
-(``unserved``); parts of large messages go through a bounded ``Reassembler``.
+Bounds, each counted when it bites:
+
+- ``MAX_CLIENTS`` clients known at once; a new one evicts the one silent longest, never the
+  controlling one (``clients_evicted``), and with it its events. A client silent for
+  ``CLIENT_TIMEOUT`` seconds is forgotten (``clients_gone``).
+- large JUDP messages go through a bounded ``Reassembler`` (its drops counted by reason);
+  RA 3.3 multi-packet messages are not served (``unserved``).
+- a message asking for an acknowledgement (ACK/NAK 1) is answered with an ACK carrying its
+  sequence number (and, in RA 3.3, its command code), after it was handled (``acks``);
+- datagrams that do not decode (``malformed``) and messages no service here answers
+  (``unserved``) are counted and dropped; an exception inside a service is logged and counted
+  (``handler_errors``) and the component keeps serving.
 """
 
 from __future__ import annotations
@@ -24,51 +27,59 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
-from ._codec import JausDecodeError, JausId
-from ._codes import MessageCode
-from ._judp import JudpHeader, JudpMessage, decode_judp, encode_judp
-from ._mapping import Bridge
-from ._payloads import (
-    ConfirmControl,
-    ControlResponse,
-    IdentificationType,
-    QueryIdentification,
-    RejectControl,
-    RejectResponse,
-    ReleaseControl,
-    ReportControl,
-    ReportHeartbeatPulse,
-    ReportIdentification,
-    RequestControl,
-    decode_payload,
-    encode_payload,
+from ._codec import AckNak, JausDecodeError, JausId
+from ._component import Component
+from ._events import EVENT_TIMEOUT
+from ._judp import (
+    Broadcast,
+    DataFlags,
+    JudpHeader,
+    JudpMessage,
+    decode_judp,
+    encode_judp,
+    split_message,
 )
+from ._mapping import Bridge
+from ._messages import decode_payload, encode_payload
+from ._ra33 import (
+    RA33_PREFIX,
+    Ra33Address,
+    Ra33DataFlags,
+    Ra33Header,
+    Ra33Message,
+    decode_ra33,
+    encode_ra33,
+)
+from ._ra33_payloads import decode_ra33_payload, encode_ra33_payload
 from ._reassembly import Reassembler
 
 if TYPE_CHECKING:
-    from ups import Message, Node
+    from ups import Node
 
 log = logging.getLogger("ups.jaus")
 
-CONTROL_TIMEOUT = 5.0  #: seconds of silence after which the controlling OCU loses control
-_QUERY_OF: dict[int, str] = {  # Query code -> the Report it asks for
-    MessageCode.QUERY_GLOBAL_POSE: "ReportGlobalPose",
-}
+MAX_CLIENTS = 64  #: clients (OCUs) known at once
+CLIENT_TIMEOUT = EVENT_TIMEOUT  #: seconds of silence after which a client is forgotten
+TICK = 0.5  #: seconds between housekeeping passes (control timeout, silent clients)
 
 
-@dataclass
-class _Control:
-    holder: JausId
-    authority: int
+@dataclass(slots=True)
+class Client:
+    """An operator control unit as the host knows it."""
+
+    id: JausId
+    addr: tuple[str, int]
+    ra33: bool  #: it spoke the RA 3.3 framing last
+    instance: int  #: its RA 3.3 instance
     heard: float
+    messages: int = 0
 
 
 class JausHost(asyncio.DatagramProtocol):
-    """A JAUS component ``me`` on ``node``, serving JUDP datagrams at ``listen``."""
+    """A JAUS component ``me`` on ``node``, serving the datagrams that reach its socket."""
 
     def __init__(
         self,
@@ -78,39 +89,60 @@ class JausHost(asyncio.DatagramProtocol):
         *,
         name: str = "UPS robot",
         authority: int = 0,
-        control_timeout: float = CONTROL_TIMEOUT,
+        control_timeout: float | None = None,
+        max_clients: int = MAX_CLIENTS,
     ) -> None:
-        self.node = node
-        self.bridge = bridge
         self.me = me
-        self.name = name
-        self.authority = authority  # the lowest authority that may take control
-        self.control_timeout = control_timeout
-        self.control: _Control | None = None
-        self.latest: dict[str, bytes] = {}  # report message -> its channel's latest event
+        self.counters = dict.fromkeys(
+            (
+                "datagrams",
+                "received",
+                "malformed",
+                "not_for_me",
+                "handler_errors",
+                "clients_evicted",
+                "clients_gone",
+                "sent",
+                "acks",
+            ),
+            0,
+        )
+        extra = {} if control_timeout is None else {"control_timeout": control_timeout}
+        self.component = Component(
+            node,
+            bridge,
+            me,
+            send=self._send,
+            name=name,
+            minimum_authority=authority,
+            counters=self.counters,
+            **extra,
+        )
+        self.clients: dict[JausId, Client] = {}
+        self.max_clients = max_clients
         self.transport: asyncio.DatagramTransport | None = None
+        self.finished = asyncio.Event()  # set by Shutdown from the controlling client
+        self.component.on_shutdown = self.finished.set
         self._sequence = 0
         self._reassembler = Reassembler()
-        self.counters = dict.fromkeys(
-            ("received", "malformed", "unserved", "commands", "refused_without_control",
-             "control_granted", "control_refused", "replies", "not_yet", "handler_errors"), 0,
-        )  # fmt: skip
+        self._ticker: asyncio.TimerHandle | None = None
 
     async def start(self, host: str, port: int) -> tuple[str, int]:
-        """Advertise the commands' channels, subscribe to the reports', open the UDP socket;
-        returns the address bound."""
-        for message, entry in self.bridge.items():
-            if entry.command:  # bound now: commands are published from the datagram callback
-                await self.node.advertise(entry.channel.channel, max_size=entry.channel.size or 0)
-            else:
-                await self.node.subscribe(entry.channel.channel, callback=self._keeper(message))
+        """Bind the mapped channels, open the UDP socket; returns the address bound."""
+        await self.component.start()
         loop = asyncio.get_running_loop()
-        transport, _ = await loop.create_datagram_endpoint(lambda: self, local_addr=(host, port))
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: self, local_addr=(host, port), allow_broadcast=True
+        )
         self.transport = transport
+        self._ticker = loop.call_later(TICK, self._tick)
         bound = transport.get_extra_info("sockname")
         return bound[0], bound[1]
 
     def close(self) -> None:
+        if self._ticker is not None:
+            self._ticker.cancel()
+        self.component.close()
         if self.transport is not None:
             self.transport.close()
 
@@ -118,117 +150,194 @@ class JausHost(asyncio.DatagramProtocol):
         counts = self._reassembler.counts
         kinds = ("expired", "evicted", "duplicate", "conflicting", "oversized", "mismatched")
         parts = {f"parts_{kind}": getattr(counts, kind) for kind in kinds}
-        return {**self.counters, **parts}
+        return {
+            **self.counters,
+            **parts,
+            "clients": len(self.clients),
+            "events": len(self.component.events.table),
+        }
 
-    def _keeper(self, message: str) -> Callable[[Message], None]:
-        def keep(msg: Message) -> None:
-            self.latest[message] = msg.data
+    def status(self) -> dict[str, Any]:
+        """The component, its clients and counters (``ups status`` shows it as ``jaus``)."""
+        now = time.monotonic()
+        return {
+            "jaus": {
+                "id": str(self.me),
+                **self.component.status(),
+                "clients": [
+                    {
+                        "id": str(c.id),
+                        "address": f"{c.addr[0]}:{c.addr[1]}",
+                        "framing": "RA 3.3" if c.ra33 else "JUDP",
+                        "messages": c.messages,
+                        "silent_s": round(now - c.heard, 1),
+                    }
+                    for c in self.clients.values()
+                ],
+                "stats": self.stats(),
+            }
+        }
 
-        return keep
-
-    # --- receiving ---------------------------------------------------------------------------
+    # --- receiving -------------------------------------------------------------------------
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.counters["datagrams"] += 1
         try:
-            messages = decode_judp(data)
+            if data.startswith(RA33_PREFIX):
+                self._ra33(data, addr)
+            else:
+                self._judp(data, addr)
         except JausDecodeError as exc:
             self.counters["malformed"] += 1
             log.debug("malformed datagram from %s: %s", addr, exc)
-            return
-        for part in messages:
-            message = self._reassembler.feed(part, time.monotonic())
-            if message is None:
-                continue
-            self.counters["received"] += 1
-            try:
-                self._handle(message, addr)
-            except JausDecodeError:
-                self.counters["malformed"] += 1
-            except Exception:  # one bad message must not stop the component
-                self.counters["handler_errors"] += 1
-                log.exception("could not handle a JAUS message from %s", addr)
 
-    def _handle(self, message: JudpMessage, addr: tuple[str, int]) -> None:
-        code, source = message.code, message.header.source
-        if code is None:
-            return  # an ACK/NAK response
-        payload = decode_payload(code, message.payload)
-        self._heard(source)
-        if isinstance(payload, RequestControl):
-            self._request_control(source, payload.authority, addr)
-        elif isinstance(payload, ReleaseControl):
-            if self.control is not None and self.control.holder == source:
-                self.control = None
-            self._reply(addr, source, RejectControl(RejectResponse.CONTROL_RELEASED))
-        elif code == MessageCode.QUERY_CONTROL:
-            held = self.control
-            holder = held.holder if held else JausId(0, 0, 0)
-            reply = ReportControl(holder.subsystem, holder.node, holder.component,
-                                  held.authority if held else 0)  # fmt: skip
-            self._reply(addr, source, reply)
-        elif code == MessageCode.QUERY_HEARTBEAT_PULSE:
-            self._reply(addr, source, ReportHeartbeatPulse())
-        elif isinstance(payload, QueryIdentification):
-            self._reply(addr, source, ReportIdentification(
-                payload.query_type, IdentificationType.COMPONENT, self.name))  # fmt: skip
-        elif payload is not None and type(payload).__name__ in self.bridge:
-            self._command(type(payload).__name__, payload, source)
-        elif code in _QUERY_OF and _QUERY_OF[code] in self.bridge:
-            self._query(_QUERY_OF[code], addr, source)
-        else:
-            self.counters["unserved"] += 1
+    def _judp(self, data: bytes, addr: tuple[str, int]) -> None:
+        for part in decode_judp(data):
+            h = part.header
+            mine = _for(self.me, h.destination, 0xFFFF)
+            message = self._reassembler.feed(part, time.monotonic()) if mine else None
+            if not mine:
+                self.counters["not_for_me"] += 1
+            elif message is not None and message.code is not None:  # else held, or an ACK
+                self._serve(
+                    h.source, addr, False, 1, lambda m=message: decode_payload(m.code, m.payload)
+                )
+            if mine and h.ack_nak == AckNak.REQUEST:
+                ack = replace(
+                    h,
+                    destination=h.source,
+                    source=self.me,
+                    ack_nak=AckNak.ACK,
+                    data_flags=DataFlags.SINGLE,
+                    broadcast=Broadcast.NONE,
+                )
+                self._sendto(encode_judp([JudpMessage(ack, None)]), addr)
+                self.counters["acks"] += 1
 
-    def _heard(self, source: JausId) -> None:
-        held = self.control
-        if held is None:
+    def _ra33(self, data: bytes, addr: tuple[str, int]) -> None:
+        message = decode_ra33(data)
+        h = message.header
+        to = h.destination
+        if not _for(self.me, JausId(to.subsystem, to.node, to.component), 0xFF):
+            self.counters["not_for_me"] += 1
             return
+        src = h.source
+        source = JausId(src.subsystem, src.node, src.component)
+        if h.data_flags != Ra33DataFlags.SINGLE:
+            self.counters["unserved"] += 1  # RA 3.3 multi-packet messages: not served
+            return
+        self._serve(
+            source,
+            addr,
+            True,
+            src.instance,
+            lambda: decode_ra33_payload(h.command_code, message.data),
+        )
+        if h.ack_nak == AckNak.REQUEST:
+            ack = replace(
+                h,
+                destination=h.source,
+                source=Ra33Address(self.me.subsystem, self.me.node, self.me.component),
+                ack_nak=AckNak.ACK,
+            )
+            self._sendto(encode_ra33(Ra33Message(ack)), addr)
+            self.counters["acks"] += 1
+
+    def _serve(
+        self, source: JausId, addr: tuple[str, int], ra33: bool, instance: int, decode: Any
+    ) -> None:
+        try:
+            payload = decode()
+        except JausDecodeError as exc:
+            self.counters["malformed"] += 1
+            log.debug("malformed message from %s: %s", addr, exc)
+            return
+        self.counters["received"] += 1
+        client = self._client(source, addr, ra33, instance)
+        if payload is None:
+            self.component.counters["unserved"] += 1
+            return
+        try:
+            self.component.handle(client, source, payload)
+        except Exception:  # one bad message must not stop the component
+            self.counters["handler_errors"] += 1
+            log.exception("could not handle %s from %s", type(payload).__name__, source)
+
+    def _client(self, source: JausId, addr: tuple[str, int], ra33: bool, instance: int) -> Client:
         now = time.monotonic()
-        if now - held.heard > self.control_timeout:
-            log.info("control by %s lapsed", held.holder)
-            self.control = None
-        elif held.holder == source:
-            held.heard = now
+        client = self.clients.get(source)
+        if client is None:
+            if len(self.clients) >= self.max_clients:
+                self._evict()
+            client = self.clients[source] = Client(source, addr, ra33, instance, now)
+        client.addr, client.ra33, client.instance, client.heard = addr, ra33, instance, now
+        client.messages += 1
+        return client
 
-    def _request_control(self, source: JausId, authority: int, addr: tuple[str, int]) -> None:
-        held = self.control
-        if authority < self.authority:
-            response = ControlResponse.INSUFFICIENT_AUTHORITY
-        elif held is None or held.holder == source or authority > held.authority:
-            self.control = _Control(source, authority, time.monotonic())
-            response = ControlResponse.CONTROL_ACCEPTED
+    def _evict(self) -> None:
+        holder = self.component.access.holder
+        candidates = [c for c in self.clients.values() if c.id != holder]
+        if candidates:
+            oldest = min(candidates, key=lambda c: c.heard)
+            self._forget(oldest)
+            self.counters["clients_evicted"] += 1
+
+    def _forget(self, client: Client) -> None:
+        del self.clients[client.id]
+        self.component.forget(client.id)
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        try:
+            self.component.tick(now)
+            holder = self.component.access.holder
+            for client in [c for c in self.clients.values() if now - c.heard > CLIENT_TIMEOUT]:
+                if client.id != holder:
+                    self._forget(client)
+                    self.counters["clients_gone"] += 1
+        except Exception:
+            self.counters["handler_errors"] += 1
+            log.exception("JAUS housekeeping failed")
+        self._ticker = asyncio.get_running_loop().call_later(TICK, self._tick)
+
+    # --- sending ---------------------------------------------------------------------------
+
+    def _send(self, client: Client, payload: Any) -> None:
+        if client.ra33:
+            code, body = encode_ra33_payload(payload)
+            me = Ra33Address(self.me.subsystem, self.me.node, self.me.component)
+            to = Ra33Address(
+                client.id.subsystem, client.id.node, client.id.component, client.instance
+            )
+            ra_header = Ra33Header(code, to, me, sequence=self._next(1))
+            datagrams = [encode_ra33(Ra33Message(ra_header, body))]
         else:
-            response = ControlResponse.NOT_AVAILABLE
-        granted = response == ControlResponse.CONTROL_ACCEPTED
-        self.counters["control_granted" if granted else "control_refused"] += 1
-        self._reply(addr, source, ConfirmControl(response))
+            code, body = encode_payload(payload)
+            header = JudpHeader(destination=client.id, source=self.me, sequence=self._sequence)
+            parts = split_message(header, code, body)  # a large message: one part per datagram
+            self._next(len(parts))
+            datagrams = [encode_judp([part]) for part in parts]
+        for datagram in datagrams:
+            self._sendto(datagram, client.addr)
+        self.counters["sent"] += 1
 
-    def _command(self, message: str, payload: Any, source: JausId) -> None:
-        entry = self.bridge[message]
-        if not entry.command:
-            self.counters["unserved"] += 1
-            return
-        if self.control is None or self.control.holder != source:
-            self.counters["refused_without_control"] += 1
-            return
-        self.counters["commands"] += 1
-        self.node.publish_nowait(entry.channel.channel, entry.to_ups(payload))
+    def _sendto(self, datagram: bytes, addr: tuple[str, int]) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.sendto(datagram, addr)
 
-    def _query(self, message: str, addr: tuple[str, int], source: JausId) -> None:
-        data = self.latest.get(message)
-        if data is None:
-            self.counters["not_yet"] += 1
-            return
-        self._reply(addr, source, self.bridge[message].from_ups(data))
-
-    # --- sending -----------------------------------------------------------------------------
-
-    def _reply(self, addr: tuple[str, int], to: JausId, payload: Any) -> None:
-        code, body = encode_payload(payload)
-        header = JudpHeader(destination=to, source=self.me, sequence=self._sequence)
-        self._sequence = (self._sequence + 1) & 0xFFFF
-        assert self.transport is not None
-        self.transport.sendto(encode_judp([JudpMessage(header, code, body)]), addr)
-        self.counters["replies"] += 1
+    def _next(self, count: int) -> int:
+        sequence = self._sequence
+        self._sequence = (sequence + count) & 0xFFFF
+        return sequence
 
 
-__all__ = ["CONTROL_TIMEOUT", "JausHost"]
+def _for(me: JausId, to: JausId, broadcast_subsystem: int) -> bool:
+    """Whether a message sent to ``to`` is for ``me`` (each part equal or broadcast)."""
+    return (
+        to.subsystem in (me.subsystem, broadcast_subsystem)
+        and to.node in (me.node, 0xFF)
+        and to.component in (me.component, 0xFF)
+    )
+
+
+__all__ = ["CLIENT_TIMEOUT", "MAX_CLIENTS", "Client", "JausHost"]

@@ -38,14 +38,14 @@ from typing import Any
 from ups import ConfigError, parse_channel
 from ups._catalog import Catalog, ChannelSpec
 
-from . import _payloads
+from ._messages import TYPES
 
 #: the JAUS messages a mapping can name: the payload classes with fields
 MESSAGES: dict[str, type] = {
-    name: cls
-    for name, cls in vars(_payloads).items()
-    if isinstance(cls, type) and dataclasses.is_dataclass(cls) and not name.startswith("_")
-    and name.startswith(("Set", "Request", "Report")) and dataclasses.fields(cls)
+    cls.__name__: cls
+    for cls in TYPES
+    if cls.__name__.startswith(("Set", "Request", "Report", "ClearEmergency"))
+    and dataclasses.fields(cls)
 }  # fmt: skip
 _NUMERIC = ("u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64")
 

@@ -425,24 +425,9 @@ Payload = (
     | QueryGlobalPose | ReportGlobalPose
 )  # fmt: skip
 
-PAYLOAD_TYPES: dict[int, type[Payload]] = {
-    kind.CODE: kind
-    for kind in (
-        ReleaseControl, QueryControl, QueryAuthority, QueryHeartbeatPulse, ReportHeartbeatPulse,
-        RequestControl, SetAuthority, ReportAuthority, ConfirmControl, RejectControl,
-        ReportControl, QueryIdentification, ReportIdentification, SetWrenchEffort,
-        QueryGlobalPose, ReportGlobalPose,
-    )
-}  # fmt: skip
-
-
-def decode_payload(code: int, payload: bytes) -> Payload | None:
-    """The payload of message ``code`` decoded, or None when this codec has no decoder for it.
-    :class:`JausDecodeError` when the bytes do not fit the code's layout."""
-    kind = PAYLOAD_TYPES.get(code)
-    return None if kind is None else kind.from_bytes(payload)
-
-
-def encode_payload(payload: Payload) -> tuple[int, bytes]:
-    """(message code, payload bytes) of ``payload``."""
-    return payload.CODE, payload.to_bytes()
+TYPES: tuple[type[Payload], ...] = (
+    ReleaseControl, QueryControl, QueryAuthority, QueryHeartbeatPulse, ReportHeartbeatPulse,
+    RequestControl, SetAuthority, ReportAuthority, ConfirmControl, RejectControl,
+    ReportControl, QueryIdentification, ReportIdentification, SetWrenchEffort,
+    QueryGlobalPose, ReportGlobalPose,
+)  # fmt: skip

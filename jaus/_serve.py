@@ -4,7 +4,6 @@ a ``JausHost`` on a node of the robot's network until a signal."""
 from __future__ import annotations
 
 import argparse
-import asyncio
 import logging
 
 from ups import ConfigError
@@ -42,14 +41,18 @@ async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
         join_timeout=args.timeout,
     )
     async with node:
-        component = JausHost(node, bridge, me, name=args.name)
+        component = JausHost(node, bridge, me, name=args.name, authority=args.authority)
         try:
             bound = await component.start(host or "0.0.0.0", port)
         except OSError as exc:
             raise ConfigError(f"cannot listen on {args.listen} (UDP): {exc.strerror}") from None
-        say(args, f"JAUS component {me} on {bound[0]}:{bound[1]} (JUDP)")
+        face = node.face
+        if hasattr(face, "extra_status"):  # TCP and Zenoh nodes answer `ups status`
+            face.extra_status = component.status
+        say(args, f"JAUS component {me} on {bound[0]}:{bound[1]} (JUDP and RA 3.3)")
         try:
-            await asyncio.Event().wait()
+            await component.finished.wait()
+            log.info("JAUS component %s shut down by its controlling client", me)
         finally:
             component.close()
             log.info("JAUS component stopping: %s", component.stats())

@@ -46,7 +46,7 @@ from jaus import (
     split_message,
     to_scaled,
 )
-from jaus._payloads import PAYLOAD_TYPES
+from jaus._messages import PAYLOAD_TYPES
 
 ROBOT, OCU = JausId(258, 1, 1), JausId(42, 1, 2)
 

@@ -26,6 +26,7 @@ REQUEST_CONTROL, RELEASE_CONTROL, CONFIRM_CONTROL, REJECT_CONTROL = 0x000D, 0x00
 QUERY_CONTROL, REPORT_CONTROL = 0x200D, 0x400D
 QUERY_HEARTBEAT, REPORT_HEARTBEAT = 0x2202, 0x4202
 SET_WRENCH_EFFORT = 0x0405
+RESUME = 0x0004
 
 
 def jaus_id(subsystem: int, node: int, component: int) -> bytes:
@@ -101,6 +102,8 @@ async def test_an_ocu_takes_control_and_drives_a_can_node(
     # the holder (subsystem u16, node, component) and its authority
     assert (code, body) == (REPORT_CONTROL, struct.pack("<HBBB", 2, 1, 1, 10))
     await second.send(SET_WRENCH_EFFORT, effort(-20))  # not the holder: refused
+    await first.send(SET_WRENCH_EFFORT, effort(40))  # the holder, but still in Standby: refused
+    await first.send(RESUME, b"")
     await first.send(SET_WRENCH_EFFORT, effort(50))
     msg = await limit.get_msg(timeout=5)  # 50 % of full: 100 cm/s, big-endian i16
     assert msg.data == struct.pack(">h", 100)
@@ -111,6 +114,7 @@ async def test_an_ocu_takes_control_and_drives_a_can_node(
         await limit.get_msg(timeout=0.3)
     stats = host.stats()
     assert stats["commands"] == 1 and stats["refused_without_control"] == 3
+    assert stats["refused_not_ready"] == 1
     assert stats["control_granted"] == 1 and stats["control_refused"] == 1
 
 
@@ -120,7 +124,7 @@ async def test_control_lapses_and_junk_is_counted(
     host, address, _ = robot
     first, second = Ocu(address, (2, 1, 1)), Ocu(address, (3, 1, 1))
     assert await first.ask(REQUEST_CONTROL, bytes([10])) == (CONFIRM_CONTROL, bytes([0]))
-    host.control.heard -= 2.0  # type: ignore[union-attr]  # silent past the 1 s timeout
+    host.component.access.heard -= 2.0  # silent past the 1 s timeout
     assert await second.ask(REQUEST_CONTROL, bytes([5])) == (CONFIRM_CONTROL, bytes([0]))
     loop = asyncio.get_running_loop()
     for junk in (b"", b"\x02", b"JAUS01.0", bytes(range(40)), b"\x02\x00\xff\xff"):
@@ -156,6 +160,7 @@ def test_ups_jaus_as_a_process_drives_a_can_node_in_another(tmp_path: object) ->
             ocu.sendto(judp((2, 1, 1), REQUEST_CONTROL, bytes([10])), ("127.0.0.1", port))
             code, body, _ = parse(ocu.recv(65536))
             assert (code, body) == (CONFIRM_CONTROL, bytes([0]))
+            ocu.sendto(judp((2, 1, 1), RESUME), ("127.0.0.1", port))
             ocu.sendto(judp((2, 1, 1), SET_WRENCH_EFFORT, effort(25)), ("127.0.0.1", port))
         code, out = wheels.finish(timeout=60)
         assert code == 0
@@ -187,7 +192,7 @@ async def test_queries_are_answered_from_the_latest_event(
             await ocu.send(QUERY_GLOBAL_POSE, struct.pack("<H", 0x01FF))  # no fix yet: counted
             pose = bridge["ReportGlobalPose"].channel
             await gps.publish("robot/pose", pose.encode({"lat": 48.4, "lon": 9.95, "heading": 0}))
-            await eventually(lambda: "ReportGlobalPose" in host.latest)
+            await eventually(lambda: "ReportGlobalPose" in host.component.latest)
             code, body = await ocu.ask(QUERY_GLOBAL_POSE, struct.pack("<H", 0x01FF))
             assert code == REPORT_GLOBAL_POSE
             presence, lat, lon = struct.unpack_from("<HII", body)

@@ -19,7 +19,6 @@ from ._address import DEFAULT_PORT
 from ._cliargs import (
     add_can,
     add_catalog,
-    add_network,
     add_node_options,
     add_tls,
     add_zenoh,
@@ -268,29 +267,9 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         module.add_arguments(cmd)
         cmd.set_defaults(run=module.run)
 
-    cmd = command("jaus", help="a JAUS component on a UPS node, over JUDP; or check a mapping")
-    cmd.add_argument(
-        "--listen", default="127.0.0.1:3794", metavar="HOST:PORT",
-        help="where JAUS OCUs reach the component (UDP; default 127.0.0.1:3794, JUDP's port)",
-    )  # fmt: skip
-    cmd.add_argument(
-        "--id", default="1.1.1", metavar="S.N.C",
-        help="the component's JAUS id: subsystem.node.component (default 1.1.1)",
-    )  # fmt: skip
-    cmd.add_argument("--map", metavar="FILE", help="the mapping of JAUS messages onto channels")
-    cmd.add_argument("--name", default="UPS robot", help="what Report Identification says")
-    add_network(cmd, "the robot's CAN bus", "the robot's IP network")
-    cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
-    cmd.add_argument("--timeout", type=positive_float, default=30.0, help="seconds to join")
-    jaus_commands = cmd.add_subparsers(dest="jaus_command", required=False, metavar="ACTION")
-    act = jaus_commands.add_parser(
-        "check", help="check a mapping of JAUS messages onto UPS channels; exit 2 naming the line"
-    )
-    act.add_argument(
-        "file", metavar="FILE", help="the mapping (TOML), e.g. examples/robot.jaus.toml"
-    )
-    add_catalog(act)
-    cmd.set_defaults(run=_run_jaus)
+    from . import _clijaus
+
+    _clijaus.add_commands(command)
 
     cmd = command("analyze", help="CAN response-time analysis of a message set")
     if analyze:
@@ -463,27 +442,6 @@ def _run_status(args: argparse.Namespace) -> int:
         return 0
 
     return run_until_signal(run())
-
-
-def _run_jaus(args: argparse.Namespace) -> int:
-    from jaus._mapping import load_mapping
-
-    if args.jaus_command is None:
-        if args.map is None:
-            raise ConfigError("ups jaus needs --map FILE (or: ups jaus check FILE)")
-        bridge = load_mapping(args.map)
-        from jaus._serve import serve
-
-        return run_until_signal(serve(args, bridge))
-    from ._catalog import Catalog
-
-    catalog = Catalog.load(args.catalog) if args.catalog else None
-    bridge = load_mapping(args.file, catalog)
-    for name, entry in bridge.items():
-        way = "JAUS -> UPS" if entry.command else "UPS -> JAUS"
-        fields = ", ".join(f"{f.jaus}->{f.ups}" for f in entry.fields)
-        print(f"{name}: {way} on {entry.channel.channel} ({fields})")
-    return 0
 
 
 def _run_zenoh_router(args: argparse.Namespace) -> int:

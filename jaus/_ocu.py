@@ -1,0 +1,294 @@
+"""``ups jaus-ocu``: a small JAUS operator control unit for scripts and tests, printing one
+JSON object per line.
+
+::
+
+    ups jaus-ocu discover                              # broadcast Query Identification
+    ups jaus-ocu --target 127.0.0.1:3794 query GlobalPose
+    ups jaus-ocu --target … control request --authority 10
+    ups jaus-ocu --target … send SetWrenchEffort propulsive_linear_x=25 --control
+    ups jaus-ocu --target … watch GlobalPose --rate 10 --count 20
+
+Every command speaks JUDP (``--framing ra33`` for paper 001's RA 3.3 framing) from the JAUS id
+``--id`` (default 200.1.1): a component recognises its controller by that id, so ``control
+request`` in one command and ``send`` in the next act as one OCU, as long as the second comes
+within the component's control timeout. ``send --control`` takes control, resumes, sends and
+releases in one go.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import enum
+import json
+import socket
+import sys
+import time
+import typing
+from typing import Any
+
+from ups import ConfigError
+from ups._address import parse_address
+
+from ._codec import AckNak, JausDecodeError, JausId
+from ._judp import JUDP_PORT, Broadcast, JudpHeader, JudpMessage, decode_judp, encode_judp
+from ._messages import PAYLOAD_TYPES, decode_payload, encode_payload
+from ._messages import payloads as p
+from ._ra33 import RA33_PREFIX, Ra33Address, Ra33Header, Ra33Message, decode_ra33, encode_ra33
+from ._ra33_payloads import decode_ra33_payload, encode_ra33_payload
+
+BY_NAME = {cls.__name__: cls for cls in PAYLOAD_TYPES.values()}
+EVERYONE = JausId(0xFFFF, 0xFF, 0xFF)
+
+
+class Ocu:
+    """One OCU socket: sends messages in one framing, reads what comes back."""
+
+    def __init__(
+        self, me: JausId, target: tuple[str, int], *, ra33: bool, broadcast: bool, timeout: float
+    ) -> None:
+        self.me, self.target, self.ra33, self.broadcast = me, target, ra33, broadcast
+        self.timeout = timeout
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if broadcast:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        self.sock.bind(("0.0.0.0", 0))
+        self._sequence = 0
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def send(self, payload: Any, to: JausId | None = None) -> None:
+        to = to or EVERYONE
+        self._sequence = (self._sequence + 1) & 0xFFFF
+        if self.ra33:
+            code, body = encode_ra33_payload(payload)
+            dest = Ra33Address(
+                min(to.subsystem, 0xFF), to.node, to.component, 0xFF if to == EVERYONE else 1
+            )
+            me = Ra33Address(self.me.subsystem, self.me.node, self.me.component)
+            ra_header = Ra33Header(code, dest, me, sequence=self._sequence)
+            datagram = encode_ra33(Ra33Message(ra_header, body))
+        else:
+            code, body = encode_payload(payload)
+            header = JudpHeader(
+                destination=to,
+                source=self.me,
+                sequence=self._sequence,
+                broadcast=Broadcast.GLOBAL if to == EVERYONE else Broadcast.NONE,
+            )
+            datagram = encode_judp([JudpMessage(header, code, body)])
+        self.sock.sendto(datagram, self.target)
+
+    def receive(self, until: float) -> tuple[JausId, Any, tuple[str, int]] | None:
+        """The next message decoded (its sender's id, payload and address), or None at
+        ``until`` (a time.monotonic() value). Datagrams this codec cannot read are skipped."""
+        while (left := until - time.monotonic()) > 0:
+            self.sock.settimeout(left)
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except TimeoutError:
+                return None
+            try:
+                if data.startswith(RA33_PREFIX):
+                    m = decode_ra33(data)
+                    if m.header.ack_nak != AckNak.NONE:
+                        continue
+                    src = m.header.source
+                    payload = decode_ra33_payload(m.header.command_code, m.data)
+                    source = JausId(src.subsystem, src.node, src.component)
+                else:
+                    (msg, *_) = decode_judp(data)
+                    if msg.code is None:
+                        continue
+                    payload = decode_payload(msg.code, msg.payload)
+                    source = msg.header.source
+            except JausDecodeError:
+                continue
+            if payload is not None:
+                return source, payload, addr
+        return None
+
+    def ask(self, payload: Any, answer: Any, to: JausId | None) -> tuple[JausId, Any]:
+        self.send(payload, to)
+        until = time.monotonic() + self.timeout
+        while (got := self.receive(until)) is not None:
+            if isinstance(got[1], answer):
+                return got[0], got[1]
+        what = getattr(answer, "__name__", answer)
+        raise ConfigError(f"no {what} within {self.timeout} s from {self.target}")
+
+
+def to_json(source: JausId, payload: Any) -> str:
+    def plain(value: Any) -> Any:
+        if isinstance(value, enum.Enum):
+            return value.name
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, tuple | list):
+            return [plain(v) for v in value]
+        if isinstance(value, bytes):
+            return value.hex()
+        return value
+
+    return json.dumps(
+        {"from": str(source), "message": type(payload).__name__, "fields": plain(payload)}
+    )
+
+
+def build(name: str, assignments: list[str]) -> Any:
+    """A message named ``name`` from ``FIELD=VALUE`` texts (numbers, enum names or values)."""
+    cls = BY_NAME.get(name)
+    if cls is None:
+        raise ConfigError(f"unknown JAUS message {name!r}")
+    hints = typing.get_type_hints(cls)
+    values: dict[str, Any] = {}
+    for text in assignments:
+        key, sep, raw = text.partition("=")
+        if not sep or key not in hints:
+            fields = ", ".join(f.name for f in dataclasses.fields(cls))
+            raise ConfigError(f"{name}: give FIELD=VALUE, fields: {fields}")
+        values[key] = _convert(hints[key], raw, f"{name}.{key}")
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name}: {exc}") from None
+
+
+def _convert(hint: Any, raw: str, what: str) -> Any:
+    for kind in typing.get_args(hint) or (hint,):
+        try:
+            if isinstance(kind, type) and issubclass(kind, enum.Enum):
+                return kind[raw] if raw in kind.__members__ else kind(int(raw, 0))
+            if kind is int:
+                return int(raw, 0)
+            if kind is float:
+                return float(raw)
+            if kind is str:
+                return raw
+        except (ValueError, KeyError):
+            continue
+    raise ConfigError(f"{what}: cannot read {raw!r}")
+
+
+def _query_of(topic: str) -> Any:
+    """Query<topic>: all fields asked for."""
+    cls = BY_NAME.get(f"Query{topic.removeprefix('Query').removeprefix('Report')}")
+    if cls is None:
+        raise ConfigError(f"no Query message for {topic!r}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    return cls(presence_vector=0xFFFF) if "presence_vector" in names else cls()
+
+
+def run(args: argparse.Namespace) -> int:
+    from ._serve import parse_jaus_id
+
+    me = parse_jaus_id(args.id)
+    host, port = parse_address(args.target) if args.target else (args.broadcast, JUDP_PORT)
+    broadcast = args.target is None
+    to = None if broadcast else parse_jaus_id(args.to) if args.to else None
+    ocu = Ocu(
+        me,
+        (host or "127.0.0.1", port or JUDP_PORT),
+        ra33=args.framing == "ra33",
+        broadcast=broadcast,
+        timeout=args.timeout,
+    )
+    try:
+        return _ACTIONS[args.ocu_command](ocu, to, args)
+    finally:
+        ocu.close()
+
+
+def _discover(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    ocu.send(p.QueryIdentification(p.QueryType.COMPONENT), to)
+    until, found = time.monotonic() + ocu.timeout, 0
+    while (got := ocu.receive(until)) is not None:
+        source, payload, addr = got
+        if isinstance(payload, p.ReportIdentification):
+            found += 1
+            print(
+                json.dumps(
+                    {
+                        "id": str(source),
+                        "address": f"{addr[0]}:{addr[1]}",
+                        "name": payload.identification,
+                        "type": int(payload.identification_type),
+                    }
+                ),
+                flush=True,
+            )
+    return 0 if found else 1
+
+
+def _query(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    query = _query_of(args.message)
+    answer = BY_NAME[type(query).__name__.replace("Query", "Report", 1)]
+    source, report = ocu.ask(query, answer, to)
+    print(to_json(source, report), flush=True)
+    return 0
+
+
+def _control(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    if args.action == "request":
+        source, reply = ocu.ask(p.RequestControl(args.authority), p.ConfirmControl, to)
+    elif args.action == "release":
+        source, reply = ocu.ask(p.ReleaseControl(), p.RejectControl, to)
+    else:
+        source, reply = ocu.ask(p.QueryControl(), p.ReportControl, to)
+    print(to_json(source, reply), flush=True)
+    granted = not isinstance(reply, p.ConfirmControl) or reply.response == 0
+    return 0 if granted else 1
+
+
+def _send(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    message = build(args.message, args.fields)
+    if args.control:
+        source, reply = ocu.ask(p.RequestControl(args.authority), p.ConfirmControl, to)
+        print(to_json(source, reply), flush=True)
+        if reply.response != 0:
+            return 1
+        ocu.send(p.Resume(), to)
+    ocu.send(message, to)
+    if args.control:
+        ocu.ask(p.QueryStatus(), p.ReportStatus, to)  # carried out by now: then let go
+        source, reply = ocu.ask(p.ReleaseControl(), p.RejectControl, to)
+    print(json.dumps({"sent": args.message}), flush=True)
+    return 0
+
+
+def _watch(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    query = _query_of(args.message)
+    code, body = encode_payload(query)
+    kind = 1 if args.change else 0
+    create = p.CreateEvent(1, p.EventType(kind), args.rate, code.to_bytes(2, "little") + body)
+    _, confirm = ocu.ask(create, p.ConfirmEventRequest | p.RejectEventRequest, to)
+    if isinstance(confirm, p.RejectEventRequest):
+        print(to_json(to or EVERYONE, confirm), flush=True)
+        return 1
+    shown = 0
+    try:
+        while args.count is None or shown < args.count:
+            got = ocu.receive(time.monotonic() + max(ocu.timeout, 2 / max(args.rate, 0.1)))
+            if got is None:
+                print(json.dumps({"error": "no event within the timeout"}), file=sys.stderr)
+                return 1
+            source, payload, _ = got
+            if isinstance(payload, p.Event) and payload.event_id == confirm.event_id:
+                msg = payload.report_message
+                report = decode_payload(int.from_bytes(msg[:2], "little"), msg[2:])
+                print(to_json(source, report), flush=True)
+                shown += 1
+    finally:
+        ocu.send(p.CancelEvent(2, confirm.event_id), to)
+    return 0
+
+
+_ACTIONS = {
+    "discover": _discover,
+    "query": _query,
+    "control": _control,
+    "send": _send,
+    "watch": _watch,
+}
