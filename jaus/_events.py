@@ -18,10 +18,13 @@ This module keeps the table and the timers; the host says what a query is answer
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
+
+log = logging.getLogger("ups.jaus")
 
 MAX_EVENTS = 64  #: event subscriptions held at once, all clients together
 MAX_RATE = 25.0  #: events per second at most, for a report the mapping gives no rate
@@ -42,7 +45,7 @@ class Subscription:
     sequence: int = 0
     last_sent: float = -1e9
     heard: float = field(default_factory=time.monotonic)
-    timer: asyncio.TimerHandle | None = None
+    timer: asyncio.Handle | None = None
 
 
 class EventRefused(Exception):
@@ -80,6 +83,7 @@ class Events:
             "events_expired",
             "events_sent",
             "events_coalesced",
+            "event_errors",
             "not_yet",
         ):
             counters.setdefault(name, 0)
@@ -90,7 +94,7 @@ class Events:
     def create(
         self, owner: Hashable, route: Any, request_id: int, kind: int, rate: float, query: bytes
     ) -> Subscription:
-        """A new subscription, its first Event already sent when there is an answer;
+        """A new subscription, its first Event sent just after (once there is an answer);
         :class:`EventRefused` otherwise."""
         report = self._check(kind, rate, query)
         if len(self.table) >= self.max_events:
@@ -101,7 +105,7 @@ class Events:
         self._setup(sub, kind, rate)
         self.table[event_id] = sub
         self.counters["events_created"] += 1
-        self._fire(sub)
+        self._first(sub)
         return sub
 
     def update(
@@ -121,7 +125,7 @@ class Events:
         self._stop(sub)
         sub.request_id, sub.route, sub.query, sub.report = request_id, route, query, report
         self._setup(sub, kind, rate)
-        self._fire(sub)
+        self._first(sub)
         return sub
 
     def cancel(self, owner: Hashable, event_id: int) -> Subscription:
@@ -180,6 +184,10 @@ class Events:
         sub.kind = kind
         sub.rate = min(rate, cap) if kind == PERIODIC else cap
 
+    def _first(self, sub: Subscription) -> None:
+        """The first Event goes out right after the confirmation the caller sends now."""
+        sub.timer = asyncio.get_running_loop().call_soon(self._due, sub)
+
     def _fire(self, sub: Subscription) -> None:
         """Send the answer now, unless the rate forbids it; then what comes next is timed."""
         loop = asyncio.get_running_loop()
@@ -197,8 +205,14 @@ class Events:
 
     def _due(self, sub: Subscription) -> None:
         sub.timer = None
-        if self.table.get(sub.event_id) is sub:
+        if self.table.get(sub.event_id) is not sub:
+            return
+        try:
             self._fire(sub)
+        except Exception:  # a broken answer cancels this event, never the others
+            self.counters["event_errors"] += 1
+            log.exception("event %d of %s failed: cancelled", sub.event_id, sub.owner)
+            self._remove(sub)
 
     def _send_answer(self, sub: Subscription, now: float) -> None:
         report = self._answer(sub.query)

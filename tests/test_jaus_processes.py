@@ -253,3 +253,84 @@ def test_an_ocu_discovers_controls_queries_and_watches_the_robot_over_judp(
         assert code == 0
         events = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
         assert [e["data"] for e in events] == [struct.pack(">h", v).hex() for v in (50, 20)]
+
+
+class Ra33Ocu(JudpOcu):
+    """Paper 001's framing: "JAUS01.0", then the 16-byte RA 3.3 header (OpenJAUS 3.3.1's byte
+    order): message properties u16 (priority 6, version 2 in bits 8-13), command code u16,
+    destination and source as instance, component, node, subsystem bytes, data control u16
+    (data size in bits 0-11), sequence number u16; then the message data. One message per
+    datagram; broadcast is 0xFF in every address byte."""
+
+    def send(self, code: int, payload: bytes = b"", *, broadcast: bool = False) -> None:
+        dest = bytes((0xFF,) * 4) if broadcast else bytes((1, ROBOT[2], ROBOT[1], ROBOT[0]))
+        src = bytes((1, self.me[2], self.me[1], self.me[0]))
+        self.seq += 1
+        header = struct.pack("<HH", 6 | 2 << 8, code) + dest + src
+        header += struct.pack("<HH", len(payload), self.seq)
+        self.sock.sendto(b"JAUS01.0" + header + payload, self.robot)
+
+    def receive(self) -> tuple[int, bytes, tuple[str, int]]:
+        data, sender = self.sock.recvfrom(65536)
+        assert data[:8] == b"JAUS01.0"
+        props, code = struct.unpack_from("<HH", data, 8)
+        assert props >> 8 & 0x3F == 2  # version 3.2/3.3
+        assert tuple(data[12:16]) == (1, self.me[2], self.me[1], self.me[0])  # to us
+        size = struct.unpack_from("<H", data, 20)[0] & 0x0FFF
+        assert len(data) == 24 + size
+        return code, data[24:], sender
+
+
+def test_an_ra33_ocu_discovers_controls_queries_and_drives_the_robot(tmp_path: Path) -> None:
+    """The same robot through paper 001's RA 3.3 framing, whose payloads differ: signed scaled
+    integers (OpenJAUS jausShortFromDouble: (value - mid) / ((max - min) / 65534)), a Report
+    Identification with an authority byte and no count, a Reject Component Control without
+    data."""
+    bus = private_multicast_bus()
+    mapping = write_mapping(tmp_path)
+    catalog = tmp_path / "catalog.toml"
+    with robot_namespace() as in_robot, (
+        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", prefix=in_robot)
+    ), Proc("sub", "robot/max-speed", "--can", bus, "--json", "--count", "2", "--timeout", "120",
+            prefix=in_robot) as wheels, Proc(
+        "jaus", "--listen", f"0.0.0.0:{JAUS_PORT}", "--id", "1.1.1", "--map", str(mapping),
+        "--can", bus, "--name", "rover", prefix=in_robot,
+    ) as component:  # fmt: skip
+        wheels.wait_for_line("subscribed to")
+        component.wait_for_line("JAUS component 1.1.1")
+        publish_fix(in_robot, bus, catalog, -33.9)
+        ocu, other = Ra33Ocu((42, 1, 1)), Ra33Ocu((43, 1, 1))
+
+        def effort(percent: float) -> bytes:
+            return struct.pack("<Hh", 0x0001, round(percent / (200 / 65534)))
+
+        ocu.send(QUERY_IDENTIFICATION, bytes([4]), broadcast=True)
+        code, payload, sender = ocu.receive()
+        assert code == REPORT_IDENTIFICATION and sender == (ROBOT_ADDR, JAUS_PORT)
+        # query type, authority, type 60001 (component), the name to the end
+        assert payload == struct.pack("<BBH", 4, 0, 60001) + b"rover"
+        ocu.robot = other.robot = sender
+
+        assert ocu.ask(REQUEST_CONTROL, bytes([10]), CONFIRM_CONTROL) == bytes([0])
+        assert other.ask(REQUEST_CONTROL, bytes([5]), CONFIRM_CONTROL) == bytes([1])
+        ocu.send(RESUME)
+        ocu.send(SET_WRENCH_EFFORT, effort(25))
+
+        presence, lat, lon = struct.unpack_from(
+            "<Hii", ocu.ask(QUERY_GLOBAL_POSE, struct.pack("<H", 0x0003), REPORT_GLOBAL_POSE)
+        )
+        assert presence & 0b11 == 0b11
+        assert lat * 180 / 4294967294 == pytest.approx(-33.9, abs=1e-6)  # signed, mid 0
+        assert lon * 360 / 4294967294 == pytest.approx(9.95, abs=1e-6)
+
+        assert ocu.ask(RELEASE_CONTROL, b"", REJECT_CONTROL) == b""  # RA 3.3: no data
+        ocu.send(SET_WRENCH_EFFORT, effort(90))
+        other.send(SET_WRENCH_EFFORT, effort(80))
+        assert other.ask(QUERY_HEARTBEAT, b"", REPORT_HEARTBEAT) == b""
+        assert ocu.ask(REQUEST_CONTROL, bytes([10]), CONFIRM_CONTROL) == bytes([0])
+        ocu.send(RESUME)
+        ocu.send(SET_WRENCH_EFFORT, effort(10))
+        code, out = wheels.finish(timeout=60)
+        assert code == 0
+        events = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+        assert [e["data"] for e in events] == [struct.pack(">h", v).hex() for v in (50, 20)]
