@@ -334,3 +334,42 @@ def test_an_ra33_ocu_discovers_controls_queries_and_drives_the_robot(tmp_path: P
         assert code == 0
         events = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
         assert [e["data"] for e in events] == [struct.pack(">h", v).hex() for v in (50, 20)]
+
+
+def test_ups_jaus_ocu_discovers_queries_drives_and_watches(tmp_path: Path) -> None:
+    """The project's own OCU, as a user types it: JSON lines out, exit 0."""
+    bus = private_multicast_bus()
+    mapping = write_mapping(tmp_path)
+    catalog = tmp_path / "catalog.toml"
+    target = f"{ROBOT_ADDR}:{JAUS_PORT}"
+    with robot_namespace() as in_robot, (
+        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", prefix=in_robot)
+    ), Proc("sub", "robot/max-speed", "--can", bus, "--json", "--count", "1", "--timeout", "120",
+            prefix=in_robot) as wheels, Proc(
+        "jaus", "--listen", f"0.0.0.0:{JAUS_PORT}", "--id", "1.1.1", "--map", str(mapping),
+        "--can", bus, "--name", "rover", prefix=in_robot,
+    ) as component:  # fmt: skip
+        wheels.wait_for_line("subscribed to")
+        component.wait_for_line("JAUS component 1.1.1")
+        publish_fix(in_robot, bus, catalog, 48.4)
+
+        def ocu(*args: str) -> list[dict[str, object]]:
+            with Proc("jaus-ocu", *args) as proc:
+                code, out = proc.finish(timeout=30)
+            assert code == 0, "".join(proc.stderr_lines)
+            return [json.loads(line) for line in out.splitlines()]
+
+        (found,) = ocu("--broadcast", BROADCAST, "discover")
+        assert found == {"id": "1.1.1", "address": target, "name": "rover", "type": 60001}
+        (pose,) = ocu("--target", target, "query", "GlobalPose")
+        assert pose["message"] == "ReportGlobalPose"
+        assert pose["fields"]["latitude"] == pytest.approx(48.4, abs=1e-6)  # type: ignore[index]
+        reports = ocu("--target", target, "watch", "GlobalPose", "--rate", "10", "--count", "3")
+        assert [r["message"] for r in reports] == ["ReportGlobalPose"] * 3
+        lines = ocu("--target", target, "send", "SetWrenchEffort", "propulsive_linear_x=25",
+                    "--control")  # fmt: skip
+        assert lines[0]["message"] == "ConfirmControl" and lines[-1] == {"sent": "SetWrenchEffort"}
+        code, out = wheels.finish(timeout=60)
+        assert code == 0 and json.loads(out)["data"] == struct.pack(">h", 50).hex()
+        (status,) = ocu("--target", target, "query", "Status")
+        assert status["fields"] == {"status": "STANDBY", "reserved": 0}  # released again
