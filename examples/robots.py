@@ -28,6 +28,7 @@ import asyncio
 import struct
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from broker.tcp_ecb import TcpEcb
 from gateway import Gateway
@@ -155,7 +156,36 @@ Try next (each in its own shell):
 On a real bus: ups gateway --can socketcan:vcan0 --broker 127.0.0.1:7411, then --can nodes."""
 
 
-async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
+JAUS_TRY = """\
+JAUS component 1.1.1 of the robot on {where} (JUDP and RA 3.3; mapping examples/robot.jaus.toml).
+Try, in another shell (Ctrl-C here ends the demo):
+  ups jaus-ocu --target {where} query Identification
+  ups jaus-ocu --target {where} query Status
+  ups jaus-ocu --target {where} send SetWrenchEffort propulsive_linear_x=20 --control
+  ups jaus-ocu --target {where} watch Control --rate 2 --count 4
+The third limits the robot to 40 cm/s: the wheel encoder says so here."""
+
+
+async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
+    """A JAUS component on the robot's bus, driving it through examples/robot.jaus.toml."""
+    from jaus import JausId
+    from jaus._host import JausHost
+    from jaus._mapping import load_mapping
+    from ups._address import parse_address
+
+    node = Node(can=bus, name="jaus", node_id=0x0D3E_00A0)
+    await node.start()
+    host = JausHost(node, load_mapping(Path(__file__).with_name("robot.jaus.toml")),
+                    JausId(1, 1, 1), name="UPS demo robot")  # fmt: skip
+    address, port = parse_address(where)
+    bound = await host.start(address or "127.0.0.1", port)
+    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}"), flush=True)
+    return node, host
+
+
+async def run_demo(
+    duration: float | None = 3.0, bus: str = "virtual:ups-demo", jaus: str | None = None
+) -> int:
     print(INTRO)
     with tempfile.TemporaryDirectory() as tmp:
         registry = TcpEcb("127.0.0.1", 0, recovery=0)  # any free port
@@ -165,6 +195,7 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
         names = ("wheel-encoder", "sonar", "motor-controller", "dashboard")
         nodes = [Node(can=bus, name=name, node_id=0x0D3E_0000 + i) for i, name in enumerate(names)]
         operator = Node(broker=broker, name="operator", node_id=0x0D3E_0100)
+        jaus_host: Any = None
         try:
             await gateway.start()
             txnode = gateway.stats()["txnode"]
@@ -173,10 +204,13 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
                 await node.start()
                 print(f"{node.name}: joined as TxNode 0x{node.stats()['txnode']:02x}")
             await operator.start()
+            if jaus is not None:
+                jaus_node, jaus_host = await jaus_face(bus, jaus)  # closed below
+                nodes.append(jaus_node)
             stop = asyncio.Event()
             seen: dict[str, int] = {}
             remote: dict[str, int] = {}
-            encoder, sensor, controller, board = nodes
+            encoder, sensor, controller, board = nodes[:4]
             tasks = [
                 asyncio.create_task(dashboard(board, stop, seen)),
                 asyncio.create_task(operator_station(operator, stop, remote)),
@@ -184,7 +218,9 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
                 asyncio.create_task(wheel_encoder(encoder, stop)),
                 asyncio.create_task(sonar(sensor, stop)),
             ]
-            await asyncio.sleep(duration)
+            if duration is None:
+                await asyncio.Event().wait()  # until Ctrl-C
+            await asyncio.sleep(duration or 0)
             stop.set()
             await asyncio.gather(*tasks)
             print(f"dashboard saw {seen}")
@@ -195,6 +231,8 @@ async def run_demo(duration: float = 3.0, bus: str = "virtual:ups-demo") -> int:
             print(_outro(local_ok, remote_ok, seen, remote))
             return 0 if local_ok and remote_ok else 1
         finally:
+            if jaus_host is not None:
+                jaus_host.close()
             await operator.close()
             for node in nodes:
                 await node.close()

@@ -202,7 +202,7 @@ class ReportControl:
 @dataclass(frozen=True, slots=True)
 class QueryIdentification:
     CODE: ClassVar[int] = MessageCode.QUERY_IDENTIFICATION
-    query_type: int
+    query_type: int = QueryType.COMPONENT
 
     def to_bytes(self) -> bytes:
         return _byte(self.query_type, "a query type")

@@ -235,3 +235,28 @@ async def test_a_hundred_thousand_fuzzed_datagrams_do_not_stop_the_component(
     assert host.component.access.holder == ocu.me  # nobody took control from garbage
     assert len(host.component.events.table) <= MAX_EVENTS
     ocu.close()
+
+
+def test_ups_demo_with_a_jaus_face_obeys_an_ocu() -> None:
+    """``ups demo --jaus``: the commands it prints work, and the wheel encoder obeys."""
+    import json
+    import re
+    import time
+
+    from .procs import Proc
+
+    with Proc("demo", "--jaus", "127.0.0.1:0", "--duration", "20") as demo:
+        deadline, target = time.monotonic() + 30, None
+        while target is None and time.monotonic() < deadline:
+            found = re.search(r"--target (127\.0\.0\.1:\d+)", "".join(demo.stdout_lines))
+            target = found.group(1) if found else None
+            time.sleep(0.05)  # polling the reader thread's lines, not waiting for an effect
+        assert target is not None, "".join(demo.stdout_lines + demo.stderr_lines)
+        with Proc("jaus-ocu", "--target", target, "send", "SetWrenchEffort",
+                  "propulsive_linear_x=20", "--control") as ocu:  # fmt: skip
+            code, out = ocu.finish(timeout=30)
+        assert code == 0 and json.loads(out.splitlines()[-1]) == {"sent": "SetWrenchEffort"}
+        deadline = time.monotonic() + 30
+        while "speed limit 40 cm/s" not in "".join(demo.stdout_lines):
+            assert time.monotonic() < deadline, "".join(demo.stdout_lines)
+            time.sleep(0.05)

@@ -298,6 +298,11 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
         "--listen", default=f"127.0.0.1:{DEFAULT_PORT}", metavar="HOST:PORT",
         help=f"with --processes: the TCP-ECB's address (default 127.0.0.1:{DEFAULT_PORT})",
     )  # fmt: skip
+    cmd.add_argument(
+        "--jaus", nargs="?", const="127.0.0.1:3794", default=None, metavar="HOST:PORT",
+        help="also a JAUS component on the robot (default 127.0.0.1:3794): it prints the "
+        "ups jaus-ocu commands to try, and runs until Ctrl-C unless --duration",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_demo)
 
     cmd = command(
@@ -566,9 +571,13 @@ def _run_bench(args: argparse.Namespace) -> int:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
+    if args.jaus is not None and args.processes:
+        raise ConfigError("--jaus runs with the in-process demo, not --processes")
     if not args.processes:
         from examples.robots import run_demo
 
+        if args.jaus is not None:
+            return run_until_signal(run_demo(args.duration, jaus=args.jaus))
         return run_until_signal(run_demo(args.duration or 3.0))
     if args.can is None:
         raise ConfigError(
