@@ -180,17 +180,17 @@ class Component:
         """The report answering ``query``, None when its data has not arrived yet;
         :class:`Unserved` when nothing here answers it."""
         name = type(query).__name__
+        topic = name.removeprefix("Query")
+        report = f"Report{topic}"
+        entry = self.bridge.get(report)
+        if entry is not None and not entry.command:  # the mapping first: the robot's data
+            data = self.latest.get(report)
+            return None if data is None else _narrow(entry.from_ups(data), query)
         fixed = self._fixed_answer(name, query)
         if fixed is not None:
             return fixed
-        topic = name.removeprefix("Query")
-        report = f"Report{topic}"
         if name == topic or report not in _BY_NAME:
             raise Unserved(name)
-        entry = self.bridge.get(report)
-        if entry is not None and not entry.command:
-            data = self.latest.get(report)
-            return None if data is None else _narrow(entry.from_ups(data), query)
         setter = f"Set{topic}"
         if setter in self.bridge:
             last = self.last_command.get(setter)
@@ -233,8 +233,6 @@ class Component:
     def _report_of(self, query: bytes) -> str | None:
         try:
             payload = _decode_message(query)
-            if self._fixed_answer(type(payload).__name__, payload) is not None:
-                return type(payload).__name__.replace("Query", "Report", 1)
             self.answer(payload)
         except (JausDecodeError, Unserved):
             return None
@@ -271,6 +269,7 @@ class Component:
             self.counters["refused_without_control"] += 1
         elif msg.authority >= self.access.minimum_authority:
             self.authority = msg.authority
+            self._publish_if_mapped("SetAuthority", msg)
 
     def _management(self, source: JausId, msg: Any) -> None:
         name = type(msg).__name__
