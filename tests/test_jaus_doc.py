@@ -99,7 +99,7 @@ PAYLOADS = PAYLOAD.findall(section("### Worked examples (payloads)"))
 
 
 def test_the_payload_examples_are_found() -> None:
-    assert len(PAYLOADS) == 10
+    assert len(PAYLOADS) == 17
 
 
 @pytest.mark.parametrize(("code", "raw", "expression"), PAYLOADS)
@@ -108,6 +108,21 @@ def test_payload_example(code: str, raw: str, expression: str) -> None:
     assert jaus.encode_payload(evaluate(expression)) == (int(code, 16), data)
     decoded = jaus.decode_payload(int(code, 16), data)
     assert decoded is not None and jaus.encode_payload(decoded) == (int(code, 16), data)
+
+
+RA33_PAYLOADS = PAYLOAD.findall(section("### RA 3.3 payloads"))
+
+
+def test_the_ra33_payload_examples_are_found() -> None:
+    assert len(RA33_PAYLOADS) == 4
+
+
+@pytest.mark.parametrize(("code", "raw", "expression"), RA33_PAYLOADS)
+def test_ra33_payload_example(code: str, raw: str, expression: str) -> None:
+    data = b"" if raw == "-" else bytes.fromhex(raw)
+    assert jaus.encode_ra33_payload(evaluate(expression)) == (int(code, 16), data)
+    decoded = jaus.decode_ra33_payload(int(code, 16), data)
+    assert decoded is not None and jaus.encode_ra33_payload(decoded) == (int(code, 16), data)
 
 
 SCALED = re.compile(r"^\| (-?[\d.]+) \| (-?[\d.]+) \| (-?[\d.]+) \| (\d+) \| (\d+) \|$", re.M)
@@ -147,3 +162,21 @@ def test_documented_constants() -> None:
     counts = jaus.ReassemblyCounts()
     for reason in ("expired", "evicted", "duplicate", "conflicting", "oversized", "mismatched"):
         assert f"**{reason}**" in bounds and getattr(counts, reason) == 0
+
+
+def test_the_hosts_documented_bounds_are_the_codes() -> None:
+    from jaus._access import CONTROL_TIMEOUT, MAX_EMERGENCIES
+    from jaus._events import EVENT_TIMEOUT, MAX_EVENTS, MAX_RATE
+    from jaus._host import CLIENT_TIMEOUT, MAX_CLIENTS
+
+    bounds = section("## `ups jaus`: the component host")
+    for row, value in (
+        ("| `MAX_CLIENTS` | 64 clients |", MAX_CLIENTS == 64),
+        ("| `CLIENT_TIMEOUT` | 60 s |", CLIENT_TIMEOUT == 60.0),
+        ("| `CONTROL_TIMEOUT` | 5 s |", CONTROL_TIMEOUT == 5.0),
+        ("| `MAX_EVENTS` | 64 events, all clients |", MAX_EVENTS == 64),
+        ("| `EVENT_TIMEOUT` | 60 s |", EVENT_TIMEOUT == 60.0),
+        ("`MAX_RATE` 25 Hz", MAX_RATE == 25.0),
+        ("| `MAX_EMERGENCIES` | 16 clients |", MAX_EMERGENCIES == 16),
+    ):
+        assert row in bounds and value, row
