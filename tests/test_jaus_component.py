@@ -260,3 +260,27 @@ def test_ups_demo_with_a_jaus_face_obeys_an_ocu() -> None:
         while "speed limit 40 cm/s" not in "".join(demo.stdout_lines):
             assert time.monotonic() < deadline, "".join(demo.stdout_lines)
             time.sleep(0.05)
+
+
+async def test_the_components_counters_show_in_ups_status(tmp_path: Path) -> None:
+    """On a TCP/IP node, ``ups status`` of the node carries the component as ``jaus``."""
+    from ups._tcpface import query_status
+
+    from .test_tcp_node import running_tcp_ecb
+
+    bridge = load_mapping(write(tmp_path, GOOD))
+    async with running_tcp_ecb() as ecb, Node(broker=f"127.0.0.1:{ecb.port}") as node:
+        host = JausHost(node, bridge, ROBOT)
+        node.face.extra_status = host.status  # type: ignore[attr-defined]  # as ups jaus does
+        address = await host.start("127.0.0.1", 0)
+        ocu = Ocu(address, JausId(2, 1, 1))
+        try:
+            assert (await ocu.ask(jaus.RequestControl(5), jaus.ConfirmControl)).response == 0
+            where, port = node.face.address  # type: ignore[attr-defined]
+            info = (await query_status(f"{where}:{port}"))["jaus"]
+            assert info["controller"] == "2.1.1" and info["state"] == "STANDBY"
+            assert info["clients"][0]["id"] == "2.1.1"
+            assert info["stats"]["control_granted"] == 1
+        finally:
+            ocu.close()
+            host.close()
