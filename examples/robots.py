@@ -161,6 +161,7 @@ JAUS component 1.1.1 of the robot on {where} (JUDP and RA 3.3; mapping examples/
 Try, in another shell (Ctrl-C here ends the demo):
   ups jaus-ocu --target {where} query Identification
   ups jaus-ocu --target {where} query Status
+  ups jaus-ocu --target {where} watch VelocityState --rate 5 --count 5
   ups jaus-ocu --target {where} send SetWrenchEffort propulsive_linear_x=20 --control
   ups jaus-ocu --target {where} watch Control --rate 2 --count 4
 The third limits the robot to 40 cm/s: the wheel encoder says so here."""

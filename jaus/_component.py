@@ -407,13 +407,14 @@ def _decode_message(message: bytes) -> Any:
 
 
 def _narrow(report: Any, query: Any) -> Any:
-    """Only the fields the query's presence vector asks for (bit i: the i-th field)."""
+    """Only the fields the query's presence vector asks for (bit i: the i-th optional field,
+    ``PV_FIELDS`` where a record has fields that are always present)."""
     wanted = getattr(query, "presence_vector", None)
     if wanted is None:
         return report
-    fields = dataclasses.fields(report)
+    optional = getattr(report, "PV_FIELDS", None) or [f.name for f in dataclasses.fields(report)]
     return dataclasses.replace(
-        report, **{f.name: None for i, f in enumerate(fields) if not wanted >> i & 1}
+        report, **{name: None for i, name in enumerate(optional) if not wanted >> i & 1}
     )
 
 

@@ -203,3 +203,26 @@ async def test_queries_are_answered_from_the_latest_event(
             assert host.stats()["not_yet"] == 1
         finally:
             host.close()
+
+
+async def test_velocity_state_from_the_wheels_and_wrench_effort_from_the_last_command(
+    robot: tuple[JausHost, tuple[str, int], Node],
+) -> None:
+    """The demo mapping: Query Velocity State from robot/speed (cm/s -> m/s), and Query Wrench
+    Effort answered with the last Set Wrench Effort carried out."""
+    host, address, wheels = robot
+    first = Ocu(address, (2, 1, 1))
+    await wheels.publish("robot/speed", struct.pack(">h", 150))  # 150 cm/s
+    await eventually(lambda: "ReportVelocityState" in host.component.latest)
+    code, body = await first.ask(0x2404, struct.pack("<H", 0x0001))  # velocity x only
+    presence, raw = struct.unpack("<HI", body)
+    # presence bit 0, u32 scaled over [-327.68, 327.67] m/s
+    assert code == 0x4404 and presence == 1
+    assert -327.68 + raw * 655.35 / 0xFFFFFFFF == pytest.approx(1.5, abs=1e-6)
+    await first.send(0x2405, struct.pack("<H", 0xFFFF))  # no command yet: counted, unanswered
+    assert await first.ask(REQUEST_CONTROL, bytes([10])) == (CONFIRM_CONTROL, bytes([0]))
+    await first.send(RESUME, b"")
+    await first.send(SET_WRENCH_EFFORT, effort(30))
+    code, body = await first.ask(0x2405, struct.pack("<H", 0xFFFF))
+    assert code == 0x4405 and body == effort(30)  # Report Wrench Effort: the same record
+    assert host.stats()["not_yet"] == 1
