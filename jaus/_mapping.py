@@ -62,6 +62,7 @@ class FieldMap:
     ups: str
     scale: float = 1.0
     offset: float = 0.0
+    integer: bool = False  #: the JAUS field holds an integer: a report rounds to it
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,8 +89,8 @@ class MessageMap:
         values = self.channel.decode(data)
         out: dict[str, Any] = dict(self.constants)
         for f in self.fields:
-            value = values[f.ups]
-            out[f.jaus] = (float(value) - f.offset) / f.scale
+            value = (float(values[f.ups]) - f.offset) / f.scale
+            out[f.jaus] = round(value) if f.integer else value
         return MESSAGES[self.message](**out)
 
 
@@ -201,7 +202,8 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
             raise fail(f"fields.{jaus_name}: scale and offset are numbers", jaus_name)
         if scale == 0:
             raise fail(f"fields.{jaus_name}: scale 0 cannot be turned back", jaus_name)
-        maps.append(FieldMap(jaus_name, ups_name, float(scale), float(offset)))
+        integer = _integer(jaus_fields[jaus_name])
+        maps.append(FieldMap(jaus_name, ups_name, float(scale), float(offset), integer))
     constants = entry.get("constants", {})
     ignored = entry.get("ignore", [])
     if not isinstance(constants, dict) or not isinstance(ignored, list):
@@ -213,6 +215,8 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
                        f"{spec.channel if command else name}", key)  # fmt: skip
         if not isinstance(value, int | float) or isinstance(value, bool):
             raise fail(f"constant {key!r} must be a number", key)
+        if not command and _integer(jaus_fields[key]) and value != int(value):
+            raise fail(f"constant {key!r}: {name}.{key} is an integer, not {value}", key)
     for key in ignored:
         if key not in jaus_fields:
             raise fail(f"ignore: {name} has no field {key!r}", str(key))
@@ -228,6 +232,8 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
     if rate is not None and (not isinstance(rate, int | float) or isinstance(rate, bool)
                              or not rate > 0):  # fmt: skip
         raise fail("rate must be a number of reports per second above 0", "rate")
+    if not command:  # an integer JAUS field's constant is given as one
+        constants = {k: int(v) if _integer(jaus_fields[k]) else v for k, v in constants.items()}
     return MessageMap(
         name, command, spec, tuple(maps), dict(constants), frozenset(map(str, ignored)),
         None if rate is None else float(rate), where.line(name, None),
@@ -238,6 +244,12 @@ def _numeric(hint: Any) -> bool:
     args = typing.get_args(hint) or (hint,)
     return all(a in (int, float, type(None)) or (isinstance(a, type) and issubclass(a, int))
                for a in args)  # fmt: skip
+
+
+def _integer(hint: Any) -> bool:
+    """Whether a JAUS field holds an integer (int, an IntEnum, either or None)."""
+    args = [a for a in typing.get_args(hint) or (hint,) if a is not type(None)]
+    return all(isinstance(a, type) and issubclass(a, int) for a in args)
 
 
 def _show(hint: Any) -> str:

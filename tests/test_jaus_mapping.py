@@ -3,13 +3,14 @@ shipped demo mapping converts as it says."""
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from jaus import ReportGlobalPose, SetWrenchEffort
+from jaus import ReportAuthority, ReportGlobalPose, SetWrenchEffort, encode_payload
 from jaus._mapping import MappingError, load_mapping
 from ups._catalog import Catalog
 
@@ -25,6 +26,9 @@ fields = [{ name = "lat", type = "f64" }, { name = "lon", type = "f64" },
           { name = "heading", type = "f32" }]
 
 [channel."robot/raw"]
+
+[channel."robot/level"]
+fields = [{ name = "level", type = "u8" }]
 """
 
 GOOD = """catalog = "catalog.toml"
@@ -68,6 +72,20 @@ def test_a_report_is_made_from_the_channels_event(tmp_path: Path) -> None:
     assert isinstance(report, ReportGlobalPose)
     assert (report.latitude, report.longitude, report.altitude) == (48.4, 9.95, 0)
     assert report.yaw == pytest.approx(1.5 / 57.29577951308232)
+
+
+@given(st.integers(0, 255))
+def test_a_report_into_an_integer_field_is_an_integer_on_the_wire(level: int) -> None:
+    """Report Authority's field is a u8: the scaled value is rounded to one, so the report
+    encodes (it used to be a float, and every answer and Event on it failed)."""
+    body = 'catalog = "catalog.toml"\n[message.ReportAuthority]\nchannel = "robot/level"\n'
+    body += 'fields.authority = { field = "level", scale = 2.0, offset = 1.0 }\n'
+    with tempfile.TemporaryDirectory() as tmp:
+        entry = load_mapping(write(Path(tmp), body))["ReportAuthority"]
+    report = entry.from_ups(entry.channel.encode({"level": level}))
+    assert report == ReportAuthority(round((level - 1.0) / 2.0))
+    assert isinstance(report.authority, int)
+    assert encode_payload(report)[1] == bytes([report.authority])
 
 
 @given(st.floats(-100, 100))
@@ -120,6 +138,11 @@ BAD = [
         "fields.propulsive_linear_x = { field = 'limit', scale = 0 }\n",
         5,
         "scale 0",
+    ),
+    (
+        "[message.ReportAuthority]\nchannel = 'robot/level'\nconstants = { authority = 2.5 }\n",
+        5,
+        "is an integer, not 2.5",
     ),
 ]
 
