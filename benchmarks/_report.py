@@ -65,6 +65,11 @@ NOTES = [
     "Gateway: a Gateway on a python-can virtual bus, the whole blast of frames on the bus "
     "before it reads any, then drained to a UPS subscriber process (median of the runs); raw "
     "= a thread reading the same bus and putting each frame on the channel's key.",
+    "JAUS (benchmarks/jaus_paper000.py): paper 000's Table 2 method -- minimal Set Authority "
+    "messages one at a time, one way = half the round trip, min/mean/max/std -- through "
+    "`ups jaus` (answering with an ACK), and JAUS -> UPS CAN echo -> JAUS (an every-change "
+    "Event), beside UPS CAN -> CAN echo -> back; 10 ms apart (the paper: 100 ms). Its "
+    "tests 6 and 4 ran on Windows XP, a Core 2 Quad 2.4 GHz, 2010.",
 ]
 Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
 
@@ -208,6 +213,10 @@ def tables(r: dict[str, Any]) -> list[Table]:
         from benchmarks.zenoh_face import tables as zenoh_tables
 
         out += zenoh_tables(r["zenoh_face"])
+    if r.get("jaus_paper000"):
+        from benchmarks.jaus_paper000 import tables as jaus_tables
+
+        out += jaus_tables(r["jaus_paper000"])
     if r.get("rss_mb"):
         bare = r["rss_mb"].get("python_bare")
         body = [[k, f"{v:.1f}", _x(v, bare)] for k, v in r["rss_mb"].items()]

@@ -209,6 +209,15 @@ def can_latency(quick: bool, netns: list[str]) -> dict[str, Any]:
     return result
 
 
+def jaus(quick: bool, netns: list[str]) -> dict[str, Any]:
+    """Paper 000's Table 2: minimal JAUS messages through ``ups jaus``, directly and by way of a
+    UPS CAN node, beside the UPS CAN path; and JAUS reports per second."""
+    args = ["--messages", "300" if quick else "1000", "--warmup", "30" if quick else "100"]
+    args += ["--report-seconds", "2" if quick else "5"]
+    result: dict[str, Any] = _run_json("jaus_paper000", args, _limit(quick), netns=netns)
+    return result
+
+
 def startup(quick: bool) -> dict[str, float]:
     """``ups --help`` against ``python -c pass``: medians of fresh interpreters, alternated."""
     runs = 11 if quick else 21
@@ -277,6 +286,7 @@ def run(quick: bool) -> dict[str, Any]:
         ("zenoh_face", lambda: zenoh(quick), why_not_zenoh),
         ("table5", lambda: table5(quick, ns, as_root), why_not_can),
         ("can_latency", lambda: can_latency(quick, ns), why_not_can),
+        ("jaus_paper000", lambda: jaus(quick, ns), why_not_can),
     ]
     for key, part, why_not in parts:
         if why_not:
@@ -394,6 +404,14 @@ def summary(r: dict[str, Any]) -> dict[str, Any]:
         out["zenoh"] = _zenoh_summary(r["zenoh_face"])
         out["throughput_msgs_per_s"]["zenoh"] = out["zenoh"]["throughput_msgs_per_s"]
         out["throughput_msgs_per_s"]["gateway_can_to_zenoh"] = out["zenoh"]["gateway_can_to_zenoh"]
+    if "jaus_paper000" in r:
+        out["jaus_one_way_ms"] = {
+            key: (row["one_way_ms"] or {}).get("mean")
+            for key, row in r["jaus_paper000"]["paths"].items()
+        }
+        out["jaus_one_way_ms"]["paper_000_test_6"] = r["jaus_paper000"]["paper_table2_ms"]["6"][
+            "mean"
+        ]
     out["targets"] = [
         {"target": name, "measured": value, "against": against, "met": met}
         for name, value, against, met in _report.targets({**r, **out})
