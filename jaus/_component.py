@@ -8,6 +8,8 @@ the IGVC interoperability profile, backed by UPS channels through the mapping.
   its sender holds control and the component is READY; a mapped report (``Report…``) answers
   its query from the channel's latest event; the query of a mapped command's report (Query
   Wrench Effort…) is answered with the last command carried out.
+- The Local Waypoint List Driver and its List Manager (``_waypoint_list``), when Set Local
+  Waypoint and Report Local Pose are both mapped.
 
 The host (``_host.JausHost``) owns the socket and the clients; it hands each decoded message to
 :meth:`Component.handle` with the client it came from, and this sends answers through the
@@ -28,6 +30,9 @@ from ._events import EVENT_TIMEOUT, MAX_RATE, EventRefused, Events, Subscription
 from ._mapping import Bridge
 from ._messages import PAYLOAD_TYPES, decode_payload, encode_payload
 from ._messages import payloads as p
+from ._waypoint_list import QUERIES as LIST_QUERIES
+from ._waypoint_list import SERVICES as LIST_SERVICES
+from ._waypoint_list import WaypointList
 
 if TYPE_CHECKING:
     from ups import Message, Node
@@ -88,6 +93,7 @@ class Component:
             "unserved",
             "not_yet",
             "replies",
+            "pose_errors",
         ):
             counters.setdefault(key, 0)
         self.events = Events(
@@ -114,6 +120,16 @@ class Component:
             "UpdateEvent": self._update_event,
             "CancelEvent": self._cancel_event,
         }
+        self.waypoints: WaypointList | None = None  # a list driver needs waypoints and a pose
+        if "SetLocalWaypoint" in bridge and "ReportLocalPose" in bridge:
+            self.waypoints = WaypointList(
+                access=self.access,
+                carry_out=self._carry_out,
+                reply=self.reply,
+                changed=self.events.changed,
+                counters=counters,
+            )
+            self._handlers.update(self.waypoints.handlers)
 
     async def start(self) -> None:
         """Advertise the mapped commands' channels and subscribe to the mapped reports'."""
@@ -132,7 +148,7 @@ class Component:
             for uri, messages in MOBILITY_SERVICES.items()
             if any(m in self.bridge for m in messages)
         ]
-        return [*CORE_SERVICES, *mobility]
+        return [*CORE_SERVICES, *mobility, *(LIST_SERVICES if self.waypoints else ())]
 
     # --- receiving -------------------------------------------------------------------------
 
@@ -226,6 +242,8 @@ class Component:
             offered = tuple(p.Service(uri, major, minor) for uri, major, minor in self.services())
             me = p.ComponentEntry(self.me.component, 1, offered)
             return p.ReportServices((p.NodeEntry(self.me.node, (me,)),))
+        if name in LIST_QUERIES and self.waypoints is not None:
+            return self.waypoints.answer(name, query)
         if name == "QueryEventTimeout":
             return p.ReportEventTimeout(max(1, round(self.events.timeout / 60)))
         return None
@@ -307,8 +325,12 @@ class Component:
             self.counters[refusal] += 1
             return
         self.counters["commands"] += 1
+        self._carry_out(name, msg)
+
+    def _carry_out(self, name: str, msg: Any) -> None:
+        """A command in force: published on its channel when mapped, and remembered."""
         self.last_command[name] = msg
-        self.node.publish_nowait(self.bridge[name].channel.channel, self.bridge[name].to_ups(msg))
+        self._publish_if_mapped(name, msg)
 
     def _publish_if_mapped(self, name: str, msg: Any) -> None:
         entry = self.bridge.get(name)
@@ -319,6 +341,12 @@ class Component:
         def keep(msg: Message) -> None:
             self.latest[report] = msg.data
             self.events.changed(report)
+            if report == "ReportLocalPose" and self.waypoints is not None:
+                try:
+                    self.waypoints.moved(self.bridge[report].from_ups(msg.data))
+                except Exception:  # a pose that cannot be read drives nowhere
+                    self.counters["pose_errors"] += 1
+                    log.exception("local pose %s: not readable", msg.data.hex())
 
         return keep
 
@@ -383,6 +411,7 @@ class Component:
             "state": self.access.state.name,
             "controller": str(holder) if holder else None,
             "authority": self.access.authority,
+            **({"waypoint_list": self.waypoints.status()} if self.waypoints else {}),
             "events": [
                 {
                     "event": s.event_id,

@@ -46,6 +46,7 @@ MESSAGES: dict[str, type] = {
     for cls in TYPES
     if cls.__name__.startswith(("Set", "Request", "Report", "ClearEmergency"))
     and dataclasses.fields(cls)
+    and getattr(cls, "MAPPABLE", True)
 }  # fmt: skip
 _NUMERIC = ("u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64")
 

@@ -6,14 +6,14 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Any
 
-from . import _core_payloads, _mobility, _payloads
+from . import _core_payloads, _lists, _mobility, _payloads
 
-TYPES: tuple[type, ...] = (*_payloads.TYPES, *_core_payloads.TYPES, *_mobility.TYPES)
+TYPES: tuple[type, ...] = (*_payloads.TYPES, *_core_payloads.TYPES, *_mobility.TYPES, *_lists.TYPES)
 PAYLOAD_TYPES: dict[int, type] = {kind.CODE: kind for kind in TYPES}  # type: ignore[attr-defined]
 payloads = SimpleNamespace(
     **{
         name: value
-        for module in (_payloads, _core_payloads, _mobility)
+        for module in (_payloads, _core_payloads, _mobility, _lists)
         for name, value in vars(module).items()
         if not name.startswith("_")
     }

@@ -8,12 +8,15 @@ JSON object per line.
     ups jaus-ocu --target … control request --authority 10
     ups jaus-ocu --target … send SetWrenchEffort propulsive_linear_x=25 --control
     ups jaus-ocu --target … watch GlobalPose --rate 10 --count 20
+    ups jaus-ocu --target … waypoints 5,0 5,5 0,5 --speed 1.5
 
 Every command speaks JUDP (``--framing ra33`` for paper 001's RA 3.3 framing) from the JAUS id
 ``--id`` (default 200.1.1): a component recognises its controller by that id, so ``control
 request`` in one command and ``send`` in the next act as one OCU, as long as the second comes
 within the component's control timeout. ``send --control`` takes control, resumes, sends and
-releases in one go.
+releases in one go; ``waypoints`` takes control, loads a local waypoint list, executes it and
+follows it (one line each time the active waypoint changes) until the robot has reached the
+last, keeping control all along, then releases it.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from ups._address import parse_address
 
 from ._codec import AckNak, JausDecodeError, JausId
 from ._judp import JUDP_PORT, Broadcast, JudpHeader, JudpMessage, decode_judp, encode_judp
+from ._lists import ALL_ELEMENTS, Element
 from ._messages import PAYLOAD_TYPES, decode_payload, encode_payload
 from ._messages import payloads as p
 from ._ra33 import RA33_PREFIX, Ra33Address, Ra33Header, Ra33Message, decode_ra33, encode_ra33
@@ -285,10 +289,51 @@ def _watch(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
     return 0
 
 
+def _waypoints(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    elements = []
+    for i, text in enumerate(args.points):
+        try:
+            x, y = (float(v) for v in text.split(","))
+        except ValueError:
+            raise ConfigError(f"a waypoint is X,Y in metres, not {text!r}") from None
+        code, body = encode_payload(p.SetLocalWaypoint(x, y, waypoint_tolerance=args.tolerance))
+        after = i + 2 if i + 1 < len(args.points) else 0
+        elements.append(Element(i + 1, i, after, code.to_bytes(2, "little") + body))
+    source, reply = ocu.ask(p.RequestControl(args.authority), p.ConfirmControl, to)
+    print(to_json(source, reply), flush=True)
+    if reply.response != 0:
+        return 1
+    answered = p.ConfirmElementRequest | p.RejectElementRequest
+    try:
+        ocu.send(p.Resume(), to)
+        _, status = ocu.ask(p.QueryStatus(), p.ReportStatus, to)
+        if status.status != p.ManagementStatus.READY:  # the list would not run
+            print(json.dumps({"error": f"the component is {status.status.name}, not READY"}))
+            return 1
+        ocu.ask(p.DeleteElement(1, (ALL_ELEMENTS,)), answered, to)
+        source, reply = ocu.ask(p.SetElement(2, tuple(elements)), answered, to)
+        print(to_json(source, reply), flush=True)
+        if isinstance(reply, p.RejectElementRequest):
+            return 1
+        ocu.send(p.ExecuteList(args.speed), to)
+        shown = None
+        while True:  # asking keeps control: it lapses after 5 s of silence
+            _, active = ocu.ask(p.QueryActiveElement(), p.ReportActiveElement, to)
+            if active.uid != shown:
+                shown = active.uid
+                print(json.dumps({"active": active.uid}), flush=True)
+            if active.uid == 0:
+                return 0
+            time.sleep(args.poll)
+    finally:
+        ocu.ask(p.ReleaseControl(), p.RejectControl, to)
+
+
 _ACTIONS = {
     "discover": _discover,
     "query": _query,
     "control": _control,
     "send": _send,
     "watch": _watch,
+    "waypoints": _waypoints,
 }

@@ -99,7 +99,7 @@ PAYLOADS = PAYLOAD.findall(section("### Worked examples (payloads)"))
 
 
 def test_the_payload_examples_are_found() -> None:
-    assert len(PAYLOADS) == 20
+    assert len(PAYLOADS) == 25
 
 
 @pytest.mark.parametrize(("code", "raw", "expression"), PAYLOADS)
@@ -168,6 +168,7 @@ def test_the_hosts_documented_bounds_are_the_codes() -> None:
     from jaus._access import CONTROL_TIMEOUT, MAX_EMERGENCIES
     from jaus._events import EVENT_TIMEOUT, MAX_EVENTS, MAX_RATE
     from jaus._host import CLIENT_TIMEOUT, MAX_CLIENTS
+    from jaus._waypoint_list import DEFAULT_TOLERANCE, MAX_ELEMENTS
 
     bounds = section("## `ups jaus`: the component host")
     for row, value in (
@@ -178,5 +179,7 @@ def test_the_hosts_documented_bounds_are_the_codes() -> None:
         ("| `EVENT_TIMEOUT` | 60 s |", EVENT_TIMEOUT == 60.0),
         ("`MAX_RATE` 25 Hz", MAX_RATE == 25.0),
         ("| `MAX_EMERGENCIES` | 16 clients |", MAX_EMERGENCIES == 16),
+        ("| `MAX_ELEMENTS` | 256 waypoints |", MAX_ELEMENTS == 256),
+        ("tolerance (else 1 m)", DEFAULT_TOLERANCE == 1.0),
     ):
         assert row in bounds and value, row

@@ -81,6 +81,24 @@ def _add_ocu_arguments(cmd: argparse.ArgumentParser) -> None:
                      help="reports per second (default 1)")  # fmt: skip
     act.add_argument("--change", action="store_true", help="on every change, not periodic")
     act.add_argument("--count", type=int, default=None, help="stop after COUNT reports")
+    act = actions.add_parser(
+        "waypoints", help="load a local waypoint list, execute it, follow it to its end"
+    )
+    act.add_argument("points", nargs="+", metavar="X,Y", help="waypoints in metres, in order")
+    act.add_argument("--speed", type=positive_float, default=1.0, help="m/s (default 1)")
+    act.add_argument(
+        "--tolerance",
+        type=positive_float,
+        default=None,
+        help="metres from a waypoint that count as reached (default: the robot's)",
+    )
+    act.add_argument(
+        "--poll",
+        type=positive_float,
+        default=0.5,
+        help="seconds between questions about the active waypoint (default 0.5)",
+    )
+    act.add_argument("--authority", type=int, default=10, help="0-255 (default 10)")
 
 
 def _run_jaus(args: argparse.Namespace) -> int:
