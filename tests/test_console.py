@@ -224,3 +224,27 @@ async def test_the_console_stops_at_once_with_pages_open() -> None:
             began = loop.time()
             code = await asyncio.to_thread(console.stop)  # SIGTERM, SIGKILL after 10 s
             assert code == 0 and loop.time() - began < 5
+
+
+async def test_the_console_shows_jaus_components_and_the_ocus_connected() -> None:
+    """A `ups jaus` node on the TCP-ECB, an OCU that took control: the page lists the
+    component, its state and controller, and the OCU with its framing and address."""
+    chromium()
+    broker, address = start_tcp_broker("--recovery", "0")
+    mapping = str(ROOT / "examples" / "robot.jaus.toml")
+    with broker, Proc("jaus", "--listen", "127.0.0.1:0", "--id", "7.1.1", "--map", mapping,
+                      "--broker", address) as component:  # fmt: skip
+        line = component.wait_for_line(r"JAUS component 7\.1\.1 on")
+        target = line.split(" on ")[1].split()[0]
+        with Proc("jaus-ocu", "--target", target, "--id", "200.1.1", "--framing", "ra33",
+                  "control", "request") as ocu:  # fmt: skip
+            assert ocu.finish()[0] == 0
+        with Proc("console", "--listen", "127.0.0.1:0", "--broker", address) as console:
+            url = console.wait_for_line(r"console on http://").split("console on ")[1].strip()
+            async with browser(url) as page:
+                rows = await page.until(
+                    "document.querySelector('#jaus tbody').innerText.includes('200.1.1') &&"
+                    " document.querySelector('#jaus tbody').innerText"
+                )
+    assert "7.1.1" in rows and "RA 3.3" in rows and "127.0.0.1:" in rows
+    assert "STANDBY" in rows  # the OCU took control, did not resume (it lapses after 5 s)

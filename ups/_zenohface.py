@@ -508,6 +508,7 @@ async def network_status(
             "connected": True,
             "subscribed": list(answer.get("subscribed") or ()),
             "published": list(answer.get("published") or ()),
+            **({"jaus": answer["jaus"]} if isinstance(answer.get("jaus"), dict) else {}),
         })  # fmt: skip
     return {
         "nodes": sorted(nodes, key=lambda n: n["node_id"]),

@@ -10,9 +10,12 @@ It is fed by one of two feeds and read through ``snapshot()``, a JSON-able dict:
   subscribes to every channel it lists (or to those given): the TCP-ECB is not on the data
   path, so only a subscriber sees events.
 
-Bounds (each counted when hit, in ``snapshot()["untracked"]``): ``MAX_CHANNELS`` channels and
-``MAX_NODES`` nodes are tracked; ``HISTORY`` points per channel are kept for plots, ``RECENT``
-lines of who joined or left.
+On TCP/IP and Zenoh, the JAUS components on the network (``ups jaus`` nodes) are shown with
+their state, controller and the OCUs connected, from each one's status.
+
+Bounds (each counted when hit, in ``snapshot()["untracked"]``): ``MAX_CHANNELS`` channels,
+``MAX_NODES`` nodes and ``MAX_JAUS`` JAUS components are tracked; ``HISTORY`` points per
+channel are kept for plots, ``RECENT`` lines of who joined or left.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ HISTORY = 600  #: points (time, values) kept per channel, for the console's plot
 RECENT = 20  #: lines of nodes joining and leaving kept
 MAX_CHANNELS = 4096  #: channels tracked; the others are counted, not shown
 MAX_NODES = 1024  #: nodes tracked; the others are counted, not shown
+MAX_JAUS = 8  #: JAUS components (``ups jaus`` nodes) whose OCUs are shown; the others counted
+JAUS_NODE = "ups-jaus"  #: the name a ``ups jaus`` node joins with
 MAX_PENDING = 65536  #: CAN frames waiting for a busy loop; more are dropped and counted
 QUEUE = 1024  #: TCP/IP events queued per channel; more are dropped and counted
 
@@ -83,6 +88,7 @@ class Live:
         self.channels: dict[str, _Channel] = {}
         self.nodes: dict[str, _Node] = {}
         self.recent: collections.deque[str] = collections.deque(maxlen=RECENT)
+        self.jaus: dict[str, dict[str, Any]] = {}  #: node key -> its JAUS component's status
         self.counters = {"foreign": 0, "malformed": 0, "dropped": 0, "untracked": 0,
                          "status_failures": 0}  # fmt: skip
         self._bits: collections.deque[list[int]] = collections.deque()  #: [second, bits]
@@ -226,6 +232,19 @@ class Live:
                     "alive": n.alive,
                 }
                 for n in sorted(self.nodes.values(), key=lambda n: n.key)
+            ],
+            "jaus": [
+                {
+                    "node": key,
+                    "id": j.get("id"),
+                    "state": j.get("state"),
+                    "controller": j.get("controller"),
+                    "clients": [
+                        {k: c.get(k) for k in ("id", "address", "framing", "silent_s")}
+                        for c in j.get("clients") or ()
+                    ],
+                }
+                for key, j in sorted(self.jaus.items())
             ],
             "recent": list(self.recent),
         }
@@ -383,6 +402,7 @@ async def feed_tcp(live: Live, node: Node, net: IpNetwork, channels: list[int]) 
             for key in list(live.nodes):
                 if key not in listed:
                     live.left(now, key, "left")
+            live.jaus = await _jaus_components(live, net, info.get("nodes", ()))
             for c in info.get("channels", ()):
                 uid = int(c["uid"], 16)
                 live.known(uid, c.get("name"))
@@ -410,3 +430,26 @@ async def feed_tcp(live: Live, node: Node, net: IpNetwork, channels: list[int]) 
     finally:
         poller.cancel()
         await asyncio.gather(poller, return_exceptions=True)
+
+
+async def _jaus_components(live: Live, net: IpNetwork, nodes: Any) -> dict[str, dict[str, Any]]:
+    """The status of each JAUS component among ``nodes``: carried in the listing on Zenoh,
+    asked of the node at its address on TCP/IP (at most ``MAX_JAUS``; failures counted)."""
+    from .._errors import UpsError
+
+    found: dict[str, dict[str, Any]] = {}
+    for n in nodes:
+        if not n.get("connected") or (n.get("name") != JAUS_NODE and "jaus" not in n):
+            continue
+        if len(found) >= MAX_JAUS:
+            live.counters["untracked"] += 1
+            continue
+        jaus = n.get("jaus")
+        if jaus is None and net.kind == "broker" and n.get("address"):
+            try:
+                jaus = (await net.node_status(n["address"])).get("jaus")
+            except UpsError:
+                live.counters["status_failures"] += 1
+        if isinstance(jaus, dict):
+            found[n["node_id"]] = jaus
+    return found

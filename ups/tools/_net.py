@@ -51,6 +51,12 @@ class IpNetwork:
 
         return await network_status(self.where, self._config, self._timeout)
 
+    async def node_status(self, address: str) -> dict[str, Any]:
+        """The status of the TCP/IP node listening at ``address`` (as ``ups status`` shows)."""
+        from .._tcpface import query_status
+
+        return await query_status(address, self._timeout, self.tls)
+
 
 def network_of(args: argparse.Namespace) -> tuple[str | None, IpNetwork | None]:
     """(the CAN bus, None) or (None, the IP network) the options or the environment name."""
