@@ -4,6 +4,7 @@ stop."""
 
 from __future__ import annotations
 
+import argparse
 import socket
 import subprocess
 import sys
@@ -117,3 +118,35 @@ def test_bash_completion_knows_the_commands_and_their_options(tmp_path: Path) ->
     )
     done = subprocess.run(["bash", "-c", probe], capture_output=True, text=True, timeout=30)
     assert done.stdout.split("\n")[:3] == ["sub", "--broker", "--acl"], done.stderr
+
+
+def _options(parser: argparse.ArgumentParser) -> dict[str, list[tuple[str, ...]]]:
+    """Each command's option strings and positional names, subcommands included."""
+    out: dict[str, list[tuple[str, ...]]] = {}
+
+    def walk(name: str, p: argparse.ArgumentParser) -> None:
+        out[name] = sorted(tuple(a.option_strings) or (a.dest,) for a in p._actions)
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, child in action.choices.items():
+                    walk(f"{name} {sub}", child)
+
+    walk("ups", parser)
+    return out
+
+
+def test_each_command_is_built_alone_as_it_is_in_the_whole_command_line() -> None:
+    """`ups CMD` builds only CMD's options (the others are listed, not built): what it builds
+    must be what the whole command line (`ups completion`) has for CMD."""
+    from ups.cli import _parser
+
+    whole = _options(_parser())
+    commands = [name.split()[1] for name in whole if name.count(" ") == 1]
+    assert {"pub", "jaus", "jaus-ocu", "analyze", "console"} <= set(commands)
+    for command in commands:
+        alone = _options(_parser(only=command))
+        mine = {k: v for k, v in whole.items() if k == f"ups {command}" or
+                k.startswith(f"ups {command} ")}  # fmt: skip
+        assert {k: v for k, v in alone.items() if k in mine} == mine, command
+    listed = _options(_parser(only=""))
+    assert set(listed) == {"ups", *(f"ups {c}" for c in commands)}  # every command, no options

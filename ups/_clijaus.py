@@ -10,7 +10,7 @@ from typing import Any
 from ._cliargs import add_catalog, add_network, positive_float, run_until_signal
 from ._errors import ConfigError
 
-OCU_HELP = "a small JAUS operator control unit: discover, query, control, send, watch"
+OCU_HELP = "a small JAUS operator control unit: discover, query, control, send, watch, waypoints"
 
 
 def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:

@@ -48,8 +48,8 @@ DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus")
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = _parser(analyze="analyze" in argv)
-    args = parser.parse_args(argv)
+    chosen = next((a for a in argv if not a.startswith("-")), "")  # the command, if any
+    args = _parser(only=chosen).parse_args(argv)
     import logging  # after parsing: --help does without it
 
     quiet = args.command not in DAEMONS  # a daemon logs what it does; a command says it
@@ -93,9 +93,19 @@ class _Version(argparse.Action):
         parser.exit()
 
 
-def _parser(analyze: bool = True) -> argparse.ArgumentParser:
-    """The whole command line; ``analyze=False`` leaves out the options of ``ups analyze``
-    (the real-time analysis is the heaviest import, and only that command needs it)."""
+class _Unbuilt:
+    """Stands in for the parser of a command that is not being run: whatever is asked of it
+    (arguments, groups, subcommands, defaults) is not built, so ``ups --help`` and every
+    command pay only for their own options."""
+
+    def __getattr__(self, name: str) -> Any:
+        return lambda *args, **kwargs: self
+
+
+def _parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The command line; with ``only``, every command is listed but only that one's options
+    are built (the others are not needed to parse, and ``ups analyze``'s need the real-time
+    analysis, the heaviest import)."""
     parser = argparse.ArgumentParser(prog="ups", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail")
     parser.add_argument("--version", action=_Version)
@@ -105,6 +115,9 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def command(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        if only is not None and name != only:
+            commands.add_parser(name, help=kwargs.get("help"))
+            return _Unbuilt()  # type: ignore[return-value]
         return commands.add_parser(name, parents=[common], **kwargs)
 
     cmd = command("can-broker", help="run the CAN-ECB of one bus")
@@ -272,7 +285,7 @@ def _parser(analyze: bool = True) -> argparse.ArgumentParser:
     _clijaus.add_commands(command)
 
     cmd = command("analyze", help="CAN response-time analysis of a message set")
-    if analyze:
+    if only in (None, "analyze"):
         from .rt import cli as rt_cli
 
         rt_cli.add_arguments(cmd)
