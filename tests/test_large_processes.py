@@ -18,7 +18,7 @@ from ups import _cantransfer as t
 from ups._canlink import open_bus
 from ups.cli import EXIT_LOST
 
-from .procs import Proc, start_tcp_broker
+from .procs import Proc, private_multicast_bus, start_tcp_broker, vcan_bus
 from .test_gateway_processes import forwarding, start_gateway
 from .test_tcp_processes import wait_until
 
@@ -50,8 +50,16 @@ def received(proc: Proc) -> list[bytes]:
 
 
 @pytest.mark.timeout(240)
-@pytest.mark.parametrize("kind", ["classic", "fd"])
-def test_large_events_through_the_gateway_both_ways(mbus: str, kind: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("where", "kind"),
+    [
+        pytest.param("udp_multicast", "classic", marks=pytest.mark.netns),
+        pytest.param("udp_multicast", "fd", marks=pytest.mark.netns),
+        pytest.param("socketcan", "fd", marks=pytest.mark.socketcan),  # classic: other tests'
+    ],
+)
+def test_large_events_through_the_gateway_both_ways(where: str, kind: str, tmp_path: Path) -> None:
+    mbus = private_multicast_bus() if where == "udp_multicast" else vcan_bus()
     fd = kind == "fd"
     bus = mbus + (",fd=True" if fd else "")
     wire = open_bus(bus)
@@ -167,8 +175,6 @@ def test_a_frame_dropped_on_the_wire_is_a_counted_loss(mbus: str, tmp_path: Path
 def test_a_classic_bus_and_an_fd_bus_meet_through_tcp(tmp_path: Path) -> None:
     """A 3000-byte event from a classic bus reaches a subscriber on a CAN FD bus (8-byte frames
     on one, 64-byte frames on the other), and one from the FD bus the classic one."""
-    from .procs import private_multicast_bus
-
     classic, fd = private_multicast_bus(), private_multicast_bus() + ",fd=True"
     broker, address = start_tcp_broker("--recovery", "0")
     gw_a, gw_a_address = start_gateway(classic, address, tmp_path / "a.db", node_id=0x6A)

@@ -15,7 +15,7 @@ import can
 from ups import _canproto as p
 from ups import name_to_uid
 
-from .procs import Proc
+from .procs import Proc, private_multicast_bus
 
 
 def drain(bus: can.BusABC) -> list[can.Message]:
@@ -105,7 +105,8 @@ def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path) -
         broker.wait_for_line("CAN-ECB on .*: 2 TxNodes, 2 etags bound")
 
 
-def test_sub_times_out_without_events(mbus: str, tmp_path: Path) -> None:
+def test_sub_times_out_without_events(tmp_path: Path) -> None:
+    mbus = private_multicast_bus()  # the command's behaviour: one bus is enough, no kernel's
     with Proc("can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db")) as broker:
         broker.wait_for_line("CAN-ECB on")
         sub = Proc("sub", "quiet", "--can", mbus, "--timeout", "0.5")
@@ -114,7 +115,8 @@ def test_sub_times_out_without_events(mbus: str, tmp_path: Path) -> None:
         assert "timeout after 0 events" in "".join(sub.stderr_lines)
 
 
-def test_node_without_broker_exits_with_a_clear_error(mbus: str) -> None:
+def test_node_without_broker_exits_with_a_clear_error() -> None:
+    mbus = private_multicast_bus()
     sub = Proc("sub", "x", "--can", mbus, "--join-timeout", "0.5")
     code, _ = sub.finish()
     assert code == 2
