@@ -194,8 +194,12 @@ class Events:
         now = loop.time()
         interval = 1.0 / sub.rate
         if sub.kind == EVERY_CHANGE and sub.timer is not None:
-            self.counters["events_coalesced"] += 1  # a send is due already: it takes the latest
-            return
+            if now - sub.last_sent < interval:
+                self.counters["events_coalesced"] += 1  # a send is due: it takes the latest
+                return
+            sub.timer.cancel()  # due by now: send at once, not at the timer's (late) tick,
+            sub.timer = None  # the change that set the timer going with this one
+            self.counters["events_coalesced"] += 1
         if sub.kind == EVERY_CHANGE and now - sub.last_sent < interval:
             sub.timer = loop.call_at(sub.last_sent + interval, self._due, sub)
             return
