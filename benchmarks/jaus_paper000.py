@@ -44,7 +44,6 @@ import contextlib
 import itertools
 import json
 import signal
-import socket
 import statistics
 import sys
 import tempfile
@@ -53,6 +52,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+from benchmarks._jaus_ocu import Ocu, event_value, judp_ack, payload_of, ra33_ack
 from benchmarks.table5 import Child, check_private_namespace, free_udp_port, ups_argv
 
 #: Table 2 of paper 000, one way in ms: (minimum, maximum, mean, standard deviation)
@@ -100,7 +100,6 @@ fields.authority = { field = "authority" }
 """
 ANSWER_TIMEOUT = 1.0  # seconds: a message unanswered by then is lost
 SETUP_TIMEOUT = 60.0
-OCU_ID = (200, 1, 1)
 
 
 # --- the echo: a UPS CAN node in its own process -----------------------------------------------
@@ -122,143 +121,6 @@ async def _echo(cfg: dict[str, Any]) -> None:
         print(json.dumps({"event": "ready"}), flush=True)
         await asyncio.to_thread(sys.stdin.readline)
         print(json.dumps({"event": "result", "stats": node.stats()}), flush=True)
-
-
-# --- the OCU: JAUS from this process, on one UDP socket ----------------------------------------
-
-
-class Ocu:
-    """A JAUS operator control unit on one UDP socket, read by the event loop; each datagram is
-    stamped (``perf_counter_ns``) as soon as the loop sees it."""
-
-    def __init__(self, target: tuple[str, int], component: tuple[int, int, int]) -> None:
-        from jaus import JausId
-
-        self.me, self.to = JausId(*OCU_ID), JausId(*component)
-        self.target = target
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.setblocking(False)
-        self.inbox: asyncio.Queue[tuple[int, bytes]] = asyncio.Queue()
-        self._loop = asyncio.get_running_loop()
-        self._loop.add_reader(self.sock.fileno(), self._readable)
-
-    def close(self) -> None:
-        self._loop.remove_reader(self.sock.fileno())
-        self.sock.close()
-
-    def _readable(self) -> None:
-        while True:
-            try:
-                data = self.sock.recv(65536)
-            except BlockingIOError:
-                return
-            self.inbox.put_nowait((time.perf_counter_ns(), data))
-
-    def send(self, payload: Any, *, sequence: int = 0, ack: bool = False) -> int:
-        """Send ``payload`` in JUDP; the size of its message (header, code, payload)."""
-        from jaus import AckNak, JudpHeader, JudpMessage, encode_judp, encode_payload
-
-        code, body = encode_payload(payload)
-        header = JudpHeader(
-            destination=self.to,
-            source=self.me,
-            sequence=sequence,
-            ack_nak=AckNak.REQUEST if ack else AckNak.NONE,
-        )
-        datagram = encode_judp([JudpMessage(header, code, body)])
-        self.sock.sendto(datagram, self.target)
-        return len(datagram) - 1  # the transport's version byte is not the message
-
-    def send_ra33(self, payload: Any, *, sequence: int, ack: bool) -> int:
-        """Send ``payload`` in RA 3.3 framing; the size of its message (header and payload)."""
-        from jaus import (
-            RA33_PREFIX,
-            AckNak,
-            Ra33Address,
-            Ra33Header,
-            Ra33Message,
-            encode_ra33,
-            encode_ra33_payload,
-        )
-
-        code, body = encode_ra33_payload(payload)
-        header = Ra33Header(
-            code,
-            Ra33Address(self.to.subsystem, self.to.node, self.to.component),
-            Ra33Address(self.me.subsystem, self.me.node, self.me.component),
-            ack_nak=AckNak.REQUEST if ack else AckNak.NONE,
-            sequence=sequence,
-        )
-        datagram = encode_ra33(Ra33Message(header, body))
-        self.sock.sendto(datagram, self.target)
-        return len(datagram) - len(RA33_PREFIX)
-
-    async def receive(self, want: Callable[[bytes], Any], timeout: float) -> tuple[int, Any]:
-        """(arrival ns, what ``want`` made of it) for the first datagram it accepts (returns
-        non-None for); others are skipped. TimeoutError when none comes in time."""
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            arrived, data = await asyncio.wait_for(self.inbox.get(), left)
-            found = want(data)
-            if found is not None:
-                return arrived, found
-        raise TimeoutError
-
-    def drain(self) -> int:
-        n = 0
-        while not self.inbox.empty():
-            self.inbox.get_nowait()
-            n += 1
-        return n
-
-    async def ask(self, payload: Any, answer: type) -> Any:
-        self.send(payload)
-        return (await self.receive(lambda d: _payload(d, answer), SETUP_TIMEOUT / 4))[1]
-
-
-def _judp_ack(data: bytes, sequence: int) -> bool | None:
-    from jaus import AckNak, JausDecodeError, decode_judp
-
-    with contextlib.suppress(JausDecodeError):
-        for msg in decode_judp(data):
-            if msg.header.ack_nak == AckNak.ACK and msg.header.sequence == sequence:
-                return True
-    return None
-
-
-def _ra33_ack(data: bytes, sequence: int) -> bool | None:
-    from jaus import RA33_PREFIX, AckNak, JausDecodeError, decode_ra33
-
-    if data.startswith(RA33_PREFIX):
-        with contextlib.suppress(JausDecodeError):
-            h = decode_ra33(data).header
-            if h.ack_nak == AckNak.ACK and h.sequence == sequence:
-                return True
-    return None
-
-
-def _payload(data: bytes, kind: type) -> Any:
-    from jaus import JausDecodeError, decode_judp, decode_payload
-
-    with contextlib.suppress(JausDecodeError):
-        for msg in decode_judp(data):
-            if msg.code is not None and msg.code == getattr(kind, "CODE", None):
-                return decode_payload(msg.code, msg.payload)
-    return None
-
-
-def _event_value(data: bytes, event_id: int) -> int | None:
-    """The authority an Event of ``event_id`` reports, else None."""
-    from jaus import Event, MessageCode
-
-    event = _payload(data, Event)
-    if event is None or event.event_id != event_id:
-        return None
-    report = event.report_message
-    if int.from_bytes(report[:2], "little") != MessageCode.REPORT_AUTHORITY or len(report) < 3:
-        return None
-    return int(report[2])
 
 
 # --- the run ------------------------------------------------------------------------------------
@@ -358,7 +220,7 @@ class Run:
                 sizes["ra33_direct"] = to_direct.send_ra33(
                     SetAuthority(i & 0xFF), sequence=seq, ack=True
                 )
-                arrived, _ = await to_direct.receive(lambda d: _ra33_ack(d, seq), ANSWER_TIMEOUT)
+                arrived, _ = await to_direct.receive(lambda d: ra33_ack(d, seq), ANSWER_TIMEOUT)
                 return (arrived - start) / 2000
 
             async def judp(i: int) -> float:
@@ -367,7 +229,7 @@ class Run:
                 sizes["judp_direct"] = to_direct.send(
                     SetAuthority(i & 0xFF), sequence=seq, ack=True
                 )
-                arrived, _ = await to_direct.receive(lambda d: _judp_ack(d, seq), ANSWER_TIMEOUT)
+                arrived, _ = await to_direct.receive(lambda d: judp_ack(d, seq), ANSWER_TIMEOUT)
                 return (arrived - start) / 2000
 
             for key, one in (("ra33_direct", ra33), ("judp_direct", judp)):
@@ -382,7 +244,7 @@ class Run:
                 event_id = await self._every_change(to_face)
 
                 def value_is(value: int) -> Callable[[bytes], int | None]:
-                    return lambda d: 1 if _event_value(d, event_id) == value else None
+                    return lambda d: 1 if event_value(d, event_id) == value else None
 
                 async def face_trip(i: int) -> float:
                     start = time.perf_counter_ns()
@@ -495,7 +357,8 @@ async def _arrivals(ocu: Ocu, event_id: int, seconds: float) -> list[int]:
     with contextlib.suppress(TimeoutError):
         while (left := deadline - time.monotonic()) > 0:
             arrived, _ = await ocu.receive(
-                lambda d: 1 if (e := _payload(d, Event)) and e.event_id == event_id else None, left
+                lambda d: 1 if (e := payload_of(d, Event)) and e.event_id == event_id else None,
+                left,
             )
             out.append(arrived)
     return out
