@@ -18,29 +18,20 @@ from . import tools
 from ._address import DEFAULT_PORT
 from ._cliargs import (
     add_can,
-    add_catalog,
-    add_node_options,
     add_tls,
     add_zenoh,
     add_zenoh_config,
-    channel_arg,
-    hex_arg,
     nonnegative_float,
-    open_node,
     positive_float,
     positive_int,
-    priority_arg,
     run_until_signal,
-    say,
     tls_of,
 )
 from ._errors import ConfigError, UpsError
 
 if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
-    from ._message import Message
+    pass
 
-EXIT_TIMEOUT = 1
-EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
 DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus")
@@ -235,44 +226,9 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_certs)
 
-    cmd = command("pub", help="publish events on a channel")
-    cmd.add_argument("channel", type=channel_arg, help="channel name, or UID as 0x + hex")
-    cmd.add_argument(
-        "data", help="payload as hex digits ('' for none), or field=value,... that the "
-        "catalog's layout of the channel encodes (e.g. left=1.5,right=1.5)",
-    )  # fmt: skip
-    add_catalog(cmd)
-    add_node_options(cmd)
-    cmd.add_argument("--count", type=positive_int, default=1, help="events to publish")
-    cmd.add_argument(
-        "--rate",
-        type=nonnegative_float,
-        default=10.0,
-        help="events per second (0: as fast as possible)",
-    )
-    cmd.add_argument(
-        "--priority", type=priority_arg, default=None,
-        help="0 (highest)..255 (default: the catalog's, else 0x80)",
-    )  # fmt: skip
-    cmd.add_argument(
-        "--wait", action="store_true",
-        help="wait for room at slow subscribers instead of dropping (TCP/IP backpressure)",
-    )  # fmt: skip
-    cmd.set_defaults(run=_run_pub)
+    from . import _clipubsub
 
-    cmd = command("sub", help="print the events of channels")
-    cmd.add_argument("channels", nargs="+", type=channel_arg, metavar="CHANNEL")
-    add_node_options(cmd)
-    cmd.add_argument("--count", type=positive_int, default=None, help="exit 0 after N events")
-    cmd.add_argument(
-        "--timeout", type=positive_float, default=None, help="exit 1 if this many s pass"
-    )
-    cmd.add_argument("--json", action="store_true", help="one JSON object per line")
-    cmd.add_argument(
-        "--queue", type=positive_int, default=1024,
-        help="events held while the output is slow (default 1024); beyond, the oldest are lost",
-    )  # fmt: skip
-    cmd.set_defaults(run=_run_sub)
+    _clipubsub.add_commands(command)
 
     for name in tools.COMMANDS:  # the operators' tools, one module each
         module = importlib.import_module(f"ups.tools.{name}")
@@ -470,103 +426,6 @@ def _run_zenoh_router(args: argparse.Namespace) -> int:
         return 0
 
     return run_until_signal(run())
-
-
-def _run_pub(args: argparse.Namespace) -> int:
-    import asyncio
-
-    from ._catalog import load_catalog
-
-    catalog = load_catalog(args.catalog) if "=" in args.data else None
-    args.data = catalog.payload(args.channel, args.data) if catalog else hex_arg(args.data)
-
-    if args.priority is None:  # the catalog's, when it gives one
-        spec = (catalog or load_catalog(args.catalog)).get(args.channel.uid)
-        args.priority = None if spec is None else spec.priority
-
-    async def run() -> int:
-        async with open_node(args) as node:
-            if args.priority is not None:
-                node.set_priority(args.channel, args.priority)
-            loop = asyncio.get_running_loop()
-            start = loop.time()
-            for i in range(args.count):
-                if args.rate <= 0:
-                    await asyncio.sleep(0)  # flat out, but let the writes drain
-                elif i:
-                    await asyncio.sleep(max(0.0, start + i / args.rate - loop.time()))
-                await node.publish(args.channel, args.data, wait=args.wait)
-        stats = node.stats()  # after closing: what could not be delivered is counted by now
-        if stats.get("tx_failed"):
-            print(f"ups pub: {stats['tx_failed']} frames could not be sent", file=sys.stderr)
-            return 1
-        if stats.get("peer_dropped"):
-            print(f"ups pub: {stats['peer_dropped']} events were dropped", file=sys.stderr)
-            return 1
-        return 0
-
-    return run_until_signal(run())
-
-
-def _run_sub(args: argparse.Namespace) -> int:
-    import asyncio
-
-    async def run() -> int:
-        got = 0
-        code = 0
-        async with open_node(args) as node:
-            sub = await node.subscribe(*args.channels, maxlen=args.queue)
-            names = ", ".join(str(c) for c in args.channels)
-            say(args, f"subscribed to {names}")
-            loop = asyncio.get_running_loop()
-            deadline = None if args.timeout is None else loop.time() + args.timeout
-            try:
-                while args.count is None or got < args.count:
-                    left = None if deadline is None else max(0.0, deadline - loop.time())
-                    try:
-                        msg = await sub.get_msg(timeout=left)
-                    except TimeoutError:
-                        print(f"ups sub: timeout after {got} events", file=sys.stderr)
-                        code = EXIT_TIMEOUT
-                        break
-                    got += 1
-                    print(_event_line(msg, args.json, args.on_can), flush=True)
-            except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
-                pass
-            stats = node.stats()
-            dropped, skipped = sub.dropped, stats.get("lost", 0) + stats.get("large_lost", 0)
-        if dropped or skipped:  # every loss is reported, however the run ended
-            print(
-                f"ups sub: lost {dropped + skipped} events: {dropped} dropped from its full "
-                f"queue (--queue {args.queue}), {skipped} missing on the way (sequence gaps, "
-                "broken CAN transfers)",
-                file=sys.stderr,
-            )
-            return code or EXIT_LOST
-        return code
-
-    return run_until_signal(run())
-
-
-def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
-    """One event as ``ups sub`` prints it. The source is hex: a TxNode (2 digits) on CAN, a
-    node id (16 digits) on TCP/IP, null for the node's own events."""
-    digits = 2 if on_can else 16
-    source = None if msg.source is None else f"0x{msg.source:0{digits}x}"
-    if as_json:
-        import json  # cached after the first event: a dict lookup
-
-        return json.dumps(
-            {
-                "uid": f"0x{msg.uid:016x}",
-                "channel": msg.channel.name,
-                "data": msg.data.hex(),
-                "timestamp": msg.timestamp,
-                "priority": msg.priority,
-                "source": source,
-            }
-        )
-    return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}  from={source or '-'}"
 
 
 def _run_bench(args: argparse.Namespace) -> int:
