@@ -285,15 +285,21 @@ def _skips(r: dict[str, Any]) -> list[str]:
 
 def text(r: dict[str, Any]) -> str:
     """The tables, as the terminal shows them."""
-    lines = [_machine_line(r), ""]
-    for title, head, rows in tables(r):
+    lines = [_machine_line(r), "", *aligned(tables(r))]
+    return "\n".join(lines + _skips(r)).rstrip() + "\n"
+
+
+def aligned(tables: list[Table]) -> list[str]:
+    """Each table as the terminal shows it: its title, its columns aligned, a blank line."""
+    lines = []
+    for title, head, rows in tables:
         every = [head, *rows]
         widths = [max(len(row[i]) for row in every) for i in range(len(head))]
         lines.append(title)
-        for row in every:
-            lines.append("  " + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)))
+        lines += ["  " + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
+                  for row in every]  # fmt: skip
         lines.append("")
-    return "\n".join(lines + _skips(r)).rstrip() + "\n"
+    return lines
 
 
 def markdown(r: dict[str, Any], images: list[str]) -> str:

@@ -214,23 +214,23 @@ class Run:
         try:
             await _take_control(to_direct)
 
-            async def ra33(i: int) -> float:
-                seq = i & 0xFFFF
-                start = time.perf_counter_ns()
-                sizes["ra33_direct"] = to_direct.send_ra33(
-                    SetAuthority(i & 0xFF), sequence=seq, ack=True
-                )
-                arrived, _ = await to_direct.receive(lambda d: ra33_ack(d, seq), ANSWER_TIMEOUT)
-                return (arrived - start) / 2000
+            def acked_trip(
+                key: str, send: Callable[..., int], acked: Callable[[bytes, int], bool | None]
+            ) -> Callable[[int], Awaitable[float]]:
+                """A round trip: Set Authority asking for an ACK, sent by ``send``; the ACK, as
+                ``acked`` recognises it."""
 
-            async def judp(i: int) -> float:
-                seq = i & 0xFFFF
-                start = time.perf_counter_ns()
-                sizes["judp_direct"] = to_direct.send(
-                    SetAuthority(i & 0xFF), sequence=seq, ack=True
-                )
-                arrived, _ = await to_direct.receive(lambda d: judp_ack(d, seq), ANSWER_TIMEOUT)
-                return (arrived - start) / 2000
+                async def one(i: int) -> float:
+                    seq = i & 0xFFFF
+                    start = time.perf_counter_ns()
+                    sizes[key] = send(SetAuthority(i & 0xFF), sequence=seq, ack=True)
+                    arrived, _ = await to_direct.receive(lambda d: acked(d, seq), ANSWER_TIMEOUT)
+                    return (arrived - start) / 2000
+
+                return one
+
+            ra33 = acked_trip("ra33_direct", to_direct.send_ra33, ra33_ack)
+            judp = acked_trip("judp_direct", to_direct.send, judp_ack)
 
             for key, one in (("ra33_direct", ra33), ("judp_direct", judp)):
                 print(f"  {key} ...", file=sys.stderr, flush=True)
@@ -426,15 +426,9 @@ def tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def text(doc: dict[str, Any]) -> str:
-    lines = []
-    for title, head, rows in tables(doc):
-        every = [head, *rows]
-        widths = [max(len(row[i]) for row in every) for i in range(len(head))]
-        lines.append(title)
-        lines += ["  " + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
-                  for row in every]  # fmt: skip
-        lines.append("")
-    return "\n".join(lines)
+    from benchmarks._report import aligned
+
+    return "\n".join(aligned(tables(doc)))
 
 
 def main(argv: list[str] | None = None) -> int:

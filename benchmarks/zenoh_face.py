@@ -380,14 +380,9 @@ def tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def text(doc: dict[str, Any]) -> str:
-    lines = []
-    for title, head, rows in tables(doc):
-        every = [head, *rows]
-        widths = [max(len(row[i]) for row in every) for i in range(len(head))]
-        lines.append(title)
-        lines += ["  " + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
-                  for row in every]  # fmt: skip
-        lines.append("")
+    from benchmarks._report import aligned
+
+    lines = aligned(tables(doc))
     lines += [f"FAILED {k}: {v.splitlines()[0]}" for k, v in doc["errors"].items()]
     return "\n".join(lines)
 
