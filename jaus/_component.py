@@ -341,14 +341,21 @@ class Component:
         def keep(msg: Message) -> None:
             self.latest[report] = msg.data
             self.events.changed(report)
-            if report == "ReportLocalPose" and self.waypoints is not None:
-                try:
-                    self.waypoints.moved(self.bridge[report].from_ups(msg.data))
-                except Exception:  # a pose that cannot be read drives nowhere
-                    self.counters["pose_errors"] += 1
-                    log.exception("local pose %s: not readable", msg.data.hex())
 
-        return keep
+        waypoints = self.waypoints
+        if report != "ReportLocalPose" or waypoints is None:
+            return keep
+        pose = self.bridge[report]
+
+        def keep_and_drive(msg: Message) -> None:  # the robot's pose also drives the list
+            keep(msg)
+            try:
+                waypoints.moved(pose.from_ups(msg.data))
+            except Exception:  # a pose that cannot be read drives nowhere
+                self.counters["pose_errors"] += 1
+                log.exception("local pose %s: not readable", msg.data.hex())
+
+        return keep_and_drive
 
     # --- Events ----------------------------------------------------------------------------
 

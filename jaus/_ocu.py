@@ -325,8 +325,8 @@ def _waypoints(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
             if active.uid == 0:
                 return 0
             time.sleep(args.poll)
-    finally:
-        ocu.ask(p.ReleaseControl(), p.RejectControl, to)
+    finally:  # sent, not awaited: a robot gone silent must not hide why we stopped
+        ocu.send(p.ReleaseControl(), to)
 
 
 _ACTIONS = {

@@ -12,7 +12,7 @@ import importlib
 import os
 import re
 import sys
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from . import tools
 from ._address import DEFAULT_PORT
@@ -28,9 +28,6 @@ from ._cliargs import (
     tls_of,
 )
 from ._errors import ConfigError, UpsError
-
-if TYPE_CHECKING:  # the rest is imported by the commands that use it: --help stays quick
-    pass
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING

@@ -434,22 +434,26 @@ async def feed_tcp(live: Live, node: Node, net: IpNetwork, channels: list[int]) 
 
 async def _jaus_components(live: Live, net: IpNetwork, nodes: Any) -> dict[str, dict[str, Any]]:
     """The status of each JAUS component among ``nodes``: carried in the listing on Zenoh,
-    asked of the node at its address on TCP/IP (at most ``MAX_JAUS``; failures counted)."""
+    asked of the nodes at their addresses on TCP/IP, all at once (at most ``MAX_JAUS``;
+    failures counted)."""
+    import asyncio
+
     from .._errors import UpsError
 
-    found: dict[str, dict[str, Any]] = {}
-    for n in nodes:
-        if not n.get("connected") or (n.get("name") != JAUS_NODE and "jaus" not in n):
-            continue
-        if len(found) >= MAX_JAUS:
-            live.counters["untracked"] += 1
-            continue
-        jaus = n.get("jaus")
-        if jaus is None and net.kind == "broker" and n.get("address"):
-            try:
-                jaus = (await net.node_status(n["address"])).get("jaus")
-            except UpsError:
-                live.counters["status_failures"] += 1
-        if isinstance(jaus, dict):
-            found[n["node_id"]] = jaus
-    return found
+    components = [
+        n for n in nodes if n.get("connected") and (n.get("name") == JAUS_NODE or "jaus" in n)
+    ]
+    live.counters["untracked"] += max(0, len(components) - MAX_JAUS)
+
+    async def status_of(n: dict[str, Any]) -> Any:
+        if "jaus" in n or net.kind != "broker" or not n.get("address"):
+            return n.get("jaus")
+        try:
+            return (await net.node_status(n["address"])).get("jaus")
+        except UpsError:
+            live.counters["status_failures"] += 1
+            return None
+
+    found = components[:MAX_JAUS]
+    answers = await asyncio.gather(*(status_of(n) for n in found))
+    return {n["node_id"]: a for n, a in zip(found, answers, strict=True) if isinstance(a, dict)}
