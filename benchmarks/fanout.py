@@ -3,8 +3,10 @@
 For each N, in one run: the publisher sends M 8-byte messages to N subscribers, each a process
 that counts what arrives. Lossless: UPS publishes with ``wait=True`` (backpressure), pyzmq runs
 with HWM=0 (no limit). Reported: messages delivered per second in all (N x M over the time from
-the first arrival anywhere to the last), and per subscriber; and UPS / pyzmq. Every child is
-spawned here, every wait bounded, every child stopped by its PID.
+the first arrival anywhere to the last), and per subscriber; and UPS / pyzmq. UPS runs twice
+when its compiled build (``UPS_COMPILE=1``, :mod:`benchmarks._compiled`) can be made here: as
+it is installed, and compiled (publisher and subscribers). Every child is spawned here, every
+wait bounded, every child stopped by its PID.
 
     .venv/bin/python -m benchmarks.fanout [--subscribers 1,2,4,8,16,32] [--messages M]
         [--json PATH]
@@ -43,15 +45,26 @@ def _loop_run(main: Any) -> Any:
 # --- UPS -------------------------------------------------------------------------------------
 
 
-def _ups_sink(address: str, index: int, count: int, pipe: Connection) -> None:
-    from ups import Message, Node
+def _import_ups(compiled: str | None) -> Any:
+    if compiled:
+        from benchmarks import _compiled
+
+        _compiled.use(compiled)
+    import ups
+
+    return ups
+
+
+def _ups_sink(address: str, index: int, count: int, pipe: Connection, compiled: str | None) -> None:
+    ups = _import_ups(compiled)
+    Node = ups.Node
 
     async def main() -> None:
         seen = [0, 0.0, 0.0]  # count, first, last
         loop = asyncio.get_running_loop()
         done = loop.create_future()
 
-        def on_event(msg: Message) -> None:
+        def on_event(msg: Any) -> None:
             seen[2] = time.perf_counter()
             if not seen[0]:
                 seen[1] = seen[2]
@@ -69,8 +82,10 @@ def _ups_sink(address: str, index: int, count: int, pipe: Connection) -> None:
     _loop_run(main())
 
 
-def _ups_source(address: str, subscribers: int, count: int, pipe: Connection) -> None:
-    from ups import Node
+def _ups_source(
+    address: str, subscribers: int, count: int, pipe: Connection, compiled: str | None
+) -> None:
+    Node = _import_ups(compiled).Node
 
     async def main() -> None:
         async with Node(broker=address, name="fan-source", node_id=0xFAFFFF) as node:
@@ -88,11 +103,12 @@ def _ups_source(address: str, subscribers: int, count: int, pipe: Connection) ->
     _loop_run(main())
 
 
-def ups(subscribers: int, count: int) -> dict[str, Any]:
+def ups(subscribers: int, count: int, compiled: str | None = None) -> dict[str, Any]:
+    """UPS as installed, or (``compiled``: the directory of the compiled copy) compiled."""
     address = f"{HOST}:{free_port()}"
     cmd = [sys.executable, "-m", "ups.cli", "broker", "--listen", address, "--recovery", "0"]
     with process(cmd, "TCP-ECB on"):
-        return _measure(_ups_sink, _ups_source, address, subscribers, count)
+        return _measure(_ups_sink, _ups_source, address, subscribers, count, (compiled,))
 
 
 # --- pyzmq -----------------------------------------------------------------------------------
@@ -151,22 +167,24 @@ def _zmq_source(address: str, subscribers: int, count: int, pipe: Connection) ->
 
 
 def zmq(subscribers: int, count: int) -> dict[str, Any]:
-    return _measure(_zmq_sink, _zmq_source, f"tcp://{HOST}:{free_port()}", subscribers, count)
+    return _measure(_zmq_sink, _zmq_source, f"tcp://{HOST}:{free_port()}", subscribers, count, ())
 
 
 # --- both ------------------------------------------------------------------------------------
 
 
-def _measure(sink: Any, source: Any, address: str, subscribers: int, count: int) -> dict[str, Any]:
+def _measure(
+    sink: Any, source: Any, address: str, subscribers: int, count: int, extra: tuple[Any, ...]
+) -> dict[str, Any]:
     pipes, procs = [], []
     src_pipe, src_theirs = _SPAWN.Pipe()
-    src = _SPAWN.Process(target=source, args=(address, subscribers, count, src_theirs))
+    src = _SPAWN.Process(target=source, args=(address, subscribers, count, src_theirs, *extra))
     try:
         if source is _zmq_source:  # zmq: the publisher binds first
             src.start()
         for i in range(subscribers):
             mine, theirs = _SPAWN.Pipe()
-            proc = _SPAWN.Process(target=sink, args=(address, i, count, theirs))
+            proc = _SPAWN.Process(target=sink, args=(address, i, count, theirs, *extra))
             proc.start()
             pipes.append(mine)
             procs.append(proc)
@@ -203,12 +221,17 @@ def _measure(sink: Any, source: Any, address: str, subscribers: int, count: int)
 
 
 def run(subscribers: tuple[int, ...], count: int) -> list[dict[str, Any]]:
-    """A row per N: UPS (its failure ends the run), and pyzmq beside it (``None`` when pyzmq is
-    not installed; ``{"error": ...}`` when it failed, which does not end the run)."""
+    """A row per N: UPS (its failure ends the run), the compiled UPS (``ups_compiled``, None when
+    it cannot be built here), and pyzmq beside them (``None`` when pyzmq is not installed;
+    ``{"error": ...}`` when it failed, which does not end the run)."""
+    from benchmarks import _compiled
+
     have_zmq = importlib.util.find_spec("zmq") is not None
+    compiled = None if _compiled.unavailable() else str(_compiled.build())
     rows = []
     for n in subscribers:
         row: dict[str, Any] = {"subscribers": n, "ups": ups(n, count), "zmq": None}
+        row["ups_compiled"] = ups(n, count, compiled) if compiled else None
         if have_zmq:
             try:
                 row["zmq"] = zmq(n, count)
@@ -216,6 +239,10 @@ def run(subscribers: tuple[int, ...], count: int) -> list[dict[str, Any]]:
                 row["zmq"] = {"error": f"{type(exc).__name__}: {exc}"}
         if row["zmq"] and row["zmq"].get("total_msgs_per_s"):
             row["ratio"] = row["ups"]["total_msgs_per_s"] / row["zmq"]["total_msgs_per_s"]
+            if row["ups_compiled"]:
+                row["ratio_compiled"] = (
+                    row["ups_compiled"]["total_msgs_per_s"] / row["zmq"]["total_msgs_per_s"]
+                )
         rows.append(row)
     return rows
 
@@ -227,12 +254,16 @@ def main() -> None:
     parser.add_argument("--json", metavar="PATH", help="also write the rows as JSON here")
     args = parser.parse_args()
     rows = run(tuple(int(n) for n in args.subscribers.split(",")), args.messages)
-    print(f"{'subs':>5}{'UPS msg/s':>12}{'lost':>6}{'pyzmq msg/s':>13}{'lost':>6}{'x zmq':>7}")
+    print(f"{'subs':>5}{'UPS msg/s':>12}{'lost':>6}{'compiled':>12}{'lost':>6}"
+          f"{'pyzmq msg/s':>13}{'lost':>6}{'x zmq':>7}{'compiled':>9}")  # fmt: skip
     for r in rows:
         z = {"total_msgs_per_s": 0.0, "lost": "-", **(r["zmq"] or {})}
+        c = {"total_msgs_per_s": 0.0, "lost": "-", **(r["ups_compiled"] or {})}
         print(
             f"{r['subscribers']:>5}{r['ups']['total_msgs_per_s']:>12,.0f}{r['ups']['lost']:>6}"
+            f"{c['total_msgs_per_s']:>12,.0f}{c['lost']:>6}"
             f"{z['total_msgs_per_s']:>13,.0f}{z['lost']:>6}{r.get('ratio', 0.0):>7.2f}"
+            f"{r.get('ratio_compiled', 0.0):>9.2f}"
         )
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

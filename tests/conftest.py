@@ -22,6 +22,30 @@ from .procs import private_multicast_bus, vcan_bus
 _bus_numbers = itertools.count()
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """With ``UPS_EXPECT_COMPILED=1`` (tests/test_compiled.py), refuse to run on pure Python."""
+    if os.environ.get("UPS_EXPECT_COMPILED") == "1":
+        import ups._tcplink
+
+        if not (ups._tcplink.__file__ or "").endswith(".so"):
+            raise pytest.UsageError(f"expected the compiled UPS, got {ups._tcplink.__file__}")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    if os.environ.get("UPS_EXPECT_COMPILED") == "1":
+        skip = pytest.mark.skip(reason="patches internals: pure Python only")
+        for item in items:
+            if item.get_closest_marker("pure"):
+                item.add_marker(skip)
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    if os.environ.get("UPS_EXPECT_COMPILED") == "1":
+        import ups._tcplink
+
+        terminalreporter.write_line(f"ups: compiled build ({ups._tcplink.__file__})")
+
+
 @pytest.fixture
 def bus(request: pytest.FixtureRequest) -> str:
     """A python-can virtual bus of this test's own, so tests cannot hear each other."""

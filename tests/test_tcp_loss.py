@@ -58,6 +58,7 @@ async def test_backpressure_delivers_everything(tcp_ecb: TcpEcb) -> None:
         assert sub_node.stats()["lost"] == 0 and pub.stats()["peer_dropped"] == 0
 
 
+@pytest.mark.pure  # keeps the subscriber away by patching its face
 async def test_a_subscriber_off_the_lists_counts_what_it_missed() -> None:
     """Taken for dead by the TCP-ECB (here: its ECB link cut, and liveness passed), the
     subscriber misses events; when it is back, the publisher's Start tells it how many."""

@@ -173,10 +173,10 @@ class Node:
         )  # a second of silence is long enough to say why
         try:
             await face.start()
-        except BaseException:
+        except BaseException as exc:
             await face.close()
             self._release_id()
-            raise
+            raise exc  # named: compiled (mypyc), a bare raise after an await raised another
         finally:
             waiting.cancel()
         self._face = face
@@ -313,11 +313,11 @@ class Node:
             for chan in chans:
                 await self._attach(chan, sub)
                 attached.append(chan)
-        except BaseException:  # e.g. AccessDenied for one of them: take back the others
+        except BaseException as exc:  # e.g. AccessDenied for one of them: take back the others
             sub._close()
             for chan in attached:
                 await self._detach(chan, sub)
-            raise
+            raise exc  # named, as in start
         self._subs.append(sub)
         return sub
 

@@ -56,8 +56,6 @@ class Subscription:
         self.dropped = 0
         self.errors = 0
         self._logged = -_LOG_GAP
-        if callback is not None:
-            self._push = self._call  # type: ignore[method-assign]
         self._node = node
         self._queue: collections.deque[Message] = collections.deque()
         self._loop = asyncio.get_running_loop()
@@ -75,6 +73,9 @@ class Subscription:
         return len(self._queue)
 
     def _push(self, msg: Message) -> None:
+        if self.callback is not None:
+            self._call(msg)
+            return
         queue = self._queue
         if len(queue) >= self.maxlen:
             self.dropped += 1

@@ -81,7 +81,8 @@ class Inbox:
         self._server = await asyncio.get_running_loop().create_server(
             self._new_link, host or None, port, reuse_address=True, ssl=tls
         )
-        bound = self._server.sockets[0].getsockname()
+        server: Any = self._server  # its sockets: a list on uvloop, a tuple on asyncio
+        bound = server.sockets[0].getsockname()
         return bound[0], bound[1]
 
     def close(self) -> None:

@@ -135,6 +135,7 @@ PEERS: dict[str, list[PeerSpec]] = {
     "zenoh": [PeerSpec("zenoh peer-to-peer", _P + "zenoh_peer")],
     "ups": [
         PeerSpec("UPS TCP, uvloop", _P + "ups_tcp", {"loop": "uvloop"}),
+        PeerSpec("UPS TCP, uvloop, compiled", _P + "ups_tcp", {"loop": "uvloop", "compiled": True}),
         PeerSpec("UPS TCP, stdlib loop", _P + "ups_tcp", {"loop": "asyncio"}),
     ],
 }

@@ -18,6 +18,9 @@ events, yielding to the loop every :data:`YIELD_EVERY` publishes so the coalesce
 out. Queues are large enough that nothing is dropped (as zmq with HWM=0): the source's queue
 to the sink holds ``count`` frames. ``link.options["loop"]`` picks ``"uvloop"`` or ``"asyncio"``
 (the stdlib loop) for the roles; the broker runs on uvloop when it is installed.
+``link.options["compiled"]``: the roles run the compiled UPS (``UPS_COMPILE=1``, see setup.py),
+built by :mod:`benchmarks._compiled` into a copy of its own; a role checks that the compiled
+modules are the ones it imported. The ECB is the same in both variants.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from benchmarks.peers import PROBE, STOP, Control, Link, SinkResult, seq
@@ -52,9 +56,17 @@ PONG_ID, PING_ID, SINK_ID, SOURCE_ID = (0xBE7C_0000_0000_0000 + i for i in range
 
 
 def missing(link: Link) -> str | None:
-    """uvloop, when the variant asks for it and it is not installed."""
+    """uvloop, when the variant asks for it and it is not installed; the compiled UPS, when
+    asked for and it cannot be built (it is built here, before any role starts)."""
     if link.options.get("loop") == "uvloop" and importlib.util.find_spec("uvloop") is None:
         return "uvloop is not installed (scripts/bench-setup)"
+    if link.options.get("compiled"):
+        from benchmarks import _compiled
+
+        try:
+            _compiled.build()
+        except (RuntimeError, subprocess.SubprocessError) as exc:
+            return str(exc).splitlines()[0]
     return None
 
 
@@ -65,6 +77,8 @@ def describe(link: Link) -> str:
         loop = f"uvloop {importlib.metadata.version('uvloop')}"
     else:
         loop = "stdlib asyncio loop"
+    if link.options.get("compiled"):
+        loop += f", compiled by mypyc {importlib.metadata.version('mypy')}"
     return f"ups {version}, {loop}, TCP-ECB + direct node links"
 
 
@@ -113,16 +127,27 @@ def _run(link: Link, main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
     return asyncio.run(main())
 
 
-def _node(link: Link, name: str, node_id: int, peer_queue: int = 1024) -> Node:
-    from ups import Node
+def _import_ups(link: Link) -> ModuleType:
+    """The ``ups`` package this variant runs: with ``compiled``, the compiled copy, and never
+    silently the pure one."""
+    if link.options.get("compiled"):
+        from benchmarks import _compiled
 
-    return Node(
+        _compiled.use(_compiled.build())
+    import ups
+
+    return ups
+
+
+def _node(link: Link, name: str, node_id: int, peer_queue: int = 1024) -> Node:
+    node: Node = _import_ups(link).Node(
         broker=f"{link.host}:{link.ports[0]}",
         name=name,
         node_id=node_id,
         peer_queue=peer_queue,
         join_timeout=SETUP_TIMEOUT,
     )
+    return node
 
 
 async def _probe_until_echoed(

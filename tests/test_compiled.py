@@ -1,0 +1,70 @@
+"""The compiled fast path (``UPS_COMPILE=1``, see setup.py) behaves as the pure Python it is
+compiled from: the TCP/IP tests run again, in a process of their own, on the compiled build.
+
+mypyc checks at run time what pure Python only states in hints (a list where a tuple was
+declared is a TypeError there), and a compiled class has no per-instance attributes to patch;
+these tests are what keeps the two builds one. The build is made once per source
+(:mod:`benchmarks._compiled`); ``ups bench`` measures the same copy.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks import _compiled
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the tests of the compiled modules' behaviour: nodes, links, wire, bounds, loss, invariants
+TCP_TESTS = (
+    "tests/test_tcpwire.py",
+    "tests/test_tcplink_queue.py",
+    "tests/test_tcp_node.py",
+    "tests/test_tcp_bounds.py",
+    "tests/test_tcp_loss.py",
+    "tests/test_tcp_invariants.py",
+    "tests/test_fast_path.py",
+)
+RUN_TIMEOUT = 600.0
+
+
+@pytest.fixture(scope="module")
+def compiled() -> Path:
+    why = _compiled.unavailable()
+    if why:
+        pytest.skip(why)
+    return _compiled.build()
+
+
+def test_the_build_compiles_every_module_it_lists(compiled: Path) -> None:
+    import tomllib
+
+    listed = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["ups"]["compiled"]
+    want = sorted("ups." + Path(name).stem for name in listed)
+    assert _compiled.compiled_modules(compiled) == want
+
+
+@pytest.mark.timeout(RUN_TIMEOUT + 30)
+def test_the_tcp_tests_pass_on_the_compiled_build(compiled: Path) -> None:
+    tests = [name for name in TCP_TESTS if (ROOT / name).exists()]
+    assert len(tests) >= 6, tests
+    # ups is imported from the compiled copy before pytest puts the checkout first on sys.path
+    # (for the tests package): every later ``import ups...`` finds the package loaded already.
+    launch = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import ups._tcplink, pytest; "
+        "sys.exit(pytest.main(sys.argv[2:]))"
+    )
+    env = dict(os.environ, UPS_EXPECT_COMPILED="1")
+    done = subprocess.run(
+        [sys.executable, "-c", launch, str(compiled), "-q", "-p", "no:cacheprovider", "-x",
+         *tests],
+        cwd=ROOT, env=env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+        timeout=RUN_TIMEOUT,
+    )  # fmt: skip
+    tail = "\n".join((done.stdout + done.stderr).strip().splitlines()[-30:])
+    assert done.returncode == 0, tail
+    assert " passed" in tail and "compiled build" in tail, tail
