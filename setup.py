@@ -18,7 +18,7 @@ from setuptools import setup
 
 
 def _ext_modules() -> list:  # type: ignore[type-arg]
-    if os.environ.get("UPS_COMPILE") != "1":
+    if os.environ.get("UPS_COMPILE") != "1" or os.environ.get("UPS_FINDING_REQUIREMENTS"):
         return []
     from mypyc.build import mypycify
 
