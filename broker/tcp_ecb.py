@@ -124,7 +124,7 @@ class TcpEcb:
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
         self._server = await loop.create_server(
-            self._new_link,
+            lambda: self._new_link().protocol,
             self.host,
             self.port,
             reuse_address=True,

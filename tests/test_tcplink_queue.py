@@ -44,13 +44,11 @@ async def _scenario(
     await loop.sock_connect(client, listener.getsockname())
     peer, _ = await loop.sock_accept(listener)
     listener.close()
-    _, link = await loop.create_connection(
-        lambda: Link(
-            lambda *a: None, lambda *a: None, lambda *a: None,
-            limit=limit, limit_bytes=limit_bytes, overflow=overflow,  # type: ignore[arg-type]
-        ),
-        sock=client,
+    link = Link(
+        lambda *a: None, lambda *a: None, lambda *a: None,
+        limit=limit, limit_bytes=limit_bytes, overflow=overflow,  # type: ignore[arg-type]
     )  # fmt: skip
+    await loop.create_connection(lambda: link.protocol, sock=client)
     sent: dict[int, bytes] = {}
     for seq, (size, yields) in enumerate(events, start=1):  # the peer reads nothing meanwhile
         data = seq.to_bytes(4, "big") * (size // 4) + bytes(size % 4)

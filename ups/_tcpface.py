@@ -254,9 +254,8 @@ class TcpFace:
         self._welcome = loop.create_future()
         host, port = self.broker
         async with asyncio.timeout(_BIND_TIMEOUT):  # not wait_for: 3.11's can swallow a cancel
-            _, link = await loop.create_connection(
-                self._new_ecb_link, host, port, ssl=self._client_tls
-            )
+            link = self._new_ecb_link()
+            await loop.create_connection(lambda: link.protocol, host, port, ssl=self._client_tls)
             try:
                 if link.lost.done():  # refused at once: not the broker (see _verify_ecb)
                     await self._welcome  # raises why

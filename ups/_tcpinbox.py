@@ -79,7 +79,7 @@ class Inbox:
     async def listen(self, host: str, port: int, tls: ssl.SSLContext | None) -> tuple[str, int]:
         """Open the listening socket; returns the address it is bound to."""
         self._server = await asyncio.get_running_loop().create_server(
-            self._new_link, host or None, port, reuse_address=True, ssl=tls
+            lambda: self._new_link().protocol, host or None, port, reuse_address=True, ssl=tls
         )
         server: Any = self._server  # its sockets: a list on uvloop, a tuple on asyncio
         bound = server.sockets[0].getsockname()

@@ -1,8 +1,8 @@
 """One TCP connection carrying UPS frames, for nodes, the TCP-ECB and the gateway alike.
 
-Receiving: a ``BufferedProtocol`` whose one buffer is reused for every read; whole frames are
-decoded in place (``_tcpwire.parse``), events without building a frame object. Bad bytes close
-this connection only. Sending: the first frame after a read (on any link: an answer, a
+Receiving (asyncio calls the link's ``protocol``, a ``BufferedProtocol``): one buffer is reused
+for every read; whole frames are decoded in place (``_tcpwire.parse``), events without building
+a frame object. Bad bytes close this connection only. Sending: the first frame after a read (on any link: an answer, a
 forwarded event) is written at once, with nothing scheduled; the frames that follow it are
 queued and written at the end of the loop iteration (or as soon as the queue is full), joined
 into writes of about 64 KiB, so a burst costs a few system calls, not one each. A large event
@@ -44,10 +44,11 @@ CONTROL_LIMIT = 1 << 14  #: control frames queued for a peer that does not read:
 CONTROL_BYTES = 8 << 20  #: ... or this many bytes of them
 
 
-class Link(asyncio.BufferedProtocol):
+class Link:
     """A connection: ``on_event(link, uid, data, priority, seq)`` and ``on_frame(link, frame)`` get
     what arrives, ``on_lost(link, reason)`` is called once when it ends (reason None: we closed
-    it). ``peer`` is whatever the owner wants to remember about the other side."""
+    it). ``peer`` is whatever the owner wants to remember about the other side. asyncio connects
+    its ``protocol`` (the factory of ``create_connection``/``create_server`` returns that)."""
 
     def __init__(
         self,
@@ -92,6 +93,8 @@ class Link(asyncio.BufferedProtocol):
         self.read_at = 0.0  #: ``time.time()`` of the latest read: the events' receive time
         self.lost: asyncio.Future[str | None] = self._loop.create_future()
         self.full_frame = max_frame  # what max_frame becomes once a Doorman lets it in
+        #: what asyncio calls: a BufferedProtocol that hands everything to this link
+        self.protocol = _Protocol(self)
 
     def __repr__(self) -> str:
         return f"<Link {self.name} queued={len(self._out)} dropped={self.dropped}>"
@@ -336,6 +339,36 @@ class Link(asyncio.BufferedProtocol):
     def _lost(self, reason: str | None) -> None:
         self.lost.set_result(reason)
         self._on_lost(self, reason)
+
+
+class _Protocol(asyncio.BufferedProtocol):
+    """A link as asyncio and uvloop see it. They want a ``BufferedProtocol`` subclass; the link
+    itself is a plain class, which the compiled build (setup.py) makes a native one, so its
+    per-event work never looks attributes up by name. Two calls more per read, none per event."""
+
+    def __init__(self, link: Link) -> None:
+        self._link = link
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._link.connection_made(transport)
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self._link.get_buffer(sizehint)
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self._link.buffer_updated(nbytes)
+
+    def eof_received(self) -> bool:
+        return self._link.eof_received()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._link.connection_lost(exc)
+
+    def pause_writing(self) -> None:
+        self._link.pause_writing()
+
+    def resume_writing(self) -> None:
+        self._link.resume_writing()
 
 
 _HEAD = struct.Struct(">I")

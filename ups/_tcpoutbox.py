@@ -208,7 +208,9 @@ class Outbox:
                 await asyncio.sleep(delay)
             try:
                 async with asyncio.timeout(_DIAL_TIMEOUT):
-                    await loop.create_connection(lambda: link, *peer.addr, ssl=self._client_tls)
+                    await loop.create_connection(
+                        lambda: link.protocol, *peer.addr, ssl=self._client_tls
+                    )
             except (OSError, TimeoutError) as exc:
                 delay = min(max(delay * 2, _RETRY_FIRST), _RETRY_MAX)
                 log.debug("subscriber %016x at %s:%d: %s", peer.node_id, *peer.addr, exc)
