@@ -117,8 +117,8 @@ class TcpFace:
         #: more tables for ``ups status`` (the gateway's)
         self.extra_status: Callable[[], dict[str, Any]] | None = None
         self.counters = dict.fromkeys(
-            ("sent", "received", "lost", "unsubscribed", "malformed", "reconnects", "denied",
-             "unvouched", "impostors"), 0,
+            ("lost", "unsubscribed", "malformed", "reconnects", "denied", "unvouched",
+             "impostors"), 0,
         )  # fmt: skip
         self._inbox = Inbox(
             deliver=deliver,
@@ -189,6 +189,8 @@ class TcpFace:
 
     def stats(self) -> dict[str, int]:
         return {
+            "sent": self._outbox.sent,
+            "received": self._inbox.received,
             **self.counters,
             **self._outbox.stats(),
             "broker_connected": int(self._ecb is not None and not self._ecb.lost.done()),

@@ -64,6 +64,7 @@ class Inbox:
         self._channels = channels
         self._subscribed = subscribed
         self._counters = counters
+        self.received = 0  #: events delivered (an attribute: counted per event, stats() adds it)
         self._status = status
         self._checking = checking  # with TLS: events only from vouched-for identities
         self._vouched: dict[int, frozenset[tuple[int, str]]] = {}  # uid -> (node id, identity)
@@ -158,7 +159,7 @@ class Inbox:
         if expected is not None and seq > expected:  # numbers skipped: events lost on the way
             self._lost_from(pub.node_id, seq - expected)
         numbers[uid] = seq + 1  # (a lower number: the publisher started again)
-        self._counters["received"] += 1
+        self.received += 1
         self._deliver(state, data, priority, pub.node_id, link.read_at)
 
     def _frame(self, link: Link, frame: w.Frame) -> None:

@@ -2,15 +2,15 @@
 
 Receiving (asyncio calls the link's ``protocol``, a ``BufferedProtocol``): one buffer is reused
 for every read; whole frames are decoded in place (``_tcpwire.parse``), events without building
-a frame object. Bad bytes close this connection only. Sending: the first frame after a read (on any link: an answer, a
-forwarded event) is written at once, with nothing scheduled; the frames that follow it are
-queued and written at the end of the loop iteration (or as soon as the queue is full), joined
-into writes of about 64 KiB, so a burst costs a few system calls, not one each. A large event
-is queued as its header and its data, and the data is handed to the transport as it is (never
-joined, never copied here). Writing stops while the transport is paused (its buffer is full)
-and goes on when it resumes. The event queue is bounded: while the peer does not read it
-fills up to ``limit`` frames or ``limit_bytes`` bytes, then ``overflow`` decides which event
-is lost, and ``dropped`` counts it.
+a frame object. Bad bytes close this connection only. Sending: the first frame after a read
+(on any link: an answer, a forwarded event) is written at once, with nothing scheduled; the
+frames that follow it are queued and written at the end of the loop iteration (or as soon as
+the queue is full), joined into writes of about 64 KiB, so a burst costs a few system calls,
+not one each. A large event is queued as its header and its data, and the data is handed to
+the transport as it is (never joined, never copied here). Writing stops while the transport is
+paused (its buffer is full) and goes on when it resumes. The event queue is bounded: while the
+peer does not read it fills up to ``limit`` frames or ``limit_bytes`` bytes, then ``overflow``
+decides which event is lost, and ``dropped`` counts it.
 Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of
 their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them,
 or ``CONTROL_BYTES`` of them, unread is cut off.

@@ -81,6 +81,7 @@ class Outbox:
         self._peer_queue = peer_queue
         self._peer_overflow: Overflow = peer_overflow
         self._counters = counters
+        self.sent = 0  #: event frames queued to subscribers (per event, so not in counters)
         self._on_targets = on_targets
         self._node_status = status  # what a StatusRequest from a subscriber is answered with
         self._peers: dict[int, _Peer] = {}
@@ -102,7 +103,7 @@ class Outbox:
             for peer in peers:
                 assert peer.link is not None
                 peer.link.send(frame)
-            self._counters["sent"] += len(peers)
+            self.sent += len(peers)
 
     async def room(self, uid: int) -> None:
         """Wait until every subscriber of the channel has room in its queue."""
