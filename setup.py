@@ -23,7 +23,7 @@ def _ext_modules() -> list:  # type: ignore[type-arg]
     from mypyc.build import mypycify
 
     config = tomllib.loads(Path(__file__).with_name("pyproject.toml").read_text())
-    return mypycify(config["tool"]["ups"]["compiled"], opt_level="3")
+    return mypycify(config["tool"]["ups"]["compiled"], opt_level="3", multi_file=True)
 
 
 setup(ext_modules=_ext_modules())

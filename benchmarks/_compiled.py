@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-BUILD_TIMEOUT = 900.0  # seconds; about 40 s on a 2-core machine
+BUILD_TIMEOUT = 900.0  # seconds; about 30 s on a 2-core machine
 _COPIED = ("setup.py", "pyproject.toml", "README.md")
 
 

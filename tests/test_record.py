@@ -108,6 +108,9 @@ def test_a_can_recording_replays_by_channel_onto_a_bus_bound_the_other_way(
         [sys.executable, "-m", "can.logger", "-i", "udp_multicast", "-c", "239.74.163.2",
          "--bus-kwargs", f"port={bus_a.rpartition('=')[2]}", "-f", str(tmp_path / "capture.log")],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+        # Ctrl-C must reach it even when this test runs in a background job, which starts
+        # with SIGINT ignored (and so would the logger, and never flush)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     try:
         assert logger.stdout is not None
