@@ -43,7 +43,8 @@ if TYPE_CHECKING:
 
 PING, PONG, DATA = "bench/zping", "bench/zpong", "bench/zdata"
 TAG = struct.Struct("<IH2x")  # an event of a step: its number, the step
-PROBE_STEP = 0xFFFF  # the gateway's marker event, not counted in any step
+PROBE_STEP = 0xFFFF  # a marker event (the gateway's, a step's tail), not counted in any step
+TAIL_PAUSE = 0.05  # s between a UPS source's last event of a step and its tail marker
 SETUP_TIMEOUT = 20.0
 IDLE = 1.0  # a sink's report: this long without an event of the step ends it
 REPORT_LIMIT = 30.0  # a sink's report never waits longer than this
@@ -380,6 +381,10 @@ def source(cfg: dict[str, Any], conn: Connection) -> None:
                 t0 = time.perf_counter()
                 for pause in _paced(step, count, rate, functools.partial(publish, DATA)):
                     await asyncio.sleep(pause)
+                # A loss is counted from the gap before the next event: one more, uncounted,
+                # after a pause, so that events lost at the step's end are counted in the step.
+                await asyncio.sleep(TAIL_PAUSE)
+                publish(DATA, TAG.pack(0, PROBE_STEP))
                 conn.send(("done", {"sent": count, "seconds": time.perf_counter() - t0,
                                     "stats": node.stats()}))  # fmt: skip
 

@@ -73,6 +73,8 @@ def test_a_tiny_run_measures_every_figure_and_its_ratios(tmp_path: Path) -> None
         assert set(labels) <= set(doc[table]), table  # type: ignore[call-overload]
     gateway = doc["gateway"][zenoh_face.GW_ZENOH]  # type: ignore[index]
     assert gateway["runs"][0]["forwarded"] == 500  # every frame went out to Zenoh
+    flat_out = doc["one_way"][zenoh_face.UPS_ZENOH]  # type: ignore[index]
+    assert flat_out["counted_lost"] == flat_out["lost"], flat_out  # every loss counted, in its step
     ratios = doc["ratios"]
     for figure in ("rtt_p50_us", "rtt_p99_us", "one_way_rate", "gateway_rate"):
         assert set(ratios[figure]) == {"vs_raw_zenoh", "vs_ups_tcp"}  # type: ignore[index]
