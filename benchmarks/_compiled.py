@@ -69,8 +69,8 @@ def build() -> Path:
         raise RuntimeError("building the compiled UPS failed:\n" + "\n".join(tail))
     shutil.rmtree(tmp / "build", ignore_errors=True)  # mypyc's C sources and objects
     (tmp / ".built").touch()
-    for old in dest.parent.glob("compiled-*"):
-        if old != tmp and not old.name.count(".tmp"):
+    for old in dest.parent.glob("compiled-*"):  # copies of older sources (not a build under way)
+        if old not in (tmp, dest) and ".tmp" not in old.name:
             shutil.rmtree(old, ignore_errors=True)
     try:
         tmp.rename(dest)
