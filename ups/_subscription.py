@@ -73,8 +73,12 @@ class Subscription:
         return len(self._queue)
 
     def _push(self, msg: Message) -> None:
-        if self.callback is not None:
-            self._call(msg)
+        callback = self.callback
+        if callback is not None:  # handed over as it arrives, in this very call
+            try:
+                callback(msg)
+            except Exception:
+                self._failed()
             return
         queue = self._queue
         if len(queue) >= self.maxlen:
@@ -89,15 +93,13 @@ class Subscription:
             if not waiter.done():
                 waiter.set_result(None)
 
-    def _call(self, msg: Message) -> None:
-        try:
-            self.callback(msg)  # type: ignore[misc]
-        except Exception:
-            self.errors += 1
-            now = time.monotonic()
-            if now - self._logged >= _LOG_GAP:
-                self._logged = now
-                log.exception("the callback of %r failed (%d so far)", self, self.errors)
+    def _failed(self) -> None:
+        """The callback raised (call it from the ``except``): count it, log now and then."""
+        self.errors += 1
+        now = time.monotonic()
+        if now - self._logged >= _LOG_GAP:
+            self._logged = now
+            log.exception("the callback of %r failed (%d so far)", self, self.errors)
 
     async def get_msg(self, timeout: float | None = None) -> Message:
         """The next event; raises ``TimeoutError`` after ``timeout`` s, ``Closed`` once closed."""
