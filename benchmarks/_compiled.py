@@ -15,6 +15,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 ROOT = Path(__file__).resolve().parents[1]
 BUILD_TIMEOUT = 900.0  # seconds; about 30 s on a 2-core machine
@@ -92,6 +93,16 @@ def use(path: Path | str) -> None:
 
     if not (ups._tcplink.__file__ or "").endswith(".so"):
         raise RuntimeError(f"imported {ups._tcplink.__file__}, not the compiled UPS")
+
+
+def import_ups(path: Path | str | None) -> ModuleType:
+    """The ``ups`` package: the compiled copy at ``path`` (see :func:`use`), or, with None,
+    the one installed."""
+    if path is not None:
+        use(path)
+    import ups
+
+    return ups
 
 
 def compiled_modules(path: Path) -> list[str]:

@@ -26,6 +26,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from benchmarks import _compiled
 from benchmarks._daemons import free_port, process
 
 HOST = "127.0.0.1"
@@ -45,19 +46,8 @@ def _loop_run(main: Any) -> Any:
 # --- UPS -------------------------------------------------------------------------------------
 
 
-def _import_ups(compiled: str | None) -> Any:
-    if compiled:
-        from benchmarks import _compiled
-
-        _compiled.use(compiled)
-    import ups
-
-    return ups
-
-
 def _ups_sink(address: str, index: int, count: int, pipe: Connection, compiled: str | None) -> None:
-    ups = _import_ups(compiled)
-    Node = ups.Node
+    Node = _compiled.import_ups(compiled).Node
 
     async def main() -> None:
         seen = [0, 0.0, 0.0]  # count, first, last
@@ -85,7 +75,7 @@ def _ups_sink(address: str, index: int, count: int, pipe: Connection, compiled: 
 def _ups_source(
     address: str, subscribers: int, count: int, pipe: Connection, compiled: str | None
 ) -> None:
-    Node = _import_ups(compiled).Node
+    Node = _compiled.import_ups(compiled).Node
 
     async def main() -> None:
         async with Node(broker=address, name="fan-source", node_id=0xFAFFFF) as node:
@@ -224,8 +214,6 @@ def run(subscribers: tuple[int, ...], count: int) -> list[dict[str, Any]]:
     """A row per N: UPS (its failure ends the run), the compiled UPS (``ups_compiled``, None when
     it cannot be built here), and pyzmq beside them (``None`` when pyzmq is not installed;
     ``{"error": ...}`` when it failed, which does not end the run)."""
-    from benchmarks import _compiled
-
     have_zmq = importlib.util.find_spec("zmq") is not None
     compiled = None if _compiled.unavailable() else str(_compiled.build())
     rows = []

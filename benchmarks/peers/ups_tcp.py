@@ -36,7 +36,6 @@ import tempfile
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from pathlib import Path
-from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from benchmarks.peers import PROBE, STOP, Control, Link, SinkResult, seq
@@ -127,20 +126,11 @@ def _run(link: Link, main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
     return asyncio.run(main())
 
 
-def _import_ups(link: Link) -> ModuleType:
-    """The ``ups`` package this variant runs: with ``compiled``, the compiled copy, and never
-    silently the pure one."""
-    if link.options.get("compiled"):
-        from benchmarks import _compiled
-
-        _compiled.use(_compiled.build())
-    import ups
-
-    return ups
-
-
 def _node(link: Link, name: str, node_id: int, peer_queue: int = 1024) -> Node:
-    node: Node = _import_ups(link).Node(
+    from benchmarks import _compiled
+
+    compiled = _compiled.build() if link.options.get("compiled") else None
+    node: Node = _compiled.import_ups(compiled).Node(
         broker=f"{link.host}:{link.ports[0]}",
         name=name,
         node_id=node_id,
