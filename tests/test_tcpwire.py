@@ -66,6 +66,33 @@ def test_events_among_short_control_frames(
     assert got == sent
 
 
+# sizes around the last one decoded with a single struct call (256), and equal to a Start's
+sized_events = st.builds(
+    w.Event,
+    u64,
+    st.sampled_from([0, 1, 8, 17, 255, 256, 257, 300]).map(bytes),
+    st.integers(0, 255),
+    u64,
+)
+
+
+@given(
+    st.lists(st.one_of(sized_events, st.builds(w.Start, u64, u64), st.just(w.Ping())), max_size=40),
+    st.data(),
+)
+def test_runs_of_events_of_changing_sizes(sent: list[w.Frame], data: st.DataObject) -> None:
+    """The decoder reads an event with the layout of the previous one's size: a run of equal
+    sizes, a size that changes, or a control frame in between, each comes out as it went in."""
+    stream = b"".join(w.encode(f) for f in sent)
+    assert w.Decoder().feed(stream) == sent
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=4)))
+    decoder = w.Decoder()
+    got: list[w.Frame] = []
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        got += decoder.feed(stream[a:b])
+    assert got == sent
+
+
 @given(st.binary(max_size=64))
 def test_arbitrary_bytes_decode_or_raise_decode_error(junk: bytes) -> None:
     try:

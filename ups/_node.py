@@ -16,7 +16,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Final
 
 from ._channel import Channel, ChannelLike, as_channel
 from ._errors import Closed, ConfigError
@@ -31,7 +31,7 @@ log = logging.getLogger("ups")
 #: the module of each kind of network's face; each has ``OPTIONS`` and ``build()``
 _FACES = {"can": "._canface", "broker": "._tcpface", "zenoh": "._zenohface"}
 
-_new_message = tuple.__new__  # Message(...) without NamedTuple's Python-level __new__
+_new_message: Final = tuple.__new__  # Message(...) without NamedTuple's Python-level __new__
 
 
 class Node:

@@ -138,7 +138,9 @@ class Inbox:
         self._doorman.admit(link)
         return link
 
-    def _event(self, link: Link, uid: int, data: bytes, priority: int, seq: int) -> None:
+    def _event(self, link: Link, uid: Any, data: bytes, priority: Any, seq: Any) -> None:
+        # uid, priority, seq: Any, not int, so that the compiled build keeps them as they came
+        # (as ints it would make a new Python int of each for every dict it looks them up in)
         pub: _Publisher | None = link.peer
         if pub is None:
             self._counters["malformed"] += 1

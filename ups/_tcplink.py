@@ -21,7 +21,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import functools
 import logging
 import resource
 import struct
@@ -68,8 +67,8 @@ class Link:
         self.overflow: Overflow = overflow
         self.dropped = 0
         self.transport: asyncio.Transport | None = None
-        self._event = functools.partial(on_event, self)  # made once: no per-event trampoline
-        self._frame = functools.partial(on_frame, self)
+        self._on_event = on_event
+        self._on_frame = on_frame
         self._on_lost = on_lost
         self.max_frame = max_frame  #: the longest frame accepted (an owner may change it)
         self._buf = bytearray(_BUFFER)
@@ -222,6 +221,16 @@ class Link:
         full): what stays queued goes out when it resumes, so nothing is ever copied in bulk."""
         out, transport = self._out, self.transport
         assert transport is not None
+        if out and self._out_bytes <= _BATCH:  # the usual case: all of it in one write
+            try:
+                data = b"".join(out)  # type: ignore[arg-type]
+            except TypeError:  # a large event's (header, data) among them: one by one below
+                pass
+            else:
+                out.clear()
+                self._out_bytes = 0
+                transport.write(data)
+                return
         while out and not self._paused:
             if not isinstance(out[0], bytes):  # a large event: header, then data as it is
                 frame = out.popleft()
@@ -302,7 +311,14 @@ class Link:
                 limited = self.max_frame != self.full_frame
                 start = pos
                 pos = w.parse(
-                    self._buf, pos, self._end, self.max_frame, self._event, self._frame, limited
+                    self._buf,
+                    pos,
+                    self._end,
+                    self.max_frame,
+                    self,
+                    self._on_event,
+                    self._on_frame,
+                    limited,
                 )
                 if not limited or pos in (start, self._end) or self._closing:
                     break

@@ -14,16 +14,16 @@ import reprlib
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final, TypeVar
 
 import msgpack
 
 from ._errors import DecodeError
 
-VERSION = 2
-HEADER = 4
-EVENT_HEADER = HEADER + 18  #: header, kind, priority, uid and seq: what precedes an event's data
-MAX_BODY = (1 << 24) - 1
+VERSION: Final = 2
+HEADER: Final = 4
+EVENT_HEADER: Final = 22  #: header, kind, priority, uid and seq: what precedes an event's data
+MAX_BODY: Final = (1 << 24) - 1
 MAX_DATA = 1 << 20  #: the most data an event carries (1 MiB) ...
 DEFAULT_MAX_FRAME = MAX_DATA + 18  #: ... in the longest body a receiver accepts by default
 
@@ -31,9 +31,13 @@ DEFAULT_MAX_FRAME = MAX_DATA + 18  #: ... in the longest body a receiver accepts
     _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
     _STATUS_REQUEST, _STATUS, _START, _PUBLISHERS, _REFUSED,
 ) = range(14)  # fmt: skip
+_EVENT_KIND: Final = 1  # _EVENT, as a constant the compiled build inlines
 _HEAD = struct.Struct(">I")
 _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, seq
+#: a whole Event frame, by its data size up to 256 bytes: header, kind, priority, uid, seq, data
+_WHOLE = tuple(struct.Struct(f">IBBQQ{size}s") for size in range(257))
 _pack_event = _EVENT_HEAD.pack
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,14 +253,14 @@ class Decoder:
         buf = self._buf
         buf += data
         frames: list[Frame] = []
-
-        def on_event(uid: int, data: bytes, priority: int, seq: int) -> None:
-            frames.append(Event(uid, data, priority, seq))
-
-        pos = parse(buf, 0, len(buf), self.max_frame, on_event, frames.append)
+        pos = parse(buf, 0, len(buf), self.max_frame, frames, _append_event, list.append)
         if pos:
             del buf[:pos]
         return frames
+
+
+def _append_event(frames: list[Frame], uid: int, data: bytes, priority: int, seq: int) -> None:
+    frames.append(Event(uid, data, priority, seq))
 
 
 def parse(
@@ -264,24 +268,38 @@ def parse(
     pos: int,
     end: int,
     max_frame: int,
-    on_event: Callable[[int, bytes, int, int], None],
-    on_frame: Callable[[Frame], None],
+    owner: _T,
+    on_event: Callable[[_T, int, bytes, int, int], None],
+    on_frame: Callable[[_T, Frame], None],
     one_frame: bool = False,
 ) -> int:
     """Decode the whole frames in ``buf[pos:end]``; return where the first incomplete one starts.
 
-    Events go to ``on_event(uid, data, priority, seq)`` without building an ``Event`` (the hot
-    path), every other frame to ``on_frame``; with ``one_frame``, decoding stops after the first
+    Events go to ``on_event(owner, uid, data, priority, seq)`` without building an ``Event``
+    (the hot path), every other frame to ``on_frame(owner, frame)`` (``owner``: whatever the
+    caller reads for, e.g. its link); with ``one_frame``, decoding stops after the first
     frame that is not an event (the caller may change ``max_frame`` in between). Raises
     ``DecodeError`` as ``Decoder.feed`` does; frames before the bad one have been handed over.
     """
     view = memoryview(buf)
-    unpack_event, unpack_head = _EVENT_HEAD.unpack_from, _HEAD.unpack_from
-    kind = priority = uid = seq = 0
+    unpack_head = _HEAD.unpack_from
+    # A stream's events are mostly of one size: the Struct of a whole Event frame of the last
+    # size seen (data included, while small) decodes the next one in a single call. It reads
+    # the fields at the same offsets whatever the size, so if the frame turns out to be of
+    # another size only its data is read again.
+    whole, body = _WHOLE[0].unpack_from, 18  # that Struct's unpack, and the body it covers
+    kind = 0
+    # Any, not int: the compiled build then passes the values unpacked on as they are
+    priority: Any = 0
+    uid: Any = 0
+    seq: Any = 0
+    data = b""
     try:
         while True:
-            if end - pos >= EVENT_HEADER:  # room for an event's fields: one unpack reads all
-                head, kind, priority, uid, seq = unpack_event(buf, pos)
+            if end - pos >= HEADER + body:
+                head, kind, priority, uid, seq, data = whole(buf, pos)
+            elif end - pos >= EVENT_HEADER:
+                head, kind, priority, uid, seq, data = _WHOLE[0].unpack_from(buf, pos)
             elif end - pos >= HEADER:
                 (head,), kind = unpack_head(buf, pos), 0
             else:
@@ -295,12 +313,16 @@ def parse(
             if end - start < length:
                 break
             pos = start + length
-            if kind == _EVENT and length >= 18:
-                on_event(uid, bytes(view[start + 18 : pos]), priority, seq)
+            if kind == _EVENT_KIND and length >= 18:
+                if length != 18 + len(data):  # another size than the last event's
+                    data = bytes(view[start + 18 : pos])
+                    if length - 18 < len(_WHOLE):
+                        whole, body = _WHOLE[length - 18].unpack_from, length
+                on_event(owner, uid, data, priority, seq)
                 continue
             if length and buf[start] == _EVENT:
                 raise DecodeError(f"event frame of {length} bytes: at least 18 expected")
-            on_frame(_checked(_unpack(view[start:pos])))
+            on_frame(owner, _checked(_unpack(view[start:pos])))
             if one_frame:
                 break
     finally:
