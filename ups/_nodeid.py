@@ -13,7 +13,6 @@ import fcntl
 import hashlib
 import os
 import socket
-import tempfile
 from pathlib import Path
 from typing import IO
 
@@ -32,7 +31,11 @@ def _machine_id() -> str:
 
 
 def _lock_dir() -> Path:
-    base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
+    base = os.environ.get("XDG_RUNTIME_DIR")
+    if not base:
+        import tempfile  # only here: it imports shutil, bz2, lzma, random (0.8 MB of memory)
+
+        base = tempfile.gettempdir()
     path = Path(base) / f"ups-{os.getuid()}"
     path.mkdir(mode=0o700, exist_ok=True)
     return path

@@ -89,7 +89,9 @@ class Link:
         self._paused = False
         self._closing = False
         self._loop = asyncio.get_running_loop()
-        self.read_at = 0.0  #: ``time.time()`` of the latest read: the events' receive time
+        #: ``time.time()`` of the latest read: the events' receive time (a float; Any so that
+        #: the compiled build keeps one Python float per read, not one per event)
+        self.read_at: Any = 0.0
         self.lost: asyncio.Future[str | None] = self._loop.create_future()
         self.full_frame = max_frame  # what max_frame becomes once a Doorman lets it in
         #: what asyncio calls: a BufferedProtocol that hands everything to this link
