@@ -28,6 +28,12 @@ def unavailable() -> str | None:
         importlib.metadata.version("mypy")
     except importlib.metadata.PackageNotFoundError:
         return "mypy (mypyc) is not installed: scripts/setup --test"
+    try:
+        setuptools = importlib.metadata.version("setuptools")
+    except importlib.metadata.PackageNotFoundError:
+        return "setuptools is not installed: scripts/setup --test"
+    if int(setuptools.split(".")[0]) < 77:  # pyproject.toml's license is an SPDX string
+        return f"setuptools {setuptools} is older than 77: scripts/setup --test"
     if shutil.which(os.environ.get("CC", "cc")) is None:
         return "no C compiler (cc) on PATH"
     return None
