@@ -466,9 +466,11 @@ class Node:
         return state
 
     def _deliver(
-        self, state: ChannelState, data: bytes, priority: int, source: int | None, ts: float
+        self, state: ChannelState, data: bytes, priority: int, source: int | None, ts: Any
     ) -> None:
-        """Hand one event to every local subscription of its channel (the face calls this)."""
+        """Hand one event to every local subscription of its channel (the face calls this).
+        ``ts`` is a float; Any, so that the compiled build puts the face's float object in the
+        message as it is instead of making a new one per event."""
         msg: Message = _new_message(Message, (state.channel, data, ts, priority, source))
         for sub in state.subs:
             sub._push(msg)
