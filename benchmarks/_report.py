@@ -95,6 +95,13 @@ def _x(a: float | None, b: float | None) -> str:
     return _f(_ratio(a, b), ".2f", "x")
 
 
+def _span(values: list[float] | None) -> str:
+    """Lowest-highest of several figures (e.g. each process pair's round trip), "-" if none."""
+    if not values:
+        return "-"
+    return f"{min(values):.1f}-{max(values):.1f}" if len(values) > 1 else f"{values[0]:.1f}"
+
+
 def _ups_row(r: dict[str, Any]) -> dict[str, Any]:
     rows = r.get("tcp_compare", {}).get("rows", {})
     return next((rows[k] for k in UPS_ROWS if rows.get(k, {}).get("rtt_p50_us")), {})
@@ -169,17 +176,19 @@ def tables(r: dict[str, Any]) -> list[Table]:
         for label, row in rows.items():
             if row.get("error"):
                 status = row["error"] if row["error"].startswith("skipped") else "FAILED"
-                body.append([label, "-", "-", "-", "-", "-", "-", "-", status.splitlines()[0]])
+                body.append([label, "-", "-", "-", "-", "-", "-", "-", "-",
+                             status.splitlines()[0]])  # fmt: skip
                 continue
             body.append([
                 label, _f(row.get("rtt_p50_us"), ".1f"), _f(row.get("rtt_p99_us"), ".1f"),
+                _span(row.get("rtt_p50_pairs_us")),
                 _x(row.get("rtt_p50_us"), raw.get("rtt_p50_us")),
                 _x(ups.get("rtt_p50_us"), row.get("rtt_p50_us")),
                 _f(row.get("rate_msg_s"), ",.0f"),
                 _x(ups.get("rate_msg_s"), row.get("rate_msg_s")), str(row.get("lost")), "ok",
             ])  # fmt: skip
-        head = ["peer", "RTT p50 µs", "p99", "x raw TCP", "UPS RTT / it", "msg/s one way",
-                "UPS msg/s / it", "lost", ""]  # fmt: skip
+        head = ["peer", "RTT p50 µs", "p99", "p50 of each pair", "x raw TCP", "UPS RTT / it",
+                "msg/s one way", "UPS msg/s / it", "lost", ""]  # fmt: skip
         out.append(("Round trip (pinned) and one-way throughput, 8 B, loopback", head, body))
     if r.get("payload"):
         body = [

@@ -2,10 +2,13 @@
 
 For each selected peer (``benchmarks/peers/``), in one run:
 
-* round trip: a pong process echoes, a ping process sends N messages one at a time after a
+* round trip: a pong process echoes, a ping process sends messages one at a time after a
   warm-up and times each; both are pinned to one CPU (``--cpu``), and so is a broker if the
-  peer has one. Reported: p50 and p99 in
-  microseconds, and p50 as a multiple of the raw-TCP floor.
+  peer has one. ``--pairs`` pairs of processes, one after the other, each with N / pairs of
+  the N round trips: a pair's figure depends on where its code landed in memory (address
+  randomization; up to a third for UPS), so one pair alone is a draw. Reported: p50 and p99
+  of all the pairs' round trips together in microseconds, each pair's p50, and p50 as a
+  multiple of the raw-TCP floor.
 * throughput: a source process sends M messages as fast as the transport takes them, a sink
   process counts what arrives. Reported: received/sent, loss, and the rate at the sink
   (messages between its first and last arrival). Unpinned unless ``--pin-throughput``.
@@ -32,7 +35,7 @@ import socket
 import statistics
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from multiprocessing.process import BaseProcess
 from types import ModuleType
 from typing import Any
@@ -59,6 +62,7 @@ class Row:
     rtt_mean_us: float | None = None
     rtt_p50_x_raw: float | None = None
     roundtrips: int = 0
+    rtt_p50_pairs_us: list[float] = field(default_factory=list)  # each process pair's p50
     sent: int = 0
     received: int = 0
     lost: int = 0
@@ -130,17 +134,19 @@ def service(
     return factory(link, pin) if factory else contextlib.nullcontext()
 
 
-def measure_rtt(spec: PeerSpec, peer: ModuleType, args: argparse.Namespace) -> list[float]:
+def measure_rtt(
+    spec: PeerSpec, peer: ModuleType, args: argparse.Namespace, rounds: int, warmup: int
+) -> list[float]:
     """Ping-pong between two processes pinned to ``args.cpu``; RTTs in seconds."""
     link = Link(HOST, free_ports(2), spec.options)
-    timeout = SETUP_TIMEOUT + (args.warmup + args.roundtrips) * 2e-3  # fails above 2 ms/RTT
+    timeout = SETUP_TIMEOUT + (warmup + rounds) * 2e-3  # fails above 2 ms/RTT
     children: list[Child] = []
     with service(peer, link, args.cpu):
         try:
             pong = Child(spec.module, "pong", link, {}, args.cpu)
             children.append(pong)
             pong.expect("ready", SETUP_TIMEOUT)
-            kwargs = {"warmup": args.warmup, "rounds": args.roundtrips}
+            kwargs = {"warmup": warmup, "rounds": rounds}
             ping = Child(spec.module, "ping", link, kwargs, args.cpu)
             children.append(ping)
             rtts: list[float] = ping.expect("result", timeout)
@@ -191,7 +197,13 @@ def run_spec(spec: PeerSpec, args: argparse.Namespace) -> Row:
     row.note = getattr(peer, "describe", lambda _link: "")(link)
     try:
         if "rtt" in spec.measure:
-            rtts = sorted(t * 1e6 for t in measure_rtt(spec, peer, args))
+            rtts = []
+            for pair in range(args.pairs):  # each pair its own processes, its own layout
+                share = args.roundtrips // args.pairs + (pair < args.roundtrips % args.pairs)
+                times = sorted(t * 1e6 for t in measure_rtt(spec, peer, args, share, args.warmup))
+                row.rtt_p50_pairs_us.append(percentile(times, 0.50))
+                rtts += times
+            rtts.sort()
             row.rtt_p50_us = percentile(rtts, 0.50)
             row.rtt_p99_us = percentile(rtts, 0.99)
             row.rtt_mean_us = statistics.fmean(rtts)
@@ -220,13 +232,14 @@ def add_ratios(rows: list[Row]) -> None:
 
 
 LEGEND = """\
-RTT in microseconds, both processes pinned to one CPU; x raw: RTT p50 over raw TCP's.
+RTT in microseconds, both processes pinned to one CPU, p50/p99 over every pair of processes
+(pairs: each pair's own p50, lowest-highest); x raw: RTT p50 over raw TCP's.
 msg/s: at the sink, from its first to its last arrival (over what arrived, if lost)."""
 
 
 def table(rows: list[Row]) -> str:
     """The rows as a fixed-width text table (see LEGEND)."""
-    head = (f"{'peer':<30} {'RTT p50':>9} {'RTT p99':>9} {'x raw':>6} "
+    head = (f"{'peer':<30} {'RTT p50':>9} {'RTT p99':>9} {'pairs':>11} {'x raw':>6} "
             f"{'msg/s':>11} {'received':>17} {'loss':>14}  note")  # fmt: skip
     lines = [head, "-" * len(head)]
     for r in rows:
@@ -241,9 +254,12 @@ def table(rows: list[Row]) -> str:
         else:
             loss = "0"
         ratio = _fmt(r.rtt_p50_x_raw, ".2f")
+        each = r.rtt_p50_pairs_us
+        pairs = f"{min(each):.1f}-{max(each):.1f}" if len(each) > 1 else _fmt(r.rtt_p50_us, ".1f")
         lines.append(
             f"{r.peer:<30} {_fmt(r.rtt_p50_us, '.1f'):>9} {_fmt(r.rtt_p99_us, '.1f'):>9} "
-            f"{ratio:>6} {_fmt(r.rate_msg_s, ',.0f'):>11} {got:>17} {loss:>14}  {r.note}"
+            f"{pairs:>11} {ratio:>6} {_fmt(r.rate_msg_s, ',.0f'):>11} {got:>17} {loss:>14}  "
+            f"{r.note}"
         )
     return "\n".join(lines)
 
@@ -269,6 +285,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--roundtrips", type=int, default=50_000, help="measured round trips")
     p.add_argument("--warmup", type=int, default=5_000, help="round trips before measuring")
+    p.add_argument("--pairs", type=int, default=3,
+                   help="ping/pong process pairs the round trips are shared among")  # fmt: skip
     p.add_argument("--messages", type=int, default=500_000, help="messages for throughput")
     p.add_argument("--peers", default=",".join(PEERS),
                    help=f"comma-separated, from {','.join(PEERS)}")  # fmt: skip
@@ -280,8 +298,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     unknown = [name for name in args.peers.split(",") if name not in PEERS]
     if unknown:
         p.error(f"unknown peer(s) {','.join(unknown)}; choose from {','.join(PEERS)}")
-    if min(args.roundtrips, args.messages) < 2 or args.warmup < 0:
-        p.error("--roundtrips and --messages need at least 2, --warmup at least 0")
+    if min(args.roundtrips, args.messages) < 2 or args.warmup < 0 or args.pairs < 1:
+        p.error("--roundtrips and --messages need at least 2, --warmup at least 0, --pairs 1")
+    if args.roundtrips < 2 * args.pairs:
+        p.error("--roundtrips needs at least 2 round trips per pair")
     return args
 
 

@@ -139,7 +139,8 @@ def tcp_ecb() -> Iterator[str]:
 def round_trip(label: str, args: argparse.Namespace) -> dict[str, Any]:
     spec = PeerSpec(label, roles.__name__, OPTIONS[label])
     started = time.monotonic()
-    rtts = sorted(t * 1e6 for t in tcp_compare.measure_rtt(spec, roles, args))
+    times = tcp_compare.measure_rtt(spec, roles, args, args.roundtrips, args.warmup)
+    rtts = sorted(t * 1e6 for t in times)
     pct = tcp_compare.percentile
     return {"p50_us": pct(rtts, 0.5), "p99_us": pct(rtts, 0.99),
             "roundtrips": len(rtts), "note": roles.describe(Link(HOST, (0,), OPTIONS[label])),
@@ -399,6 +400,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cpu", type=int, default=0, help="the CPU round trips are pinned to")
     p.add_argument("--time-limit", type=float, help="seconds before it gives up (600; quick 150)")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON here")
+    p.set_defaults(pairs=1)  # tcp_compare's process pairs: one, for every round trip here
     args = p.parse_args(argv)
     defaults = {"roundtrips": (5000, 2000), "warmup": (1000, 300), "messages": (300_000, 100_000),
                 "gateway_events": (100_000, 30_000), "refine": (3, 2),

@@ -104,3 +104,25 @@ def test_the_compiled_build_is_judged_on_its_own_beside_the_pure_one() -> None:
     assert targets["throughput >= 0.6x pyzmq, zero loss, compiled"] == (0.7, True)
     assert targets["lossless fan-out >= 0.5x pyzmq at 16"] == (0.3, False)
     assert targets["lossless fan-out >= 0.5x pyzmq at 16, compiled"] == (0.55, False)  # lost 3
+
+
+def test_round_trips_are_shared_among_process_pairs(tmp_path: Path) -> None:
+    """tcp_compare's round trip: each pair of processes its own address layout, the figure over
+    all of them; each pair's p50 is kept, and the report shows their span."""
+    out = tmp_path / "rtt.json"
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.tcp_compare", "--peers", "raw,ups", "--pairs", "3",
+         "--roundtrips", "61", "--warmup", "5", "--messages", "2000", "--json", str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    rows = {row["peer"]: row for row in json.loads(out.read_text())["rows"]}
+    for label in ("raw TCP", "UPS TCP, uvloop"):
+        row = rows[label]
+        assert not row["error"], row["error"]
+        assert row["roundtrips"] == 61  # 21 + 20 + 20, every one counted once
+        assert len(row["rtt_p50_pairs_us"]) == 3
+        low, high = min(row["rtt_p50_pairs_us"]), max(row["rtt_p50_pairs_us"])
+        assert low - 1e-9 <= row["rtt_p50_us"] <= high + 1e-9  # the pooled median lies between
+    table = _report.tables({"tcp_compare": {"rows": rows}})
+    (peers,) = [t for t in table if t[0].startswith("Round trip")]
+    assert "p50 of each pair" in peers[1]
