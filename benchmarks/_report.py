@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._plots import plots
+from benchmarks.tcp_compare import span
 
 #: the paper's section 6 (PERFORMANCE.md, table5.PAPER): Pentium III 800 MHz, RTLinux, C167
 PAPER: dict[str, Any] = {
@@ -95,13 +96,6 @@ def _x(a: float | None, b: float | None) -> str:
     return _f(_ratio(a, b), ".2f", "x")
 
 
-def _span(values: list[float] | None) -> str:
-    """Lowest-highest of several figures (e.g. each process pair's round trip), "-" if none."""
-    if not values:
-        return "-"
-    return f"{min(values):.1f}-{max(values):.1f}" if len(values) > 1 else f"{values[0]:.1f}"
-
-
 def _ups_row(r: dict[str, Any]) -> dict[str, Any]:
     rows = r.get("tcp_compare", {}).get("rows", {})
     return next((rows[k] for k in UPS_ROWS if rows.get(k, {}).get("rtt_p50_us")), {})
@@ -181,7 +175,7 @@ def tables(r: dict[str, Any]) -> list[Table]:
                 continue
             body.append([
                 label, _f(row.get("rtt_p50_us"), ".1f"), _f(row.get("rtt_p99_us"), ".1f"),
-                _span(row.get("rtt_p50_pairs_us")),
+                span(row.get("rtt_p50_pairs_us")),
                 _x(row.get("rtt_p50_us"), raw.get("rtt_p50_us")),
                 _x(ups.get("rtt_p50_us"), row.get("rtt_p50_us")),
                 _f(row.get("rate_msg_s"), ",.0f"),

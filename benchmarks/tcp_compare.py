@@ -219,6 +219,13 @@ def run_spec(spec: PeerSpec, args: argparse.Namespace) -> Row:
     return row
 
 
+def span(values: list[float] | None) -> str:
+    """Lowest-highest of several figures (each process pair's p50), "-" if there are none."""
+    if not values:
+        return "-"
+    return f"{min(values):.1f}-{max(values):.1f}" if len(values) > 1 else f"{values[0]:.1f}"
+
+
 def _fmt(value: float | None, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
@@ -254,8 +261,7 @@ def table(rows: list[Row]) -> str:
         else:
             loss = "0"
         ratio = _fmt(r.rtt_p50_x_raw, ".2f")
-        each = r.rtt_p50_pairs_us
-        pairs = f"{min(each):.1f}-{max(each):.1f}" if len(each) > 1 else _fmt(r.rtt_p50_us, ".1f")
+        pairs = span(r.rtt_p50_pairs_us)
         lines.append(
             f"{r.peer:<30} {_fmt(r.rtt_p50_us, '.1f'):>9} {_fmt(r.rtt_p99_us, '.1f'):>9} "
             f"{pairs:>11} {ratio:>6} {_fmt(r.rate_msg_s, ',.0f'):>11} {got:>17} {loss:>14}  "

@@ -30,12 +30,17 @@ frames = st.one_of(
 @given(st.lists(frames, max_size=8), st.data())
 def test_stream_round_trip_cut_anywhere(sent: list[w.Frame], data: st.DataObject) -> None:
     stream = b"".join(w.encode(f) for f in sent)
-    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=6)))
+    assert _fed_in_pieces(stream, data, max_cuts=6) == sent
+
+
+def _fed_in_pieces(stream: bytes, data: st.DataObject, max_cuts: int) -> list[w.Frame]:
+    """What one Decoder makes of ``stream`` fed in pieces cut where Hypothesis draws."""
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=max_cuts)))
     decoder = w.Decoder()
     got: list[w.Frame] = []
     for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
         got += decoder.feed(stream[a:b])
-    assert got == sent
+    return got
 
 
 def test_event_fast_path_is_the_same_bytes() -> None:
@@ -85,12 +90,7 @@ def test_runs_of_events_of_changing_sizes(sent: list[w.Frame], data: st.DataObje
     sizes, a size that changes, or a control frame in between, each comes out as it went in."""
     stream = b"".join(w.encode(f) for f in sent)
     assert w.Decoder().feed(stream) == sent
-    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=4)))
-    decoder = w.Decoder()
-    got: list[w.Frame] = []
-    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
-        got += decoder.feed(stream[a:b])
-    assert got == sent
+    assert _fed_in_pieces(stream, data, max_cuts=4) == sent
 
 
 @given(st.binary(max_size=64))

@@ -31,7 +31,6 @@ DEFAULT_MAX_FRAME = MAX_DATA + 18  #: ... in the longest body a receiver accepts
     _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
     _STATUS_REQUEST, _STATUS, _START, _PUBLISHERS, _REFUSED,
 ) = range(14)  # fmt: skip
-_EVENT_KIND: Final = 1  # _EVENT, as a constant the compiled build inlines
 _HEAD = struct.Struct(">I")
 _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, seq
 #: a whole Event frame, by its data size up to 256 bytes: header, kind, priority, uid, seq, data
@@ -282,7 +281,7 @@ def parse(
     ``DecodeError`` as ``Decoder.feed`` does; frames before the bad one have been handed over.
     """
     view = memoryview(buf)
-    unpack_head = _HEAD.unpack_from
+    unpack_head, event = _HEAD.unpack_from, _EVENT  # locals: no lookup by name per frame
     # A stream's events are mostly of one size: the Struct of a whole Event frame of the last
     # size seen (data included, while small) decodes the next one in a single call. It reads
     # the fields at the same offsets whatever the size, so if the frame turns out to be of
@@ -313,7 +312,7 @@ def parse(
             if end - start < length:
                 break
             pos = start + length
-            if kind == _EVENT_KIND and length >= 18:
+            if kind == event and length >= 18:
                 if length != 18 + len(data):  # another size than the last event's
                     data = bytes(view[start + 18 : pos])
                     if length - 18 < len(_WHOLE):
