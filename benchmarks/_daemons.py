@@ -82,7 +82,7 @@ def _settled(pid: int) -> float:
 def daemon_rss() -> dict[str, float]:
     """MB of RSS: the TCP-ECB, the CAN-ECB, the gateway (hosting its CAN-ECB), an idle TCP
     node, and a bare interpreter (the floor)."""
-    ups = [sys.executable, "-m", "ups.cli"]
+    ups = [sys.executable, "-m", "upscli"]
     port = free_port()
     address = f"127.0.0.1:{port}"
     bus = f"virtual:bench-rss-{os.getpid()}"

@@ -138,7 +138,7 @@ def describe(link: Link) -> str:
 def service(link: Link, pin: int | None) -> Iterator[None]:
     """``ups zenoh-router`` on ``link.ports[0]`` (every thread pinned to ``pin``), stopped
     after by its PID."""
-    cmd = [sys.executable, "-m", "ups.cli", "zenoh-router", "--listen", endpoint_of(link)]
+    cmd = [sys.executable, "-m", "upscli", "zenoh-router", "--listen", endpoint_of(link)]
     with process(cmd, "Zenoh router") as router:
         if pin is not None:
             set_affinity(router.pid, {pin})

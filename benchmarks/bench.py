@@ -222,7 +222,7 @@ def startup(quick: bool) -> dict[str, float]:
     """``ups --help`` against ``python -c pass``: medians of fresh interpreters, alternated."""
     runs = 11 if quick else 21
     script = Path(sys.executable).with_name("ups")  # what a user types
-    ups = [str(script), "--help"] if script.exists() else [sys.executable, "-m", "ups.cli", "-h"]
+    ups = [str(script), "--help"] if script.exists() else [sys.executable, "-m", "upscli", "-h"]
     times: dict[str, list[float]] = {"bare": [], "ups": []}
     for _ in range(runs):
         for key, cmd in (("bare", [sys.executable, "-c", "pass"]), ("ups", ups)):

@@ -42,7 +42,7 @@ _KEYS = ("min", "avg", "p50", "p99", "max")
 
 def publisher(bus: str, count: int, rate: float) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "ups.cli", "pub", "bench/latency", "01", "--can", bus,
+        [sys.executable, "-m", "upscli", "pub", "bench/latency", "01", "--can", bus,
          "--count", str(count), "--rate", str(rate), "--node-id", "0xBE7C4"],
         stdin=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip

@@ -96,7 +96,7 @@ def _ups_source(
 def ups(subscribers: int, count: int, compiled: str | None = None) -> dict[str, Any]:
     """UPS as installed, or (``compiled``: the directory of the compiled copy) compiled."""
     address = f"{HOST}:{free_port()}"
-    cmd = [sys.executable, "-m", "ups.cli", "broker", "--listen", address, "--recovery", "0"]
+    cmd = [sys.executable, "-m", "upscli", "broker", "--listen", address, "--recovery", "0"]
     with process(cmd, "TCP-ECB on"):
         return _measure(_ups_sink, _ups_source, address, subscribers, count, (compiled,))
 

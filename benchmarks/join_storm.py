@@ -256,7 +256,7 @@ def storm(bus: str, n: int, repeat: int, seed: int, args: argparse.Namespace) ->
         try:
             ecb = Child(
                 "can-broker",
-                ["-m", "ups.cli", "can-broker", "--can", bus, "--db", str(Path(tmp) / "ecb.db")],
+                ["-m", "upscli", "can-broker", "--can", bus, "--db", str(Path(tmp) / "ecb.db")],
             )
             children.append(ecb)
             if not ecb.ready.wait(20):

@@ -586,7 +586,7 @@ def role_argv(role: str, cfg: dict[str, Any], netns: str | None = None) -> list[
 
 
 def ups_argv(*args: str, netns: str | None = None) -> list[str]:
-    argv = [sys.executable, "-m", "ups.cli", *args]
+    argv = [sys.executable, "-m", "upscli", *args]
     return ["ip", "netns", "exec", netns, *argv] if netns else argv
 
 

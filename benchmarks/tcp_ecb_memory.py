@@ -33,7 +33,7 @@ def start_broker(log: Path) -> tuple[subprocess.Popen[bytes], str]:
     """``ups broker`` on a free loopback port, its log in ``log``; returns it and its address."""
     with log.open("wb") as out:
         broker = subprocess.Popen(
-            [sys.executable, "-m", "ups.cli", "broker", "--listen", "127.0.0.1:0",
+            [sys.executable, "-m", "upscli", "broker", "--listen", "127.0.0.1:0",
              "--recovery", "0"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=out,
         )  # fmt: skip

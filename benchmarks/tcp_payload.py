@@ -168,7 +168,7 @@ def ups_tcp(size: int, count: int) -> dict[str, Any]:
     cmd = [
         sys.executable,
         "-m",
-        "ups.cli",
+        "upscli",
         "broker",
         "--listen",
         f"{HOST}:{port}",

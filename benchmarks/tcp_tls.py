@@ -28,7 +28,7 @@ from ups import Node, Tls
 
 def make_fleet(folder: Path) -> None:
     for args in (["ca", str(folder)], *(["issue", str(folder), n] for n in ("broker", "a", "b"))):
-        subprocess.run([sys.executable, "-m", "ups.cli", "certs", *args], check=True,
+        subprocess.run([sys.executable, "-m", "upscli", "certs", *args], check=True,
                        capture_output=True)  # fmt: skip
 
 

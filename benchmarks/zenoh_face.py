@@ -119,7 +119,7 @@ def children(*specs: tuple[str, dict[str, Any]]) -> Iterator[list[StepChild]]:
 def router() -> Iterator[str]:
     """A ``ups zenoh-router`` process on a free port; its endpoint."""
     endpoint = f"tcp/{HOST}:{free_port()}"
-    with process([sys.executable, "-m", "ups.cli", "zenoh-router", "--listen", endpoint],
+    with process([sys.executable, "-m", "upscli", "zenoh-router", "--listen", endpoint],
                  "Zenoh router"):  # fmt: skip
         yield endpoint
 
@@ -128,7 +128,7 @@ def router() -> Iterator[str]:
 def tcp_ecb() -> Iterator[str]:
     """A TCP-ECB process on a free port; its address."""
     address = f"{HOST}:{free_port()}"
-    cmd = [sys.executable, "-m", "ups.cli", "broker", "--listen", address, "--recovery", "0"]
+    cmd = [sys.executable, "-m", "upscli", "broker", "--listen", address, "--recovery", "0"]
     with process(cmd, "TCP-ECB on"):
         yield address
 

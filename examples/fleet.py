@@ -46,9 +46,9 @@ async def run_fleet(bus: str, listen: str, duration: float | None) -> int:
             raise UpsError(f"{name} did not start within {START_TIMEOUT:.0f} s") from None
 
     try:
-        await spawn("broker", "-m", "ups.cli", "broker", "--listen", listen,
+        await spawn("broker", "-m", "upscli", "broker", "--listen", listen,
                     "--recovery", "0", ready="TCP-ECB on")  # fmt: skip
-        await spawn("gateway", "-m", "ups.cli", "gateway", "--can", bus, "--broker", listen,
+        await spawn("gateway", "-m", "upscli", "gateway", "--can", bus, "--broker", listen,
                     "--node-id", "0x0d3e00ff",
                     ready="gateway .* between")  # fmt: skip
         for i, part in enumerate(PARTS):

@@ -32,7 +32,7 @@ class Proc:
         adds to the environment."""
         self.args = args
         self.popen = subprocess.Popen(
-            [*prefix, sys.executable, "-m", "ups.cli", *args],
+            [*prefix, sys.executable, "-m", "upscli", *args],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

@@ -20,7 +20,7 @@ REQUIRED = ("local_notify_us", "publish_latency_us", "rtt_us", "throughput_msgs_
 
 def test_ups_bench_has_its_command_line() -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "ups.cli", "bench", "--help"], cwd=ROOT, capture_output=True,
+        [sys.executable, "-m", "upscli", "bench", "--help"], cwd=ROOT, capture_output=True,
         text=True, timeout=60, check=True,
     )  # fmt: skip
     for option in ("--quick", "--json", "--report"):

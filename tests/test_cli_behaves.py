@@ -97,7 +97,7 @@ def test_the_environment_names_the_network_and_a_closed_pipe_stops_quietly() -> 
     env = {"UPS_BROKER": address, "PYTHONPATH": str(ROOT)}
     with broker, Proc("pub", "env/x", "01", "--count", "100000", "--rate", "2000", env=env):
         reader = subprocess.Popen(  # no --broker: the environment's
-            f"{sys.executable} -m ups.cli sub env/x --json | head -n 1",
+            f"{sys.executable} -m upscli sub env/x --json | head -n 1",
             shell=True, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True,
         )  # fmt: skip
@@ -138,7 +138,7 @@ def _options(parser: argparse.ArgumentParser) -> dict[str, list[tuple[str, ...]]
 def test_each_command_is_built_alone_as_it_is_in_the_whole_command_line() -> None:
     """`ups CMD` builds only CMD's options (the others are listed, not built): what it builds
     must be what the whole command line (`ups completion`) has for CMD."""
-    from ups.cli import _parser
+    from upscli import _parser
 
     whole = _options(_parser())
     commands = [name.split()[1] for name in whole if name.count(" ") == 1]

@@ -23,8 +23,8 @@ def loaded_after(code: str) -> set[str]:
 
 
 def test_ups_help_loads_nothing_heavy() -> None:
-    code = "import contextlib, io\nfrom ups import cli\nwith contextlib.suppress(SystemExit), "
-    code += "contextlib.redirect_stdout(io.StringIO()):\n    cli.main(['--help'])"
+    code = "import contextlib, io\nimport upscli\nwith contextlib.suppress(SystemExit), "
+    code += "contextlib.redirect_stdout(io.StringIO()):\n    upscli.main(['--help'])"
     assert loaded_after(code) == set()
 
 

@@ -16,7 +16,7 @@ import pytest
 from ups import _canproto as p
 from ups import _cantransfer as t
 from ups._canlink import open_bus
-from ups._clipubsub import EXIT_LOST
+from upscli._pubsub import EXIT_LOST
 
 from .procs import Proc, private_multicast_bus, start_tcp_broker, vcan_bus
 from .test_gateway_processes import forwarding, start_gateway

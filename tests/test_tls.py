@@ -20,7 +20,7 @@ from .procs import ROOT, Proc
 
 def certs(folder: Path, *args: str) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "ups.cli", "certs", *args], cwd=ROOT, capture_output=True,
+        [sys.executable, "-m", "upscli", "certs", *args], cwd=ROOT, capture_output=True,
         text=True, check=False, timeout=60,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr

@@ -22,7 +22,7 @@ RECIPE = ROOT / "examples" / "zenoh"
 
 def certs(folder: Path, *names: str) -> None:
     def ups(*args: str) -> None:
-        subprocess.run([sys.executable, "-m", "ups.cli", "certs", *args], check=True, cwd=folder,
+        subprocess.run([sys.executable, "-m", "upscli", "certs", *args], check=True, cwd=folder,
                        capture_output=True)  # fmt: skip
 
     ups("ca", "pki")

@@ -1,6 +1,6 @@
 """UPS itself on TCP/IP: ``ups.Node`` publishers and subscribers, a TCP-ECB per measurement.
 
-The harness starts a TCP-ECB (``python -m ups.cli broker --recovery 0``) on
+The harness starts a TCP-ECB (``python -m upscli broker --recovery 0``) on
 ``127.0.0.1:ports[0]`` for each measurement (pinned with the round trip's processes; it is
 not on the data path: it only tells publishers who subscribes) and stops it by PID
 afterwards. Each role is one ``Node``; events go from the publishing node straight to the
@@ -85,7 +85,7 @@ def describe(link: Link) -> str:
 def service(link: Link, pin: int | None) -> Iterator[None]:
     """A TCP-ECB child process on ``link.ports[0]`` (pinned to ``pin``), stopped after."""
     listen = f"{link.host}:{link.ports[0]}"
-    cmd = [sys.executable, "-m", "ups.cli", "broker", "--listen", listen, "--recovery", "0"]
+    cmd = [sys.executable, "-m", "upscli", "broker", "--listen", listen, "--recovery", "0"]
     preexec = (lambda: os.sched_setaffinity(0, {pin})) if pin is not None else None
     with tempfile.TemporaryDirectory(prefix="bench-ups-ecb-") as tmp:
         log = Path(tmp, "ecb.log")

@@ -8,7 +8,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ._cliargs import (
+from ups._cliargs import (
     add_catalog,
     add_node_options,
     channel_arg,
@@ -23,7 +23,7 @@ from ._cliargs import (
 )
 
 if TYPE_CHECKING:
-    from ._message import Message
+    from ups._message import Message
 
 EXIT_TIMEOUT = 1  #: ups sub saw fewer events than --count before --timeout
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
@@ -73,7 +73,7 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
 def _run_pub(args: argparse.Namespace) -> int:
     import asyncio
 
-    from ._catalog import load_catalog
+    from ups._catalog import load_catalog
 
     catalog = load_catalog(args.catalog) if "=" in args.data else None
     args.data = catalog.payload(args.channel, args.data) if catalog else hex_arg(args.data)

@@ -7,8 +7,8 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from ._cliargs import add_catalog, add_network, positive_float, run_until_signal
-from ._errors import ConfigError
+from ups._cliargs import add_catalog, add_network, positive_float, run_until_signal
+from ups._errors import ConfigError
 
 OCU_HELP = "a small JAUS operator control unit: discover, query, control, send, watch, waypoints"
 
@@ -113,7 +113,7 @@ def _run_jaus(args: argparse.Namespace) -> int:
         from jaus._serve import serve
 
         return run_until_signal(serve(args, bridge))
-    from ._catalog import Catalog
+    from ups._catalog import Catalog
 
     catalog = Catalog.load(args.catalog) if args.catalog else None
     bridge = load_mapping(args.file, catalog)

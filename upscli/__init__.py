@@ -1,7 +1,9 @@
 """The ``ups`` command: daemons, publishing and subscribing from a shell, the demo.
 
-This module sits above every package of the project: it is the one place in ``ups`` that
-imports ``broker``, ``gateway`` and ``examples`` (lazily, per subcommand).
+This package sits above every other package of the project: the library (``ups``) knows
+nothing of it, nor of ``broker``, ``gateway``, ``jaus``, ``examples`` and ``benchmarks``,
+which it imports lazily, per subcommand, so that each command pays only for its own imports.
+``ups`` is ``main`` (the console script); ``python -m upscli`` runs it too.
 """
 
 from __future__ import annotations
@@ -14,9 +16,9 @@ import re
 import sys
 from typing import Any
 
-from . import tools
-from ._address import DEFAULT_PORT
-from ._cliargs import (
+from ups import tools
+from ups._address import DEFAULT_PORT
+from ups._cliargs import (
     add_can,
     add_tls,
     add_zenoh,
@@ -27,7 +29,7 @@ from ._cliargs import (
     run_until_signal,
     tls_of,
 )
-from ._errors import ConfigError, UpsError
+from ups._errors import ConfigError, UpsError
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
@@ -94,7 +96,9 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     """The command line; with ``only``, every command is listed but only that one's options
     are built (the others are not needed to parse, and ``ups analyze``'s need the real-time
     analysis, the heaviest import)."""
-    parser = argparse.ArgumentParser(prog="ups", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="ups", description=__doc__.splitlines()[0].replace("``", "")
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail")
     parser.add_argument("--version", action=_Version)
     common = argparse.ArgumentParser(add_help=False)  # -v after the command works too
@@ -223,9 +227,9 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.set_defaults(run=_run_certs)
 
-    from . import _clipubsub
+    from . import _pubsub
 
-    _clipubsub.add_commands(command)
+    _pubsub.add_commands(command)
 
     for name in tools.COMMANDS:  # the operators' tools, one module each
         module = importlib.import_module(f"ups.tools.{name}")
@@ -233,13 +237,13 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         module.add_arguments(cmd)
         cmd.set_defaults(run=module.run)
 
-    from . import _clijaus
+    from . import _jaus
 
-    _clijaus.add_commands(command)
+    _jaus.add_commands(command)
 
     cmd = command("analyze", help="CAN response-time analysis of a message set")
     if only in (None, "analyze"):
-        from .rt import cli as rt_cli
+        from ups.rt import cli as rt_cli
 
         rt_cli.add_arguments(cmd)
         cmd.set_defaults(run=rt_cli.run)
@@ -383,7 +387,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
 
 
 def _run_certs(args: argparse.Namespace) -> int:
-    from ._tls import issue, make_ca
+    from ups._tls import issue, make_ca
 
     if args.certs_command == "ca":
         crt, key = make_ca(args.dir)
@@ -402,11 +406,11 @@ def _run_status(args: argparse.Namespace) -> int:
     async def run() -> int:
         info: Any
         if args.address is None:
-            from ._zenohface import query_status as query_zenoh
+            from ups._zenohface import query_status as query_zenoh
 
             info = await query_zenoh(args.zenoh or "", args.zenoh_config, args.timeout)
         else:
-            from ._tcpface import query_status
+            from ups._tcpface import query_status
 
             info = await query_status(args.address, args.timeout, tls_of(args))
         print(json.dumps(info, indent=2))
@@ -460,8 +464,3 @@ def _run_demo(args: argparse.Namespace) -> int:
     from examples.fleet import run_fleet
 
     return run_until_signal(run_fleet(args.can, args.listen, args.duration))
-
-
-if __name__ == "__main__":
-    with contextlib.suppress(BrokenPipeError):
-        sys.exit(main())
