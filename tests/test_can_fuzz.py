@@ -336,14 +336,15 @@ async def test_a_contradiction_right_after_the_answer_to_a_rebind_is_not_lost(
             assert isinstance(face, CanFace)
             ecb.close()
             _send(shared, p.Bind(etag, 0xBAD))  # contradicts x: the publisher asks again
-            await eventually(lambda: uid in face._pending)
+            await eventually(lambda: uid in face.bindings.pending)
             _send(shared, p.Bind(etag, uid))  # the answer
             _send(shared, p.Bind(etag, 0xBAD2))  # and at once another contradiction
             await asyncio.sleep(0.2)
             async with running_ecb(bus, db, recovery=0.1):  # a CAN-ECB serves again
                 got = await _gets_one(pub, sub_node, "x")
                 assert got, (
-                    f"x never bound again: bound={face._bound} pending={list(face._pending)} "
+                    f"x never bound again: bound={face._bound} "
+                    f"pending={list(face.bindings.pending)} "
                     f"rebinding={list(face._rebinding)} stats={pub.stats()}"
                 )
     finally:
@@ -407,7 +408,7 @@ async def test_a_rebind_never_takes_an_etag_heard_bound_to_another_channel(
             ecb.close()
             held.reading.clear()  # pub_c is busy for a moment
             _send(raw_bus, p.Bind(etag_a, 0xBAD))  # contradicts a: q asks again
-            await eventually(lambda: uid_a in face._pending)
+            await eventually(lambda: uid_a in face.bindings.pending)
             _send(raw_bus, p.Bind(etag_c, uid_a))  # stray: a, on c's etag
             with contextlib.suppress(AssertionError):
                 await eventually(lambda: etag_c in face._rx, timeout=0.5)
@@ -445,7 +446,7 @@ async def test_a_stray_refusal_does_not_end_a_rebind_for_good(
         assert isinstance(face, CanFace) and face.txnode is not None
         ecb.close()  # away for a moment: nothing answers the re-binding before the refusal
         _send(raw_bus, p.Bind(etag, 0xBAD))
-        await eventually(lambda: uid in face._pending)
+        await eventually(lambda: uid in face.bindings.pending)
         _send(raw_bus, p.EtagsFull(uid) if answer == "EtagsFull" else p.Limit(face.txnode, uid))
         await asyncio.sleep(0.2)
         async with running_ecb(bus, db, recovery=0.1):  # a CAN-ECB serves again

@@ -1,4 +1,5 @@
-"""The CAN face of a node: joining the bus, binding channels to etags, sending and filtering.
+"""The CAN face of a node: joining the bus (``_canjoin``), binding channels to etags (its table
+in ``_canbinding``), sending, receiving and filtering.
 
 See docs/protocol.md for the frames. A node relies only on bindings the CAN-ECB gave in answer
 to its own request. Any Bind that contradicts one of them (another UID on the etag, or another
@@ -18,6 +19,7 @@ import can
 
 from . import _canproto as p
 from . import _cantransfer as t
+from ._canbinding import RETRY_FIRST, SETTLE, Bindings
 from ._canjoin import Joiner
 from ._canlink import CanLink
 from ._canstreams import declaration, refusal
@@ -32,19 +34,14 @@ from ._face import ChannelState, Deliver, FaceContext
 
 log = logging.getLogger("ups.can")
 
-_RETRY_FIRST = 0.05  # seconds before asking the CAN-ECB again
-_RETRY_MAX = 1.0
-_BIND_TIMEOUT = 5.0
-_SETTLE = 0.05  # an answer to a re-binding must stand this long before it is relied on
 _REBIND_MAX = 5.0  # a refused re-binding is asked again at most this far apart
-_IN_FLIGHT = 128  # binding requests a node has outstanding at once (the rest wait their turn)
 _ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
 _HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
 _LOG_GAP = 10.0
 #: a publisher waits this long before its first event on a channel of a larger size class (its
 #: binding may have just moved the channel there): the subscribers, who see their binding
 #: contradicted, bind it again and let the answer settle meanwhile, and receive that event
-_GROW_PAUSE = 3 * _SETTLE
+_GROW_PAUSE = 3 * SETTLE
 _STAGE_MASK = p.make_id(0xFF, 0x7F, 0x3000)
 _STAGE_ID = p.make_id(p.CONFIG_PRIORITY, p.MGMT_TXNODE, 0)
 _MGMT_FILTER = {
@@ -116,18 +113,9 @@ class CanFace:
         self._expiry: asyncio.TimerHandle | None = None
         self._tids: dict[int, int] = {}  # etag -> transfer id of this node's next event
         self._growing: dict[int, asyncio.Future[None]] = {}  # uid -> its move to a larger class
-        self._min_class: dict[int, int] = {}  # uid -> the size class its pending request needs
-        self._bound: dict[int, int] = {}  # uid -> etag, confirmed to this node by the CAN-ECB
-        self._uid_at: dict[int, int] = {}  # etag -> uid, the same, inverted
-        self._heard: dict[int, int] = {}  # etag -> uid, every Bind heard (for the counters)
         self._rx: dict[int, ChannelState] = {}  # etag -> channel with local subscribers
         self._suspended: set[int] = set()  # etags received but no longer relied on: counted
         self._wants_rx: dict[int, ChannelState] = {}  # uid -> subscribed channel being bound
-        #: uid being bound again -> the etag an answer gave, adopted if nothing contradicts it
-        #: within _SETTLE (the CAN-ECB corrects a forged Bind at once)
-        self._candidates: dict[int, tuple[int, asyncio.TimerHandle]] = {}
-        self._pending: dict[int, asyncio.Future[int]] = {}  # uid -> etag awaited
-        self._in_flight = asyncio.Semaphore(_IN_FLIGHT)
         self._rebinding: dict[int, asyncio.Task[None]] = {}
         self._announcer: asyncio.Task[None] | None = None
         self._last_announce = -_HELLO_GAP
@@ -139,6 +127,14 @@ class CanFace:
              "rebinds", "moves", "unbound_dropped", "task_errors", "too_large", "refused_large"),
             0,
         )  # fmt: skip
+        self.bindings = Bindings(
+            send=self._send, txnode=self._my_txnode, bus=str(self.link.channel_info),
+            counters=self.counters, warn=self._warn, on_adopted=self._adopted,
+            on_contradicted=self._suspend, rebinding=self._rebinding,
+        )  # fmt: skip
+        self._bound = self.bindings.bound  # uid -> etag, confirmed to this node by the CAN-ECB
+        self._uid_at = self.bindings.uid_at  # etag -> uid, the same, inverted
+        self._heard = self.bindings.heard  # etag -> uid, every Bind heard (for the counters)
 
     # --- life cycle ------------------------------------------------------------------------
 
@@ -156,14 +152,12 @@ class CanFace:
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        for fut in [*self._pending.values(), *self._verdicts.values()]:
+        for fut in self._verdicts.values():
             fut.cancel()
-        for _, timer in self._candidates.values():
-            timer.cancel()
+        self.bindings.close()
         if self._expiry is not None:
             self._expiry.cancel()
         await self.link.flush()  # the frames of transfers still waiting for the interface
-        self._candidates.clear()
         self.link.remove_handler(self._handler)
         if self._owns_link:
             self.link.close()
@@ -194,7 +188,7 @@ class CanFace:
                     if subscribe
                     else (p.PUB_BIND, t.class_for(min(size, t.MAX_EVENT)))
                 )
-                etag = await self._request_etag(kind, uid, cls)
+                etag = await self.bindings.request(kind, uid, cls)
             finally:
                 self._wants_rx.pop(uid, None)
         state.max_size = t.max_size(etag)
@@ -233,16 +227,15 @@ class CanFace:
                 f"{state.channel} would carry events up to {t.CLASS_MAX[cls]} bytes; this node "
                 f"subscribes to it and buffers at most {self._max_event} (max_event)"
             )
-        old = self._bound.pop(uid, None)
+        old = self.bindings.forget(uid)
         if old is not None:
-            del self._uid_at[old]
             if self._rx.pop(old, None) is not None:
                 self._suspended.add(old)
             self._update_filters()
         if state.subs:
             self._wants_rx[uid] = state
         try:
-            etag = await self._request_etag(p.PUB_BIND, uid, cls)
+            etag = await self.bindings.request(p.PUB_BIND, uid, cls)
         finally:
             self._wants_rx.pop(uid, None)
         state.max_size = t.max_size(etag)
@@ -377,15 +370,16 @@ class CanFace:
             log.debug("skipped malformed management frame: %s", exc)
             return
         if isinstance(msg, p.Bind):
-            self._on_bind(msg.etag, msg.uid)
+            self.bindings.on_bind(msg.etag, msg.uid)
         elif self.txnode is None:
             self._joiner.on_frame(msg)
         elif isinstance(msg, p.EtagsFull):
-            self._fail(msg.uid, Exhausted(f"the CAN-ECB has no etag left for {msg.uid:#018x}"))
+            no_etag = Exhausted(f"the CAN-ECB has no etag left for {msg.uid:#018x}")
+            self.bindings.fail(msg.uid, no_etag)
         elif isinstance(msg, p.Limit) and msg.txnode == self.txnode:
-            self._fail(msg.uid, Exhausted("the CAN-ECB allows this node no more channels"))
+            self.bindings.fail(msg.uid, Exhausted("the CAN-ECB allows this node no more channels"))
         elif isinstance(msg, p.Failed):
-            self._fail(
+            self.bindings.fail(
                 msg.value,
                 BrokerUnavailable(
                     f"the CAN-ECB of {self.link.channel_info} could not store the binding of "
@@ -408,71 +402,13 @@ class CanFace:
             self._last_announce = -_HELLO_GAP
             self._announce_all()  # our channels, under the new TxNode
 
-    def _on_bind(self, etag: int, uid: int) -> None:
-        heard = self._heard.get(etag)
-        self._heard[etag] = uid
-        self._spoil(etag, uid)  # a candidate this Bind contradicts is not adopted
-        old_uid = self._uid_at.get(etag)
-        old_etag = self._bound.get(uid)
-        if (old_uid is not None and old_uid != uid) or (old_etag is not None and old_etag != etag):
-            if old_uid is None and old_etag is not None and _grows(old_etag, etag):
-                self.counters["moves"] += 1  # a channel moved to a larger size class: expected
-                log.info("%016x moved to etag %#x (size class %d): binding it again", uid, etag,
-                         t.size_class(etag))  # fmt: skip
-            else:
-                self.counters["rebinds"] += 1
-                self._warn("rebind", "Bind(%#x, %016x) contradicts this node's bindings: "
-                           "binding the channels involved again", etag, uid)  # fmt: skip
-            for involved in {old_uid, uid if old_etag is not None else None}:
-                if involved is not None:
-                    self._suspend(involved)
-            return
-        fut = self._pending.get(uid)
-        if fut is not None and not fut.done():
-            if t.size_class(etag) < self._min_class.get(uid, 0):
-                return  # an answer to an earlier request, for a smaller class: ours follows
-            if heard is not None and heard != uid:  # last heard as another channel's etag:
-                self.counters["rebinds"] += 1  # doubt it; adopt it when it comes again
-                self._warn("doubt", "Bind(%#x, %016x) names an etag last heard bound to "
-                           "%016x: asking again", etag, uid, heard)  # fmt: skip
-                return
-            if uid in self._rebinding:  # after a contradiction: adopt only an answer that no
-                if uid not in self._candidates:  # Bind contradicts for a moment
-                    loop = asyncio.get_running_loop()
-                    timer = loop.call_later(_SETTLE, self._settled, uid, etag)
-                    self._candidates[uid] = (etag, timer)
-                return
-            self._adopt(etag, uid)
+    # --- re-binding after a contradiction ---------------------------------------------------
 
-    def _adopt(self, etag: int, uid: int) -> None:
-        fut = self._pending.get(uid)
-        if fut is None or fut.done() or self._uid_at.get(etag, uid) != uid:
-            return
-        self._bound[uid] = etag
-        self._uid_at[etag] = uid
+    def _adopted(self, etag: int, uid: int) -> None:
+        """``uid`` is bound to ``etag`` now: receive it, if a subscription waits for that."""
         state = self._wants_rx.get(uid)
         if state is not None:
             self._receive(etag, state)
-        fut.set_result(etag)
-
-    def _spoil(self, etag: int, uid: int) -> None:
-        """Drop the candidates a Bind(etag, uid) contradicts."""
-        for other, (candidate, timer) in list(self._candidates.items()):
-            if (candidate == etag) != (other == uid):
-                timer.cancel()
-                del self._candidates[other]
-
-    def _settled(self, uid: int, etag: int) -> None:
-        candidate = self._candidates.pop(uid, None)
-        if candidate is not None and candidate[0] == etag:
-            self._adopt(etag, uid)
-
-    def _fail(self, uid: int, exc: Exception) -> None:
-        fut = self._pending.pop(uid, None)
-        if fut is not None and not fut.done():
-            fut.set_exception(exc)
-
-    # --- re-binding after a contradiction ---------------------------------------------------
 
     def _receive(self, etag: int, state: ChannelState) -> None:
         self._rx[etag] = state
@@ -482,11 +418,9 @@ class CanFace:
     def _suspend(self, uid: int) -> None:
         """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again.
         Frames still arriving on its old etag are counted (``unbound_dropped``)."""
-        etag = self._bound.pop(uid, None)
-        if etag is not None:
-            self._uid_at.pop(etag, None)
-            if self._rx.pop(etag, None) is not None:
-                self._suspended.add(etag)
+        etag = self.bindings.forget(uid)
+        if etag is not None and self._rx.pop(etag, None) is not None:
+            self._suspended.add(etag)
         state = self._channels.get(uid)
         running = self._rebinding.get(uid)
         if state is None or not (state.subs or state.published):
@@ -500,7 +434,7 @@ class CanFace:
     async def _rebind(self, uid: int, state: ChannelState) -> None:
         """Bind ``uid`` again until it holds: refusals may be stray or forged frames too, and
         another contradiction may come right after the answer."""
-        delay = _RETRY_FIRST
+        delay = RETRY_FIRST
         etag: int | None = None
         while etag is None or self._bound.get(uid) != etag:
             if not (state.subs or state.published):
@@ -508,7 +442,7 @@ class CanFace:
             if state.subs:
                 self._wants_rx[uid] = state
             try:
-                etag = await self._request_etag(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
+                etag = await self.bindings.request(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
             except (BrokerUnavailable, Exhausted) as exc:
                 etag = None
                 self._warn("rebind-wait", "still binding %016x again: %s", uid, exc)
@@ -551,7 +485,7 @@ class CanFace:
         fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
         msg = p.Declare(self._my_txnode(), etag, *fields)
         try:
-            priority = await self._ask(msg, fut, f"admit {state.channel}")
+            priority = await self.bindings.ask(msg, fut, f"admit {state.channel}")
         except BaseException:  # refused, unanswered or cancelled: nothing to re-announce
             self._declared.pop(uid, None)
             raise
@@ -570,44 +504,7 @@ class CanFace:
         elif fut is not None and not fut.done():
             fut.set_exception(refusal(msg, uid, self._heard))
 
-    # --- binding ---------------------------------------------------------------------------
-
-    async def _request_etag(self, kind: int, uid: int, size_class: int = 0) -> int:
-        fut = self._pending.get(uid)
-        if fut is None:
-            fut = self._pending[uid] = asyncio.get_running_loop().create_future()
-        if size_class:
-            self._min_class[uid] = max(size_class, self._min_class.get(uid, 0))
-        try:
-            async with self._in_flight:
-                if fut.done():  # answered while this request waited its turn
-                    return fut.result()
-                return await self._ask(
-                    p.Request(kind, self._my_txnode(), uid, size_class), fut, f"bind {uid:#018x}"
-                )
-        finally:
-            if self._pending.get(uid) is fut:
-                del self._pending[uid]
-                self._min_class.pop(uid, None)
-
-    async def _ask(self, msg: p.Management, fut: asyncio.Future[int], what: str) -> int:
-        """Send ``msg`` until ``fut`` has the CAN-ECB's answer: 50 ms, doubling, 5 s in all."""
-        delay = _RETRY_FIRST
-        waited = 0.0
-        while True:
-            self._send(msg)
-            try:
-                return await asyncio.wait_for(asyncio.shield(fut), delay)
-            except TimeoutError:
-                if fut.done():  # the answer was an error (BrokerUnavailable is a TimeoutError)
-                    return fut.result()
-                waited += delay
-                if waited >= _BIND_TIMEOUT:
-                    raise BrokerUnavailable(
-                        f"the CAN-ECB on {self.link.channel_info} did not {what} "
-                        f"within {_BIND_TIMEOUT:g} s"
-                    ) from None
-                delay = min(delay * 2, _RETRY_MAX)
+    # --- announcing ------------------------------------------------------------------------
 
     def _announce_all(self) -> None:
         """After a CAN-ECB's Hello: claim our TxNode and report every binding we hold, at most
@@ -671,9 +568,3 @@ class CanFace:
                 {"can_id": etag, "can_mask": p.ETAG_MASK, "extended": True} for etag in etags
             ]
         self.link.set_filters(self._handler, filters)
-
-
-def _grows(old_etag: int, etag: int) -> bool:
-    """A Bind moving a channel from ``old_etag`` to a larger size class (still a contradiction:
-    the node binds again, but it counts a move, not a rebind, and does not warn)."""
-    return t.size_class(etag) > t.size_class(old_etag)
