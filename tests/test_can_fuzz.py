@@ -377,7 +377,7 @@ class HeldBus(can.BusABC):
 async def test_a_rebind_never_takes_an_etag_heard_bound_to_another_channel(
     bus: str, tmp_path: Path, raw_bus: can.BusABC
 ) -> None:
-    """BUG: a wrong delivery (ups/_canface.py, CanFace._on_bind; docs/protocol.md, "A Bind
+    """BUG: a wrong delivery (ups/_canbinding.py, Bindings.on_bind; docs/protocol.md, "A Bind
     counts as the answer"). A node re-binding channel a takes any Bind that names a and does
     not contradict its own bindings as the answer, also Bind(etag of c, a) when it heard c
     bound to that etag before (``_heard``). Its subscription to a then receives c's events, also
