@@ -471,8 +471,8 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--child":
-        from benchmarks.table5 import _run_async
+        from benchmarks._table5_roles import run_async
 
-        _run_async(_echo(json.loads(sys.argv[2])))
+        run_async(_echo(json.loads(sys.argv[2])))
     else:
         sys.exit(main())
