@@ -6,15 +6,12 @@ Each one is started, waited for (its "ready" line, every wait bounded), given ti
 
 from __future__ import annotations
 
-import contextlib
 import os
-import socket
-import subprocess
 import sys
-import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
+
+from benchmarks._procs import free_port, process
 
 ROOT = Path(__file__).resolve().parents[1]
 START_TIMEOUT = 20.0
@@ -30,41 +27,12 @@ asyncio.run(main())
 """
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def rss_mb(pid: int) -> float:
     with open(f"/proc/{pid}/status") as status:
         for line in status:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     raise ValueError(f"no VmRSS for {pid}")
-
-
-@contextlib.contextmanager
-def process(cmd: list[str], ready: str) -> Iterator[subprocess.Popen[bytes]]:
-    """``cmd`` started with its stderr in a file, once it logged ``ready``; stopped after."""
-    with tempfile.TemporaryDirectory(prefix="ups-bench-") as tmp:
-        log = Path(tmp, "log")
-        with log.open("wb") as out:
-            proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
-        try:
-            deadline = time.monotonic() + START_TIMEOUT
-            while ready not in log.read_text(errors="replace"):
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError(f"{cmd[2:4]} did not start: {log.read_text()[-500:]}")
-                time.sleep(0.05)
-            yield proc
-        finally:
-            proc.terminate()
-            try:
-                proc.wait(5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
 
 
 def _settled(pid: int) -> float:

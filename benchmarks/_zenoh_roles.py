@@ -33,10 +33,9 @@ from collections.abc import Callable, Coroutine, Iterator
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
-from benchmarks._daemons import process
+from benchmarks._procs import process
 from benchmarks.peers import PROBE, STOP, Control, Link, seq
 from benchmarks.peers._common import probe_until_echoed
-from benchmarks.table5 import set_affinity
 
 if TYPE_CHECKING:
     from ups import Message, Node
@@ -139,9 +138,7 @@ def service(link: Link, pin: int | None) -> Iterator[None]:
     """``ups zenoh-router`` on ``link.ports[0]`` (every thread pinned to ``pin``), stopped
     after by its PID."""
     cmd = [sys.executable, "-m", "upscli", "zenoh-router", "--listen", endpoint_of(link)]
-    with process(cmd, "Zenoh router") as router:
-        if pin is not None:
-            set_affinity(router.pid, {pin})
+    with process(cmd, "Zenoh router", pin=pin):
         yield
 
 

@@ -22,7 +22,6 @@ import argparse
 import asyncio
 import json
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,6 +30,7 @@ from typing import Any
 
 import can
 
+from benchmarks._procs import Child
 from broker.can_ecb import CanEcb
 from ups import Node
 from ups._canlink import CanLink, open_bus
@@ -40,11 +40,12 @@ Summary = tuple[float, float, float, float, float]  # min, avg, p50, p99, max (Â
 _KEYS = ("min", "avg", "p50", "p99", "max")
 
 
-def publisher(bus: str, count: int, rate: float) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(
+def publisher(bus: str, count: int, rate: float) -> Child:
+    """``ups pub`` of ``count`` events at ``rate``/s; it ends by itself."""
+    return Child(
         [sys.executable, "-m", "upscli", "pub", "bench/latency", "01", "--can", bus,
          "--count", str(count), "--rate", str(rate), "--node-id", "0xBE7C4"],
-        stdin=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        "ups pub",
     )  # fmt: skip
 
 
@@ -62,8 +63,10 @@ async def ups_latency(bus: str, subscribers: int, count: int, rate: float) -> li
 
         tasks = [asyncio.create_task(consume(i)) for i in range(subscribers)]
         proc = publisher(bus, count, rate)
-        await asyncio.gather(*tasks)
-        await asyncio.to_thread(proc.wait)
+        try:
+            await asyncio.gather(*tasks)
+        finally:
+            await asyncio.to_thread(proc.finish, 30.0)
         assert node.stats()["dropped"] == 0
         return done
 
@@ -82,7 +85,7 @@ def raw_latency(bus: str, count: int, rate: float) -> list[float]:
             if frame.is_extended_id and (frame.arbitration_id & 0x3FFF) >= 0x10:
                 lat.append(now - frame.timestamp)
     finally:
-        proc.wait()
+        proc.finish(30.0)
         listener.shutdown()
     return lat
 

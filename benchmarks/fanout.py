@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import _compiled
-from benchmarks._daemons import free_port, process
+from benchmarks._procs import free_port, process
 
 HOST = "127.0.0.1"
 TIMEOUT = 120.0

@@ -53,7 +53,8 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks._jaus_ocu import Ocu, event_value, judp_ack, payload_of, ra33_ack
-from benchmarks.table5 import Child, check_private_namespace, free_udp_port, ups_argv
+from benchmarks._procs import Child
+from benchmarks.table5 import check_private_namespace, free_udp_port, ups_argv
 
 #: Table 2 of paper 000, one way in ms: (minimum, maximum, mean, standard deviation)
 PAPER_TABLE2_MS = {

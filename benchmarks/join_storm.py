@@ -39,15 +39,15 @@ import time
 from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import can
 
+from benchmarks._procs import ROOT, Child
 from ups import Node
 from ups._canlink import CanLink, open_bus
 from ups._canproto import is_management
 
-ROOT = Path(__file__).resolve().parent.parent
 ECB_READY = "CAN-ECB on"
 GRACE = 10.0  # seconds past the timeout before a silent worker is given up and stopped
 
@@ -100,64 +100,6 @@ async def worker(index: int, bus: str, t0: float, timeout: float, ids: list[int]
 
 
 # --- the benchmark process -------------------------------------------------------------------
-
-
-class Child:
-    """A child process; its stdout lines (JSON) and stderr lines are collected as they come."""
-
-    def __init__(self, name: str, args: list[str], stdin: int | None = None) -> None:
-        self.name = name
-        self.popen = subprocess.Popen(
-            [sys.executable, *args], cwd=ROOT,
-            stdin=subprocess.DEVNULL if stdin is None else stdin,
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        self.records: queue.Queue[dict[str, Any] | None] = queue.Queue()
-        self.stderr: list[str] = []
-        self.ready = threading.Event()  # the CAN-ECB said it serves the bus
-        assert self.popen.stdout is not None and self.popen.stderr is not None
-        self._threads = [
-            threading.Thread(target=self._read_stdout, args=(self.popen.stdout,), daemon=True),
-            threading.Thread(target=self._read_stderr, args=(self.popen.stderr,), daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
-
-    def _read_stdout(self, stream: IO[str]) -> None:
-        for line in stream:
-            with contextlib.suppress(ValueError):
-                self.records.put(json.loads(line))
-        self.records.put(None)
-
-    def _read_stderr(self, stream: IO[str]) -> None:
-        for line in stream:
-            self.stderr.append(line)
-            if ECB_READY in line:
-                self.ready.set()
-
-    def release(self) -> None:
-        """Close the child's stdin: a worker takes that as the signal to leave the bus."""
-        if self.popen.stdin is not None:
-            with contextlib.suppress(OSError):
-                self.popen.stdin.close()
-
-    def end(self, wait: float) -> int:
-        """Wait ``wait`` s for it to exit, then SIGTERM, then SIGKILL (this PID only)."""
-        self.release()
-        for stop in (None, self.popen.terminate, self.popen.kill):
-            if stop is not None and self.popen.poll() is None:
-                stop()
-            try:
-                self.popen.wait(timeout=wait)
-                break
-            except subprocess.TimeoutExpired:
-                wait = 5.0
-        for thread in self._threads:
-            thread.join(timeout=2)
-        return self.popen.returncode
-
-    def tail(self, lines: int = 5) -> str:
-        return "".join(self.stderr[-lines:]).rstrip()
 
 
 class FrameCounter:
@@ -255,20 +197,20 @@ def storm(bus: str, n: int, repeat: int, seed: int, args: argparse.Namespace) ->
     with tempfile.TemporaryDirectory(prefix="join-storm-") as tmp:
         try:
             ecb = Child(
+                [sys.executable, "-m", "upscli", "can-broker", "--can", bus,
+                 "--db", str(Path(tmp) / "ecb.db")],
                 "can-broker",
-                ["-m", "upscli", "can-broker", "--can", bus, "--db", str(Path(tmp) / "ecb.db")],
-            )
+            )  # fmt: skip
             children.append(ecb)
-            if not ecb.ready.wait(20):
-                raise RuntimeError(f"the CAN-ECB did not start:\n{ecb.tail()}")
+            ecb.wait_stderr(ECB_READY, 20)
             t0 = run.t0 = time.time() + args.lead
             counter = FrameCounter(bus, t0)
             for k in range(workers):
                 share = ids[k::workers]
-                cmd = ["-m", "benchmarks.join_storm", "--worker", str(k), "--can", bus,
-                       "--t0", repr(t0), "--timeout", str(args.timeout),
+                cmd = [sys.executable, "-m", "benchmarks.join_storm", "--worker", str(k),
+                       "--can", bus, "--t0", repr(t0), "--timeout", str(args.timeout),
                        "--ids", ",".join(f"{i:x}" for i in share)]  # fmt: skip
-                children.append(Child(f"worker {k}", cmd, stdin=subprocess.PIPE))
+                children.append(Child(cmd, f"worker {k}"))
             collect(run, children[1:], t0 + args.timeout + GRACE)
             joined = run.joined
             end = t0 + (max(r["join_s"] for r in joined) if len(joined) == n else args.timeout)
@@ -278,13 +220,13 @@ def storm(bus: str, n: int, repeat: int, seed: int, args: argparse.Namespace) ->
             if counter is not None:
                 counter.close()
             for child in children[1:]:
-                child.release()
+                child.close_stdin()
             for child in children[1:]:
-                code = child.end(wait=10.0)
+                code = child.finish(10.0)
                 if code != 0:
-                    run.problems.append(f"{child.name} exited {code}: {child.tail()}")
+                    run.problems.append(f"{child.label} exited {code}: {child.tail(5)}")
             if children:
-                children[0].end(wait=0.1)  # the CAN-ECB serves until told to stop
+                children[0].finish(0.1)  # the CAN-ECB serves until told to stop
     return run
 
 
@@ -305,7 +247,7 @@ def collect(run: Run, workers: list[Child], deadline: float) -> None:
             else:
                 run.nodes.append(record)
     for child in pending.values():
-        run.problems.append(f"{child.name} gave no result by the deadline")
+        run.problems.append(f"{child.label} gave no result by the deadline")
     missing = run.n - len(run.nodes)
     if missing:
         run.problems.append(f"{missing} node(s) never reported")

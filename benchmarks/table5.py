@@ -45,26 +45,22 @@ import asyncio
 import contextlib
 import json
 import os
-import queue
-import re
-import signal
 import socket
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from benchmarks._procs import Child, set_affinity
 from benchmarks._table5_roles import SETUP_TIMEOUT, run_child
 
 ROOT = Path(__file__).resolve().parent.parent
 GW_ID = 0x6A7E
-EXIT_GRACE = 10.0
 
 # Table 5 of the paper, min / avg / max in microseconds (Pentium III 800 MHz, C167 20 MHz).
 PAPER = {
@@ -86,102 +82,6 @@ BUS_FPS_1BYTE = (11_000, 13_000)
 # =============================================================================================
 
 
-class Child:
-    """A child process; its stdout lines (JSON for roles) and stderr lines are collected."""
-
-    def __init__(self, argv: list[str], label: str) -> None:
-        self.label = label
-        self.popen = subprocess.Popen(
-            argv,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=ROOT,
-            bufsize=1,
-        )
-        self.stderr_lines: list[str] = []
-        self._out: queue.Queue[str | None] = queue.Queue()
-        self._err: queue.Queue[str | None] = queue.Queue()
-        for stream, sink, keep in (
-            (self.popen.stdout, self._out, False),
-            (self.popen.stderr, self._err, True),
-        ):
-            threading.Thread(target=self._read, args=(stream, sink, keep), daemon=True).start()
-
-    def _read(self, stream: Any, sink: queue.Queue[str | None], keep: bool) -> None:
-        for line in stream:
-            if keep:
-                self.stderr_lines.append(line)
-            sink.put(line)
-        sink.put(None)
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def wait_stderr(self, pattern: str, timeout: float = SETUP_TIMEOUT) -> re.Match[str]:
-        regex = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self._err.get(timeout=left)
-            except queue.Empty:
-                break
-            if line is None:
-                raise RuntimeError(f"{self.label} ended: {self.tail()}")
-            if found := regex.search(line):
-                return found
-        raise RuntimeError(f"{self.label}: no {pattern!r} within {timeout} s: {self.tail()}")
-
-    def event(self, timeout: float) -> dict[str, Any]:
-        """The next JSON line from the child's stdout."""
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self._out.get(timeout=left)
-            except queue.Empty:
-                break
-            if line is None:
-                raise RuntimeError(f"{self.label} ended: {self.tail()}")
-            with contextlib.suppress(json.JSONDecodeError):
-                obj: dict[str, Any] = json.loads(line)
-                if obj.get("event") == "error":
-                    raise RuntimeError(f"{self.label}: {obj['error']}")
-                return obj
-        raise RuntimeError(f"{self.label}: nothing within {timeout} s: {self.tail()}")
-
-    def send(self, line: str) -> None:
-        assert self.popen.stdin is not None
-        with contextlib.suppress(BrokenPipeError, OSError):
-            self.popen.stdin.write(line + "\n")
-            self.popen.stdin.flush()
-
-    def tail(self) -> str:
-        time.sleep(0.2)
-        return "".join(self.stderr_lines[-15:]).strip() or "(no stderr)"
-
-    def finish(self, timeout: float = EXIT_GRACE) -> None:
-        """Wait for the child to exit by itself; stop it if it does not."""
-        try:
-            self.popen.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.stop()
-
-    def stop(self) -> None:
-        """SIGTERM, then SIGKILL (``ip netns exec`` execs its command: the PID is the child's)."""
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGTERM)
-            try:
-                self.popen.wait(timeout=EXIT_GRACE)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait()
-        if self.popen.stdin is not None:
-            with contextlib.suppress(OSError):
-                self.popen.stdin.close()
-
-
 def role_argv(role: str, cfg: dict[str, Any], netns: str | None = None) -> list[str]:
     argv = [sys.executable, "-m", "benchmarks.table5", "--child", role, json.dumps(cfg)]
     return ["ip", "netns", "exec", netns, *argv] if netns else argv
@@ -190,13 +90,6 @@ def role_argv(role: str, cfg: dict[str, Any], netns: str | None = None) -> list[
 def ups_argv(*args: str, netns: str | None = None) -> list[str]:
     argv = [sys.executable, "-m", "upscli", *args]
     return ["ip", "netns", "exec", netns, *argv] if netns else argv
-
-
-def set_affinity(pid: int, cpus: set[int]) -> None:
-    """Move every thread of ``pid`` to ``cpus``."""
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        with contextlib.suppress(ProcessLookupError):
-            os.sched_setaffinity(int(tid), cpus)
 
 
 def cpu_seconds(pid: int) -> float:
@@ -697,7 +590,7 @@ def main() -> None:
         f"can_dropped={gw_final['can_dropped']} tcp_dropped={gw_final['tcp_dropped']}"
     )
     for daemon in bench.daemons:
-        warnings = [line for line in daemon.stderr_lines if " WARNING" in line or " ERROR" in line]
+        warnings = [line for line in daemon.stderr if " WARNING" in line or " ERROR" in line]
         print(f"{daemon.label}: {len(warnings)} warnings/errors in its log")
         for line in warnings[:5]:
             print(f"   {line.rstrip()}")

@@ -28,18 +28,16 @@ import contextlib
 import importlib
 import importlib.metadata
 import json
-import multiprocessing
 import os
 import platform
-import socket
 import statistics
 import sys
 import time
 from dataclasses import asdict, dataclass, field
-from multiprocessing.process import BaseProcess
 from types import ModuleType
 from typing import Any
 
+from benchmarks._procs import Spawned, free_ports
 from benchmarks.peers import PEERS, Link, PeerSpec, SinkResult
 from benchmarks.peers._child import run_role
 
@@ -48,7 +46,6 @@ RAW_LABEL = PEERS["raw"][0].label  # the floor the ratios are taken against
 IDLE_TIMEOUT = 2.0  # a sink gives up after this long without a message
 SETUP_TIMEOUT = 30.0  # for a child to get ready, and slack added to every other wait
 EXIT_GRACE = 5.0  # for a child to exit by itself before it is killed
-_SPAWN = multiprocessing.get_context("spawn")
 
 
 @dataclass
@@ -70,60 +67,12 @@ class Row:
     error: str = ""
 
 
-class Child:
-    """One role of a peer in a spawned process, with a pipe for ready/result messages."""
-
-    def __init__(
-        self, module: str, role: str, link: Link, kwargs: dict[str, Any], pin: int | None
-    ) -> None:
-        self.conn, child_conn = _SPAWN.Pipe()
-        self.proc: BaseProcess = _SPAWN.Process(
-            target=run_role,
-            args=(module, role, link, kwargs, pin, child_conn),
-            name=f"{module.rsplit('.', 1)[-1]}:{role}",
-            daemon=True,
-        )
-        self.proc.start()
-        child_conn.close()
-
-    def expect(self, kind: str, timeout: float) -> Any:
-        """Wait for the child's ``kind`` message ("ready" or "result") and return its value."""
-        if not self.conn.poll(timeout):
-            raise TimeoutError(f"{self.proc.name}: no {kind} within {timeout:.0f} s")
-        try:
-            got, value = self.conn.recv()
-        except EOFError:
-            raise RuntimeError(f"{self.proc.name}: exited (code {self.proc.exitcode})") from None
-        if got == "error":  # value: the child's traceback; its last line says what failed
-            raise RuntimeError(f"{self.proc.name}: {value.strip().splitlines()[-1]}\n{value}")
-        if got != kind:
-            raise RuntimeError(f"{self.proc.name}: expected {kind}, got {got}")
-        return value
-
-    def release(self) -> None:
-        """Let a source close its connection (its sink has reported)."""
-        with contextlib.suppress(OSError):
-            self.conn.send("release")
-
-    def stop(self) -> None:
-        """Give the child EXIT_GRACE seconds to end, then kill it by PID."""
-        self.proc.join(EXIT_GRACE)
-        if self.proc.is_alive():
-            self.proc.kill()  # SIGKILL to self.proc.pid
-            self.proc.join(EXIT_GRACE)
-        self.conn.close()
-
-
-def free_ports(n: int) -> tuple[int, ...]:
-    """``n`` TCP ports on HOST that were free a moment ago."""
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_STREAM) for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind((HOST, 0))
-        return tuple(s.getsockname()[1] for s in socks)
-    finally:
-        for s in socks:
-            s.close()
+def _role(
+    spec: PeerSpec, role: str, link: Link, kwargs: dict[str, Any], pin: int | None
+) -> Spawned:
+    """One role of a peer in a spawned process (``run_<role>`` of its module)."""
+    name = f"{spec.module.rsplit('.', 1)[-1]}:{role}"
+    return Spawned(run_role, (spec.module, role, link, kwargs, pin), name)
 
 
 def service(
@@ -138,46 +87,46 @@ def measure_rtt(
     spec: PeerSpec, peer: ModuleType, args: argparse.Namespace, rounds: int, warmup: int
 ) -> list[float]:
     """Ping-pong between two processes pinned to ``args.cpu``; RTTs in seconds."""
-    link = Link(HOST, free_ports(2), spec.options)
+    link = Link(HOST, free_ports(2, HOST), spec.options)
     timeout = SETUP_TIMEOUT + (warmup + rounds) * 2e-3  # fails above 2 ms/RTT
-    children: list[Child] = []
+    children: list[Spawned] = []
     with service(peer, link, args.cpu):
         try:
-            pong = Child(spec.module, "pong", link, {}, args.cpu)
+            pong = _role(spec, "pong", link, {}, args.cpu)
             children.append(pong)
             pong.expect("ready", SETUP_TIMEOUT)
             kwargs = {"warmup": warmup, "rounds": rounds}
-            ping = Child(spec.module, "ping", link, kwargs, args.cpu)
+            ping = _role(spec, "ping", link, kwargs, args.cpu)
             children.append(ping)
             rtts: list[float] = ping.expect("result", timeout)
             pong.expect("result", EXIT_GRACE)
             return rtts
         finally:
             for child in children:
-                child.stop()
+                child.stop(EXIT_GRACE)
 
 
 def measure_throughput(spec: PeerSpec, peer: ModuleType, args: argparse.Namespace) -> SinkResult:
     """Source to sink, ``args.messages`` messages; what the sink counted."""
-    link = Link(HOST, free_ports(2), spec.options)
+    link = Link(HOST, free_ports(2, HOST), spec.options)
     pin = args.cpu if args.pin_throughput else None
     timeout = SETUP_TIMEOUT + IDLE_TIMEOUT + args.messages * 50e-6  # fails below 20k msg/s
-    children: list[Child] = []
+    children: list[Spawned] = []
     with service(peer, link, pin):
         try:
-            sink = Child(spec.module, "sink", link,
+            sink = _role(spec, "sink", link,
                          {"count": args.messages, "idle_timeout": IDLE_TIMEOUT}, pin)  # fmt: skip
             children.append(sink)
             sink.expect("ready", SETUP_TIMEOUT)
-            source = Child(spec.module, "source", link, {"count": args.messages}, pin)
+            source = _role(spec, "source", link, {"count": args.messages}, pin)
             children.append(source)
             result: SinkResult = sink.expect("result", timeout)
-            source.release()
+            source.send("release")  # its sink has reported: it may close its connection
             source.expect("result", SETUP_TIMEOUT)
             return result
         finally:
             for child in children:
-                child.stop()
+                child.stop(EXIT_GRACE)
 
 
 def percentile(sorted_values: list[float], q: float) -> float:

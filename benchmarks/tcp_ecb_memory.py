@@ -11,14 +11,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import re
 import resource
-import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
+from benchmarks._procs import process
 from ups import Node
 
 
@@ -27,24 +24,6 @@ def rss_kib(pid: int) -> int:
         if line.startswith("VmRSS:"):
             return int(line.split()[1])
     return -1
-
-
-def start_broker(log: Path) -> tuple[subprocess.Popen[bytes], str]:
-    """``ups broker`` on a free loopback port, its log in ``log``; returns it and its address."""
-    with log.open("wb") as out:
-        broker = subprocess.Popen(
-            [sys.executable, "-m", "upscli", "broker", "--listen", "127.0.0.1:0",
-             "--recovery", "0"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=out,
-        )  # fmt: skip
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        found = re.search(r"TCP-ECB on (127\.0\.0\.1:\d+)", log.read_text(errors="replace"))
-        if found:
-            return broker, found.group(1)
-        time.sleep(0.05)
-    broker.kill()
-    raise RuntimeError("the TCP-ECB did not start")
 
 
 async def measure(pid: int, address: str, nodes: int, channels: int) -> None:
@@ -77,13 +56,10 @@ def main() -> None:
     args = parser.parse_args()
     _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))  # two sockets per node here
-    with tempfile.TemporaryDirectory() as tmp:
-        broker, address = start_broker(Path(tmp) / "broker.log")
-        try:
-            asyncio.run(measure(broker.pid, address, args.nodes, args.channels))
-        finally:
-            broker.terminate()
-            broker.wait(10)
+    cmd = [sys.executable, "-m", "upscli", "broker", "--listen", "127.0.0.1:0", "--recovery", "0"]
+    with process(cmd, r"TCP-ECB on (127\.0\.0\.1:\d+)") as broker:
+        assert broker.found is not None
+        asyncio.run(measure(broker.pid, broker.found.group(1), args.nodes, args.channels))
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from benchmarks._daemons import free_port, process
+from benchmarks._procs import free_port, process
 
 HOST = "127.0.0.1"
 SIZES = (8, 64, 1024, 65536, 1 << 20)

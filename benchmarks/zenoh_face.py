@@ -33,21 +33,19 @@ import argparse
 import contextlib
 import json
 import math
-import multiprocessing
 import signal
 import statistics
 import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from multiprocessing.process import BaseProcess
 from pathlib import Path
 from types import FrameType
 from typing import Any
 
 from benchmarks import _zenoh_roles as roles
 from benchmarks import tcp_compare
-from benchmarks._daemons import free_port, process
+from benchmarks._procs import Spawned, free_port, process
 from benchmarks.peers import PEERS, Link, PeerSpec
 
 HOST = "127.0.0.1"
@@ -58,61 +56,22 @@ GW_ZENOH, GW_TCP, GW_FLOOR = "gateway -> Zenoh", "gateway -> TCP", "python-can -
 OPTIONS = {UPS_ZENOH: {"kind": "ups"}, RAW: {"kind": "raw"},
            RAW_BLOCK: {"kind": "raw", "congestion": "block"}}  # fmt: skip
 WAIT = 60.0  # for a child's answer to one command
-_SPAWN = multiprocessing.get_context("spawn")
-
-
-class StepChild:
-    """A step role (``_zenoh_roles.step_main``) in a spawned process, driven over a pipe."""
-
-    def __init__(self, role: str, cfg: dict[str, Any]) -> None:
-        self.conn, child_conn = _SPAWN.Pipe()
-        self.proc: BaseProcess = _SPAWN.Process(
-            target=roles.step_main, args=(role, cfg, child_conn), name=role, daemon=True
-        )
-        self.proc.start()
-        child_conn.close()
-        try:
-            self.ask(None, "ready")
-        except BaseException:
-            self.stop()
-            raise
-
-    def ask(self, command: tuple[Any, ...] | None, kind: str, timeout: float = WAIT) -> Any:
-        """Send ``command`` (if any) and return the answer of ``kind``."""
-        if command is not None:
-            self.conn.send(command)
-        if not self.conn.poll(timeout):
-            raise TimeoutError(f"{self.proc.name}: no {kind} within {timeout:.0f} s")
-        try:
-            got, value = self.conn.recv()
-        except EOFError:
-            raise RuntimeError(f"{self.proc.name} exited ({self.proc.exitcode})") from None
-        if got == "error":
-            raise RuntimeError(f"{self.proc.name}: {value.strip().splitlines()[-1]}\n{value}")
-        return value
-
-    def stop(self) -> None:
-        """Ask it to quit; kill it by PID if it has not ended after 5 s."""
-        with contextlib.suppress(OSError):
-            self.conn.send(("quit",))
-        self.proc.join(5.0)
-        if self.proc.is_alive():
-            self.proc.kill()
-            self.proc.join(5.0)
-        self.conn.close()
 
 
 @contextlib.contextmanager
-def children(*specs: tuple[str, dict[str, Any]]) -> Iterator[list[StepChild]]:
-    """Step roles started one after the other (each ready before the next), stopped after."""
-    started: list[StepChild] = []
+def children(*specs: tuple[str, dict[str, Any]]) -> Iterator[list[Spawned]]:
+    """Step roles (``_zenoh_roles.step_main``) started one after the other (each ready before
+    the next), asked to quit after, and killed by PID if they have not after 5 s."""
+    started: list[Spawned] = []
     try:
         for role, cfg in specs:
-            started.append(StepChild(role, cfg))
+            started.append(Spawned(roles.step_main, (role, cfg), role))
+            started[-1].expect("ready", WAIT)
         yield started
     finally:
         for child in reversed(started):
-            child.stop()
+            child.send(("quit",))
+            child.stop(5.0)
 
 
 @contextlib.contextmanager
@@ -239,7 +198,7 @@ def gateway(ip: str, events: int, runs: int, tmp: Path) -> dict[str, Any]:
             "runs": done}  # fmt: skip
 
 
-def blast_once(sink: StepChild, gw: StepChild, step: int, events: int, ip: str) -> dict[str, Any]:
+def blast_once(sink: Spawned, gw: Spawned, step: int, events: int, ip: str) -> dict[str, Any]:
     key = "to_tcp" if ip == "tcp" else "to_zenoh"
     before = gw.ask(("stats",), "stats")
     blast = gw.ask(("blast", step, events), "done", WAIT + events / 1000)

@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from benchmarks._procs import process
 from benchmarks.peers import STOP, Control, Link, SinkResult, seq
 from benchmarks.peers._common import Counter
 
@@ -70,43 +71,15 @@ def _config(link: Link) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _wait_listening(link: Link, proc: subprocess.Popen[bytes], log: Path) -> None:
-    deadline = time.monotonic() + SETUP_TIMEOUT
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"mosquitto exited: {log.read_text().strip()[-500:]}")
-        with (
-            contextlib.suppress(OSError),
-            socket.create_connection((link.host, link.ports[0]), timeout=1.0),
-        ):
-            return
-        time.sleep(0.02)
-    raise TimeoutError("mosquitto did not listen in time")
-
-
 @contextlib.contextmanager
 def service(link: Link, pin: int | None) -> Iterator[None]:
-    """A mosquitto child process on ``link.ports[0]`` (pinned to ``pin``), killed after."""
+    """A mosquitto child process on ``link.ports[0]`` (pinned to ``pin``), stopped after."""
     with tempfile.TemporaryDirectory(prefix="bench-mosquitto-") as tmp:
-        conf, log = Path(tmp, "mosquitto.conf"), Path(tmp, "mosquitto.log")
+        conf = Path(tmp, "mosquitto.conf")
         conf.write_text(_config(link))
-        with log.open("wb") as log_file:
-            proc = subprocess.Popen(
-                [_mosquitto() or "mosquitto", "-c", str(conf)],
-                stdin=subprocess.DEVNULL, stdout=log_file, stderr=log_file,
-            )  # fmt: skip
-        try:
-            if pin is not None:
-                os.sched_setaffinity(proc.pid, {pin})
-            _wait_listening(link, proc, log)
+        cmd = [_mosquitto() or "mosquitto", "-c", str(conf)]
+        with process(cmd, (link.host, link.ports[0]), pin=pin, timeout=SETUP_TIMEOUT):
             yield
-        finally:
-            proc.terminate()
-            try:
-                proc.wait(5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
 
 
 def _client(link: Link, on_message: Callable[[Any], None] | None = None) -> Any:

@@ -29,15 +29,13 @@ import asyncio
 import contextlib
 import importlib.metadata
 import importlib.util
-import os
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from benchmarks._procs import process
 from benchmarks.peers import PROBE, STOP, Control, Link, SinkResult, seq
 from benchmarks.peers._common import Counter
 
@@ -48,7 +46,6 @@ PING, PONG, DATA = "bench/ping", "bench/pong", "bench/data"
 SETUP_TIMEOUT = 10.0
 IDLE_TIMEOUT = 30.0  # a pong that heard nothing for about this long gives up
 YIELD_EVERY = 256  # a source publishes this many events between two yields to the loop
-_ROOT = Path(__file__).resolve().parents[2]  # the repository, where ``ups`` is importable
 _READY = "TCP-ECB on "
 # fixed node ids: no per-machine id slot (and its lock file) for the benchmark's nodes
 PONG_ID, PING_ID, SINK_ID, SOURCE_ID = (0xBE7C_0000_0000_0000 + i for i in range(1, 5))
@@ -86,36 +83,8 @@ def service(link: Link, pin: int | None) -> Iterator[None]:
     """A TCP-ECB child process on ``link.ports[0]`` (pinned to ``pin``), stopped after."""
     listen = f"{link.host}:{link.ports[0]}"
     cmd = [sys.executable, "-m", "upscli", "broker", "--listen", listen, "--recovery", "0"]
-    preexec = (lambda: os.sched_setaffinity(0, {pin})) if pin is not None else None
-    with tempfile.TemporaryDirectory(prefix="bench-ups-ecb-") as tmp:
-        log = Path(tmp, "ecb.log")
-        with log.open("wb") as log_file:
-            proc = subprocess.Popen(
-                cmd, cwd=_ROOT, stdin=subprocess.DEVNULL, stdout=log_file, stderr=log_file,
-                preexec_fn=preexec,
-            )  # fmt: skip
-        try:
-            _wait_ready(proc, log)
-            yield
-        finally:
-            proc.terminate()  # SIGTERM to proc.pid: the ECB closes its links and exits
-            try:
-                proc.wait(5)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
-
-
-def _wait_ready(proc: subprocess.Popen[bytes], log: Path) -> None:
-    deadline = time.monotonic() + SETUP_TIMEOUT
-    while time.monotonic() < deadline:
-        text = log.read_text(errors="replace")
-        if _READY in text:
-            return
-        if proc.poll() is not None:
-            raise RuntimeError(f"the TCP-ECB exited ({proc.returncode}): {text.strip()[-500:]}")
-        time.sleep(0.02)
-    raise TimeoutError(f"the TCP-ECB did not log {_READY!r} within {SETUP_TIMEOUT} s")
+    with process(cmd, _READY, pin=pin, timeout=SETUP_TIMEOUT):
+        yield
 
 
 def _run(link: Link, main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
