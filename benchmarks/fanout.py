@@ -19,7 +19,6 @@ import asyncio
 import contextlib
 import importlib.util
 import json
-import multiprocessing
 import sys
 import time
 from multiprocessing.connection import Connection
@@ -27,12 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import _compiled
-from benchmarks._procs import free_port, process
+from benchmarks._procs import Spawned, free_port, process
 
 HOST = "127.0.0.1"
 TIMEOUT = 120.0
 PROBE = b"probe"
-_SPAWN = multiprocessing.get_context("spawn")
 
 
 def _loop_run(main: Any) -> Any:
@@ -46,7 +44,7 @@ def _loop_run(main: Any) -> Any:
 # --- UPS -------------------------------------------------------------------------------------
 
 
-def _ups_sink(address: str, index: int, count: int, pipe: Connection, compiled: str | None) -> None:
+def _ups_sink(address: str, index: int, count: int, compiled: str | None, pipe: Connection) -> None:
     Node = _compiled.import_ups(compiled).Node
 
     async def main() -> None:
@@ -64,16 +62,16 @@ def _ups_sink(address: str, index: int, count: int, pipe: Connection, compiled: 
 
         async with Node(broker=address, name=f"fan-{index}", node_id=0xFA0000 + index) as node:
             await node.subscribe("bench/fanout", callback=on_event)
-            pipe.send("ready")
+            pipe.send(("ready", None))
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(done, TIMEOUT)
-        pipe.send(tuple(seen))
+        pipe.send(("result", tuple(seen)))
 
     _loop_run(main())
 
 
 def _ups_source(
-    address: str, subscribers: int, count: int, pipe: Connection, compiled: str | None
+    address: str, subscribers: int, count: int, compiled: str | None, pipe: Connection
 ) -> None:
     Node = _compiled.import_ups(compiled).Node
 
@@ -116,7 +114,7 @@ def _zmq_sink(address: str, index: int, count: int, pipe: Connection) -> None:
     try:
         while sock.recv() != PROBE:  # the publisher probes until every subscriber is in
             pass
-        pipe.send("ready")
+        pipe.send(("ready", None))
         seen = [0, 0.0, 0.0]
         while seen[0] < count:
             if sock.recv() == PROBE:
@@ -130,7 +128,7 @@ def _zmq_sink(address: str, index: int, count: int, pipe: Connection) -> None:
     finally:
         sock.close(linger=0)
         ctx.term()
-    pipe.send(tuple(seen))
+    pipe.send(("result", tuple(seen)))
 
 
 def _zmq_source(address: str, subscribers: int, count: int, pipe: Connection) -> None:
@@ -166,38 +164,26 @@ def zmq(subscribers: int, count: int) -> dict[str, Any]:
 def _measure(
     sink: Any, source: Any, address: str, subscribers: int, count: int, extra: tuple[Any, ...]
 ) -> dict[str, Any]:
-    pipes, procs = [], []
-    src_pipe, src_theirs = _SPAWN.Pipe()
-    src = _SPAWN.Process(target=source, args=(address, subscribers, count, src_theirs, *extra))
+    """One source and ``subscribers`` sinks, each a spawned process: ``extra`` goes to each
+    after its usual arguments. The sinks report (count, first, last) when done."""
+    sinks: list[Spawned] = []
+    src: Spawned | None = None
     try:
         if source is _zmq_source:  # zmq: the publisher binds first
-            src.start()
+            src = Spawned(source, (address, subscribers, count, *extra), "fan-out source")
         for i in range(subscribers):
-            mine, theirs = _SPAWN.Pipe()
-            proc = _SPAWN.Process(target=sink, args=(address, i, count, theirs, *extra))
-            proc.start()
-            pipes.append(mine)
-            procs.append(proc)
-        for pipe in pipes:
-            if not pipe.poll(TIMEOUT) or pipe.recv() != "ready":
-                raise TimeoutError("a subscriber did not get ready")
-        if source is _zmq_source:
-            src_pipe.send("go")
+            sinks.append(Spawned(sink, (address, i, count, *extra), f"fan-out sink {i}"))
+        for child in sinks:
+            child.expect("ready", TIMEOUT)
+        if src is not None:
+            src.send("go")
         else:
-            src.start()
-        results = []
-        for pipe in pipes:
-            if not pipe.poll(TIMEOUT + 30):
-                raise TimeoutError("a subscriber did not report")
-            results.append(pipe.recv())
-        src_pipe.send("done")
+            src = Spawned(source, (address, subscribers, count, *extra), "fan-out source")
+        results = [child.expect("result", TIMEOUT + 30) for child in sinks]
+        src.send("done")
     finally:
-        for proc in [src, *procs]:
-            if proc.pid is not None:
-                proc.join(10)
-                if proc.is_alive():
-                    proc.kill()
-                    proc.join(5)
+        for child in [*([src] if src is not None else []), *sinks]:
+            child.stop(10.0)
     received = sum(r[0] for r in results)
     span = max(r[2] for r in results) - min(r[1] for r in results)
     return {

@@ -23,7 +23,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import multiprocessing
 import os
 import socket
 import struct
@@ -33,12 +32,11 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from benchmarks._procs import free_port, process
+from benchmarks._procs import Spawned, free_port, process
 
 HOST = "127.0.0.1"
 SIZES = (8, 64, 1024, 65536, 1 << 20)
 TIMEOUT = 60.0  # for any one measurement
-_SPAWN = multiprocessing.get_context("spawn")
 _LEN = struct.Struct(">I")
 
 
@@ -50,7 +48,7 @@ def _count(size: int, mib: float) -> int:
 # --- raw TCP ---------------------------------------------------------------------------------
 
 
-def _raw_source(port: int, size: int, count: int) -> None:
+def _raw_source(port: int, size: int, count: int, pipe: Connection) -> None:
     data = os.urandom(size)
     with socket.create_connection((HOST, port), timeout=TIMEOUT) as sock:
         head = _LEN.pack(size)
@@ -58,6 +56,7 @@ def _raw_source(port: int, size: int, count: int) -> None:
             sock.sendall(head + data if size <= 65536 else head)
             if size > 65536:
                 sock.sendall(data)
+    pipe.send(("sent", count))
 
 
 def _raw_sink(srv: socket.socket, size: int, count: int) -> dict[str, Any]:
@@ -93,12 +92,12 @@ def raw_tcp(size: int, count: int) -> dict[str, Any]:
     with socket.socket() as srv:
         srv.bind((HOST, 0))
         srv.listen(1)
-        source = _SPAWN.Process(target=_raw_source, args=(srv.getsockname()[1], size, count))
-        source.start()
+        source = Spawned(_raw_source, (srv.getsockname()[1], size, count), "raw source")
         try:
             result = _raw_sink(srv, size, count)
+            source.expect("sent", TIMEOUT)
         finally:
-            _stop(source)
+            source.stop(TIMEOUT)
     return _rates(result, size, count)
 
 
@@ -115,7 +114,7 @@ def _run(main: Any) -> Any:
     return uvloop.run(main)
 
 
-def _ups_source(port: int, size: int, count: int) -> None:
+def _ups_source(port: int, size: int, count: int, pipe: Connection) -> None:
     from ups import Node
 
     async def main() -> None:
@@ -131,6 +130,7 @@ def _ups_source(port: int, size: int, count: int) -> None:
                 await node.publish("bench/payload", data, wait=True)
 
     _run(main())
+    pipe.send(("sent", count))
 
 
 def _ups_sink(port: int, size: int, count: int, pipe: Connection) -> None:
@@ -151,7 +151,7 @@ def _ups_sink(port: int, size: int, count: int, pipe: Connection) -> None:
                     done.set_result(None)
 
             await node.subscribe("bench/payload", callback=on_event)
-            pipe.send("ready")
+            pipe.send(("ready", None))
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(done, TIMEOUT)
             return {
@@ -160,7 +160,7 @@ def _ups_sink(port: int, size: int, count: int, pipe: Connection) -> None:
                 "lost": node.stats()["lost"],
             }
 
-    pipe.send(_run(main()))
+    pipe.send(("result", _run(main())))
 
 
 def ups_tcp(size: int, count: int) -> dict[str, Any]:
@@ -176,30 +176,18 @@ def ups_tcp(size: int, count: int) -> dict[str, Any]:
         "0",
     ]
     with process(cmd, "TCP-ECB on"):
-        mine, theirs = _SPAWN.Pipe()
-        sink = _SPAWN.Process(target=_ups_sink, args=(port, size, count, theirs))
-        sink.start()
+        sink = Spawned(_ups_sink, (port, size, count), "payload sink")
+        source: Spawned | None = None
         try:
-            if not mine.poll(TIMEOUT) or mine.recv() != "ready":
-                raise TimeoutError("the sink did not subscribe")
-            source = _SPAWN.Process(target=_ups_source, args=(port, size, count))
-            source.start()
-            try:
-                if not mine.poll(TIMEOUT + 10):
-                    raise TimeoutError("the sink did not report")
-                result: dict[str, Any] = mine.recv()
-            finally:
-                _stop(source)
+            sink.expect("ready", TIMEOUT)
+            source = Spawned(_ups_source, (port, size, count), "payload source")
+            result: dict[str, Any] = sink.expect("result", TIMEOUT + 10)
+            source.expect("sent", TIMEOUT)
         finally:
-            _stop(sink)
+            for child in (source, sink):
+                if child is not None:
+                    child.stop(TIMEOUT)
     return _rates(result, size, count)
-
-
-def _stop(proc: multiprocessing.process.BaseProcess) -> None:
-    proc.join(TIMEOUT)
-    if proc.is_alive():
-        proc.kill()
-        proc.join(5)
 
 
 def _rates(result: dict[str, Any], size: int, count: int) -> dict[str, Any]:
