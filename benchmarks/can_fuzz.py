@@ -328,7 +328,7 @@ class EcbWatch:
             if isinstance(msg, p.Request) and msg.kind == p.CLAIM:
                 if ecb.recovering:
                     self.claims_in_recovery.add(msg.value)
-            elif isinstance(msg, p.Request | p.Holds) and msg.txnode in ecb._node_at:
+            elif isinstance(msg, p.Request | p.Holds) and msg.txnode in ecb._txnodes.node_at:
                 self.uids_from_held.add(msg.uid if isinstance(msg, p.Holds) else msg.value)
             inner(msg)
 

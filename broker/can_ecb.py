@@ -38,13 +38,13 @@ from ups._errors import DecodeError
 from ._admission import Admission
 from ._census import Census
 from ._store import Store, Write
+from ._txnodes import TxNodes
 
 log = logging.getLogger("ups.can_ecb")
 
 RECOVERY = 2.0  #: seconds after Hello during which the CAN-ECB only listens and adopts (longer
 #: than the nodes' Hello answer gap of 1 s, so that every node answers within it)
 GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
-OFFER_TIMEOUT = 1.0  #: an offered TxNode not claimed within this time is free again
 HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
 LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
 MAX_CHANNELS = 8192  #: channels one TxNode may subscribe to or publish on (half the etags)
@@ -83,30 +83,25 @@ class CanEcb:
         self._recovery = recovery
         self._lease = lease
         self._max_channels = max_channels
-        self.recovering = False
-        self.standby = False
-        self._census = Census(self._send, self._found)
+        self.recovering = False  # the tables' Phase (see _txnodes): in a recovery window
+        self.standby = False  # another CAN-ECB serves the bus
         self._admission = Admission(bitrate, fd=link.fd)
         self.bitrate = bitrate
-        self._node_at = {t: n for n, t in self._store.txnodes.items()}  # TxNode -> node id
         self._uid_at = {e: u for u, e in self._store.etags.items()}  # etag -> UID
-        self._pending_tx: dict[int, int] = {}  # node id -> TxNode being written
-        self._offered: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
         #: uid -> the etag being stored for it, and the (kind, TxNode, size class) waiting for it
         self._pending_etag: dict[int, tuple[int, list[tuple[int, int, int]]]] = {}
         self._pending_etags: set[int] = set()  # the etags of _pending_etag
         #: size class -> no etag of that class below it is free
         self._free_from = [sizes.class_etags(c).start for c in range(p.SIZE_CLASSES)]
         now = time.monotonic()
-        self._seen_tx = dict.fromkeys(range(p.TXNODE_COUNT), now)  # TxNode -> last frame
         self._seen_etag: dict[int, float] = {}  # etag -> last event (default: start time)
         self._started = now
         self._deferred: dict[tuple[int, int, int, int], None] = {}
         self._knocked = False
         self._recovery_timer: asyncio.TimerHandle | None = None
         self._last_unknown_hello = -HELLO_GAP  # the last Hello sent for an unknown TxNode
-        self._strays: set[int] = set()  # TxNodes heard asking while unknown, since that Hello
-        self._started_up = False  # the first recovery (after start) is over
+        self.strays: set[int] = set()  # TxNodes heard asking while unknown, since that Hello
+        self.started_up = False  # the first recovery (after start) is over
         self._logged: dict[str, float] = {}
         self._last_serving = -1.0
         self._other_heard = 0.0  # in standby: when the serving CAN-ECB was last heard
@@ -129,6 +124,12 @@ class CanEcb:
             ),
             0,
         )  # fmt: skip
+        self._txnodes = TxNodes(
+            self._store, phase=self, send=self._send, counters=self.counters, warn=self._warn,
+            stored=self._stored, log_failure=self._log_failure, forget=self._forget_node,
+            unassigned=self._unassigned, lease=lease,
+        )  # fmt: skip
+        self._census = Census(self._send, self._txnodes.found)
 
     # --- tables and statistics -------------------------------------------------------------
 
@@ -205,9 +206,7 @@ class CanEcb:
     def close(self) -> None:
         """Stop serving the bus (the link stays open). Safe to call twice."""
         self._census.close()
-        for _, offer_timer in self._offered.values():
-            offer_timer.cancel()
-        self._offered.clear()
+        self._txnodes.close()
         for timer in (self._recovery_timer, self._probe_timer):
             if timer is not None:
                 timer.cancel()
@@ -230,10 +229,10 @@ class CanEcb:
     def _recovered(self) -> None:
         self._recovery_timer = None
         self.recovering = False
-        self._strays.clear()
+        self.strays.clear()
         if self.standby:
             return
-        self._started_up = True
+        self.started_up = True
         deferred, self._deferred = list(self._deferred), {}
         for kind, txnode, uid, size_class in deferred:
             self._on_bind_request(p.Request(kind, txnode, uid, size_class))
@@ -254,7 +253,7 @@ class CanEcb:
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
         now = time.monotonic()
         if txnode != p.MGMT_TXNODE:
-            self._seen_tx[txnode] = now
+            self._txnodes.seen[txnode] = now
         if not p.is_management(can_id):
             self._seen_etag[can_id & p.ETAG_MASK] = now
             return
@@ -286,8 +285,8 @@ class CanEcb:
         elif isinstance(msg, p.Request | p.Holds | p.Declare):
             self.counters["requests"] += 1
             if isinstance(msg, p.Request) and msg.kind == p.CLAIM:
-                self._on_claim(msg.txnode, msg.value)
-            elif msg.txnode not in self._node_at:
+                self._txnodes.on_claim(msg.txnode, msg.value)
+            elif msg.txnode not in self._txnodes.node_at:
                 self._unassigned(msg.txnode)
             elif isinstance(msg, p.Holds):
                 self._on_holds(msg)
@@ -303,7 +302,7 @@ class CanEcb:
         (or someone forges frames). Say Hello again, so that nodes claim (rate-limited)."""
         self.counters["unassigned"] += 1
         self._warn("unassigned", "request from TxNode 0x%02x, which no node holds", txnode)
-        self._strays.add(txnode)
+        self.strays.add(txnode)
         if not self.recovering and time.monotonic() - self._last_unknown_hello >= HELLO_GAP:
             self._last_unknown_hello = time.monotonic()
             self._hello()
@@ -371,7 +370,7 @@ class CanEcb:
         if time.monotonic() - self._other_heard > 2 * STANDBY_PROBE:
             log.warning("the other CAN-ECB is silent: this one serves the bus again")
             self.standby = False
-            self._started_up = False  # it heard nothing while standing by: learn the bus anew
+            self.started_up = False  # it heard nothing while standing by: learn the bus anew
             self._hello()
             return
         self._send(p.Serving(self.instance))  # a CAN-ECB that serves answers with its own
@@ -383,136 +382,6 @@ class CanEcb:
             self._send(p.Bind(etag, self._uid_at[etag]))
         if uid in self._store.etags and self._store.etags[uid] != etag:
             self._send(p.Bind(self._store.etags[uid], uid))
-
-    # --- joining -----------------------------------------------------------------------------
-
-    def _found(self, node_ids: list[int]) -> None:
-        """The census found these ids: offer each a TxNode, which its node must claim."""
-        for node_id in node_ids:
-            if self.standby or node_id in self._pending_tx:
-                continue
-            offer = self._offered.get(node_id)
-            txnode = offer[0] if offer else self._txnode_for(node_id)
-            if txnode is None:
-                continue
-            if offer:
-                offer[1].cancel()
-            timer = asyncio.get_running_loop().call_later(OFFER_TIMEOUT, self._withdraw, node_id)
-            self._offered[node_id] = (txnode, timer)
-            self._send(p.Offer(txnode, node_id))
-
-    def _move(self, node_id: int) -> None:
-        """Give a joined node whose TxNode another holds a TxNode of its own (Assign)."""
-        txnode = self._txnode_for(node_id)
-        if txnode is not None:
-            self._assign(node_id, txnode)
-
-    def _txnode_for(self, node_id: int) -> int | None:
-        """The TxNode ``node_id`` holds, else a free one (reclaiming the one silent longest,
-        past the lease), else None and TxNodesFull."""
-        txnode = self._store.txnodes.get(node_id)
-        if txnode is not None:
-            return txnode
-        writes: list[Write] = []
-        txnode = self._free_txnode(writes)
-        if txnode is None:
-            self.counters["refused"] += 1
-            log.warning("no TxNode left for node %016x", node_id)
-            self._send(p.TxNodesFull(node_id))
-        elif writes:  # reclaimed: its old owner is forgotten for good
-            self._store.submit(writes, self._log_failure(f"the reclaim of TxNode 0x{txnode:02x}"))
-        return txnode
-
-    def _withdraw(self, node_id: int) -> None:
-        """Nobody claimed the offer: the id was not a node's (frames were lost or late)."""
-        if self._offered.pop(node_id, None) is not None:
-            self.counters["offers_withdrawn"] += 1
-
-    def _assign(self, node_id: int, txnode: int) -> None:
-        """The node claimed the TxNode offered to it: store the assignment, then announce it."""
-        if self.standby or node_id in self._pending_tx:
-            return
-        if self._store.txnodes.get(node_id) == txnode:
-            self._assigned(node_id, txnode)
-            return
-        self._pending_tx[node_id] = txnode
-
-        def done(error: BaseException | None) -> None:
-            del self._pending_tx[node_id]
-            if self._stored(error, f"TxNode {txnode} of node {node_id:016x}", node_id):
-                self._hold_txnode(node_id, txnode)
-                self._assigned(node_id, txnode)
-
-        self._store.submit([("txnodes", node_id, txnode)], done)
-
-    def _assigned(self, node_id: int, txnode: int) -> None:
-        self.counters["joined"] += 1
-        self._seen_tx[txnode] = time.monotonic()
-        self._forget_node(txnode)  # a (re)joining node starts with no subscriptions
-        log.info("node %016x has TxNode 0x%02x", node_id, txnode)
-        self._send(p.Assign(txnode, node_id))
-
-    def _free_txnode(self, writes: list[Write]) -> int | None:
-        offered = {t for t, _ in self._offered.values()}
-        taken = set(self._node_at) | set(self._pending_tx.values()) | offered
-        free = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
-        if free is not None:
-            return free
-        now = time.monotonic()
-        idle = [t for t in self._node_at if t not in offered]  # offered: a node's own, in use
-        oldest = min(idle, key=lambda t: self._seen_tx[t], default=None)
-        if oldest is None or now - self._seen_tx[oldest] < self._lease:
-            return None
-        old_id = self._node_at.pop(oldest)
-        del self._store.txnodes[old_id]
-        self._forget_node(oldest)
-        writes.append(("txnodes", old_id, None))
-        self.counters["reclaimed"] += 1
-        log.warning("reclaimed TxNode 0x%02x of node %016x, silent for %.0f s", oldest, old_id,
-                    now - self._seen_tx[oldest])  # fmt: skip
-        return oldest
-
-    def _hold_txnode(self, node_id: int, txnode: int) -> None:
-        self._store.txnodes[node_id] = txnode
-        self._node_at[txnode] = node_id
-
-    def _on_claim(self, txnode: int, node_id: int) -> None:
-        offer = self._offered.get(node_id)
-        if offer is not None and offer[0] == txnode:  # a joiner takes the TxNode offered
-            offer[1].cancel()
-            del self._offered[node_id]
-            self._assign(node_id, txnode)
-            return
-        known = self._store.txnodes.get(node_id)
-        if known == txnode:
-            return
-        holder = self._node_at.get(txnode)
-        if not self.recovering:  # claims answer Hello; any other is stray or forged
-            self.counters["conflicts"] += 1
-            self._warn("claim", "ignored CLAIM of TxNode 0x%02x by node %016x outside recovery",
-                       txnode, node_id)  # fmt: skip
-            if known is not None and holder is None:  # it was told to move: tell it the truth
-                self._send(p.Assign(known, node_id))
-            elif holder is None and known is None:
-                self._unassigned(txnode)
-            return
-        if self._started_up and txnode not in self._strays:  # a later window is for strays only
-            self.counters["conflicts"] += 1
-            self._warn("claim", "ignored CLAIM of TxNode 0x%02x by node %016x: it asked nothing",
-                       txnode, node_id)  # fmt: skip
-            return
-        if known is None and holder is None and txnode not in self._pending_tx.values():
-            self.counters["adopted"] += 1
-            log.info("adopting TxNode 0x%02x of node %016x", txnode, node_id)
-            self._hold_txnode(node_id, txnode)
-            self._store.submit(
-                [("txnodes", node_id, txnode)], self._log_failure(f"adopted TxNode 0x{txnode:02x}")
-            )
-            return
-        self.counters["conflicts"] += 1
-        log.warning("node %016x claims TxNode 0x%02x held by another node: moving it",
-                    node_id, txnode)  # fmt: skip
-        self._move(node_id)  # the holder of ``txnode`` keeps it and its channels
 
     def _log_failure(self, what: str) -> Callable[[BaseException | None], None]:
         """A write's callback when nobody waits for it: a failure is only counted and logged."""
@@ -578,7 +447,7 @@ class CanEcb:
             self.counters["bound"] += 1
             self._hold_etag(uid, etag)
             for kind, txnode, size_class in asks:
-                if txnode not in self._node_at:
+                if txnode not in self._txnodes.node_at:
                     continue
                 if sizes.size_class(etag) >= size_class:
                     self._bound(kind, txnode, uid, etag)

@@ -1,0 +1,208 @@
+"""The CAN-ECB's TxNode table: which node (64-bit id) sends under which 7-bit TxNode.
+
+The census (``_census``) finds the ids of joining nodes; each is offered a TxNode
+(``OFFER_TIMEOUT`` s to claim it), stored, then announced (Assign). A node already known gets its
+own TxNode back. Claims answer the CAN-ECB's Hello: in a recovery window the TxNodes they name
+are adopted when nobody else holds them, and a node that claims another's TxNode is moved. When
+none is free, the TxNode silent longest is reclaimed once past the lease. See docs/protocol.md,
+*Joining* and *Restarts, recovery and the answer to Hello*.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+from ups import _canproto as p
+
+from ._store import Store, Write
+
+log = logging.getLogger("ups.can_ecb")
+
+OFFER_TIMEOUT = 1.0  #: an offered TxNode not claimed within this time is free again
+
+
+class Phase(Protocol):
+    """Where the CAN-ECB stands (the CAN-ECB itself): what the table may do now."""
+
+    recovering: bool  #: in a recovery window: claims are adopted
+    standby: bool  #: another CAN-ECB serves the bus: nothing is offered or assigned
+    started_up: bool  #: the first recovery window is over: later ones are for strays only
+    strays: set[int]  #: TxNodes heard asking while unknown, since the last Hello
+
+
+class TxNodes:
+    """``node_at`` (TxNode -> node id) beside the store's node id -> TxNode; ``seen`` (TxNode
+    -> when its last frame came) for the lease.
+
+    Handed the CAN-ECB's ``phase``, its ``send``, its ``counters`` (joined, adopted, conflicts,
+    refused, reclaimed, offers_withdrawn are counted there), its rate-limited ``warn``, and
+    ``stored``/``log_failure`` to report writes; ``forget(txnode)`` is called when a TxNode is
+    (re)assigned or reclaimed (its node starts with no channels), ``unassigned(txnode)`` for a
+    claim of a TxNode nobody holds outside a recovery window."""
+
+    def __init__(
+        self,
+        store: Store,
+        *,
+        phase: Phase,
+        send: Callable[[p.Management], None],
+        counters: dict[str, int],
+        warn: Callable[..., None],
+        stored: Callable[[BaseException | None, str, int | None], bool],
+        log_failure: Callable[[str], Callable[[BaseException | None], None]],
+        forget: Callable[[int], None],
+        unassigned: Callable[[int], None],
+        lease: float,
+    ) -> None:
+        self._store = store
+        self._phase = phase
+        self._send = send
+        self._counters = counters
+        self._warn = warn
+        self._stored = stored
+        self._log_failure = log_failure
+        self._forget = forget
+        self._unassigned = unassigned
+        self._lease = lease
+        self.node_at = {t: n for n, t in store.txnodes.items()}  # TxNode -> node id
+        self._pending: dict[int, int] = {}  # node id -> TxNode being written
+        self._offers: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
+        self.seen = dict.fromkeys(range(p.TXNODE_COUNT), time.monotonic())
+
+    def close(self) -> None:
+        for _, timer in self._offers.values():
+            timer.cancel()
+        self._offers.clear()
+
+    def found(self, node_ids: list[int]) -> None:
+        """The census found these ids: offer each a TxNode, which its node must claim."""
+        for node_id in node_ids:
+            if self._phase.standby or node_id in self._pending:
+                continue
+            offer = self._offers.get(node_id)
+            txnode = offer[0] if offer else self._txnode_for(node_id)
+            if txnode is None:
+                continue
+            if offer:
+                offer[1].cancel()
+            timer = asyncio.get_running_loop().call_later(OFFER_TIMEOUT, self._withdraw, node_id)
+            self._offers[node_id] = (txnode, timer)
+            self._send(p.Offer(txnode, node_id))
+
+    def move(self, node_id: int) -> None:
+        """Give a joined node whose TxNode another holds a TxNode of its own (Assign)."""
+        txnode = self._txnode_for(node_id)
+        if txnode is not None:
+            self._assign(node_id, txnode)
+
+    def _txnode_for(self, node_id: int) -> int | None:
+        """The TxNode ``node_id`` holds, else a free one (reclaiming the one silent longest,
+        past the lease), else None and TxNodesFull."""
+        txnode = self._store.txnodes.get(node_id)
+        if txnode is not None:
+            return txnode
+        writes: list[Write] = []
+        txnode = self._free(writes)
+        if txnode is None:
+            self._counters["refused"] += 1
+            log.warning("no TxNode left for node %016x", node_id)
+            self._send(p.TxNodesFull(node_id))
+        elif writes:  # reclaimed: its old owner is forgotten for good
+            self._store.submit(writes, self._log_failure(f"the reclaim of TxNode 0x{txnode:02x}"))
+        return txnode
+
+    def _withdraw(self, node_id: int) -> None:
+        """Nobody claimed the offer: the id was not a node's (frames were lost or late)."""
+        if self._offers.pop(node_id, None) is not None:
+            self._counters["offers_withdrawn"] += 1
+
+    def _assign(self, node_id: int, txnode: int) -> None:
+        """The node claimed the TxNode offered to it: store the assignment, then announce it."""
+        if self._phase.standby or node_id in self._pending:
+            return
+        if self._store.txnodes.get(node_id) == txnode:
+            self._assigned(node_id, txnode)
+            return
+        self._pending[node_id] = txnode
+
+        def done(error: BaseException | None) -> None:
+            del self._pending[node_id]
+            if self._stored(error, f"TxNode {txnode} of node {node_id:016x}", node_id):
+                self._hold(node_id, txnode)
+                self._assigned(node_id, txnode)
+
+        self._store.submit([("txnodes", node_id, txnode)], done)
+
+    def _assigned(self, node_id: int, txnode: int) -> None:
+        self._counters["joined"] += 1
+        self.seen[txnode] = time.monotonic()
+        self._forget(txnode)  # a (re)joining node starts with no subscriptions
+        log.info("node %016x has TxNode 0x%02x", node_id, txnode)
+        self._send(p.Assign(txnode, node_id))
+
+    def _free(self, writes: list[Write]) -> int | None:
+        offered = {t for t, _ in self._offers.values()}
+        taken = set(self.node_at) | set(self._pending.values()) | offered
+        free = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
+        if free is not None:
+            return free
+        now = time.monotonic()
+        idle = [t for t in self.node_at if t not in offered]  # offered: a node's own, in use
+        oldest = min(idle, key=lambda t: self.seen[t], default=None)
+        if oldest is None or now - self.seen[oldest] < self._lease:
+            return None
+        old_id = self.node_at.pop(oldest)
+        del self._store.txnodes[old_id]
+        self._forget(oldest)
+        writes.append(("txnodes", old_id, None))
+        self._counters["reclaimed"] += 1
+        log.warning("reclaimed TxNode 0x%02x of node %016x, silent for %.0f s", oldest, old_id,
+                    now - self.seen[oldest])  # fmt: skip
+        return oldest
+
+    def _hold(self, node_id: int, txnode: int) -> None:
+        self._store.txnodes[node_id] = txnode
+        self.node_at[txnode] = node_id
+
+    def on_claim(self, txnode: int, node_id: int) -> None:
+        offer = self._offers.get(node_id)
+        if offer is not None and offer[0] == txnode:  # a joiner takes the TxNode offered
+            offer[1].cancel()
+            del self._offers[node_id]
+            self._assign(node_id, txnode)
+            return
+        known = self._store.txnodes.get(node_id)
+        if known == txnode:
+            return
+        holder = self.node_at.get(txnode)
+        if not self._phase.recovering:  # claims answer Hello; any other is stray or forged
+            self._counters["conflicts"] += 1
+            self._warn("claim", "ignored CLAIM of TxNode 0x%02x by node %016x outside recovery",
+                       txnode, node_id)  # fmt: skip
+            if known is not None and holder is None:  # it was told to move: tell it the truth
+                self._send(p.Assign(known, node_id))
+            elif holder is None and known is None:
+                self._unassigned(txnode)
+            return
+        phase = self._phase
+        if phase.started_up and txnode not in phase.strays:  # later windows: for strays only
+            self._counters["conflicts"] += 1
+            self._warn("claim", "ignored CLAIM of TxNode 0x%02x by node %016x: it asked nothing",
+                       txnode, node_id)  # fmt: skip
+            return
+        if known is None and holder is None and txnode not in self._pending.values():
+            self._counters["adopted"] += 1
+            log.info("adopting TxNode 0x%02x of node %016x", txnode, node_id)
+            self._hold(node_id, txnode)
+            self._store.submit(
+                [("txnodes", node_id, txnode)], self._log_failure(f"adopted TxNode 0x{txnode:02x}")
+            )
+            return
+        self._counters["conflicts"] += 1
+        log.warning("node %016x claims TxNode 0x%02x held by another node: moving it",
+                    node_id, txnode)  # fmt: skip
+        self.move(node_id)  # the holder of ``txnode`` keeps it and its channels
