@@ -8,6 +8,7 @@ is admitted only if Audsley's priority assignment, with the revised CAN response
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from fractions import Fraction
 from math import ceil
@@ -21,6 +22,7 @@ log = logging.getLogger("ups.can_ecb")
 #: management frames above (0x00, 0x01).
 RT_FIRST, RT_LAST = 0x02, 0x7F
 Key = tuple[int, int]  # (etag, TxNode)
+DECLARE_RATE = 10.0  #: analyses per second and TxNode (a burst of twice that)
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,17 @@ class Admission:
         self.granted: dict[Key, int] = {}
         self._asked: dict[Key, p.Declare] = {}
         self._refused: dict[p.Declare, p.Refuse] = {}  # valid while ``declared`` stays as is
+        self._tokens: dict[int, tuple[float, float]] = {}  # TxNode -> tokens, when counted
+
+    def within_rate(self, txnode: int) -> bool:
+        """May ``txnode``'s declaration be analysed now? (``DECLARE_RATE`` a second, a
+        burst of twice that; a repeated declaration costs nothing: see :meth:`repeat`.)"""
+        now = time.monotonic()
+        tokens, last = self._tokens.get(txnode, (2 * DECLARE_RATE, now))
+        tokens = min(2 * DECLARE_RATE, tokens + (now - last) * DECLARE_RATE)
+        allowed = tokens >= 1
+        self._tokens[txnode] = (tokens - 1 if allowed else tokens, now)
+        return allowed
 
     def repeat(self, msg: p.Declare) -> p.Grant | p.Refuse | None:
         """The verdict already given to exactly this declaration, if it still holds (a node

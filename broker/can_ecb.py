@@ -23,7 +23,6 @@ import contextlib
 import logging
 import secrets
 import time
-from collections import defaultdict
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -37,6 +36,7 @@ from ups._errors import DecodeError
 
 from ._admission import Admission
 from ._census import Census
+from ._channels import Channels
 from ._store import Store, Write
 from ._txnodes import TxNodes
 
@@ -49,7 +49,6 @@ HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
 LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
 MAX_CHANNELS = 8192  #: channels one TxNode may subscribe to or publish on (half the etags)
 MAX_DEFERRED = 4096  #: binding requests held during the recovery window
-DECLARE_RATE = 10.0  #: admission analyses per second and TxNode (a burst of twice that)
 LOG_GAP = 10.0  #: a repeated warning is logged at most this often
 SERVING_GAP = 1.0  #: at most one Serving per this many seconds
 STANDBY_PROBE = 2.0  #: a standing-by CAN-ECB asks this often whether the other still serves
@@ -82,7 +81,6 @@ class CanEcb:
         self.instance = secrets.randbits(64)
         self._recovery = recovery
         self._lease = lease
-        self._max_channels = max_channels
         self.recovering = False  # the tables' Phase (see _txnodes): in a recovery window
         self.standby = False  # another CAN-ECB serves the bus
         self._admission = Admission(bitrate, fd=link.fd)
@@ -106,11 +104,6 @@ class CanEcb:
         self._last_serving = -1.0
         self._other_heard = 0.0  # in standby: when the serving CAN-ECB was last heard
         self._probe_timer: asyncio.TimerHandle | None = None
-        self._declare_tokens: dict[int, tuple[float, float]] = {}
-        self.subscribers: defaultdict[int, set[int]] = defaultdict(set)  # uid -> TxNodes
-        self.publishers: defaultdict[int, set[int]] = defaultdict(set)
-        self._channels_of: defaultdict[int, set[int]] = defaultdict(set)  # TxNode -> uids
-        self._asking: defaultdict[int, set[int]] = defaultdict(set)  # TxNode -> uids being bound
         self.on_change: Callable[[int], None] | None = None
         self.bind_gate: Callable[[int], Awaitable[None]] | None = None
         self.on_standby: Callable[[str], None] | None = None
@@ -130,6 +123,12 @@ class CanEcb:
             unassigned=self._unassigned, lease=lease,
         )  # fmt: skip
         self._census = Census(self._send, self._txnodes.found)
+        self._channels = Channels(
+            max_channels, send=self._send, counters=self.counters, warn=self._warn,
+            changed=self._changed,
+        )  # fmt: skip
+        self.subscribers = self._channels.subscribers  # uid -> TxNodes
+        self.publishers = self._channels.publishers
 
     # --- tables and statistics -------------------------------------------------------------
 
@@ -293,7 +292,7 @@ class CanEcb:
             elif isinstance(msg, p.Declare):
                 self._on_declare(msg)
             elif msg.kind == p.UNSUB:
-                self._update(self.subscribers, msg.value, msg.txnode, add=False)
+                self._channels.unsubscribe(msg.value, msg.txnode)
             else:
                 self._on_bind_request(msg)
 
@@ -405,7 +404,7 @@ class CanEcb:
                 self.counters["deferred"] += 1
                 self._deferred[(msg.kind, txnode, uid, size_class)] = None
             return
-        if not self._within_limit(txnode, uid):
+        if not self._channels.within_limit(txnode, uid):
             return
         if etag is not None and fits:
             self._bound(msg.kind, txnode, uid, etag)
@@ -413,7 +412,7 @@ class CanEcb:
         pending = self._pending_etag.get(uid)
         if pending is not None:
             pending[1].append((msg.kind, txnode, size_class))
-            self._asking[txnode].add(uid)
+            self._channels.ask(txnode, uid)
             return
         writes: list[Write] = []
         etag = self._free_etag(writes, size_class)
@@ -428,7 +427,7 @@ class CanEcb:
             log.info("channel %016x moves to etag %#x (size class %d)", uid, etag, size_class)
         self._pending_etag[uid] = (etag, [(msg.kind, txnode, size_class)])
         self._pending_etags.add(etag)
-        self._asking[txnode].add(uid)
+        self._channels.ask(txnode, uid)
         writes.append(("etags", uid, etag))
         self._store.submit(writes, self._bind_done(uid, etag))
 
@@ -437,9 +436,7 @@ class CanEcb:
             _, asks = self._pending_etag.pop(uid)
             self._pending_etags.discard(etag)
             for _, txnode, _ in asks:
-                self._asking[txnode].discard(uid)
-                if not self._asking[txnode]:
-                    del self._asking[txnode]
+                self._channels.answered(txnode, uid)
             if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
                 cls = sizes.size_class(etag)
                 self._free_from[cls] = min(self._free_from[cls], etag)
@@ -458,7 +455,7 @@ class CanEcb:
 
     def _bound(self, kind: int, txnode: int, uid: int, etag: int) -> None:
         publish = kind == p.PUB_BIND
-        self._update(self.publishers if publish else self.subscribers, uid, txnode, add=True)
+        self._channels.use(publish, uid, txnode)
         if publish and self.bind_gate is not None:
             task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid))
             self._gated.add(task)
@@ -515,9 +512,8 @@ class CanEcb:
         holder = self._uid_at.get(etag)
         kind = p.PUB_BIND if msg.publish else p.SUB_BIND
         if known == etag:
-            if self._within_limit(msg.txnode, uid):
-                self._update(self.publishers if msg.publish else self.subscribers, uid,
-                             msg.txnode, add=True)  # fmt: skip
+            if self._channels.within_limit(msg.txnode, uid):
+                self._channels.use(msg.publish, uid, msg.txnode)
             return
         if (
             known is None
@@ -525,14 +521,13 @@ class CanEcb:
             and etag not in self._pending_etags
             and uid not in self._pending_etag
         ):
-            if not self._within_limit(msg.txnode, uid):
+            if not self._channels.within_limit(msg.txnode, uid):
                 return
             self.counters["adopted"] += 1
             log.info("adopting etag %#x of channel %016x from TxNode 0x%02x", etag, uid, msg.txnode)
             self._hold_etag(uid, etag)
             self._store.submit([("etags", uid, etag)], self._log_failure(f"adopted etag {etag:#x}"))
-            self._update(self.publishers if msg.publish else self.subscribers, uid,
-                         msg.txnode, add=True)  # fmt: skip
+            self._channels.use(msg.publish, uid, msg.txnode)
             return
         self.counters["conflicts"] += 1
         self._warn("holds", "TxNode 0x%02x holds %016x at etag %#x, which contradicts the tables: "
@@ -541,47 +536,8 @@ class CanEcb:
         if known is None and not self.recovering:  # it will ask again; answer it now
             self._on_bind_request(p.Request(kind, msg.txnode, uid))
 
-    def _within_limit(self, txnode: int, uid: int) -> bool:
-        channels = self._channels_of.get(txnode, ())
-        asking = self._asking.get(txnode, ())
-        if uid in channels or uid in asking or len(channels) + len(asking) < self._max_channels:
-            return True
-        self.counters["limited"] += 1
-        self._warn("limit", "TxNode 0x%02x uses %d channels already: refused %016x", txnode,
-                   len(channels), uid)  # fmt: skip
-        self._send(p.Limit(txnode, uid))
-        return False
-
-    def _update(self, table: defaultdict[int, set[int]], uid: int, txnode: int, add: bool) -> None:
-        nodes = table.get(uid)
-        if add:
-            if nodes is None:
-                nodes = table[uid] = set()
-            if txnode in nodes:
-                return
-            nodes.add(txnode)
-            self._channels_of[txnode].add(uid)
-        else:
-            if nodes is None or txnode not in nodes:
-                return
-            nodes.discard(txnode)
-            if not nodes:
-                del table[uid]
-            if uid not in self.subscribers.get(uid, ()) and txnode not in self.publishers.get(
-                uid, ()
-            ):
-                self._channels_of[txnode].discard(uid)
-        self._changed(uid)
-
     def _forget_node(self, txnode: int) -> None:
-        for uid in list(self._channels_of.pop(txnode, ())):
-            for table in (self.subscribers, self.publishers):
-                nodes = table.get(uid)
-                if nodes is not None and txnode in nodes:
-                    nodes.discard(txnode)
-                    if not nodes:
-                        del table[uid]
-                    self._changed(uid)
+        self._channels.forget(txnode)
         self._admission.forget(txnode)
 
     # --- real-time admission -------------------------------------------------------------------
@@ -598,7 +554,7 @@ class CanEcb:
         if repeat is not None:
             self._send(repeat)
             return
-        if not self._declare_allowed(msg.txnode):
+        if not self._admission.within_rate(msg.txnode):
             self.counters["limited"] += 1
             self._warn("declare", "TxNode 0x%02x declares too often: ignored", msg.txnode)
             return
@@ -606,14 +562,6 @@ class CanEcb:
         self.counters["admitted" if verdict.admitted else "refused"] += 1
         for frame in verdict.frames:
             self._send(frame)
-
-    def _declare_allowed(self, txnode: int) -> bool:
-        now = time.monotonic()
-        tokens, last = self._declare_tokens.get(txnode, (2 * DECLARE_RATE, now))
-        tokens = min(2 * DECLARE_RATE, tokens + (now - last) * DECLARE_RATE)
-        allowed = tokens >= 1
-        self._declare_tokens[txnode] = (tokens - 1 if allowed else tokens, now)
-        return allowed
 
     # --- helpers -------------------------------------------------------------------------------
 

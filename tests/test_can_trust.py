@@ -173,9 +173,28 @@ async def test_forged_claims_and_requests_take_nothing(
         assert ecb.txnodes == {0x42: me}
         assert len(ecb.etags) <= 8 and ecb.stats()["limited"] >= 42
         assert ecb.stats()["unassigned"] >= 200
-        assert len(ecb.subscribers) <= 8 and len(ecb._channels_of) <= 2
+        assert len(ecb.subscribers) <= 8 and len(ecb._channels.of) <= 2
         async with Node(can=bus, node_id=0x43) as newcomer:  # the bus still takes nodes
             assert newcomer.stats()["txnode"] not in (me, -1)
+
+
+async def test_an_unsubscription_gives_the_node_its_channel_back_whatever_the_uid(
+    bus: str, tmp_path: Path
+) -> None:
+    """A channel whose UID is also some node's TxNode number: a node that unsubscribes from it
+    while that node still subscribes may bind another channel within its limit (one here)."""
+    async with (
+        running_ecb(bus, tmp_path / "ecb.db", recovery=0.1, max_channels=1) as ecb,
+        nodes(bus, [0x51, 0x52]) as (a, b),
+    ):
+        await eventually(lambda: not ecb.recovering)
+        uid = b.stats()["txnode"]
+        await b.subscribe(uid)
+        await a.subscribe(uid)
+        await a.unsubscribe(uid)
+        await eventually(lambda: a.stats()["txnode"] not in ecb.subscribers.get(uid, ()))
+        await a.subscribe("another channel")  # Exhausted if its old channel still counted
+        assert ecb.stats()["limited"] == 0
 
 
 async def test_hellos_are_answered_at_most_once_a_second(
