@@ -354,11 +354,11 @@ class EcbWatch:
             "publishers": len(ecb.publishers),
             "channels_of": len(ecb._channels.of),
             "asking": len(ecb._channels.asking),
-            "deferred": len(ecb._deferred),
+            "deferred": len(ecb._etags.deferred),
             "declared": len(ecb._admission.declared),
             "refused_cache": len(ecb._admission._refused),
-            "seen_etag": len(ecb._seen_etag),
-            "gated": len(ecb._gated),
+            "seen_etag": len(ecb._etags.seen),
+            "gated": len(ecb._etags._gated),
         }
 
 

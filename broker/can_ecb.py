@@ -19,7 +19,6 @@ frames; the one that served first (else the lower instance id) stays, the other 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import secrets
 import time
@@ -30,25 +29,23 @@ from typing import Any
 import can
 
 from ups import _canproto as p
-from ups import _cantransfer as sizes
 from ups._canlink import CanLink
 from ups._errors import DecodeError
 
 from ._admission import Admission
 from ._census import Census
 from ._channels import Channels
-from ._store import Store, Write
+from ._etags import Etags
+from ._store import Store
 from ._txnodes import TxNodes
 
 log = logging.getLogger("ups.can_ecb")
 
 RECOVERY = 2.0  #: seconds after Hello during which the CAN-ECB only listens and adopts (longer
 #: than the nodes' Hello answer gap of 1 s, so that every node answers within it)
-GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
 HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
 LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
 MAX_CHANNELS = 8192  #: channels one TxNode may subscribe to or publish on (half the etags)
-MAX_DEFERRED = 4096  #: binding requests held during the recovery window
 LOG_GAP = 10.0  #: a repeated warning is logged at most this often
 SERVING_GAP = 1.0  #: at most one Serving per this many seconds
 STANDBY_PROBE = 2.0  #: a standing-by CAN-ECB asks this often whether the other still serves
@@ -80,21 +77,10 @@ class CanEcb:
         self._store = Store(db_path)
         self.instance = secrets.randbits(64)
         self._recovery = recovery
-        self._lease = lease
         self.recovering = False  # the tables' Phase (see _txnodes): in a recovery window
         self.standby = False  # another CAN-ECB serves the bus
         self._admission = Admission(bitrate, fd=link.fd)
         self.bitrate = bitrate
-        self._uid_at = {e: u for u, e in self._store.etags.items()}  # etag -> UID
-        #: uid -> the etag being stored for it, and the (kind, TxNode, size class) waiting for it
-        self._pending_etag: dict[int, tuple[int, list[tuple[int, int, int]]]] = {}
-        self._pending_etags: set[int] = set()  # the etags of _pending_etag
-        #: size class -> no etag of that class below it is free
-        self._free_from = [sizes.class_etags(c).start for c in range(p.SIZE_CLASSES)]
-        now = time.monotonic()
-        self._seen_etag: dict[int, float] = {}  # etag -> last event (default: start time)
-        self._started = now
-        self._deferred: dict[tuple[int, int, int, int], None] = {}
         self._knocked = False
         self._recovery_timer: asyncio.TimerHandle | None = None
         self._last_unknown_hello = -HELLO_GAP  # the last Hello sent for an unknown TxNode
@@ -105,9 +91,7 @@ class CanEcb:
         self._other_heard = 0.0  # in standby: when the serving CAN-ECB was last heard
         self._probe_timer: asyncio.TimerHandle | None = None
         self.on_change: Callable[[int], None] | None = None
-        self.bind_gate: Callable[[int], Awaitable[None]] | None = None
         self.on_standby: Callable[[str], None] | None = None
-        self._gated: set[asyncio.Task[None]] = set()
         self.counters = dict.fromkeys(
             (
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
@@ -129,8 +113,21 @@ class CanEcb:
         )  # fmt: skip
         self.subscribers = self._channels.subscribers  # uid -> TxNodes
         self.publishers = self._channels.publishers
+        self._etags = Etags(
+            self._store, phase=self, channels=self._channels, admission=self._admission,
+            assigned=self._txnodes.node_at, send=self._send, counters=self.counters,
+            warn=self._warn, stored=self._stored, log_failure=self._log_failure, lease=lease,
+        )  # fmt: skip
 
     # --- tables and statistics -------------------------------------------------------------
+
+    @property
+    def bind_gate(self) -> Callable[[int], Awaitable[None]] | None:
+        return self._etags.gate
+
+    @bind_gate.setter
+    def bind_gate(self, gate: Callable[[int], Awaitable[None]] | None) -> None:
+        self._etags.gate = gate
 
     @property
     def txnodes(self) -> dict[int, int]:
@@ -211,8 +208,7 @@ class CanEcb:
                 timer.cancel()
         self._recovery_timer = None
         self._probe_timer = None
-        for task in self._gated:
-            task.cancel()
+        self._etags.close()
         self.link.remove_handler(self._handler)
         self._store.close()
 
@@ -232,9 +228,7 @@ class CanEcb:
         if self.standby:
             return
         self.started_up = True
-        deferred, self._deferred = list(self._deferred), {}
-        for kind, txnode, uid, size_class in deferred:
-            self._on_bind_request(p.Request(kind, txnode, uid, size_class))
+        self._etags.replay()
         if self._knocked:
             self._knocked = False
             self._census.knock()
@@ -254,7 +248,7 @@ class CanEcb:
         if txnode != p.MGMT_TXNODE:
             self._txnodes.seen[txnode] = now
         if not p.is_management(can_id):
-            self._seen_etag[can_id & p.ETAG_MASK] = now
+            self._etags.seen[can_id & p.ETAG_MASK] = now
             return
         try:
             msg = p.decode(can_id, bytes(frame.data))
@@ -288,13 +282,13 @@ class CanEcb:
             elif msg.txnode not in self._txnodes.node_at:
                 self._unassigned(msg.txnode)
             elif isinstance(msg, p.Holds):
-                self._on_holds(msg)
+                self._etags.on_holds(msg)
             elif isinstance(msg, p.Declare):
                 self._on_declare(msg)
             elif msg.kind == p.UNSUB:
                 self._channels.unsubscribe(msg.value, msg.txnode)
             else:
-                self._on_bind_request(msg)
+                self._etags.on_request(msg)
 
     def _unassigned(self, txnode: int) -> None:
         """A request from a TxNode this CAN-ECB does not know: its tables are behind the bus
@@ -327,11 +321,11 @@ class CanEcb:
                        msg.instance)  # fmt: skip
             self._serving()
             return
-        if isinstance(msg, p.Bind) and self._uid_at.get(msg.etag) != msg.uid:
+        if isinstance(msg, p.Bind) and self._etags.uid_at.get(msg.etag) != msg.uid:
             self.counters["conflicts"] += 1
             self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
                        msg.etag, msg.uid)  # fmt: skip
-            self._correct(msg.etag, msg.uid)
+            self._etags.correct(msg.etag, msg.uid)
         elif isinstance(msg, p.Assign) and self._store.txnodes.get(msg.node_id) not in (
             None, msg.txnode,
         ):  # fmt: skip
@@ -375,13 +369,6 @@ class CanEcb:
         self._send(p.Serving(self.instance))  # a CAN-ECB that serves answers with its own
         self._probe_timer = asyncio.get_running_loop().call_later(STANDBY_PROBE, self._probe)
 
-    def _correct(self, etag: int, uid: int) -> None:
-        """Repeat the tables' truth about ``etag`` and ``uid``."""
-        if etag in self._uid_at:
-            self._send(p.Bind(etag, self._uid_at[etag]))
-        if uid in self._store.etags and self._store.etags[uid] != etag:
-            self._send(p.Bind(self._store.etags[uid], uid))
-
     def _log_failure(self, what: str) -> Callable[[BaseException | None], None]:
         """A write's callback when nobody waits for it: a failure is only counted and logged."""
 
@@ -389,152 +376,6 @@ class CanEcb:
             self._stored(error, what, None)
 
         return done
-
-    # --- binding and subscriptions -------------------------------------------------------------
-
-    def _on_bind_request(self, msg: p.Request) -> None:
-        """Bind ``uid`` to an etag of at least the asked size class: the one it has, or a new
-        one (a channel that needs a larger class moves; its nodes see the contradiction and
-        bind it again)."""
-        uid, txnode, size_class = msg.value, msg.txnode, msg.size_class
-        etag = self._store.etags.get(uid)
-        fits = etag is not None and sizes.size_class(etag) >= size_class
-        if self.recovering and not fits:
-            if len(self._deferred) < MAX_DEFERRED:
-                self.counters["deferred"] += 1
-                self._deferred[(msg.kind, txnode, uid, size_class)] = None
-            return
-        if not self._channels.within_limit(txnode, uid):
-            return
-        if etag is not None and fits:
-            self._bound(msg.kind, txnode, uid, etag)
-            return
-        pending = self._pending_etag.get(uid)
-        if pending is not None:
-            pending[1].append((msg.kind, txnode, size_class))
-            self._channels.ask(txnode, uid)
-            return
-        writes: list[Write] = []
-        etag = self._free_etag(writes, size_class)
-        if etag is None:
-            self.counters["refused"] += 1
-            self._warn("etags", "no etag of size class %d left for channel %016x", size_class,
-                       uid)  # fmt: skip
-            self._send(p.EtagsFull(uid))
-            return
-        if uid in self._store.etags:
-            self.counters["moved"] += 1
-            log.info("channel %016x moves to etag %#x (size class %d)", uid, etag, size_class)
-        self._pending_etag[uid] = (etag, [(msg.kind, txnode, size_class)])
-        self._pending_etags.add(etag)
-        self._channels.ask(txnode, uid)
-        writes.append(("etags", uid, etag))
-        self._store.submit(writes, self._bind_done(uid, etag))
-
-    def _bind_done(self, uid: int, etag: int) -> Callable[[BaseException | None], None]:
-        def done(error: BaseException | None) -> None:
-            _, asks = self._pending_etag.pop(uid)
-            self._pending_etags.discard(etag)
-            for _, txnode, _ in asks:
-                self._channels.answered(txnode, uid)
-            if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
-                cls = sizes.size_class(etag)
-                self._free_from[cls] = min(self._free_from[cls], etag)
-                return
-            self.counters["bound"] += 1
-            self._hold_etag(uid, etag)
-            for kind, txnode, size_class in asks:
-                if txnode not in self._txnodes.node_at:
-                    continue
-                if sizes.size_class(etag) >= size_class:
-                    self._bound(kind, txnode, uid, etag)
-                else:  # asked for more while a smaller etag was being stored
-                    self._on_bind_request(p.Request(kind, txnode, uid, size_class))
-
-        return done
-
-    def _bound(self, kind: int, txnode: int, uid: int, etag: int) -> None:
-        publish = kind == p.PUB_BIND
-        self._channels.use(publish, uid, txnode)
-        if publish and self.bind_gate is not None:
-            task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid))
-            self._gated.add(task)
-            task.add_done_callback(self._gated.discard)
-        else:
-            self._send(p.Bind(etag, uid))
-
-    async def _gated_bind(self, etag: int, uid: int) -> None:
-        assert self.bind_gate is not None
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(GATE_TIMEOUT):
-                await self.bind_gate(uid)
-        self._send(p.Bind(etag, uid))
-
-    def _free_etag(self, writes: list[Write], size_class: int) -> int | None:
-        pending = self._pending_etags
-        etags = sizes.class_etags(size_class)
-        etag = self._free_from[size_class]  # no etag of the class below it is free
-        while etag < etags.stop and (etag in self._uid_at or etag in pending):
-            etag += 1
-        self._free_from[size_class] = etag
-        if etag < etags.stop:
-            return etag
-        now = time.monotonic()
-        idle = [
-            e for e, u in self._uid_at.items()
-            if e in etags and e not in pending and not self.subscribers.get(u)
-            and not self.publishers.get(u)
-        ]  # fmt: skip
-        oldest = min(idle, key=lambda e: self._seen_etag.get(e, self._started), default=None)
-        if oldest is None or now - self._seen_etag.get(oldest, self._started) < self._lease:
-            return None
-        old_uid = self._uid_at.pop(oldest)
-        del self._store.etags[old_uid]
-        writes.append(("etags", old_uid, None))
-        self.counters["reclaimed"] += 1
-        log.warning("reclaimed etag %#x of channel %016x, unused", oldest, old_uid)
-        return oldest
-
-    def _hold_etag(self, uid: int, etag: int) -> None:
-        old = self._store.etags.get(uid)
-        if old is not None and old != etag:  # the channel moved to a larger size class
-            del self._uid_at[old]
-            cls = sizes.size_class(old)
-            self._free_from[cls] = min(self._free_from[cls], old)
-            self._admission.forget_etag(old)
-        self._store.etags[uid] = etag
-        self._uid_at[etag] = uid
-
-    def _on_holds(self, msg: p.Holds) -> None:
-        """A node reports a binding it holds (SUB_AT / PUB_AT)."""
-        uid, etag = msg.uid, msg.etag
-        known = self._store.etags.get(uid)
-        holder = self._uid_at.get(etag)
-        kind = p.PUB_BIND if msg.publish else p.SUB_BIND
-        if known == etag:
-            if self._channels.within_limit(msg.txnode, uid):
-                self._channels.use(msg.publish, uid, msg.txnode)
-            return
-        if (
-            known is None
-            and holder is None
-            and etag not in self._pending_etags
-            and uid not in self._pending_etag
-        ):
-            if not self._channels.within_limit(msg.txnode, uid):
-                return
-            self.counters["adopted"] += 1
-            log.info("adopting etag %#x of channel %016x from TxNode 0x%02x", etag, uid, msg.txnode)
-            self._hold_etag(uid, etag)
-            self._store.submit([("etags", uid, etag)], self._log_failure(f"adopted etag {etag:#x}"))
-            self._channels.use(msg.publish, uid, msg.txnode)
-            return
-        self.counters["conflicts"] += 1
-        self._warn("holds", "TxNode 0x%02x holds %016x at etag %#x, which contradicts the tables: "
-                   "correcting", msg.txnode, uid, etag)  # fmt: skip
-        self._correct(etag, uid)
-        if known is None and not self.recovering:  # it will ask again; answer it now
-            self._on_bind_request(p.Request(kind, msg.txnode, uid))
 
     def _forget_node(self, txnode: int) -> None:
         self._channels.forget(txnode)
@@ -544,7 +385,7 @@ class CanEcb:
 
     def _on_declare(self, msg: p.Declare) -> None:
         """Admit a stream if every declared stream of the bus stays schedulable, else refuse."""
-        uid = self._uid_at.get(msg.etag)
+        uid = self._etags.uid_at.get(msg.etag)
         if uid is None or msg.txnode not in self.publishers.get(uid, ()):
             self.counters["malformed"] += 1
             self._warn("declare-unbound", "TxNode 0x%02x declared etag %#x, which it does not "

@@ -42,7 +42,8 @@ from benchmarks.can_fuzz import (
     scenario_gateway,
     scenario_node,
 )
-from broker.can_ecb import MAX_CHANNELS, MAX_DEFERRED
+from broker._etags import MAX_DEFERRED
+from broker.can_ecb import MAX_CHANNELS
 from ups import Node, name_to_uid
 from ups import _canproto as p
 from ups._canface import CanFace

@@ -1,0 +1,243 @@
+"""The CAN-ECB's etag table: which channel (64-bit UID) is sent under which 14-bit etag.
+
+A node asks for a channel's etag (SUB_BIND, PUB_BIND, with the size class its events need);
+the answer, Bind, is sent once the binding is stored. A channel that needs a larger size class
+moves to a new etag (its nodes see the contradiction and bind it again). In a recovery window
+requests for new bindings wait (at most ``MAX_DEFERRED``), and the bindings nodes report
+holding (Holds) are adopted when they contradict nothing; a report that contradicts the tables
+is answered with the tables' own Binds. When no etag of a class is free, the one unused
+longest is reclaimed once past the lease. See docs/protocol.md, *Binding*.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Awaitable, Callable, Container
+
+from ups import _canproto as p
+from ups import _cantransfer as sizes
+
+from ._admission import Admission
+from ._channels import Channels
+from ._store import Store, Write
+from ._txnodes import Phase
+
+log = logging.getLogger("ups.can_ecb")
+
+GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
+MAX_DEFERRED = 4096  #: binding requests held during the recovery window
+
+
+class Etags:
+    """``uid_at`` (etag -> UID) beside the store's UID -> etag; ``seen`` (etag -> when its
+    last event came, else the start) for the lease; ``deferred``: the requests held during a
+    recovery window, answered by :meth:`replay`. ``gate(uid)``, when set, is awaited (at most
+    ``GATE_TIMEOUT`` s) before a publisher's Bind is sent.
+
+    Handed the CAN-ECB's ``phase``, its channel table (``channels``: who uses each channel,
+    each TxNode's limit), its ``admission`` (streams declared on an etag that is left are
+    dropped), ``assigned`` (the TxNodes held by nodes), its ``send``, ``counters`` (bound,
+    deferred, refused, moved, adopted, conflicts, reclaimed), rate-limited ``warn``, and
+    ``stored``/``log_failure`` to report writes."""
+
+    def __init__(
+        self,
+        store: Store,
+        *,
+        phase: Phase,
+        channels: Channels,
+        admission: Admission,
+        assigned: Container[int],
+        send: Callable[[p.Management], None],
+        counters: dict[str, int],
+        warn: Callable[..., None],
+        stored: Callable[[BaseException | None, str, int | None], bool],
+        log_failure: Callable[[str], Callable[[BaseException | None], None]],
+        lease: float,
+    ) -> None:
+        self._store = store
+        self._phase = phase
+        self._channels = channels
+        self._admission = admission
+        self._assigned = assigned
+        self._send = send
+        self._counters = counters
+        self._warn = warn
+        self._stored = stored
+        self._log_failure = log_failure
+        self._lease = lease
+        self.gate: Callable[[int], Awaitable[None]] | None = None
+        self.uid_at = {e: u for u, e in store.etags.items()}  # etag -> UID
+        #: uid -> the etag being stored for it, and the (kind, TxNode, size class) waiting for it
+        self._pending: dict[int, tuple[int, list[tuple[int, int, int]]]] = {}
+        self._storing: set[int] = set()  # the etags of _pending
+        #: size class -> no etag of that class below it is free
+        self._free_from = [sizes.class_etags(c).start for c in range(p.SIZE_CLASSES)]
+        self.seen: dict[int, float] = {}  # etag -> last event (default: start time)
+        self._started = time.monotonic()
+        self.deferred: dict[tuple[int, int, int, int], None] = {}
+        self._gated: set[asyncio.Task[None]] = set()
+
+    def close(self) -> None:
+        for task in self._gated:
+            task.cancel()
+
+    def replay(self) -> None:
+        """The recovery window is over: answer the requests it held."""
+        deferred, self.deferred = list(self.deferred), {}
+        for kind, txnode, uid, size_class in deferred:
+            self.on_request(p.Request(kind, txnode, uid, size_class))
+
+    def correct(self, etag: int, uid: int) -> None:
+        """Repeat the tables' truth about ``etag`` and ``uid``."""
+        if etag in self.uid_at:
+            self._send(p.Bind(etag, self.uid_at[etag]))
+        if uid in self._store.etags and self._store.etags[uid] != etag:
+            self._send(p.Bind(self._store.etags[uid], uid))
+
+    def on_request(self, msg: p.Request) -> None:
+        """Bind ``uid`` to an etag of at least the asked size class: the one it has, or a new
+        one (a channel that needs a larger class moves; its nodes see the contradiction and
+        bind it again)."""
+        uid, txnode, size_class = msg.value, msg.txnode, msg.size_class
+        etag = self._store.etags.get(uid)
+        fits = etag is not None and sizes.size_class(etag) >= size_class
+        if self._phase.recovering and not fits:
+            if len(self.deferred) < MAX_DEFERRED:
+                self._counters["deferred"] += 1
+                self.deferred[(msg.kind, txnode, uid, size_class)] = None
+            return
+        if not self._channels.within_limit(txnode, uid):
+            return
+        if etag is not None and fits:
+            self._bound(msg.kind, txnode, uid, etag)
+            return
+        pending = self._pending.get(uid)
+        if pending is not None:
+            pending[1].append((msg.kind, txnode, size_class))
+            self._channels.ask(txnode, uid)
+            return
+        writes: list[Write] = []
+        etag = self._free(writes, size_class)
+        if etag is None:
+            self._counters["refused"] += 1
+            self._warn("etags", "no etag of size class %d left for channel %016x", size_class,
+                       uid)  # fmt: skip
+            self._send(p.EtagsFull(uid))
+            return
+        if uid in self._store.etags:
+            self._counters["moved"] += 1
+            log.info("channel %016x moves to etag %#x (size class %d)", uid, etag, size_class)
+        self._pending[uid] = (etag, [(msg.kind, txnode, size_class)])
+        self._storing.add(etag)
+        self._channels.ask(txnode, uid)
+        writes.append(("etags", uid, etag))
+        self._store.submit(writes, self._stored_for(uid, etag))
+
+    def _stored_for(self, uid: int, etag: int) -> Callable[[BaseException | None], None]:
+        def done(error: BaseException | None) -> None:
+            _, asks = self._pending.pop(uid)
+            self._storing.discard(etag)
+            for _, txnode, _ in asks:
+                self._channels.answered(txnode, uid)
+            if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
+                cls = sizes.size_class(etag)
+                self._free_from[cls] = min(self._free_from[cls], etag)
+                return
+            self._counters["bound"] += 1
+            self._hold(uid, etag)
+            for kind, txnode, size_class in asks:
+                if txnode not in self._assigned:
+                    continue
+                if sizes.size_class(etag) >= size_class:
+                    self._bound(kind, txnode, uid, etag)
+                else:  # asked for more while a smaller etag was being stored
+                    self.on_request(p.Request(kind, txnode, uid, size_class))
+
+        return done
+
+    def _bound(self, kind: int, txnode: int, uid: int, etag: int) -> None:
+        publish = kind == p.PUB_BIND
+        self._channels.use(publish, uid, txnode)
+        if publish and self.gate is not None:
+            task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid))
+            self._gated.add(task)
+            task.add_done_callback(self._gated.discard)
+        else:
+            self._send(p.Bind(etag, uid))
+
+    async def _gated_bind(self, etag: int, uid: int) -> None:
+        assert self.gate is not None
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(GATE_TIMEOUT):
+                await self.gate(uid)
+        self._send(p.Bind(etag, uid))
+
+    def _free(self, writes: list[Write], size_class: int) -> int | None:
+        pending = self._storing
+        etags = sizes.class_etags(size_class)
+        etag = self._free_from[size_class]  # no etag of the class below it is free
+        while etag < etags.stop and (etag in self.uid_at or etag in pending):
+            etag += 1
+        self._free_from[size_class] = etag
+        if etag < etags.stop:
+            return etag
+        now = time.monotonic()
+        idle = [
+            e for e, u in self.uid_at.items()
+            if e in etags and e not in pending and not self._channels.subscribers.get(u)
+            and not self._channels.publishers.get(u)
+        ]  # fmt: skip
+        oldest = min(idle, key=lambda e: self.seen.get(e, self._started), default=None)
+        if oldest is None or now - self.seen.get(oldest, self._started) < self._lease:
+            return None
+        old_uid = self.uid_at.pop(oldest)
+        del self._store.etags[old_uid]
+        writes.append(("etags", old_uid, None))
+        self._counters["reclaimed"] += 1
+        log.warning("reclaimed etag %#x of channel %016x, unused", oldest, old_uid)
+        return oldest
+
+    def _hold(self, uid: int, etag: int) -> None:
+        old = self._store.etags.get(uid)
+        if old is not None and old != etag:  # the channel moved to a larger size class
+            del self.uid_at[old]
+            cls = sizes.size_class(old)
+            self._free_from[cls] = min(self._free_from[cls], old)
+            self._admission.forget_etag(old)
+        self._store.etags[uid] = etag
+        self.uid_at[etag] = uid
+
+    def on_holds(self, msg: p.Holds) -> None:
+        """A node reports a binding it holds (SUB_AT / PUB_AT)."""
+        uid, etag = msg.uid, msg.etag
+        known = self._store.etags.get(uid)
+        holder = self.uid_at.get(etag)
+        kind = p.PUB_BIND if msg.publish else p.SUB_BIND
+        if known == etag:
+            if self._channels.within_limit(msg.txnode, uid):
+                self._channels.use(msg.publish, uid, msg.txnode)
+            return
+        if (
+            known is None
+            and holder is None
+            and etag not in self._storing
+            and uid not in self._pending
+        ):
+            if not self._channels.within_limit(msg.txnode, uid):
+                return
+            self._counters["adopted"] += 1
+            log.info("adopting etag %#x of channel %016x from TxNode 0x%02x", etag, uid, msg.txnode)
+            self._hold(uid, etag)
+            self._store.submit([("etags", uid, etag)], self._log_failure(f"adopted etag {etag:#x}"))
+            self._channels.use(msg.publish, uid, msg.txnode)
+            return
+        self._counters["conflicts"] += 1
+        self._warn("holds", "TxNode 0x%02x holds %016x at etag %#x, which contradicts the tables: "
+                   "correcting", msg.txnode, uid, etag)  # fmt: skip
+        self.correct(etag, uid)
+        if known is None and not self._phase.recovering:  # it will ask again; answer it now
+            self.on_request(p.Request(kind, msg.txnode, uid))
