@@ -31,12 +31,9 @@ from pathlib import Path
 import can
 import pytest
 
+from benchmarks._can_frames import U64, FrameGen, Targets, classify
 from benchmarks.can_fuzz import (
-    U64,
-    FrameGen,
     Report,
-    Targets,
-    classify,
     prime_recovery,
     scenario_ecb,
     scenario_gateway,
