@@ -9,12 +9,9 @@ from __future__ import annotations
 import os
 import sys
 import time
-from pathlib import Path
 
 from benchmarks._procs import free_port, process
 
-ROOT = Path(__file__).resolve().parents[1]
-START_TIMEOUT = 20.0
 _IDLE_NODE = """
 import asyncio, sys
 from ups import Node

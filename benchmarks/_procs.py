@@ -70,7 +70,7 @@ def _end(popen: subprocess.Popen[Any], grace: float) -> None:
             popen.wait(timeout=grace)
         except subprocess.TimeoutExpired:
             popen.kill()
-            popen.wait()
+            popen.wait(timeout=grace)
 
 
 @dataclass
@@ -219,10 +219,9 @@ class Child:
 
     def finish(self, timeout: float = EXIT_GRACE) -> int:
         """Wait ``timeout`` s for the child to exit by itself, then stop it; its exit code."""
-        try:
+        with contextlib.suppress(subprocess.TimeoutExpired):
             self.popen.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.stop()
+        self.stop()  # at once if it is still there; else only its pipes and readers
         return self.popen.returncode
 
     def stop(self) -> None:
@@ -235,7 +234,8 @@ class Child:
 
 class Spawned:
     """``target(*args, conn)`` in a spawned process, named ``name``: it sends ``(kind, value)``
-    messages on ``conn`` (``("error", traceback)`` when it fails) and may be sent commands."""
+    messages on ``conn`` and may be sent commands. A target that catches its own failure sends
+    ``("error", traceback)`` (the peers' ``run_role`` does); one that dies shows as exited."""
 
     def __init__(self, target: Callable[..., None], args: tuple[Any, ...], name: str) -> None:
         self.conn, theirs = _SPAWN.Pipe()

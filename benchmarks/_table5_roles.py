@@ -17,9 +17,10 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any
 
+from benchmarks._procs import SETUP_TIMEOUT
+
 MARKER = b"\xff" * 8  # published once by an echo to register as publisher; never a ping
 PROBE_STEP = 0xFFFF  # step number of the rate publisher's probes
-SETUP_TIMEOUT = 60.0  # for a daemon or a child to be ready, or a path to work
 
 
 def _node(net: str, name: str, node_id: int) -> Any:

@@ -65,8 +65,9 @@ async def ups_latency(bus: str, subscribers: int, count: int, rate: float) -> li
         proc = publisher(bus, count, rate)
         try:
             await asyncio.gather(*tasks)
-        finally:
             await asyncio.to_thread(proc.finish, 30.0)
+        finally:
+            proc.stop()  # at once when a measurement failed; else a no-op
         assert node.stats()["dropped"] == 0
         return done
 
@@ -84,8 +85,9 @@ def raw_latency(bus: str, count: int, rate: float) -> list[float]:
             now = time.time()
             if frame.is_extended_id and (frame.arbitration_id & 0x3FFF) >= 0x10:
                 lat.append(now - frame.timestamp)
-    finally:
         proc.finish(30.0)
+    finally:
+        proc.stop()  # at once when a measurement failed; else a no-op
         listener.shutdown()
     return lat
 

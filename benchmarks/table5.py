@@ -56,10 +56,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from benchmarks._procs import Child, set_affinity
-from benchmarks._table5_roles import SETUP_TIMEOUT, run_child
+from benchmarks._procs import SETUP_TIMEOUT, Child, set_affinity
+from benchmarks._table5_roles import run_child
 
-ROOT = Path(__file__).resolve().parent.parent
 GW_ID = 0x6A7E
 
 # Table 5 of the paper, min / avg / max in microseconds (Pentium III 800 MHz, C167 20 MHz).

@@ -57,7 +57,7 @@ class CanEcb:
     ``subscribers`` and ``publishers`` map each channel UID to the TxNodes that subscribe to or
     publish on it. ``on_change(uid)`` is called whenever either set of a channel changes (the
     gateway forwards by them). ``bind_gate(uid)``, when set, is awaited (at most
-    ``GATE_TIMEOUT`` s) before a publisher's binding is answered, so that a gateway is
+    ``_etags.GATE_TIMEOUT`` s) before a publisher's binding is answered, so that a gateway is
     forwarding the channel before its first event is sent. ``on_standby(reason)`` is called
     when another CAN-ECB serves the bus and this one stops answering.
     """

@@ -376,11 +376,11 @@ async def test_a_rebind_never_takes_an_etag_heard_bound_to_another_channel(
     bus: str, tmp_path: Path, raw_bus: can.BusABC
 ) -> None:
     """BUG: a wrong delivery (ups/_canbinding.py, Bindings.on_bind; docs/protocol.md, "A Bind
-    counts as the answer"). A node re-binding channel a takes any Bind that names a and does
-    not contradict its own bindings as the answer, also Bind(etag of c, a) when it heard c
-    bound to that etag before (``_heard``). Its subscription to a then receives c's events, also
-    a real publisher's: one that reads the stray Bind a moment late (here: its receiving is held)
-    still sends c on that etag. The fuzzing hit it with the CAN-ECB running (the gateway
+    counts as the answer"). A node re-binding channel a takes any Bind that names a and does not
+    contradict its own bindings as the answer, also Bind(etag of c, a) when it heard c bound to
+    that etag before (``Bindings.heard``). Its subscription to a then receives c's events, also
+    a real publisher's: one that reads the stray Bind a moment late (here: its receiving is
+    held) still sends c on that etag. The fuzzing hit it with the CAN-ECB running (the gateway
     forwarded a real gw/cc event to TCP as gw/up) once bugs 1 and 2 were patched out; the
     CAN-ECB's correction only ends the window. Here the CAN-ECB is away, which holds the
     re-binding open."""

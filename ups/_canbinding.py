@@ -4,7 +4,8 @@ A node relies only on a Bind that answers its own request (see docs/protocol.md,
 A Bind that contradicts a binding it relies on (another UID on the etag, or another etag for
 the UID) is handed to the face (``on_contradicted``), which stops using the channels involved
 and binds them again; an answer to such a re-binding is adopted only after it stood
-``SETTLE`` seconds without a contradiction.
+``SETTLE`` seconds without a contradiction. (``_bindings`` is another thing: the tools' view of
+a bus's bindings, read from the CAN-ECB or a recording.)
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ IN_FLIGHT = 128  #: binding requests outstanding at once (the rest wait their tu
 class Bindings:
     """The node's table: ``bound`` (uid -> etag) and ``uid_at`` (etag -> uid), confirmed by
     the CAN-ECB in answer to this node; ``heard`` (etag -> uid), every Bind heard on the bus.
+    These dicts are never replaced: the face reads them too. :meth:`ask` also carries the
+    face's real-time declarations (the same retries, another answer).
 
     ``on_adopted(etag, uid)`` is called when an answer is relied on, before its request
     returns; ``on_contradicted(uid)`` when a Bind contradicts ``uid``'s binding (the face

@@ -132,6 +132,7 @@ class CanFace:
             counters=self.counters, warn=self._warn, on_adopted=self._adopted,
             on_contradicted=self._suspend, rebinding=self._rebinding,
         )  # fmt: skip
+        # the table's dicts, read here too (Bindings never replaces them):
         self._bound = self.bindings.bound  # uid -> etag, confirmed to this node by the CAN-ECB
         self._uid_at = self.bindings.uid_at  # etag -> uid, the same, inverted
         self._heard = self.bindings.heard  # etag -> uid, every Bind heard (for the counters)
@@ -402,8 +403,6 @@ class CanFace:
             self._last_announce = -_HELLO_GAP
             self._announce_all()  # our channels, under the new TxNode
 
-    # --- re-binding after a contradiction ---------------------------------------------------
-
     def _adopted(self, etag: int, uid: int) -> None:
         """``uid`` is bound to ``etag`` now: receive it, if a subscription waits for that."""
         state = self._wants_rx.get(uid)
@@ -414,6 +413,8 @@ class CanFace:
         self._rx[etag] = state
         self._suspended.discard(etag)
         self._update_filters()
+
+    # --- re-binding after a contradiction ---------------------------------------------------
 
     def _suspend(self, uid: int) -> None:
         """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again.
