@@ -74,3 +74,36 @@ async def _scenario(
     for frame in got:
         assert isinstance(frame, w.Event) and frame.data == sent[frame.seq]  # whole
     assert len(seqs) + link.dropped == len(events)  # the rest is counted
+
+
+def test_events_wait_in_the_queue_while_the_transport_is_paused() -> None:
+    """A control frame that fills the transport pauses it: the events queued behind it stay in
+    the link's bounded queue (counted, droppable), not copied into the transport's buffer."""
+    asyncio.run(_paused_by_control())
+
+
+async def _paused_by_control() -> None:
+    loop = asyncio.get_running_loop()
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    listener.setblocking(False)
+    client = socket.socket()
+    client.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    client.setblocking(False)
+    await loop.sock_connect(client, listener.getsockname())
+    peer, _ = await loop.sock_accept(listener)
+    listener.close()
+    link = Link(lambda *a: None, lambda *a: None, lambda *a: None, limit=100)
+    await loop.create_connection(lambda: link.protocol, sock=client)
+    link.send_control(bytes(1 << 20))  # far above the transport's high-water mark
+    for seq in range(1, 11):
+        link.send(w.encode_event(7, b"12345678", 0x80, seq))
+    flushed = loop.create_future()
+    loop.call_soon(flushed.set_result, None)  # after the link's flush, queued before it
+    await flushed
+    try:
+        assert link.queued == 10
+    finally:
+        link.abort("test over")
+        peer.close()

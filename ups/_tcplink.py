@@ -223,7 +223,7 @@ class Link:
         full): what stays queued goes out when it resumes, so nothing is ever copied in bulk."""
         out, transport = self._out, self.transport
         assert transport is not None
-        if out and self._out_bytes <= _BATCH:  # the usual case: all of it in one write
+        if out and self._out_bytes <= _BATCH and not self._paused:  # usual: all in one write
             try:
                 data = b"".join(out)  # type: ignore[arg-type]
             except TypeError:  # a large event's (header, data) among them: one by one below
