@@ -426,7 +426,7 @@ def unbound(face: CanFace) -> list[int]:
     return [
         uid
         for uid, state in face._channels.items()
-        if (state.subs or state.published) and uid not in face._bound
+        if (state.subs or state.published) and uid not in face.bindings.bound
     ]
 
 
@@ -758,7 +758,7 @@ async def scenario_node(
             report.tables_before = watch.tables()
             uids_before = set(ecb.etags)
             face = can_face(target)
-            heard_before = len(face._heard)
+            heard_before = len(face.bindings.heard)
             links = [link, target_link, can_face(helper).link]
             prime_recovery(ecb, recovery)
             report.rss_kb = (rss_kb(), 0)
@@ -767,7 +767,7 @@ async def scenario_node(
             await settle(nodes, flows, report)
             report.late_join, report.late_event = await late_join(bus, 0xD2, "nd/new", flows[0])
             report.counters = parts.compare()
-            report.extra = {"node N heard Binds of etags": (heard_before, len(face._heard))}
+            report.extra = {"node N heard Binds of etags": (heard_before, len(face.bindings.heard))}
             report.moved = moved_nodes(nodes, txnodes)
             report.handler_errors = {
                 "can_ecb": int(ecb.counters["handler_errors"]),

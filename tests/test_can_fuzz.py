@@ -341,7 +341,7 @@ async def test_a_contradiction_right_after_the_answer_to_a_rebind_is_not_lost(
             async with running_ecb(bus, db, recovery=0.1):  # a CAN-ECB serves again
                 got = await _gets_one(pub, sub_node, "x")
                 assert got, (
-                    f"x never bound again: bound={face._bound} "
+                    f"x never bound again: bound={face.bindings.bound} "
                     f"pending={list(face.bindings.pending)} "
                     f"rebinding={list(face._rebinding)} stats={pub.stats()}"
                 )
@@ -402,7 +402,7 @@ async def test_a_rebind_never_takes_an_etag_heard_bound_to_another_channel(
             etag_c = ecb.etags[name_to_uid("c")]
             face = q.face
             assert isinstance(face, CanFace)
-            await eventually(lambda: face._heard.get(etag_c) == name_to_uid("c"))
+            await eventually(lambda: face.bindings.heard.get(etag_c) == name_to_uid("c"))
             ecb.close()
             held.reading.clear()  # pub_c is busy for a moment
             _send(raw_bus, p.Bind(etag_a, 0xBAD))  # contradicts a: q asks again
@@ -449,8 +449,8 @@ async def test_a_stray_refusal_does_not_end_a_rebind_for_good(
         await asyncio.sleep(0.2)
         async with running_ecb(bus, db, recovery=0.1):  # a CAN-ECB serves again
             with contextlib.suppress(AssertionError):
-                await eventually(lambda: uid in face._bound)
-            assert uid in face._bound, (
+                await eventually(lambda: uid in face.bindings.bound)
+            assert uid in face.bindings.bound, (
                 f"the subscriber never binds x again: rebinding={list(face._rebinding)} "
                 f"stats={sub_node.stats()}"
             )

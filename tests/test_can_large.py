@@ -25,7 +25,7 @@ SIZES = [0, 1, 8, 9, 61, 62, 64, 255, 256, 257, 1024, 4096, 65535]
 
 
 def etag_of(node: Node, channel: str) -> int:
-    return node.face._bound[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
+    return node.face.bindings.bound[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
 
 
 @pytest.fixture(params=["classic", "fd"])

@@ -26,7 +26,7 @@ from .conftest import eventually, running_ecb
 
 
 def etag_of(node: Node, channel: str) -> int:
-    return node.face._bound[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
+    return node.face.bindings.bound[name_to_uid(channel)]  # type: ignore[attr-defined,no-any-return]
 
 
 async def test_simultaneous_joiners_get_distinct_txnodes(bus: str, ecb: CanEcb) -> None:

@@ -108,7 +108,7 @@ async def test_tcp_publisher_to_can_subscriber_keeps_the_priority(
         await tpub.publish("cmd", b"\x09")
         msg = await sub.get_msg(timeout=5)
         assert (msg.data, msg.priority) == (b"\x09", 0x40)
-        etag = csub_node.face._bound[name_to_uid("cmd")]  # type: ignore[attr-defined]
+        etag = csub_node.face.bindings.bound[name_to_uid("cmd")]  # type: ignore[attr-defined]
         txnode = gw.can.stats()["txnode"]  # type: ignore[union-attr]
         assert msg.source == txnode  # on CAN, the gateway is the sender
         frames = []
@@ -262,7 +262,7 @@ async def test_a_restarted_gateway_keeps_bindings_and_forwards_again(
             await cpub.publish("speed", b"\x00")
             await eventually(lambda: forwarding(first, "speed", "tcp"))
             txnode = cpub.stats()["txnode"]
-            etag = cpub.face._bound[name_to_uid("speed")]  # type: ignore[attr-defined]
+            etag = cpub.face.bindings.bound[name_to_uid("speed")]  # type: ignore[attr-defined]
             await first.close()
             async with gateway(bus, tcp_ecb, db) as second:
                 # it relearns the bus during its recovery window (2 s) and then forwards
@@ -270,7 +270,7 @@ async def test_a_restarted_gateway_keeps_bindings_and_forwards_again(
                 await cpub.publish("speed", b"\x01")
                 assert await _next_not_zero(sub) == b"\x01"
                 assert cpub.stats()["txnode"] == txnode
-                assert cpub.face._bound[name_to_uid("speed")] == etag  # type: ignore[attr-defined]
+                assert cpub.face.bindings.bound[name_to_uid("speed")] == etag  # type: ignore[attr-defined]
     finally:
         await first.close()
 
@@ -328,7 +328,7 @@ async def test_a_forged_bind_never_stops_tcp_to_can(
         await eventually(lambda: forwarding(gw, "cmd", "can"))
         await tpub.publish("cmd", b"\x01")
         assert (await sub.get_msg(timeout=5)).data == b"\x01"
-        etag = csub_node.face._bound[name_to_uid("cmd")]  # type: ignore[attr-defined]
+        etag = csub_node.face.bindings.bound[name_to_uid("cmd")]  # type: ignore[attr-defined]
         can_id, data = p.encode(p.Bind(etag, name_to_uid("not/cmd")))
         raw_bus.send(can.Message(arbitration_id=can_id, data=data))
         await eventually(lambda: gw.can.stats()["rebinds"] >= 1)  # type: ignore[union-attr]

@@ -30,7 +30,7 @@ IN_FLIGHT = 128  #: binding requests outstanding at once (the rest wait their tu
 class Bindings:
     """The node's table: ``bound`` (uid -> etag) and ``uid_at`` (etag -> uid), confirmed by
     the CAN-ECB in answer to this node; ``heard`` (etag -> uid), every Bind heard on the bus.
-    These dicts are never replaced: the face reads them too. :meth:`ask` also carries the
+    The face reads these dicts too. :meth:`ask` also carries the
     face's real-time declarations (the same retries, another answer).
 
     ``on_adopted(etag, uid)`` is called when an answer is relied on, before its request

@@ -132,10 +132,6 @@ class CanFace:
             counters=self.counters, warn=self._warn, on_adopted=self._adopted,
             on_contradicted=self._suspend, rebinding=self._rebinding,
         )  # fmt: skip
-        # the table's dicts, read here too (Bindings never replaces them):
-        self._bound = self.bindings.bound  # uid -> etag, confirmed to this node by the CAN-ECB
-        self._uid_at = self.bindings.uid_at  # etag -> uid, the same, inverted
-        self._heard = self.bindings.heard  # etag -> uid, every Bind heard (for the counters)
 
     # --- life cycle ------------------------------------------------------------------------
 
@@ -169,18 +165,18 @@ class CanFace:
             "tx_failed": self.link.tx_failed,
             "large_lost": self._reassembly.lost,
             "large_frames_dropped": self._reassembly.frames_dropped,
-            "bindings": len(self._bound),
+            "bindings": len(self.bindings.bound),
             "txnode": -1 if self.txnode is None else self.txnode,
         }
 
     # --- the Face protocol -----------------------------------------------------------------
 
     async def bind(self, state: ChannelState, subscribe: bool, size: int = 0) -> None:
-        uid = state.channel.uid
-        etag = self._bound.get(uid)
+        uid, bound = state.channel.uid, self.bindings.bound
+        etag = bound.get(uid)
         if etag is not None:  # confirmed already: tell the CAN-ECB our role; it corrects us
             self._send(p.Holds(not subscribe, self._my_txnode(), etag, uid))
-        while etag is None or self._bound.get(uid) != etag:  # a contradiction came meanwhile
+        while etag is None or bound.get(uid) != etag:  # a contradiction came meanwhile
             if subscribe:  # receive from the moment the Bind is handled, not a loop pass later
                 self._wants_rx[uid] = state
             try:
@@ -266,14 +262,14 @@ class CanFace:
 
     async def unsubscribe(self, state: ChannelState) -> None:
         uid = state.channel.uid
-        etag = self._bound.get(uid)
+        etag = self.bindings.bound.get(uid)
         if etag is not None and self._rx.get(etag) is state:
             del self._rx[etag]
             self._update_filters()
         self._send(p.Request(p.UNSUB, self._my_txnode(), uid))
 
     def send(self, state: ChannelState, data: bytes, priority: int) -> None:
-        etag = self._bound.get(state.channel.uid)
+        etag = self.bindings.bound.get(state.channel.uid)
         if etag is None:  # being bound again after a contradiction: nothing may go out
             self.counters["unbound_dropped"] += 1
             return
@@ -320,7 +316,7 @@ class CanFace:
             if etag in self._suspended or self._rebinding_subscribed(etag):
                 self.counters["unbound_dropped"] += 1  # maybe ours: delivered as nothing
             else:
-                self.counters["filtered" if etag in self._heard else "unknown"] += 1
+                self.counters["filtered" if etag in self.bindings.heard else "unknown"] += 1
         elif txnode == self.txnode:
             self.counters["own_echo"] += 1
         elif etag < p.LARGE_FIRST_ETAG:
@@ -336,7 +332,7 @@ class CanFace:
     def _rebinding_subscribed(self, etag: int) -> bool:
         """``etag`` was last heard bound to a channel this node subscribes to and is binding
         again (it moved to a larger size class, say)."""
-        uid = self._heard.get(etag)
+        uid = self.bindings.heard.get(etag)
         if uid is None or uid not in self._rebinding:
             return False
         state = self._channels.get(uid)
@@ -437,7 +433,7 @@ class CanFace:
         another contradiction may come right after the answer."""
         delay = RETRY_FIRST
         etag: int | None = None
-        while etag is None or self._bound.get(uid) != etag:
+        while etag is None or self.bindings.bound.get(uid) != etag:
             if not (state.subs or state.published):
                 return  # nobody uses the channel any more
             if state.subs:
@@ -480,7 +476,7 @@ class CanFace:
         uid = state.channel.uid
         if size > state.max_size:
             await self.grow(state, size)
-        etag = self._bound[uid]
+        etag = self.bindings.bound[uid]
         fields = declaration(size, period_ms, deadline_ms, jitter_ms, etag=etag, mtu=self.link.mtu)
         self._declared[uid] = fields
         fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
@@ -494,7 +490,7 @@ class CanFace:
         return priority
 
     def _on_verdict(self, msg: p.Grant | p.Refuse) -> None:
-        uid = self._uid_at.get(msg.etag)
+        uid = self.bindings.uid_at.get(msg.etag)
         fut = self._verdicts.pop(msg.etag, None)
         if isinstance(msg, p.Grant):
             state = self._channels.get(uid) if uid is not None else None
@@ -503,7 +499,7 @@ class CanFace:
             if fut is not None and not fut.done():
                 fut.set_result(msg.priority)
         elif fut is not None and not fut.done():
-            fut.set_exception(refusal(msg, uid, self._heard))
+            fut.set_exception(refusal(msg, uid, self.bindings.heard))
 
     # --- announcing ------------------------------------------------------------------------
 
@@ -528,12 +524,12 @@ class CanFace:
                 roles.append(True)
             for publish in roles:
                 await asyncio.sleep(_ANNOUNCE_GAP)
-                etag = self._bound.get(uid)  # now: a contradiction may have come meanwhile
+                etag = self.bindings.bound.get(uid)  # now: a contradiction may have come meanwhile
                 if etag is not None and txnode == self.txnode:
                     self._send(p.Holds(publish, txnode, etag, uid))
             if uid in self._declared and state.published:
                 await asyncio.sleep(_ANNOUNCE_GAP)
-                etag = self._bound.get(uid)
+                etag = self.bindings.bound.get(uid)
                 if etag is not None and txnode == self.txnode:
                     size, period, deadline, jitter = self._declared[uid]
                     self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
