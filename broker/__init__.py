@@ -43,14 +43,18 @@ async def hosted_can_ecb(
     from ._store import default_db
     from .can_ecb import CanEcb
 
-    link = CanLink.open(bus)
-    ecb = CanEcb(link, db if db is not None else default_db(bus), **options)
+    link = CanLink.shared(bus)  # the nodes of this loop on the same bus use it too
+    try:
+        ecb = CanEcb(link, db if db is not None else default_db(bus), **options)
+    except BaseException:
+        link.release()
+        raise
     try:
         await ecb.start()
         yield ecb
     finally:
         ecb.close()
-        link.close()
+        link.release()
 
 
 @contextlib.asynccontextmanager

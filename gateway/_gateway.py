@@ -167,7 +167,7 @@ class Gateway:
         if isinstance(self._can_spec, CanLink):
             self._link = self._can_spec
         else:
-            self._link = CanLink.open(self._can_spec)
+            self._link = CanLink.shared(self._can_spec)
             self._owns_link = True
         if self._host_can_ecb:
             db = self._db
@@ -237,7 +237,7 @@ class Gateway:
         if self._ecb is not None:
             self._ecb.close()
         if self._link is not None and self._owns_link:
-            self._link.close()
+            self._link.release()
         if self._id_lock is not None:
             self._id_lock.close()
             self._id_lock = None

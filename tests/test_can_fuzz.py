@@ -191,8 +191,8 @@ async def test_a_gateway_survives_a_flood(bus: str, tmp_path: Path) -> None:
     for key, (_, after) in report.extra.items():
         if after > bound:
             found.append(f"{key}: {after} > {bound} etags bound")
-    gw_node = "node gateway CAN"  # it shares the CAN-ECB's unfiltered link: it hears it all
-    if report.delta(gw_node, "foreign") != report.generated.get("foreign", 0):
+    gw_node = "node gateway CAN"  # it shares the CAN-ECB's link, filtered as its own would be
+    if not 0 <= report.delta(gw_node, "foreign") <= report.generated.get("foreign", 0):
         found.append(f"{gw_node}: foreign moved by {report.delta(gw_node, 'foreign')}")
     if not 0 < report.delta(gw_node, "malformed") <= report.generated.get("malformed", 0):
         found.append(f"{gw_node}: malformed moved by {report.delta(gw_node, 'malformed')}")

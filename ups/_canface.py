@@ -98,8 +98,8 @@ class CanFace:
         elif isinstance(bus, can.BusABC):
             self.link = CanLink(bus, owns_bus=False)
             self._owns_link = True
-        elif isinstance(bus, str):
-            self.link = CanLink.open(bus)
+        elif isinstance(bus, str):  # one connection per bus for all the nodes of the process
+            self.link = CanLink.shared(bus)
             self._owns_link = True
         else:
             raise ConfigError(f"can= takes 'INTERFACE:CHANNEL' or a python-can bus, not {bus!r}")
@@ -157,7 +157,7 @@ class CanFace:
         await self.link.flush()  # the frames of transfers still waiting for the interface
         self.link.remove_handler(self._handler)
         if self._owns_link:
-            self.link.close()
+            self.link.release()
 
     def stats(self) -> dict[str, int]:
         return {

@@ -1,8 +1,10 @@
 """One python-can bus feeding one asyncio loop, shared by every handler of a process.
 
-A node's CAN face and a CAN-ECB hosted in the same process (the gateway) share one link: a
-frame sent by one handler is handed to the others at once, as if they were separate nodes on
-the bus, and the echo that some interfaces return for our own frames is dropped here.
+Every node of one event loop whose bus spec names the same interface, channel and options
+shares one link (``CanLink.shared``), and so does a CAN-ECB hosted beside them (the gateway):
+a frame sent by one handler is handed to the others at once, as if they were separate nodes
+on the bus, and the echo that some interfaces return for our own frames is dropped here. So
+N nodes of a process cost one socket and one read per frame, not N.
 """
 
 from __future__ import annotations
@@ -37,6 +39,11 @@ _RETRY_FIRST, _RETRY_MAX = 0.0005, 0.01  # seconds between tries while the inter
 
 Frame = can.Message
 Handler = Callable[[can.Message], None]
+Accepts = Callable[[can.Message], bool]
+
+#: (event loop, bus key) -> the link its nodes share (see ``CanLink.shared``)
+_shared: dict[tuple[asyncio.AbstractEventLoop, tuple[Any, ...]], CanLink] = {}
+_shared_lock = threading.Lock()
 
 
 def parse_bus_spec(spec: str) -> dict[str, Any]:
@@ -143,6 +150,9 @@ class CanLink:
         self._owns_bus = owns_bus
         self._handlers: list[Handler] = []
         self._filters: dict[Handler, list[dict[str, Any]] | None] = {}
+        #: each handler with the test of its filters (None: it takes every frame); used when
+        #: the link has several handlers, which the bus filters only by their union
+        self._routes: list[tuple[Handler, Accepts | None]] = []
         self._echoes = _interface_name(bus) in _ECHOING_INTERFACES
         self._awaiting_echo: deque[tuple[int, bytes]] = deque()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -158,6 +168,8 @@ class CanLink:
         self.backlog_full = 0
         self.rx_errors = 0
         self.handler_errors = 0
+        self._shared_key: tuple[asyncio.AbstractEventLoop, tuple[Any, ...]] | None = None
+        self._users = 0
 
     def __str__(self) -> str:
         return self._spec or str(getattr(self.bus, "channel_info", "a CAN bus"))
@@ -167,6 +179,39 @@ class CanLink:
         """Open the bus named by ``spec``; it is CAN FD when the spec says ``fd=True``."""
         fd = parse_bus_spec(spec).get("fd") is True
         return cls(open_bus(spec), owns_bus=True, spec=spec, fd=fd)
+
+    @classmethod
+    def shared(cls, spec: str) -> CanLink:
+        """The link of the running event loop to the bus ``spec`` names: opened by its first
+        user, then shared by every caller in this loop whose spec names the same interface,
+        channel and options (in any order or spelling). Each user gives it back with
+        ``release``; the last one closes it. A python-can bus object passed to a node, or a
+        link from ``open``, is a connection of its own."""
+        kwargs = parse_bus_spec(spec)
+        key = (asyncio.get_running_loop(), tuple(sorted((k, repr(v)) for k, v in kwargs.items())))
+        with _shared_lock:
+            link = _shared.get(key)
+            if link is None or link._closed:
+                link = cls.open(spec)
+                link._shared_key = key
+                _shared[key] = link
+            link._users += 1
+        return link
+
+    def release(self) -> None:
+        """A user of a shared link is done with it: the last one closes it. On a link that is
+        not shared, the same as ``close``."""
+        key = self._shared_key
+        if key is None:
+            self.close()
+            return
+        with _shared_lock:
+            self._users -= 1
+            if self._users > 0:
+                return
+            if _shared.get(key) is self:
+                del _shared[key]
+        self.close()
 
     @property
     def channel_info(self) -> str:
@@ -183,14 +228,17 @@ class CanLink:
         with contextlib.suppress(ValueError):
             self._handlers.remove(handler)
         self._filters.pop(handler, None)
+        self._route()
 
     def set_filters(self, handler: Handler, filters: list[dict[str, Any]] | None) -> None:
         """Declare the frames ``handler`` needs, as python-can ``can_filters`` (None: all).
 
         The bus gets the union of every handler's filters: applied in the kernel on SocketCAN,
-        in python-can for other interfaces. A handler may still see frames it did not ask for.
+        in python-can for other interfaces. When the link has several handlers, each is also
+        handed only the frames its own filters accept, as if it had a bus of its own.
         """
         self._filters[handler] = filters
+        self._route()
         union: list[dict[str, Any]] | None = []
         for wanted in self._filters.values():
             if wanted is None:
@@ -199,6 +247,9 @@ class CanLink:
             assert union is not None
             union.extend(wanted)
         self.bus.set_filters(union)  # type: ignore[arg-type]
+
+    def _route(self) -> None:
+        self._routes = [(h, _accepts(self._filters.get(h))) for h in self._handlers]
 
     def start(self) -> None:
         """Start reading the bus into the running loop."""
@@ -266,8 +317,8 @@ class CanLink:
             if len(self._awaiting_echo) > _ECHO_WINDOW:
                 self._awaiting_echo.popleft()
         frame.timestamp = time.time()
-        for handler in self._handlers:
-            if handler is not origin:
+        for handler, accepts in self._routes:
+            if handler is not origin and (accepts is None or accepts(frame)):
                 handler(frame)
         return True
 
@@ -319,7 +370,10 @@ class CanLink:
         self.rx_frames += 1
         if self._awaiting_echo and frame.is_extended_id and self._is_echo(frame):
             return
-        for handler in self._handlers:
+        routes = self._routes
+        for handler, accepts in routes:
+            if accepts is not None and len(routes) > 1 and not accepts(frame):
+                continue  # the bus let it through for another handler of this link
             try:
                 handler(frame)
             except Exception:  # a bug in one handler must not starve the others
@@ -385,8 +439,24 @@ class CanLink:
         if self._thread is not None:
             self._thread.join(timeout=1.0)
         self._handlers.clear()
+        self._routes = []
         if self._owns_bus:
             self.bus.shutdown()
+
+
+def _accepts(filters: list[dict[str, Any]] | None) -> Accepts | None:
+    """The test python-can applies for ``filters`` (None: every frame passes)."""
+    if filters is None:
+        return None
+    rules = [(f["can_id"] & f["can_mask"], f["can_mask"], f.get("extended")) for f in filters]
+
+    def accepts(frame: can.Message) -> bool:
+        can_id, extended = frame.arbitration_id, frame.is_extended_id
+        return any(
+            can_id & mask == want and (ext is None or ext == extended) for want, mask, ext in rules
+        )
+
+    return accepts
 
 
 def _interface_name(bus: can.BusABC) -> str:
