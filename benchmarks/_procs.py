@@ -7,6 +7,7 @@
   commands on stdin, and whose stderr is kept for errors;
 - :class:`Spawned`: a measuring role, a function run in a spawned interpreter, that talks over
   a pipe (``(kind, value)`` messages);
+- :func:`cpu_hog`: one busy process per CPU, for measuring under load;
 - :func:`free_port`, :func:`free_ports`, :func:`set_affinity`.
 
 Every wait has a timeout, and every process is ended by its own PID: SIGTERM, then SIGKILL.
@@ -60,6 +61,30 @@ def set_affinity(pid: int, cpus: set[int]) -> None:
     for tid in os.listdir(f"/proc/{pid}/task"):
         with contextlib.suppress(ProcessLookupError):
             os.sched_setaffinity(int(tid), cpus)
+
+
+#: a busy loop that ends by itself after argv[1] seconds
+_HOG = (
+    "import sys, time\n"
+    "end = time.monotonic() + float(sys.argv[1])\n"
+    "while time.monotonic() < end: pass"
+)
+
+
+@contextlib.contextmanager
+def cpu_hog(seconds: float, cpus: int | None = None) -> Iterator[list[int]]:
+    """Hold every CPU (``cpus`` busy processes, default one per CPU, normal priority) for at
+    most ``seconds``, or until the block ends; yields their PIDs."""
+    count = cpus if cpus is not None else os.cpu_count() or 1
+    hogs = [
+        subprocess.Popen(["python3", "-c", _HOG, repr(seconds)], stdin=subprocess.DEVNULL)
+        for _ in range(count)
+    ]
+    try:
+        yield [h.pid for h in hogs]
+    finally:
+        for hog in hogs:
+            _end(hog, EXIT_GRACE)
 
 
 def _end(popen: subprocess.Popen[Any], grace: float) -> None:

@@ -1,9 +1,19 @@
 """Join storm on CAN: N nodes start at the same instant; how long until every one has a TxNode?
 
 One CAN-ECB process (``ups can-broker``, fresh database each run) serves the bus. K worker
-processes (``--workers``, default 4) each open one ``CanLink`` and host N/K nodes on it, every
-node with its own random 64-bit node id (seeded: ``--seed``, printed). All workers wait for a
-common wall-clock instant T0, then start all their nodes at once. A node's join time is when
+processes (``--workers``, default 4) each host N/K nodes, which reach the bus as ``--layout``
+says:
+
+- ``spec`` (default): every node is given the bus spec, ``Node(can=SPEC)``, as an application
+  writes it; the nodes of one process share one connection (``CanLink.shared``);
+- ``link``: the worker opens one ``CanLink`` and hands it to every node;
+- ``bus``: every node gets a python-can bus of its own: a connection per node, as when every
+  node is a process of its own (and as ``spec`` was before nodes shared connections).
+
+Node ids (``--ids``) are random 64-bit numbers (seeded: ``--seed``, printed) or sequential
+(0x5000, 0x5001, ...). ``--hog`` holds every CPU with a busy process during the runs (a
+loaded machine). All workers wait for a common wall-clock instant T0, then start all their
+nodes at once. A node's join time is when
 its ``start()`` returned, minus T0; a node not joined within ``--timeout`` seconds counts as
 failed. A plain python-can bus in this process counts every frame on the bus from T0 until
 the last node joined (until the timeout if some never did), management frames apart.
@@ -16,6 +26,8 @@ The default bus is udp_multicast on a free port, so it must run inside a private
 namespace (it refuses to run otherwise); or give a SocketCAN bus inside scripts/uml-run:
 
     scripts/netns-run .venv/bin/python -m benchmarks.join_storm --nodes 10,50,127 --repeat 3
+    scripts/netns-run .venv/bin/python -m benchmarks.join_storm --layout bus --ids sequential \
+        --workers 1 --nodes 60 --hog
     scripts/uml-run .venv/bin/python -m benchmarks.join_storm --can socketcan:vcan0
 """
 
@@ -43,7 +55,7 @@ from typing import Any
 
 import can
 
-from benchmarks._procs import ROOT, Child
+from benchmarks._procs import ROOT, Child, cpu_hog
 from ups import Node
 from ups._canlink import CanLink, open_bus
 from ups._canproto import is_management
@@ -59,11 +71,21 @@ def emit(record: dict[str, Any]) -> None:
     print(json.dumps(record), flush=True)
 
 
-async def worker(index: int, bus: str, t0: float, timeout: float, ids: list[int]) -> None:
-    """Host one node per id on one link; start them all at ``t0``; print one line per node."""
+LAYOUTS = ("spec", "link", "bus")
+
+
+async def worker(
+    index: int, bus: str, t0: float, timeout: float, ids: list[int], layout: str
+) -> None:
+    """Host one node per id, on the bus as ``layout`` says; start them all at ``t0``; print
+    one line per node."""
     loop = asyncio.get_running_loop()
-    link = CanLink.open(bus)
-    nodes = [Node(can=link, node_id=i, join_timeout=timeout) for i in ids]
+    link = CanLink.open(bus) if layout == "link" else None
+    buses = [open_bus(bus) for _ in ids] if layout == "bus" else []
+    where: list[str | can.BusABC | CanLink] = (
+        [link] * len(ids) if link is not None else list(buses) if buses else [bus] * len(ids)
+    )
+    nodes = [Node(can=w, node_id=i, join_timeout=timeout) for w, i in zip(where, ids, strict=True)]
     slack = t0 - time.time()
     emit({"worker": index, "ready": True, "slack": slack})  # slack < 0: this worker was late
     await asyncio.sleep(max(0.0, slack))
@@ -96,7 +118,10 @@ async def worker(index: int, bus: str, t0: float, timeout: float, ids: list[int]
     for node in nodes:
         with contextlib.suppress(Exception):
             await node.close()
-    link.close()
+    if link is not None:
+        link.close()
+    for one in buses:
+        one.shutdown()
 
 
 # --- the benchmark process -------------------------------------------------------------------
@@ -141,6 +166,10 @@ class Run:
     n: int
     repeat: int
     seed: int
+    layout: str = "spec"
+    ids: str = "random"
+    workers: int = 4
+    hog: bool = False
     t0: float = 0.0  # wall clock: the instant every node started
     nodes: list[dict[str, Any]] = field(default_factory=list)
     late_workers: dict[int, float] = field(default_factory=dict)
@@ -160,6 +189,10 @@ class Run:
             "n": self.n,
             "repeat": self.repeat,
             "seed": self.seed,
+            "layout": self.layout,
+            "ids": self.ids,
+            "workers": self.workers,
+            "hog": self.hog,
             "t0": self.t0,
             "joined": len(times),
             "all_joined": len(times) == self.n,
@@ -176,8 +209,14 @@ class Run:
         }
 
 
-def node_ids(n: int, seed: int) -> list[int]:
-    """``n`` distinct random 64-bit node ids, the same for the same seed."""
+SEQUENTIAL_FIRST = 0x5000  #: the first of ``--ids sequential``
+
+
+def node_ids(n: int, seed: int, kind: str = "random") -> list[int]:
+    """``n`` distinct node ids: random 64-bit ones, the same for the same seed, or sequential
+    from ``SEQUENTIAL_FIRST``."""
+    if kind == "sequential":
+        return [SEQUENTIAL_FIRST + i for i in range(n)]
     rng = random.Random(seed)
     ids: list[int] = []
     while len(ids) < n:
@@ -189,9 +228,9 @@ def node_ids(n: int, seed: int) -> list[int]:
 
 def storm(bus: str, n: int, repeat: int, seed: int, args: argparse.Namespace) -> Run:
     """One join storm of ``n`` nodes against a fresh CAN-ECB."""
-    run = Run(n, repeat, seed)
-    ids = node_ids(n, seed)
     workers = min(args.workers, n)
+    run = Run(n, repeat, seed, args.layout, args.ids, workers, args.hog)
+    ids = node_ids(n, seed, args.ids)
     children: list[Child] = []
     counter: FrameCounter | None = None
     with tempfile.TemporaryDirectory(prefix="join-storm-") as tmp:
@@ -209,7 +248,8 @@ def storm(bus: str, n: int, repeat: int, seed: int, args: argparse.Namespace) ->
                 share = ids[k::workers]
                 cmd = [sys.executable, "-m", "benchmarks.join_storm", "--worker", str(k),
                        "--can", bus, "--t0", repr(t0), "--timeout", str(args.timeout),
-                       "--ids", ",".join(f"{i:x}" for i in share)]  # fmt: skip
+                       "--layout", args.layout,
+                       "--worker-ids", ",".join(f"{i:x}" for i in share)]  # fmt: skip
                 children.append(Child(cmd, f"worker {k}"))
             collect(run, children[1:], t0 + args.timeout + GRACE)
             joined = run.joined
@@ -282,14 +322,16 @@ def fmt(value: float | None, spec: str = ".2f") -> str:
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     print(
-        f"{'N':>4} {'rep':>3} {'joined':>8} {'all joined':>10} {'median':>7} {'slowest':>7}"
+        f"{'layout':>6} {'ids':>10} {'K':>2} {'hog':>3} {'N':>4} {'rep':>3} {'joined':>8}"
+        f" {'all joined':>10} {'median':>7} {'slowest':>7}"
         f" {'distinct':>8} {'frames':>7} {'mgmt':>7} {'per join':>8}  late workers / problems"
     )
     for r in rows:
         notes = [f"worker {k} late {s:.2f} s" for k, s in r["late_workers"].items()]
         notes += [p.splitlines()[0] for p in r["problems"]]
         print(
-            f"{r['n']:>4} {r['repeat']:>3} {r['joined']:>4}/{r['n']:<3}"
+            f"{r['layout']:>6} {r['ids']:>10} {r['workers']:>2} {'yes' if r['hog'] else 'no':>3}"
+            f" {r['n']:>4} {r['repeat']:>3} {r['joined']:>4}/{r['n']:<3}"
             f" {fmt(r['time_all_s']):>10} {fmt(r['median_s']):>7} {fmt(r['slowest_s']):>7}"
             f" {'yes' if r['distinct_txnodes'] else 'NO':>8} {r['frames']:>7}"
             f" {r['frames_mgmt']:>7} {fmt(r['frames_per_join'], '.1f'):>8}  {'; '.join(notes)}"
@@ -311,6 +353,19 @@ def main() -> None:
     parser.add_argument("--nodes", default="10,50,127", help="joiner counts (default 10,50,127)")
     parser.add_argument("--repeat", type=int, default=3, help="runs per count (default 3)")
     parser.add_argument("--workers", type=int, default=4, help="joiner processes (default 4)")
+    parser.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        default="spec",
+        help="how nodes reach the bus (default spec: see above)",
+    )
+    parser.add_argument(
+        "--ids",
+        choices=("random", "sequential"),
+        default="random",
+        help="node ids (default random)",
+    )
+    parser.add_argument("--hog", action="store_true", help="hold every CPU busy meanwhile")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds per run (60)")
     parser.add_argument("--lead", type=float, default=3.0, help="seconds from launch to T0 (3)")
     parser.add_argument("--seed", type=int, default=1, help="node ids of run i use seed+i")
@@ -318,19 +373,45 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="also write every figure and node here")
     parser.add_argument("--worker", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--t0", type=float, help=argparse.SUPPRESS)
-    parser.add_argument("--ids", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-ids", help=argparse.SUPPRESS)
     args = parser.parse_args()
 
     if args.worker is not None:
-        ids = [int(i, 16) for i in args.ids.split(",")]
-        asyncio.run(worker(args.worker, args.can, args.t0, args.timeout, ids))
+        ids = [int(i, 16) for i in args.worker_ids.split(",")]
+        asyncio.run(worker(args.worker, args.can, args.t0, args.timeout, ids, args.layout))
         return
 
     bus = args.can or private_multicast_bus()
     refuse_open_multicast(bus)
-    counts = [int(n) for n in args.nodes.split(",")]
-    print(f"join storm on {bus}: {args.workers} worker processes, timeout {args.timeout:g} s")
+    print(
+        f"join storm on {bus}: {args.workers} worker processes, layout {args.layout}, "
+        f"{args.ids} ids, timeout {args.timeout:g} s{', CPU hog' if args.hog else ''}"
+    )
     runs: list[Run] = []
+    with contextlib.ExitStack() as stack:
+        if args.hog:  # bounded: every run's time at most, with room to spare
+            budget = len(args.nodes.split(",")) * args.repeat * (args.timeout + GRACE + 30)
+            stack.enter_context(cpu_hog(budget))
+        storms(bus, [int(n) for n in args.nodes.split(",")], args, runs)
+    rows = [r.summary() for r in runs]
+    print()
+    print_table(rows)
+    if args.json:
+        report = {
+            "bus": bus,
+            "commit": git_commit(),
+            "workers": args.workers,
+            "layout": args.layout,
+            "ids": args.ids,
+            "hog": args.hog,
+            "timeout_s": args.timeout,
+            "runs": [{**r.summary(), "nodes": r.nodes} for r in runs],
+        }
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        print(f"written to {args.json}")
+
+
+def storms(bus: str, counts: list[int], args: argparse.Namespace, runs: list[Run]) -> None:
     i = 0
     for n in counts:
         for rep in range(1, args.repeat + 1):
@@ -345,19 +426,6 @@ def main() -> None:
                 f"{s['frames']} frames",
                 flush=True,
             )
-    rows = [r.summary() for r in runs]
-    print()
-    print_table(rows)
-    if args.json:
-        report = {
-            "bus": bus,
-            "commit": git_commit(),
-            "workers": args.workers,
-            "timeout_s": args.timeout,
-            "runs": [{**r.summary(), "nodes": r.nodes} for r in runs],
-        }
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
-        print(f"written to {args.json}")
 
 
 if __name__ == "__main__":
