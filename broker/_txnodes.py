@@ -22,7 +22,9 @@ from ._store import Store, Write
 
 log = logging.getLogger("ups.can_ecb")
 
-OFFER_TIMEOUT = 1.0  #: an offered TxNode not claimed within this time is free again
+OFFER_TIMEOUT = 1.0  #: an offer not claimed within this time (or longer while answers come
+#: late: see ``offer_wait``) lapses: its TxNode is offered to others only when no other is free
+LAPSED = 127  #: lapsed offers remembered, so that a late claim of one still gets its TxNode
 
 
 class Phase(Protocol):
@@ -57,6 +59,7 @@ class TxNodes:
         forget: Callable[[int], None],
         unassigned: Callable[[int], None],
         lease: float,
+        offer_wait: Callable[[], float] = lambda: OFFER_TIMEOUT,
     ) -> None:
         self._store = store
         self._phase = phase
@@ -68,9 +71,11 @@ class TxNodes:
         self._forget = forget
         self._unassigned = unassigned
         self._lease = lease
+        self._offer_wait = offer_wait
         self.node_at = {t: n for n, t in store.txnodes.items()}  # TxNode -> node id
         self._pending: dict[int, int] = {}  # node id -> TxNode being written
         self._offers: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
+        self._lapsed: dict[int, int] = {}  # node id -> TxNode of an offer it did not claim in time
         self.seen = dict.fromkeys(range(p.TXNODE_COUNT), time.monotonic())
 
     def close(self) -> None:
@@ -84,12 +89,15 @@ class TxNodes:
             if self._phase.standby or node_id in self._pending:
                 continue
             offer = self._offers.get(node_id)
-            txnode = offer[0] if offer else self._txnode_for(node_id)
+            txnode = offer[0] if offer else self._lapsed.pop(node_id, None)
+            if txnode is None or not self._free_for(txnode, node_id):
+                txnode = self._txnode_for(node_id)
             if txnode is None:
                 continue
             if offer:
                 offer[1].cancel()
-            timer = asyncio.get_running_loop().call_later(OFFER_TIMEOUT, self._withdraw, node_id)
+            wait = max(OFFER_TIMEOUT, self._offer_wait())
+            timer = asyncio.get_running_loop().call_later(wait, self._withdraw, node_id)
             self._offers[node_id] = (txnode, timer)
             self._send(p.Offer(txnode, node_id))
 
@@ -116,9 +124,22 @@ class TxNodes:
         return txnode
 
     def _withdraw(self, node_id: int) -> None:
-        """Nobody claimed the offer: the id was not a node's (frames were lost or late)."""
-        if self._offers.pop(node_id, None) is not None:
-            self._counters["offers_withdrawn"] += 1
+        """Nobody claimed the offer in time: the id was not a node's (frames were lost or late),
+        or its node is slow. Remember it: a late claim still gets that TxNode if it is free."""
+        offer = self._offers.pop(node_id, None)
+        if offer is None:
+            return
+        self._counters["offers_withdrawn"] += 1
+        self._lapsed.pop(node_id, None)
+        self._lapsed[node_id] = offer[0]
+        if len(self._lapsed) > LAPSED:
+            del self._lapsed[next(iter(self._lapsed))]
+
+    def _free_for(self, txnode: int, node_id: int) -> bool:
+        """Nobody holds ``txnode`` and it is offered to nobody but ``node_id``."""
+        if txnode in self.node_at or txnode in self._pending.values():
+            return False
+        return all(t != txnode or n == node_id for n, (t, _) in self._offers.items())
 
     def _assign(self, node_id: int, txnode: int) -> None:
         """The node claimed the TxNode offered to it: store the assignment, then announce it."""
@@ -147,9 +168,14 @@ class TxNodes:
     def _free(self, writes: list[Write]) -> int | None:
         offered = {t for t, _ in self._offers.values()}
         taken = set(self.node_at) | set(self._pending.values()) | offered
-        free = next((t for t in range(p.TXNODE_COUNT) if t not in taken), None)
+        lapsed = set(self._lapsed.values())  # kept for late claims while others are free
+        free = next((t for t in range(p.TXNODE_COUNT) if t not in taken | lapsed), None)
         if free is not None:
             return free
+        for node_id, txnode in self._lapsed.items():  # the oldest lapsed offer first
+            if txnode not in taken:
+                del self._lapsed[node_id]
+                return txnode
         now = time.monotonic()
         idle = [t for t in self.node_at if t not in offered]  # offered: a node's own, in use
         oldest = min(idle, key=lambda t: self.seen[t], default=None)
@@ -174,6 +200,14 @@ class TxNodes:
             offer[1].cancel()
             del self._offers[node_id]
             self._assign(node_id, txnode)
+            return
+        if self._lapsed.get(node_id) == txnode and node_id not in self._store.txnodes:
+            del self._lapsed[node_id]  # a joiner that was slow to claim what it was offered
+            self._counters["late_claims"] += 1
+            if self._free_for(txnode, node_id):
+                self._assign(node_id, txnode)
+            else:  # given to another meanwhile: it gets a TxNode of its own (Assign)
+                self.move(node_id)
             return
         known = self._store.txnodes.get(node_id)
         if known == txnode:

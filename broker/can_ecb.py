@@ -97,14 +97,14 @@ class CanEcb:
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
                 "adopted", "conflicts", "foreign_ecb_frames", "unassigned", "deferred",
                 "limited", "reclaimed", "storage_errors", "handler_errors", "offers_withdrawn",
-                "moved",
+                "moved", "late_claims",
             ),
             0,
         )  # fmt: skip
         self._txnodes = TxNodes(
             self._store, phase=self, send=self._send, counters=self.counters, warn=self._warn,
             stored=self._stored, log_failure=self._log_failure, forget=self._forget_node,
-            unassigned=self._unassigned, lease=lease,
+            unassigned=self._unassigned, lease=lease, offer_wait=lambda: 2 * self._census.slack,
         )  # fmt: skip
         self._census = Census(self._send, self._txnodes.found)
         self._channels = Channels(
