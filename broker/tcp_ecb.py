@@ -18,6 +18,9 @@ subscriber accepts events only from those, and each publisher the identity of ea
 Recovery: an ECB that just started knows nothing, and nodes reconnect with backoff. For its
 first ``recovery`` seconds it collects registrations and answers none, so no publisher is told
 a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
+
+Its own work never makes it drop a node: a Status costs what it lists (``_tcpstatus.py``) and
+is built at most once per ``STATUS_GAP`` however many ask (``StatusPacer``).
 """
 
 from __future__ import annotations
@@ -33,10 +36,12 @@ from ups._address import DEFAULT_PORT, parse_address
 from ups._channel import name_to_uid
 from ups._errors import ConfigError
 from ups._tcpface import HEARTBEAT
+from ups._tcpinbox import StatusPacer
 from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 
 from ._acl import Acl
+from ._tcpstatus import registry_status
 
 log = logging.getLogger("ups.tcp_ecb")
 
@@ -44,8 +49,6 @@ DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
-STATUS_LIST = 1000  #: nodes and channels listed in a Status at most (the rest are counted)
-STATUS_INNER = 64  #: channels of a node, nodes of a channel, listed in a Status at most
 MAX_OWNERS = 1 << 16  #: node ids remembered with their identity (TLS), departed ones included
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
@@ -104,6 +107,7 @@ class TcpEcb:
         self._members: dict[int, _Member] = {}
         self._subscribers: dict[int, set[int]] = {}  # uid -> node ids
         self._publishers: dict[int, set[int]] = {}  # uid -> node ids
+        self._channel_count = 0  # UIDs in _subscribers or _publishers (or both)
         self._links: set[Link] = set()
         self._recovering = False
         self._waiting: dict[tuple[int, bool], set[int]] = {}  # owed after recovery:
@@ -120,6 +124,7 @@ class TcpEcb:
         self.counters = dict.fromkeys(
             ("joined", "left", "malformed", "pushes", "limited", "impostors", "denied", "errors"), 0
         )
+        self._pacer = StatusPacer(self.status, self.counters, who="the TCP-ECB")
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -158,48 +163,22 @@ class TcpEcb:
         for link in list(self._links):
             link.close()
         self._doorman.close()
+        self._pacer.close()
 
     def stats(self) -> dict[str, int]:
         return {
             **self.counters,
             **self._doorman.counters,
             "nodes": len(self._members),
-            "channels": len(set(self._subscribers) | set(self._publishers)),
+            "channels": self._channel_count,
             "links": self._doorman.links,
         }
 
     def status(self) -> dict[str, Any]:
-        """The registry, as ``ups status`` prints it."""
-        channels = sorted(set(self._subscribers) | set(self._publishers))[:STATUS_LIST]
-        members = list(self._members.values())[:STATUS_LIST]
-        return {
-            "node_id": _hex(0),
-            "name": "ups-broker",
-            "stats": self.stats(),
-            "listed": {"nodes": len(members), "channels": len(channels), "at_most": STATUS_LIST},
-            "nodes": [
-                {
-                    "node_id": _hex(m.node_id),
-                    "name": m.name,
-                    "identity": m.identity,
-                    "address": f"{m.address[0]}:{m.address[1]}",
-                    "connected": m.link is not None,
-                    "subscribed": _listed(m.subs),
-                    "published": _listed(m.pubs),
-                    "channel_count": len(m.subs) + len(m.pubs),
-                }
-                for m in members
-            ],
-            "channels": [
-                {
-                    "uid": _hex(uid),
-                    "name": self._names.get(uid),
-                    "subscribers": _listed(self._subscribers.get(uid, ())),
-                    "publishers": _listed(self._publishers.get(uid, ())),
-                }
-                for uid in channels
-            ],
-        }
+        """The registry, as ``ups status`` prints it (bounded: see ``_tcpstatus``)."""
+        return registry_status(
+            self._members, self._subscribers, self._publishers, self._names, self.stats()
+        )
 
     # --- links -----------------------------------------------------------------------------
 
@@ -225,7 +204,7 @@ class TcpEcb:
         member: _Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
             if self._acl is None or self._acl.may_status(identity(link.transport)):
-                link.send_control(w.encode(w.Status(self.status())))
+                self._pacer.ask(link)  # answered with the next Status, built at most so often
             else:
                 self._refuse(link, 0, "status", "its identity may not read the broker's tables")
             return
@@ -359,6 +338,8 @@ class TcpEcb:
             if not self._admitted(member, frame, subscribe, new):
                 return
             mine.add(uid)
+            if uid not in self._subscribers and uid not in self._publishers:
+                self._channel_count += 1
             table.setdefault(uid, set()).add(member.node_id)
             if frame.name is not None:
                 self._names[uid] = frame.name
@@ -430,6 +411,7 @@ class TcpEcb:
             if not nodes:
                 del table[uid]
                 if uid not in self._subscribers and uid not in self._publishers:
+                    self._channel_count -= 1
                     self._names.pop(uid, None)
 
     # --- telling nodes ---------------------------------------------------------------------
@@ -499,11 +481,6 @@ class TcpEcb:
 
 def _hex(value: int) -> str:
     return f"0x{value:016x}"
-
-
-def _listed(values: Any) -> list[str]:
-    """At most STATUS_INNER of ``values`` (UIDs or node ids), in order, as hex."""
-    return [_hex(v) for v in sorted(values)[:STATUS_INNER]]
 
 
 def _uid_of(name: str) -> int | None:
