@@ -360,8 +360,8 @@ class StatusPacer:
         if wait > 0:
             self._paced()
         if self._timer is None:
-            self._timer = loop.call_later(wait, self._answer) if wait > 0 else loop.call_soon(
-                self._answer
+            self._timer = (
+                loop.call_later(wait, self._answer) if wait > 0 else loop.call_soon(self._answer)
             )
 
     def _paced(self) -> None:
