@@ -18,6 +18,9 @@ subscriber accepts events only from those, and each publisher the identity of ea
 Recovery: an ECB that just started knows nothing, and nodes reconnect with backoff. For its
 first ``recovery`` seconds it collects registrations and answers none, so no publisher is told
 a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
+
+Its own work never makes it drop a node: a Status costs what it lists, at most once per
+``STATUS_GAP`` (``_tcpstatus``, ``StatusPacer``); silence counts only while it reads (``_sweep``).
 """
 
 from __future__ import annotations
@@ -33,10 +36,12 @@ from ups._address import DEFAULT_PORT, parse_address
 from ups._channel import name_to_uid
 from ups._errors import ConfigError
 from ups._tcpface import HEARTBEAT
+from ups._tcpinbox import StatusPacer
 from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 
 from ._acl import Acl
+from ._tcpstatus import registry_status
 
 log = logging.getLogger("ups.tcp_ecb")
 
@@ -44,8 +49,7 @@ DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
-STATUS_LIST = 1000  #: nodes and channels listed in a Status at most (the rest are counted)
-STATUS_INNER = 64  #: channels of a node, nodes of a channel, listed in a Status at most
+HELD_UP = 0.25  #: seconds a liveness sweep may come late before the loop counts as held up
 MAX_OWNERS = 1 << 16  #: node ids remembered with their identity (TLS), departed ones included
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
@@ -104,6 +108,7 @@ class TcpEcb:
         self._members: dict[int, _Member] = {}
         self._subscribers: dict[int, set[int]] = {}  # uid -> node ids
         self._publishers: dict[int, set[int]] = {}  # uid -> node ids
+        self._channel_count = 0  # UIDs in _subscribers or _publishers (or both)
         self._links: set[Link] = set()
         self._recovering = False
         self._waiting: dict[tuple[int, bool], set[int]] = {}  # owed after recovery:
@@ -118,8 +123,11 @@ class TcpEcb:
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
         )
         self.counters = dict.fromkeys(
-            ("joined", "left", "malformed", "pushes", "limited", "impostors", "denied", "errors"), 0
-        )
+            ("joined", "left", "malformed", "pushes", "limited", "impostors", "denied", "errors",
+             "held_up"), 0,
+        )  # fmt: skip
+        self._pacer = StatusPacer(self.status, self.counters, who="the TCP-ECB")
+        self._held_up_logged = float("-inf")  # time.monotonic() of the last log of it
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -158,48 +166,22 @@ class TcpEcb:
         for link in list(self._links):
             link.close()
         self._doorman.close()
+        self._pacer.close()
 
     def stats(self) -> dict[str, int]:
         return {
             **self.counters,
             **self._doorman.counters,
             "nodes": len(self._members),
-            "channels": len(set(self._subscribers) | set(self._publishers)),
+            "channels": self._channel_count,
             "links": self._doorman.links,
         }
 
     def status(self) -> dict[str, Any]:
-        """The registry, as ``ups status`` prints it."""
-        channels = sorted(set(self._subscribers) | set(self._publishers))[:STATUS_LIST]
-        members = list(self._members.values())[:STATUS_LIST]
-        return {
-            "node_id": _hex(0),
-            "name": "ups-broker",
-            "stats": self.stats(),
-            "listed": {"nodes": len(members), "channels": len(channels), "at_most": STATUS_LIST},
-            "nodes": [
-                {
-                    "node_id": _hex(m.node_id),
-                    "name": m.name,
-                    "identity": m.identity,
-                    "address": f"{m.address[0]}:{m.address[1]}",
-                    "connected": m.link is not None,
-                    "subscribed": _listed(m.subs),
-                    "published": _listed(m.pubs),
-                    "channel_count": len(m.subs) + len(m.pubs),
-                }
-                for m in members
-            ],
-            "channels": [
-                {
-                    "uid": _hex(uid),
-                    "name": self._names.get(uid),
-                    "subscribers": _listed(self._subscribers.get(uid, ())),
-                    "publishers": _listed(self._publishers.get(uid, ())),
-                }
-                for uid in channels
-            ],
-        }
+        """The registry, as ``ups status`` prints it (bounded: see ``_tcpstatus``)."""
+        return registry_status(
+            self._members, self._subscribers, self._publishers, self._names, self.stats()
+        )
 
     # --- links -----------------------------------------------------------------------------
 
@@ -225,7 +207,7 @@ class TcpEcb:
         member: _Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
             if self._acl is None or self._acl.may_status(identity(link.transport)):
-                link.send_control(w.encode(w.Status(self.status())))
+                self._pacer.ask(link)  # answered with the next Status, built at most so often
             else:
                 self._refuse(link, 0, "status", "its identity may not read the broker's tables")
             return
@@ -359,6 +341,8 @@ class TcpEcb:
             if not self._admitted(member, frame, subscribe, new):
                 return
             mine.add(uid)
+            if uid not in self._subscribers and uid not in self._publishers:
+                self._channel_count += 1
             table.setdefault(uid, set()).add(member.node_id)
             if frame.name is not None:
                 self._names[uid] = frame.name
@@ -430,6 +414,7 @@ class TcpEcb:
             if not nodes:
                 del table[uid]
                 if uid not in self._subscribers and uid not in self._publishers:
+                    self._channel_count -= 1
                     self._names.pop(uid, None)
 
     # --- telling nodes ---------------------------------------------------------------------
@@ -484,10 +469,19 @@ class TcpEcb:
         log.info("TCP-ECB recovered: %d nodes registered", len(self._members))
 
     async def _sweep(self) -> None:
-        """Remove nodes that have been silent for ``liveness`` seconds."""
+        """Remove nodes that have been silent for ``liveness`` seconds in which the ECB could
+        read. While the event loop is held up (a long piece of work, the process not
+        scheduled), live nodes' frames wait unread in their sockets: a sweep that comes late
+        by more than ``HELD_UP`` credits every node with the time the loop lost, so that none
+        is judged silent for it (counted in ``held_up``)."""
+        period = self.liveness / 4
+        due = time.monotonic() + period
         while True:
-            await asyncio.sleep(self.liveness / 4)
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
             now = time.monotonic()
+            late, due = now - due, now + period
+            if late > HELD_UP:
+                self._held_up(now, late)
             for member in list(self._members.values()):
                 if now - member.heard > self.liveness:
                     try:
@@ -496,14 +490,20 @@ class TcpEcb:
                         self.counters["errors"] += 1
                         log.exception("could not remove node %016x", member.node_id)
 
+    def _held_up(self, now: float, late: float) -> None:
+        self.counters["held_up"] += 1
+        for member in self._members.values():  # never past now: heard since, heard now
+            member.heard = min(now, member.heard + late)
+        if now - self._held_up_logged >= 1.0:
+            self._held_up_logged = now
+            log.warning(
+                "the TCP-ECB could not run for at least %.1f s; that time does not count as "
+                "nodes' silence (%d times so far)", late, self.counters["held_up"],
+            )  # fmt: skip
+
 
 def _hex(value: int) -> str:
     return f"0x{value:016x}"
-
-
-def _listed(values: Any) -> list[str]:
-    """At most STATUS_INNER of ``values`` (UIDs or node ids), in order, as hex."""
-    return [_hex(v) for v in sorted(values)[:STATUS_INNER]]
 
 
 def _uid_of(name: str) -> int | None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from broker import tcp_ecb
+from broker import _tcpstatus, tcp_ecb
 from ups import AccessDenied, BrokerUnavailable, Node
 from ups._tcpface import query_status
 
@@ -96,7 +96,7 @@ async def test_channels_per_node_and_status_size_are_bounded(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     monkeypatch.setattr(tcp_ecb, "MAX_CHANNELS", 40)
-    monkeypatch.setattr(tcp_ecb, "STATUS_LIST", 25)
+    monkeypatch.setattr(_tcpstatus, "STATUS_LIST", 25)
     async with (
         running_tcp_ecb() as ecb,
         Node(broker=f"127.0.0.1:{ecb.port}", node_id=0xB2, join_timeout=5) as node,

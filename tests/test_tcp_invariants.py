@@ -168,6 +168,10 @@ class TcpPromise(RuleBasedStateMachine):
             await eventually(self._arrived, timeout=3)
 
     def check(self) -> None:
+        ecb = self.ecb
+        if ecb is not None:  # the Status's channel count is kept as the tables change
+            tables = ecb._subscribers.keys() | ecb._publishers.keys()
+            assert ecb.stats()["channels"] == len(tables), (ecb.stats(), tables)
         ids = {self.nodes[n].node_id: n for n in NODES}
         for (who, channel), got in self.received.items():
             seen = [data for _, data in got]

@@ -19,7 +19,7 @@ from ._address import parse_address
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
 from ._face import OVERFLOWS, Overflow
 from ._subscription import DEFAULT_QUEUE
-from ._tcpinbox import Inbox
+from ._tcpinbox import Inbox, StatusPacer
 from ._tcplink import Link
 from ._tcpoutbox import Outbox
 from ._tls import Tls, identity
@@ -120,12 +120,14 @@ class TcpFace:
             ("lost", "unsubscribed", "malformed", "reconnects", "denied", "unvouched",
              "impostors"), 0,
         )  # fmt: skip
+        #: answers every StatusRequest (listening port, links to subscribers, the ECB link)
+        self._pacer = StatusPacer(self.status, self.counters, who=f"node {node_id:016x}")
         self._inbox = Inbox(
             deliver=deliver,
             channels=channels,
             subscribed=self._subscribed,
             counters=self.counters,
-            status=self.status,
+            status=self._pacer.ask,
             checking=tls is not None,
         )
         self._outbox = Outbox(
@@ -137,7 +139,7 @@ class TcpFace:
             peer_overflow=peer_overflow,
             counters=self.counters,
             on_targets=self._targets_changed,
-            status=self.status,
+            status=self._pacer.ask,
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -183,6 +185,7 @@ class TcpFace:
             self._ecb.close()
         await self._outbox.close()
         self._inbox.close()
+        self._pacer.close()
         for fut in self._acks.values():
             fut.cancel()
         self._report_drops()  # what was lost since the last report
@@ -390,7 +393,7 @@ class TcpFace:
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_result(None)
         elif isinstance(frame, w.StatusRequest):
-            link.send_control(w.encode(w.Status(self.status())))
+            self._pacer.ask(link)
 
     def _on_refused(self, frame: w.Refused) -> None:
         self.counters["denied"] += 1

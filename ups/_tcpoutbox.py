@@ -72,7 +72,7 @@ class Outbox:
         peer_overflow: Overflow,
         counters: dict[str, int],
         on_targets: Callable[[int], None],
-        status: Callable[[], dict[str, Any]],
+        status: Callable[[Link], None],
     ) -> None:
         self.node_id = node_id
         self.name = name
@@ -83,7 +83,7 @@ class Outbox:
         self._counters = counters
         self.sent = 0  #: event frames queued to subscribers (per event, so not in counters)
         self._on_targets = on_targets
-        self._node_status = status  # what a StatusRequest from a subscriber is answered with
+        self._answer_status = status  # answers a subscriber's StatusRequest on a link
         self._peers: dict[int, _Peer] = {}
         self._targets: dict[int, list[_Peer]] = {}  # uid -> peers subscribed to it
         self._seq: dict[int, int] = {}  # uid -> number of the last event published
@@ -303,4 +303,4 @@ class Outbox:
 
     def _peer_frame(self, link: Link, frame: w.Frame) -> None:
         if isinstance(frame, w.StatusRequest):
-            link.send_control(w.encode(w.Status(self._node_status())))
+            self._answer_status(link)
