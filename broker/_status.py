@@ -24,7 +24,7 @@ from typing import Any
 from ups import _tcpwire as w
 from ups._address import parse_address
 from ups._errors import DecodeError
-from ups._tcpinbox import StatusPacer
+from ups._statuspacer import StatusPacer
 
 log = logging.getLogger("ups.status")
 

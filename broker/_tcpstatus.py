@@ -4,7 +4,7 @@ A Status lists at most ``STATUS_LIST`` nodes and ``STATUS_LIST`` channels, and f
 ``STATUS_INNER`` of its channels or nodes; ``stats`` counts them all. Building one costs what
 it lists, never what the registry holds: it takes the first nodes and channels in the order
 they registered (no sort of every channel, no set of them all), and sorts only what it lists.
-How often it is built is bounded too (``ups/_tcpinbox.py``, ``StatusPacer``).
+How often it is built is bounded too (``ups/_statuspacer.py``, ``StatusPacer``).
 """
 
 from __future__ import annotations

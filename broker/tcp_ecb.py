@@ -20,7 +20,7 @@ first ``recovery`` seconds it collects registrations and answers none, so no pub
 a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
 
 Its own work never makes it drop a node: a Status costs what it lists, at most once per
-``STATUS_GAP`` (``_tcpstatus``, ``StatusPacer``); silence counts only while it reads (``_sweep``).
+``STATUS_GAP`` (``ups._statuspacer``); silence counts only while it reads (``_sweep``).
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from ups import _tcpwire as w
 from ups._address import DEFAULT_PORT, parse_address
 from ups._channel import name_to_uid
 from ups._errors import ConfigError
+from ups._statuspacer import StatusPacer
 from ups._tcpface import HEARTBEAT
-from ups._tcpinbox import StatusPacer
 from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 

@@ -24,7 +24,7 @@ import pytest
 
 from broker import _status
 from broker.tcp_ecb import MAX_CHANNELS
-from ups import Node, _tcpinbox, name_to_uid
+from ups import Node, _statuspacer, name_to_uid
 from ups import _tcpwire as w
 from ups._tcpface import HEARTBEAT, query_status
 
@@ -148,7 +148,7 @@ async def test_a_status_flood_drops_no_node_and_holds_up_no_registration() -> No
             assert list(entry["subscribed"]) == [f"0x{name_to_uid('flood/newcomer'):016x}"]
             # the flood is counted, and cost at most one build per STATUS_GAP
             assert stats["status_paced"] >= 1
-            assert stats["status_builds"] <= elapsed / _tcpinbox.STATUS_GAP + 3, (stats, elapsed)
+            assert stats["status_builds"] <= elapsed / _statuspacer.STATUS_GAP + 3, (stats, elapsed)
             await asyncio.to_thread(broker.wait_for_line, "builds its Status at most every", 5)
         finally:
             for task in running:

@@ -18,8 +18,9 @@ from . import _tcpwire as w
 from ._address import parse_address
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
 from ._face import OVERFLOWS, Overflow
+from ._statuspacer import StatusPacer
 from ._subscription import DEFAULT_QUEUE
-from ._tcpinbox import Inbox, StatusPacer
+from ._tcpinbox import Inbox
 from ._tcplink import Link
 from ._tcpoutbox import Outbox
 from ._tls import Tls, identity
