@@ -3,7 +3,7 @@
 sources, for ``PYTHONPATH``. Built once per source (the key hashes ``ups/``, the Python and
 the mypy version); an older copy is removed when a new one is built.
 
-    .venv/bin/python -m benchmarks._compiled   # build if needed, print the directory
+    .venv/bin/python -m ups.benchmarks._compiled   # build if needed, print the directory
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ import os
 import sys
 import time
 
-from benchmarks._procs import free_port, process
+from ups.benchmarks._procs import free_port, process
 
 _IDLE_NODE = """
 import asyncio, sys

@@ -20,7 +20,7 @@ class Ocu:
     stamped (``perf_counter_ns``) as soon as the loop sees it."""
 
     def __init__(self, target: tuple[str, int], component: tuple[int, int, int]) -> None:
-        from jaus import JausId
+        from ups.jaus import JausId
 
         self.me, self.to = JausId(*OCU_ID), JausId(*component)
         self.target = target
@@ -45,7 +45,7 @@ class Ocu:
 
     def send(self, payload: Any, *, sequence: int = 0, ack: bool = False) -> int:
         """Send ``payload`` in JUDP; the size of its message (header, code, payload)."""
-        from jaus import AckNak, JudpHeader, JudpMessage, encode_judp, encode_payload
+        from ups.jaus import AckNak, JudpHeader, JudpMessage, encode_judp, encode_payload
 
         code, body = encode_payload(payload)
         header = JudpHeader(
@@ -60,7 +60,7 @@ class Ocu:
 
     def send_ra33(self, payload: Any, *, sequence: int, ack: bool) -> int:
         """Send ``payload`` in RA 3.3 framing; the size of its message (header and payload)."""
-        from jaus import (
+        from ups.jaus import (
             RA33_PREFIX,
             AckNak,
             Ra33Address,
@@ -106,7 +106,7 @@ class Ocu:
 
 
 def judp_ack(data: bytes, sequence: int) -> bool | None:
-    from jaus import AckNak, JausDecodeError, decode_judp
+    from ups.jaus import AckNak, JausDecodeError, decode_judp
 
     with contextlib.suppress(JausDecodeError):
         for msg in decode_judp(data):
@@ -116,7 +116,7 @@ def judp_ack(data: bytes, sequence: int) -> bool | None:
 
 
 def ra33_ack(data: bytes, sequence: int) -> bool | None:
-    from jaus import RA33_PREFIX, AckNak, JausDecodeError, decode_ra33
+    from ups.jaus import RA33_PREFIX, AckNak, JausDecodeError, decode_ra33
 
     if data.startswith(RA33_PREFIX):
         with contextlib.suppress(JausDecodeError):
@@ -127,7 +127,7 @@ def ra33_ack(data: bytes, sequence: int) -> bool | None:
 
 
 def payload_of(data: bytes, kind: type) -> Any:
-    from jaus import JausDecodeError, decode_judp, decode_payload
+    from ups.jaus import JausDecodeError, decode_judp, decode_payload
 
     with contextlib.suppress(JausDecodeError):
         for msg in decode_judp(data):
@@ -138,7 +138,7 @@ def payload_of(data: bytes, kind: type) -> Any:
 
 def event_value(data: bytes, event_id: int) -> int | None:
     """The authority an Event of ``event_id`` reports, else None."""
-    from jaus import Event, MessageCode
+    from ups.jaus import Event, MessageCode
 
     event = payload_of(data, Event)
     if event is None or event.event_id != event_id:

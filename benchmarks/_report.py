@@ -11,8 +11,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from benchmarks._plots import plots
-from benchmarks.tcp_compare import span
+from ups.benchmarks._plots import plots
+from ups.benchmarks.tcp_compare import span
 
 #: the paper's section 6 (PERFORMANCE.md, table5.PAPER): Pentium III 800 MHz, RTLinux, C167
 PAPER: dict[str, Any] = {
@@ -226,11 +226,11 @@ def tables(r: dict[str, Any]) -> list[Table]:
         out.append((f"Gateway CAN -> TCP (a saturated 1 Mbit/s bus: {BUS:,} frames/s)",
                     head, body))  # fmt: skip
     if r.get("zenoh_face"):
-        from benchmarks.zenoh_face import tables as zenoh_tables
+        from ups.benchmarks.zenoh_face import tables as zenoh_tables
 
         out += zenoh_tables(r["zenoh_face"])
     if r.get("jaus_paper000"):
-        from benchmarks.jaus_paper000 import tables as jaus_tables
+        from ups.benchmarks.jaus_paper000 import tables as jaus_tables
 
         out += jaus_tables(r["jaus_paper000"])
     if r.get("rss_mb"):

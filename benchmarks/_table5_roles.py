@@ -1,5 +1,5 @@
 """Table 5's measuring roles, each run in a child process of its own by
-``python -m benchmarks.table5 --child ROLE CONFIG`` (see :mod:`benchmarks.table5`): echoes and
+``python -m ups.benchmarks.table5 --child ROLE CONFIG`` (see :mod:`benchmarks.table5`): echoes and
 pingers on UPS nodes, raw CAN and raw TCP floors, and the rate test's publisher and subscriber.
 A role prints JSON lines on stdout and reads commands on stdin.
 """
@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from benchmarks._procs import SETUP_TIMEOUT
+from ups.benchmarks._procs import SETUP_TIMEOUT
 
 MARKER = b"\xff" * 8  # published once by an echo to register as publisher; never a ping
 PROBE_STEP = 0xFFFF  # step number of the rate publisher's probes

@@ -33,9 +33,9 @@ from collections.abc import Callable, Coroutine, Iterator
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
-from benchmarks._procs import process
-from benchmarks.peers import PROBE, STOP, Control, Link, seq
-from benchmarks.peers._common import probe_until_echoed
+from ups.benchmarks._procs import process
+from ups.benchmarks.peers import PROBE, STOP, Control, Link, seq
+from ups.benchmarks.peers._common import probe_until_echoed
 
 if TYPE_CHECKING:
     from ups import Message, Node
@@ -474,9 +474,9 @@ def _bridge(cfg: dict[str, Any], conn: Connection, raw: Any, uid: int, can_id: i
 
 
 async def _gateway(cfg: dict[str, Any], conn: Connection, raw: Any) -> None:
-    from gateway import Gateway
     from ups import Node
     from ups._canlink import CanLink
+    from ups.gateway import Gateway
 
     link = CanLink.open(f"virtual:{cfg['bus']}")
     zenoh, broker = (cfg["endpoint"], None) if cfg["ip"] == "zenoh" else (None, cfg["endpoint"])

@@ -56,7 +56,7 @@ def _run_json(
     netns: list[str] | None = None,
     tolerate_exit: bool = False,
 ) -> Any:
-    """Run ``python -m benchmarks.MODULE ARGS --json TMP`` (behind the ``netns`` prefix, if
+    """Run ``python -m ups.benchmarks.MODULE ARGS --json TMP`` (behind the ``netns`` prefix, if
     given) and return what it wrote; its output goes to our stderr's summary line. With
     ``tolerate_exit``, a non-zero exit that still wrote its JSON is the caller's to judge (a
     peer that failed is not UPS failing)."""
@@ -235,7 +235,7 @@ def startup(quick: bool) -> dict[str, float]:
 
 def rss() -> dict[str, float]:
     """Resident memory (MB) of each daemon and of an idle TCP node, once started."""
-    from benchmarks._daemons import daemon_rss
+    from ups.benchmarks._daemons import daemon_rss
 
     return daemon_rss()
 
@@ -349,7 +349,7 @@ def _p50_p99(values: list[float]) -> dict[str, float]:
 def summary(r: dict[str, Any]) -> dict[str, Any]:
     """The keys every consumer of the JSON can count on (null or empty where a part did not
     run), the floors measured beside them, and issue 11's targets."""
-    from benchmarks import _report
+    from ups.benchmarks import _report
 
     out: dict[str, Any] = {
         "local_notify_us": None,
@@ -422,7 +422,7 @@ def summary(r: dict[str, Any]) -> dict[str, Any]:
 def _zenoh_summary(doc: dict[str, Any]) -> dict[str, Any]:
     """The Zenoh face's figures (None where not measured, or where the gateway lost events),
     and each over raw zenoh's and over UPS TCP's (``ratios``)."""
-    from benchmarks.zenoh_face import GW_ZENOH, UPS_ZENOH
+    from ups.benchmarks.zenoh_face import GW_ZENOH, UPS_ZENOH
 
     rtt = doc["rtt"].get(UPS_ZENOH) or {}
     gw = doc["gateway"].get(GW_ZENOH) or {}
@@ -440,7 +440,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", metavar="PATH", help="write every figure as JSON here")
     parser.add_argument("--report", metavar="DIR", help="write report.md, results.json, plots")
     args = parser.parse_args(argv)
-    from benchmarks import _report
+    from ups.benchmarks import _report
 
     missing = _report.missing_peers()
     if missing:

@@ -6,7 +6,7 @@ made durable in the CAN-ECB's SQLite file before it is announced. Reported: the 
 all of them, bindings per second, and the SQLite transactions the CAN-ECB needed (when it
 says). Run:
 
-    .venv/bin/python -m benchmarks.can_bind --channels 5000
+    .venv/bin/python -m ups.benchmarks.can_bind --channels 5000
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from broker.can_ecb import CanEcb
 from ups import Node
 from ups._canlink import CanLink
+from ups.broker.can_ecb import CanEcb
 
 
 async def bind(channels: int, concurrency: int) -> None:

@@ -8,7 +8,7 @@ processed (until the CAN-ECB and every node's queue are through the flood), the 
 moved, TxNodes and etags held before and after, events delivered against events published
 during the flood, wrong deliveries, and the process's RSS before and after.
 
-    .venv/bin/python -m benchmarks.can_fuzz --frames 100000 --seed 1
+    .venv/bin/python -m ups.benchmarks.can_fuzz --frames 100000 --seed 1
 
 The generator (``FrameGen``, in :mod:`benchmarks._can_frames`) mixes random, semi-valid and
 forged frames, part of the time aimed at the scenario's channels and nodes (``Targets``).
@@ -35,16 +35,16 @@ from typing import Any
 
 import can
 
-from benchmarks._can_frames import FrameGen, Targets
-from broker.can_ecb import HELLO_GAP, CanEcb
-from broker.tcp_ecb import TcpEcb
-from gateway import Gateway
 from ups import Node, name_to_uid
 from ups import _canproto as p
 from ups._canface import CanFace
 from ups._canlink import CanLink
 from ups._message import Message
 from ups._subscription import Subscription
+from ups.benchmarks._can_frames import FrameGen, Targets
+from ups.broker.can_ecb import HELLO_GAP, CanEcb
+from ups.broker.tcp_ecb import TcpEcb
+from ups.gateway import Gateway
 
 BIG = 1 << 20  #: subscription queues that never drop during a flood
 SETTLE = 10.0  #: seconds the real nodes get to bind every channel again after the flood

@@ -12,8 +12,8 @@ The frames come from a separate ``ups pub`` process, 1-byte payloads (as in the 
 that the receiver is idle when each one arrives. Runs on udp_multicast, so it must run inside a
 private network namespace; or on SocketCAN vcan0 (inside scripts/uml-run):
 
-    scripts/netns-run .venv/bin/python -m benchmarks.can_local_latency
-    scripts/uml-run .venv/bin/python -m benchmarks.can_local_latency --can socketcan:vcan0
+    scripts/netns-run .venv/bin/python -m ups.benchmarks.can_local_latency
+    scripts/uml-run .venv/bin/python -m ups.benchmarks.can_local_latency --can socketcan:vcan0
 """
 
 from __future__ import annotations
@@ -30,10 +30,10 @@ from typing import Any
 
 import can
 
-from benchmarks._procs import Child
-from broker.can_ecb import CanEcb
 from ups import Node
 from ups._canlink import CanLink, open_bus
+from ups.benchmarks._procs import Child
+from ups.broker.can_ecb import CanEcb
 
 PAPER_RTLINUX_AVG_US = {1: 17.5, 2: 22.6, 3: 27.9, 4: 34.3}  # Table 3
 Summary = tuple[float, float, float, float, float]  # min, avg, p50, p99, max (µs)

@@ -11,7 +11,7 @@ bus in one process (a CAN-ECB hosted beside two nodes):
   the events per second that a real 1 Mbit/s bus would carry at that efficiency.
 
 A virtual bus has no bit rate, so latency and throughput here are the software's cost, the
-floor under what a real bus adds. Run: ``.venv/bin/python -m benchmarks.can_transfers
+floor under what a real bus adds. Run: ``.venv/bin/python -m ups.benchmarks.can_transfers
 [--quick] [--json PATH]``.
 """
 
@@ -28,9 +28,9 @@ from typing import Any
 
 import can
 
-from broker import hosted_can_ecb
 from ups import Node
 from ups import _cantransfer as t
+from ups.broker import hosted_can_ecb
 from ups.rt import frame_bits
 
 SIZES = (8, 64, 1024, 4096)

@@ -8,7 +8,7 @@ when its compiled build (``UPS_COMPILE=1``, :mod:`benchmarks._compiled`) can be 
 it is installed, and compiled (publisher and subscribers). Every child is spawned here, every
 wait bounded, every child stopped by its PID.
 
-    .venv/bin/python -m benchmarks.fanout [--subscribers 1,2,4,8,16,32] [--messages M]
+    .venv/bin/python -m ups.benchmarks.fanout [--subscribers 1,2,4,8,16,32] [--messages M]
         [--json PATH]
 """
 
@@ -25,8 +25,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from benchmarks import _compiled
-from benchmarks._procs import Spawned, free_port, process
+from ups.benchmarks import _compiled
+from ups.benchmarks._procs import Spawned, free_port, process
 
 HOST = "127.0.0.1"
 TIMEOUT = 120.0

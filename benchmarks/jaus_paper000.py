@@ -32,7 +32,7 @@ full run would take minutes a path). A message not answered within a second is c
 as the paper's zeroed array did. CAN is python-can's udp_multicast, which must stay inside a
 private network namespace:
 
-    scripts/netns-run .venv/bin/python -m benchmarks.jaus_paper000 [--messages N]
+    scripts/netns-run .venv/bin/python -m ups.benchmarks.jaus_paper000 [--messages N]
         [--warmup W] [--gap MS] [--report-seconds S] [--json PATH]
 """
 
@@ -52,9 +52,9 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from benchmarks._jaus_ocu import Ocu, event_value, judp_ack, payload_of, ra33_ack
-from benchmarks._procs import Child
-from benchmarks.table5 import check_private_namespace, free_udp_port, ups_argv
+from ups.benchmarks._jaus_ocu import Ocu, event_value, judp_ack, payload_of, ra33_ack
+from ups.benchmarks._procs import Child
+from ups.benchmarks.table5 import check_private_namespace, free_udp_port, ups_argv
 
 #: Table 2 of paper 000, one way in ms: (minimum, maximum, mean, standard deviation)
 PAPER_TABLE2_MS = {
@@ -188,7 +188,8 @@ class Run:
         ecb.wait_stderr("CAN-ECB on")
         cfg = {"bus": self.bus, "node_id": 0xEC40}
         echo = self.spawn(
-            [sys.executable, "-m", "benchmarks.jaus_paper000", "--child", json.dumps(cfg)], "echo"
+            [sys.executable, "-m", "ups.benchmarks.jaus_paper000", "--child", json.dumps(cfg)],
+            "echo",
         )
         echo.event(SETUP_TIMEOUT)
         where = []
@@ -204,8 +205,8 @@ class Run:
         return where[0], where[1], echo
 
     async def measure(self, direct: tuple[str, int], face: tuple[str, int]) -> dict[str, Any]:
-        from jaus import SetAuthority
         from ups import Node
+        from ups.jaus import SetAuthority
 
         a = self.args
         count, warmup, gap = a.messages, a.warmup, a.gap / 1000
@@ -288,8 +289,8 @@ class Run:
         return {"paths": paths, "reports": reports}
 
     async def _every_change(self, ocu: Ocu) -> int:
-        from jaus import ConfirmEventRequest, CreateEvent, EventType, QueryAuthority
-        from jaus import encode_payload as enc
+        from ups.jaus import ConfirmEventRequest, CreateEvent, EventType, QueryAuthority
+        from ups.jaus import encode_payload as enc
 
         code, body = enc(QueryAuthority())
         query = code.to_bytes(2, "little") + body
@@ -300,14 +301,14 @@ class Run:
 
     async def _reports(self, ocu: Ocu, node: Any, event_id: int) -> dict[str, Any]:
         """Periodic events at 10, 100 and 1000 Hz; the every-change event under a stream."""
-        from jaus import (
+        from ups.jaus import (
             CancelEvent,
             ConfirmEventRequest,
             CreateEvent,
             EventType,
             QueryAuthority,
         )
-        from jaus import encode_payload as enc
+        from ups.jaus import encode_payload as enc
 
         seconds = self.args.report_seconds
         code, body = enc(QueryAuthority())
@@ -342,7 +343,7 @@ class Run:
 
 
 async def _take_control(ocu: Ocu) -> None:
-    from jaus import ConfirmControl, ControlResponse, RequestControl
+    from ups.jaus import ConfirmControl, ControlResponse, RequestControl
 
     got = await ocu.ask(RequestControl(10), ConfirmControl)
     if got.response != ControlResponse.CONTROL_ACCEPTED:
@@ -351,7 +352,7 @@ async def _take_control(ocu: Ocu) -> None:
 
 async def _arrivals(ocu: Ocu, event_id: int, seconds: float) -> list[int]:
     """Arrival times (ns) of the Events of ``event_id`` during ``seconds``."""
-    from jaus import Event
+    from ups.jaus import Event
 
     out: list[int] = []
     deadline = time.monotonic() + seconds
@@ -427,7 +428,7 @@ def tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def text(doc: dict[str, Any]) -> str:
-    from benchmarks._report import aligned
+    from ups.benchmarks._report import aligned
 
     return "\n".join(aligned(tables(doc)))
 
@@ -472,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--child":
-        from benchmarks._table5_roles import run_async
+        from ups.benchmarks._table5_roles import run_async
 
         run_async(_echo(json.loads(sys.argv[2])))
     else:

@@ -25,10 +25,10 @@ node). ``--json PATH`` also writes every node's id, TxNode and join time.
 The default bus is udp_multicast on a free port, so it must run inside a private network
 namespace (it refuses to run otherwise); or give a SocketCAN bus inside scripts/uml-run:
 
-    scripts/netns-run .venv/bin/python -m benchmarks.join_storm --nodes 10,50,127 --repeat 3
-    scripts/netns-run .venv/bin/python -m benchmarks.join_storm --layout bus --ids sequential \
+    scripts/netns-run .venv/bin/python -m ups.benchmarks.join_storm --nodes 10,50,127 --repeat 3
+    scripts/netns-run .venv/bin/python -m ups.benchmarks.join_storm --layout bus --ids sequential \
         --workers 1 --nodes 60 --hog
-    scripts/uml-run .venv/bin/python -m benchmarks.join_storm --can socketcan:vcan0
+    scripts/uml-run .venv/bin/python -m ups.benchmarks.join_storm --can socketcan:vcan0
 """
 
 from __future__ import annotations
@@ -55,10 +55,10 @@ from typing import Any
 
 import can
 
-from benchmarks._procs import ROOT, Child, cpu_hog
 from ups import Node
 from ups._canlink import CanLink, open_bus
 from ups._canproto import is_management
+from ups.benchmarks._procs import ROOT, Child, cpu_hog
 
 ECB_READY = "CAN-ECB on"
 GRACE = 10.0  # seconds past the timeout before a silent worker is given up and stopped
@@ -246,7 +246,7 @@ def storm(bus: str, n: int, repeat: int, seed: int, args: argparse.Namespace) ->
             counter = FrameCounter(bus, t0)
             for k in range(workers):
                 share = ids[k::workers]
-                cmd = [sys.executable, "-m", "benchmarks.join_storm", "--worker", str(k),
+                cmd = [sys.executable, "-m", "ups.benchmarks.join_storm", "--worker", str(k),
                        "--can", bus, "--t0", repr(t0), "--timeout", str(args.timeout),
                        "--layout", args.layout,
                        "--worker-ids", ",".join(f"{i:x}" for i in share)]  # fmt: skip

@@ -29,7 +29,7 @@ counters (``ups status``) are read around each step. Compare with a saturated 1 
 
 CAN is python-can's udp_multicast, which must stay inside a private network namespace:
 
-    scripts/netns-run .venv/bin/python -m benchmarks.table5 [--roundtrips N] [--warmup W]
+    scripts/netns-run .venv/bin/python -m ups.benchmarks.table5 [--roundtrips N] [--warmup W]
         [--events K] [--flat-events F] [--rates 2000,...,50000,0] [--pacing timer,spin]
         [--pin both|off|on] [--no-veth] [--no-rate] [--json PATH]
 
@@ -56,8 +56,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from benchmarks._procs import SETUP_TIMEOUT, Child, set_affinity
-from benchmarks._table5_roles import run_child
+from ups.benchmarks._procs import SETUP_TIMEOUT, Child, set_affinity
+from ups.benchmarks._table5_roles import run_child
 
 GW_ID = 0x6A7E
 
@@ -82,7 +82,7 @@ BUS_FPS_1BYTE = (11_000, 13_000)
 
 
 def role_argv(role: str, cfg: dict[str, Any], netns: str | None = None) -> list[str]:
-    argv = [sys.executable, "-m", "benchmarks.table5", "--child", role, json.dumps(cfg)]
+    argv = [sys.executable, "-m", "ups.benchmarks.table5", "--child", role, json.dumps(cfg)]
     return ["ip", "netns", "exec", netns, *argv] if netns else argv
 
 

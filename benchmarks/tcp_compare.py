@@ -17,7 +17,7 @@ Each side is a separate ``spawn``ed process; every wait has a timeout and every 
 killed by PID if it has not ended. Needs ``scripts/bench-setup`` for pyzmq, paho-mqtt,
 eclipse-zenoh, uvloop and mosquitto; a peer whose package is missing is skipped.
 
-    .venv/bin/python -m benchmarks.tcp_compare [--roundtrips N] [--messages M]
+    .venv/bin/python -m ups.benchmarks.tcp_compare [--roundtrips N] [--messages M]
         [--peers raw,asyncio,zmq,mqtt,zenoh,ups] [--json PATH]
 """
 
@@ -37,9 +37,9 @@ from dataclasses import asdict, dataclass, field
 from types import ModuleType
 from typing import Any
 
-from benchmarks._procs import Spawned, free_ports
-from benchmarks.peers import PEERS, Link, PeerSpec, SinkResult
-from benchmarks.peers._child import run_role
+from ups.benchmarks._procs import Spawned, free_ports
+from ups.benchmarks.peers import PEERS, Link, PeerSpec, SinkResult
+from ups.benchmarks.peers._child import run_role
 
 HOST = "127.0.0.1"
 RAW_LABEL = PEERS["raw"][0].label  # the floor the ratios are taken against

@@ -4,7 +4,7 @@ Starts ``ups broker`` (a process of its own), connects ``--nodes`` TCP nodes fro
 each subscribing to ``--channels`` / ``--nodes`` channels of its own, and reports the broker's
 resident memory (VmRSS) before and after, and per node and channel. Run:
 
-    .venv/bin/python -m benchmarks.tcp_ecb_memory --nodes 1000 --channels 10000
+    .venv/bin/python -m ups.benchmarks.tcp_ecb_memory --nodes 1000 --channels 10000
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import resource
 import sys
 from pathlib import Path
 
-from benchmarks._procs import process
 from ups import Node
+from ups.benchmarks._procs import process
 
 
 def rss_kib(pid: int) -> int:

@@ -13,7 +13,7 @@ sequence numbers: ``lost``).
 
 Every child is started here, every wait has a timeout, every child is stopped by its PID.
 
-    .venv/bin/python -m benchmarks.tcp_payload [--sizes 8,64,1024,65536,1048576] [--mib M]
+    .venv/bin/python -m ups.benchmarks.tcp_payload [--sizes 8,64,1024,65536,1048576] [--mib M]
         [--loop uvloop|asyncio] [--json PATH]
 """
 
@@ -32,7 +32,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from benchmarks._procs import Spawned, free_port, process
+from ups.benchmarks._procs import Spawned, free_port, process
 
 HOST = "127.0.0.1"
 SIZES = (8, 64, 1024, 65536, 1 << 20)

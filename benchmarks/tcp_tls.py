@@ -7,7 +7,7 @@ node B answers with a pong, ``--roundtrips`` times. Throughput: A publishes ``--
 8-byte events with backpressure (``wait=True``), B counts them. The ACL run adds the broker's
 access control and the subscribers' check of each publisher's identity. Run:
 
-    .venv/bin/python -m benchmarks.tcp_tls
+    .venv/bin/python -m ups.benchmarks.tcp_tls
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from broker._acl import Acl
-from broker.tcp_ecb import TcpEcb
 from ups import Node, Tls
+from ups.broker._acl import Acl
+from ups.broker.tcp_ecb import TcpEcb
 
 
 def make_fleet(folder: Path) -> None:

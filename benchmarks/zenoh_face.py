@@ -24,7 +24,7 @@ Every figure is also given as a ratio: UPS Zenoh over raw zenoh, and over UPS TC
 child is spawned here, every wait bounded, the whole run limited to ``--time-limit`` seconds;
 every process is stopped by its PID on the way out.
 
-    .venv/bin/python -m benchmarks.zenoh_face [--quick] [--json PATH]
+    .venv/bin/python -m ups.benchmarks.zenoh_face [--quick] [--json PATH]
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from benchmarks import _zenoh_roles as roles
-from benchmarks import tcp_compare
-from benchmarks._procs import Spawned, free_port, process
-from benchmarks.peers import PEERS, Link, PeerSpec
+from ups.benchmarks import _zenoh_roles as roles
+from ups.benchmarks import tcp_compare
+from ups.benchmarks._procs import Spawned, free_port, process
+from ups.benchmarks.peers import PEERS, Link, PeerSpec
 
 HOST = "127.0.0.1"
 BUS = 7634  # a saturated 1 Mbit/s classic bus, 8-byte extended frames, no stuffing
@@ -340,7 +340,7 @@ def tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def text(doc: dict[str, Any]) -> str:
-    from benchmarks._report import aligned
+    from ups.benchmarks._report import aligned
 
     lines = aligned(tables(doc))
     lines += [f"FAILED {k}: {v.splitlines()[0]}" for k, v in doc["errors"].items()]

@@ -4,7 +4,7 @@ monitor``, ``ups console``, ``ups ls`` and ``ups record`` to watch from other sh
 Needs a bus that processes share: SocketCAN (``socketcan:vcan0``), or udp_multicast inside a
 private network namespace (``scripts/netns-run``). Starts a TCP-ECB, a gateway that hosts the
 bus's CAN-ECB, the four CAN parts and the operator station, each one process
-(``python -m examples.robots PART``), prints what each part says, and stops them all (by PID)
+(``python -m ups.examples.robots PART``), prints what each part says, and stops them all (by PID)
 on Ctrl-C, SIGTERM or after ``--duration``.
 """
 
@@ -53,7 +53,7 @@ async def run_fleet(bus: str, listen: str, duration: float | None) -> int:
                     ready="gateway .* between")  # fmt: skip
         for i, part in enumerate(PARTS):
             where = ("--broker", listen) if part == "operator" else ("--can", bus)
-            await spawn(part, "-m", "examples.robots", part, *where,
+            await spawn(part, "-m", "ups.examples.robots", part, *where,
                         "--node-id", hex(0x0D3E_0000 + i))  # fmt: skip
         print(_WATCH.format(bus=bus, broker=listen, catalog=CATALOG), flush=True)
         if duration is None:

@@ -30,9 +30,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from broker.tcp_ecb import TcpEcb
-from gateway import Gateway
 from ups import Node
+from ups.broker.tcp_ecb import TcpEcb
+from ups.gateway import Gateway
 
 SPEED, DISTANCE, BRAKE, MAX_SPEED = (
     "robot/speed",
@@ -169,10 +169,10 @@ The third limits the robot to 40 cm/s: the wheel encoder says so here."""
 
 async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
     """A JAUS component on the robot's bus, driving it through examples/robot.jaus.toml."""
-    from jaus import JausId
-    from jaus._host import JausHost
-    from jaus._mapping import load_mapping
     from ups._address import parse_address
+    from ups.jaus import JausId
+    from ups.jaus._host import JausHost
+    from ups.jaus._mapping import load_mapping
 
     node = Node(can=bus, name="jaus", node_id=0x0D3E_00A0)
     await node.start()
@@ -245,7 +245,7 @@ PARTS = ("wheel-encoder", "sonar", "motor-controller", "dashboard", "operator")
 
 
 async def run_part(part: str, can: str | None, broker: str | None, node_id: int) -> int:
-    """One robot part as a process of its own (``python -m examples.robots PART``): the CAN
+    """One robot part as a process of its own (``python -m ups.examples.robots PART``): the CAN
     parts on ``can``, the operator on the TCP/IP network of ``broker``; until SIGTERM."""
     import signal
 

@@ -31,8 +31,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from broker._store import default_db
-from broker.can_ecb import CanEcb
 from ups import _canproto as p
 from ups import _cantransfer as sizes
 from ups._canlink import CanLink
@@ -43,6 +41,8 @@ from ups._message import Message
 from ups._node import Node
 from ups._nodeid import claim_node_id
 from ups._tls import Tls
+from ups.broker._store import default_db
+from ups.broker.can_ecb import CanEcb
 from ups.rt import frame_bits
 
 from ._tables import Tables

@@ -14,8 +14,8 @@ from typing import Any
 import can
 import pytest
 
-from broker.can_ecb import CanEcb
 from ups._canlink import CanLink, open_bus
+from ups.broker.can_ecb import CanEcb
 
 from .procs import private_multicast_bus, vcan_bus
 

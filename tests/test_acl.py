@@ -17,12 +17,12 @@ from pathlib import Path
 import can
 import pytest
 
-from broker._acl import Acl
-from broker.tcp_ecb import TcpEcb
-from gateway import Gateway
 from ups import AccessDenied, BrokerUnavailable, Channel, ConfigError, Node, _tcpinbox, name_to_uid
 from ups import _tcpwire as w
 from ups._tcpface import query_status
+from ups.broker._acl import Acl
+from ups.broker.tcp_ecb import TcpEcb
+from ups.gateway import Gateway
 
 from .conftest import eventually
 from .procs import Proc

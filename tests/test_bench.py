@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import _compiled, _report, bench, fanout, tcp_payload
+from ups.benchmarks import _compiled, _report, bench, fanout, tcp_payload
 
 from .procs import ROOT
 
@@ -111,7 +111,7 @@ def test_round_trips_are_shared_among_process_pairs(tmp_path: Path) -> None:
     all of them; each pair's p50 is kept, and the report shows their span."""
     out = tmp_path / "rtt.json"
     subprocess.run(
-        [sys.executable, "-m", "benchmarks.tcp_compare", "--peers", "raw,ups", "--pairs", "3",
+        [sys.executable, "-m", "ups.benchmarks.tcp_compare", "--peers", "raw,ups", "--pairs", "3",
          "--roundtrips", "61", "--warmup", "5", "--messages", "2000", "--json", str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=300, check=True,
     )  # fmt: skip

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import _report, bench, jaus_paper000
+from ups.benchmarks import _report, bench, jaus_paper000
 
 from .procs import ROOT, private_multicast_bus
 
@@ -26,7 +26,7 @@ def test_a_tiny_run_measures_every_path_beside_table_2(tmp_path: Path) -> None:
     private_multicast_bus()  # udp_multicast: only inside a private namespace
     out = tmp_path / "jaus.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.jaus_paper000", *TINY, "--json", str(out)],
+        [sys.executable, "-m", "ups.benchmarks.jaus_paper000", *TINY, "--json", str(out)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         stdin=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip

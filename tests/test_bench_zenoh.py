@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import _report, bench, zenoh_face
+from ups.benchmarks import _report, bench, zenoh_face
 
 from .procs import ROOT
 
@@ -26,11 +26,11 @@ TINY = ["--roundtrips", "50", "--warmup", "10", "--messages", "3000", "--gateway
 
 
 def run(tmp_path: Path, *args: str, timeout: float = 180) -> tuple[int, dict[str, object], str]:
-    """``python -m benchmarks.zenoh_face ARGS`` in a session of its own; after it exits, no
+    """``python -m ups.benchmarks.zenoh_face ARGS`` in a session of its own; after it exits, no
     process of that session may be left."""
     out = tmp_path / "zenoh.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.zenoh_face", *args, "--json", str(out)], cwd=ROOT,
+        [sys.executable, "-m", "ups.benchmarks.zenoh_face", *args, "--json", str(out)], cwd=ROOT,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
     )  # fmt: skip
     try:

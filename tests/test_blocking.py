@@ -7,8 +7,8 @@ import threading
 
 import pytest
 
-from broker.can_ecb import CanEcb
 from ups import BlockingNode, BrokerUnavailable, PayloadTooLarge, Unschedulable
+from ups.broker.can_ecb import CanEcb
 
 
 async def test_blocking_nodes_talk_through_the_ecb(bus: str, ecb: CanEcb) -> None:

@@ -31,20 +31,20 @@ from pathlib import Path
 import can
 import pytest
 
-from benchmarks._can_frames import U64, FrameGen, Targets, classify
-from benchmarks.can_fuzz import (
+from ups import Node, name_to_uid
+from ups import _canproto as p
+from ups._canface import CanFace
+from ups._canlink import CanLink
+from ups.benchmarks._can_frames import U64, FrameGen, Targets, classify
+from ups.benchmarks.can_fuzz import (
     Report,
     prime_recovery,
     scenario_ecb,
     scenario_gateway,
     scenario_node,
 )
-from broker._etags import MAX_DEFERRED
-from broker.can_ecb import MAX_CHANNELS
-from ups import Node, name_to_uid
-from ups import _canproto as p
-from ups._canface import CanFace
-from ups._canlink import CanLink
+from ups.broker._etags import MAX_DEFERRED
+from ups.broker.can_ecb import MAX_CHANNELS
 
 from .conftest import eventually, running_ecb
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import can
 import pytest
 
-from broker.can_ecb import CanEcb
 from ups import ConfigError, Node, PayloadTooLarge, name_to_uid
 from ups import _canproto as p
 from ups import _cantransfer as t
+from ups.broker.can_ecb import CanEcb
 
 from .conftest import eventually, running_ecb
 

@@ -9,8 +9,6 @@ from pathlib import Path
 import can
 import pytest
 
-from broker._store import Store
-from broker.can_ecb import CanEcb
 from ups import (
     BrokerUnavailable,
     Closed,
@@ -21,6 +19,8 @@ from ups import (
     name_to_uid,
 )
 from ups import _canproto as p
+from ups.broker._store import Store
+from ups.broker.can_ecb import CanEcb
 
 from .conftest import eventually, running_ecb
 

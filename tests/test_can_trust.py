@@ -14,11 +14,11 @@ from pathlib import Path
 import can
 import pytest
 
-import broker._store
-from broker.can_ecb import CanEcb
 from ups import BrokerUnavailable, Node, name_to_uid
 from ups import _canproto as p
 from ups._canlink import CanLink
+from ups.broker import _store
+from ups.broker.can_ecb import CanEcb
 
 from .conftest import eventually, running_ecb
 
@@ -239,7 +239,7 @@ async def test_repeated_declarations_cost_one_analysis(
 
 async def test_a_silent_nodes_txnode_is_reclaimed_past_the_lease(bus: str, tmp_path: Path) -> None:
     db = tmp_path / "full.db"
-    broker._store.Store(db).close()
+    _store.Store(db).close()
     with sqlite3.connect(db) as conn:
         rows = [(f"{0xAAAA_0000 + t:016x}", t) for t in range(p.TXNODE_COUNT)]
         conn.executemany("INSERT INTO txnodes VALUES (?, ?)", rows)
@@ -274,7 +274,7 @@ async def test_a_deleted_database_is_written_anew(bus: str, tmp_path: Path) -> N
 async def test_a_locked_database_fails_requests_clearly_and_never_blocks_the_loop(
     bus: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(broker._store, "BUSY_TIMEOUT", 0.3)
+    monkeypatch.setattr(_store, "BUSY_TIMEOUT", 0.3)
     db = tmp_path / "ecb.db"
     async with running_ecb(bus, db, recovery=0.1) as ecb, nodes(bus, [1]) as (node,):
         await node.subscribe("ok")
@@ -321,11 +321,11 @@ async def test_one_database_file_is_never_shared(bus: str, tmp_path: Path) -> No
 
 def test_each_bus_has_its_own_default_database(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("UPS_STATE_DIR", "/state")
-    a = broker._store.default_db("udp_multicast:239.74.163.2,port=7000,bitrate=500000")
-    b = broker._store.default_db("udp_multicast:239.74.163.2,port=7001")
-    c = broker._store.default_db("socketcan:vcan0")
+    a = _store.default_db("udp_multicast:239.74.163.2,port=7000,bitrate=500000")
+    b = _store.default_db("udp_multicast:239.74.163.2,port=7001")
+    c = _store.default_db("socketcan:vcan0")
     assert len({a, b, c}) == 3 and all(str(x).startswith("/state/can-ecb-") for x in (a, b, c))
-    assert a == broker._store.default_db("udp_multicast:239.74.163.2,bitrate=250000,port=7000")
+    assert a == _store.default_db("udp_multicast:239.74.163.2,bitrate=250000,port=7000")
 
 
 async def test_a_node_the_can_ecb_missed_is_let_back_in_and_only_it(

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import _compiled
+from ups.benchmarks import _compiled
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the tests of the compiled modules' behaviour: nodes, links, wire, bounds, loss, invariants

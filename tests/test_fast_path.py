@@ -10,11 +10,11 @@ import socket
 
 import pytest
 
-from broker.can_ecb import CanEcb
-from broker.tcp_ecb import TcpEcb
 from ups import ConfigError, Message, Node
 from ups import _tcpwire as w
 from ups._tcplink import QUEUE_BYTES
+from ups.broker.can_ecb import CanEcb
+from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
 from .test_tcp_node import stalled_subscriber, tcp_ecb, tcp_node  # noqa: F401  (the fixture)

@@ -11,13 +11,13 @@ from typing import Any
 import can
 import pytest
 
-from broker.can_ecb import CanEcb
-from broker.tcp_ecb import TcpEcb
-from gateway import Gateway
 from ups import ConfigError, Node, name_to_uid
 from ups import _canproto as p
 from ups._canlink import CanLink
 from ups._tcpface import query_status
+from ups.broker.can_ecb import CanEcb
+from ups.broker.tcp_ecb import TcpEcb
+from ups.gateway import Gateway
 
 from .conftest import eventually
 from .test_tcp_node import running_tcp_ecb

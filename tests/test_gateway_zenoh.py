@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from gateway import Gateway
 from ups import ConfigError, Node, name_to_uid
+from ups.gateway import Gateway
 
 from .conftest import eventually
 

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import broker
-from ups import Node
+from ups import Node, broker
 
 
 async def test_a_virtual_bus_with_its_can_ecb_in_process(bus: str, tmp_path: Path) -> None:

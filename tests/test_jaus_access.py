@@ -9,8 +9,8 @@ from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from jaus import ControlResponse, JausId
-from jaus._access import MAX_EMERGENCIES, Access, State
+from ups.jaus import ControlResponse, JausId
+from ups.jaus._access import MAX_EMERGENCIES, Access, State
 
 CLIENTS = st.sampled_from([JausId(1, 1, 1), JausId(2, 1, 1), JausId(3, 1, 1)])
 TIMEOUT = 5.0

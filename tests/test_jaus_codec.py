@@ -11,8 +11,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-import jaus
-from jaus import (
+from ups import jaus
+from ups.jaus import (
     AckNak,
     Broadcast,
     ConfirmControl,
@@ -46,7 +46,7 @@ from jaus import (
     split_message,
     to_scaled,
 )
-from jaus._messages import PAYLOAD_TYPES
+from ups.jaus._messages import PAYLOAD_TYPES
 
 ROBOT, OCU = JausId(258, 1, 1), JausId(42, 1, 2)
 

@@ -14,13 +14,12 @@ from typing import Any
 
 import pytest
 
-import jaus
-from broker.can_ecb import CanEcb
-from jaus import AckNak, JausId, JudpHeader, JudpMessage
-from jaus._events import MAX_EVENTS
-from jaus._host import JausHost
-from jaus._mapping import load_mapping
-from ups import Node
+from ups import Node, jaus
+from ups.broker.can_ecb import CanEcb
+from ups.jaus import AckNak, JausId, JudpHeader, JudpMessage
+from ups.jaus._events import MAX_EVENTS
+from ups.jaus._host import JausHost
+from ups.jaus._mapping import load_mapping
 
 from .conftest import eventually
 from .test_jaus_mapping import GOOD, write

@@ -10,11 +10,11 @@ from typing import Any
 
 import pytest
 
-import jaus
-from jaus import JausDecodeError, MessageCode, Reassembler
-from jaus._judp import MIN_DATA_SIZE
-from jaus._ra33 import RA33_MAX_DATA_SIZE
-from jaus._reassembly import DEFAULT_TIMEOUT, MAX_MESSAGE_BYTES, MAX_PARTS, MAX_PENDING_BYTES
+from ups import jaus
+from ups.jaus import JausDecodeError, MessageCode, Reassembler
+from ups.jaus._judp import MIN_DATA_SIZE
+from ups.jaus._ra33 import RA33_MAX_DATA_SIZE
+from ups.jaus._reassembly import DEFAULT_TIMEOUT, MAX_MESSAGE_BYTES, MAX_PARTS, MAX_PENDING_BYTES
 
 DOC = (Path(__file__).resolve().parent.parent / "docs" / "jaus.md").read_text()
 
@@ -165,10 +165,10 @@ def test_documented_constants() -> None:
 
 
 def test_the_hosts_documented_bounds_are_the_codes() -> None:
-    from jaus._access import CONTROL_TIMEOUT, MAX_EMERGENCIES
-    from jaus._events import EVENT_TIMEOUT, MAX_EVENTS, MAX_RATE
-    from jaus._host import CLIENT_TIMEOUT, MAX_CLIENTS
-    from jaus._waypoint_list import DEFAULT_TOLERANCE, MAX_ELEMENTS
+    from ups.jaus._access import CONTROL_TIMEOUT, MAX_EMERGENCIES
+    from ups.jaus._events import EVENT_TIMEOUT, MAX_EVENTS, MAX_RATE
+    from ups.jaus._host import CLIENT_TIMEOUT, MAX_CLIENTS
+    from ups.jaus._waypoint_list import DEFAULT_TOLERANCE, MAX_ELEMENTS
 
     bounds = section("## `ups jaus`: the component host")
     for row, value in (

@@ -10,7 +10,7 @@ import itertools
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaus._events import EVERY_CHANGE, Events
+from ups.jaus._events import EVERY_CHANGE, Events
 
 from .conftest import eventually
 

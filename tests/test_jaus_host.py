@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from broker.can_ecb import CanEcb
-from jaus import JausId
-from jaus._host import JausHost
-from jaus._mapping import load_mapping
 from ups import Node
+from ups.broker.can_ecb import CanEcb
+from ups.jaus import JausId
+from ups.jaus._host import JausHost
+from ups.jaus._mapping import load_mapping
 
 from .conftest import eventually
 from .procs import ROOT

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from jaus import ReportAuthority, ReportGlobalPose, SetWrenchEffort, encode_payload
-from jaus._mapping import MappingError, load_mapping
 from ups._catalog import Catalog
+from ups.jaus import ReportAuthority, ReportGlobalPose, SetWrenchEffort, encode_payload
+from ups.jaus._mapping import MappingError, load_mapping
 
 from .procs import ROOT, Proc
 

@@ -19,12 +19,12 @@ from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
-import jaus
-from broker.can_ecb import CanEcb
-from jaus import JausId, ReportLocalPose, SetLocalWaypoint
-from jaus._access import Access, State
-from jaus._host import JausHost
-from jaus._lists import (
+from ups import Message, Node, jaus
+from ups.broker.can_ecb import CanEcb
+from ups.jaus import JausId, ReportLocalPose, SetLocalWaypoint
+from ups.jaus._access import Access, State
+from ups.jaus._host import JausHost
+from ups.jaus._lists import (
     ALL_ELEMENTS,
     ConfirmElementRequest,
     DeleteElement,
@@ -42,9 +42,8 @@ from jaus._lists import (
     ReportElementList,
     SetElement,
 )
-from jaus._mapping import load_mapping
-from jaus._waypoint_list import WaypointList
-from ups import Message, Node
+from ups.jaus._mapping import load_mapping
+from ups.jaus._waypoint_list import WaypointList
 
 from .conftest import eventually
 from .procs import Proc, start_tcp_broker

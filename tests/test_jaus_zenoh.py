@@ -9,12 +9,11 @@ from pathlib import Path
 
 import pytest
 
-import jaus
-from jaus import JausId
-from jaus._host import JausHost
-from jaus._mapping import load_mapping
-from ups import Node
+from ups import Node, jaus
 from ups._zenohface import network_status
+from ups.jaus import JausId
+from ups.jaus._host import JausHost
+from ups.jaus._mapping import load_mapping
 
 from .conftest import eventually
 from .test_jaus_component import Ocu

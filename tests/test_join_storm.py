@@ -24,7 +24,7 @@ def test_a_full_bus_of_simultaneous_joiners_all_get_distinct_txnodes(
 ) -> None:
     bus = private_multicast_bus()
     out = tmp_path / "storm.json"
-    cmd = [sys.executable, "-m", "benchmarks.join_storm", "--nodes", "127", "--repeat", "1",
+    cmd = [sys.executable, "-m", "ups.benchmarks.join_storm", "--nodes", "127", "--repeat", "1",
            "--timeout", "45", "--ids", ids, "--can", bus, "--json", str(out)]  # fmt: skip
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stdout + done.stderr

@@ -47,7 +47,7 @@ def test_ls_shows_nodes_and_channels_by_name() -> None:
 
 
 async def test_ls_of_a_can_bus_reads_the_ecb_tables_and_listens(bus: str, tmp_path: Path) -> None:
-    import broker
+    from ups import broker
 
     db = tmp_path / "ecb.db"
     async with (

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from broker._admission import RT_FIRST, RT_LAST
-from broker.can_ecb import CanEcb
 from ups import ConfigError, Node, Unschedulable, name_to_uid
 from ups import _canproto as p
+from ups.broker._admission import RT_FIRST, RT_LAST
+from ups.broker.can_ecb import CanEcb
 
 from .conftest import eventually, running_ecb
 

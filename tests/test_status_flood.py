@@ -22,11 +22,11 @@ from typing import Any
 
 import pytest
 
-from broker import _status
-from broker.tcp_ecb import MAX_CHANNELS
 from ups import Node, _statuspacer, name_to_uid
 from ups import _tcpwire as w
 from ups._tcpface import HEARTBEAT, query_status
+from ups.broker import _status
+from ups.broker.tcp_ecb import MAX_CHANNELS
 
 from .procs import Proc, private_multicast_bus, start_tcp_broker
 

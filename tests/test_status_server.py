@@ -8,9 +8,9 @@ import asyncio
 
 import pytest
 
-from broker import _status
-from broker._status import StatusServer
 from ups import _tcpwire as w
+from ups.broker import _status
+from ups.broker._status import StatusServer
 
 from .conftest import eventually
 

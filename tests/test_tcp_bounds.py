@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from broker import _tcpstatus, tcp_ecb
 from ups import AccessDenied, BrokerUnavailable, Node
 from ups._tcpface import query_status
+from ups.broker import _tcpstatus, tcp_ecb
 
 from .conftest import eventually
 from .procs import start_tcp_broker

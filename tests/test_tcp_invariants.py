@@ -25,8 +25,8 @@ from hypothesis import HealthCheck, Phase, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, precondition, rule
 
-from broker.tcp_ecb import TcpEcb
 from ups import Node, Subscription, name_to_uid
+from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
 

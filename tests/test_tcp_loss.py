@@ -9,9 +9,9 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from broker.tcp_ecb import TcpEcb
 from ups import Node
 from ups._tcpface import query_status
+from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
 from .procs import start_tcp_broker

@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from broker.tcp_ecb import TcpEcb
 from ups import BrokerUnavailable, Closed, ConfigError, Node, PayloadTooLarge, name_to_uid
 from ups import _tcpwire as w
 from ups._tcpface import parse_address, query_status
+from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
 

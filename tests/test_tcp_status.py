@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from broker import _tcpstatus
 from ups import Node, name_to_uid
 from ups._tcpface import query_status
+from ups.broker import _tcpstatus
 
 from .conftest import eventually
 from .test_tcp_node import running_tcp_ecb

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from broker.tcp_ecb import TcpEcb
 from ups import AccessDenied, BrokerUnavailable, Node, Tls
 from ups._tcpface import query_status
+from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
 from .procs import ROOT, Proc

@@ -326,8 +326,8 @@ complete -F _ups ups"""
 
 
 def _run_can_broker(args: argparse.Namespace) -> int:
-    from broker._store import default_db
-    from broker.can_ecb import serve
+    from ups.broker._store import default_db
+    from ups.broker.can_ecb import serve
 
     db = args.db if args.db is not None else default_db(args.can)
 
@@ -341,8 +341,8 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 
 
 def _run_broker(args: argparse.Namespace) -> int:
-    from broker._acl import Acl
-    from broker.tcp_ecb import serve
+    from ups.broker._acl import Acl
+    from ups.broker.tcp_ecb import serve
 
     tls = tls_of(args)
     acl = Acl.load(args.acl) if args.acl is not None else None
@@ -355,7 +355,7 @@ def _run_broker(args: argparse.Namespace) -> int:
 
 
 def _run_gateway(args: argparse.Namespace) -> int:
-    from gateway import Gateway, serve
+    from ups.gateway import Gateway, serve
 
     broker, zenoh = args.broker, args.zenoh
     if broker is None and zenoh is None and args.zenoh_config is None:
@@ -420,7 +420,7 @@ def _run_status(args: argparse.Namespace) -> int:
 
 
 def _run_zenoh_router(args: argparse.Namespace) -> int:
-    from broker.zenoh_router import serve
+    from ups.broker.zenoh_router import serve
 
     async def run() -> int:
         await serve(args.listen or ["tcp/127.0.0.1:7447"], args.connect, args.zenoh_config)
@@ -431,7 +431,7 @@ def _run_zenoh_router(args: argparse.Namespace) -> int:
 
 def _run_bench(args: argparse.Namespace) -> int:
     try:
-        from benchmarks import bench
+        from ups.benchmarks import bench
     except ImportError as exc:
         raise ConfigError(
             f"the benchmarks are not installed ({exc}): pip install 'ups-pubsub[bench]', or run "
@@ -447,7 +447,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     if args.jaus is not None and args.processes:
         raise ConfigError("--jaus runs with the in-process demo, not --processes")
     if not args.processes:
-        from examples.robots import run_demo
+        from ups.examples.robots import run_demo
 
         if args.jaus is not None:
             return run_until_signal(run_demo(args.duration, jaus=args.jaus))
@@ -461,6 +461,6 @@ def _run_demo(args: argparse.Namespace) -> int:
         raise ConfigError("a virtual bus lives in one process: give --can socketcan:vcan0")
     if args.listen.endswith(":0"):
         raise ConfigError("--listen needs a port the parts can be told (not 0)")
-    from examples.fleet import run_fleet
+    from ups.examples.fleet import run_fleet
 
     return run_until_signal(run_fleet(args.can, args.listen, args.duration))

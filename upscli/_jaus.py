@@ -102,7 +102,7 @@ def _add_ocu_arguments(cmd: argparse.ArgumentParser) -> None:
 
 
 def _run_jaus(args: argparse.Namespace) -> int:
-    from jaus._mapping import load_mapping
+    from ups.jaus._mapping import load_mapping
 
     if args.jaus_command is None:
         if args.map is None:
@@ -110,7 +110,7 @@ def _run_jaus(args: argparse.Namespace) -> int:
         if not 0 <= args.authority <= 255:
             raise ConfigError(f"--authority is 0-255, not {args.authority}")
         bridge = load_mapping(args.map)
-        from jaus._serve import serve
+        from ups.jaus._serve import serve
 
         return run_until_signal(serve(args, bridge))
     from ups._catalog import Catalog
@@ -125,6 +125,6 @@ def _run_jaus(args: argparse.Namespace) -> int:
 
 
 def _run_ocu(args: argparse.Namespace) -> Any:
-    from jaus._ocu import run
+    from ups.jaus._ocu import run
 
     return run(args)

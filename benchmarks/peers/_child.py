@@ -8,7 +8,7 @@ import traceback
 from multiprocessing.connection import Connection
 from typing import Any
 
-from benchmarks.peers import Link
+from ups.benchmarks.peers import Link
 
 
 class PipeControl:

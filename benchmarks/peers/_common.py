@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from benchmarks.peers import PROBE, START_TIMEOUT, SinkResult
+from ups.benchmarks.peers import PROBE, START_TIMEOUT, SinkResult
 
 
 def probe_until_echoed(

@@ -16,8 +16,8 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, cast
 
-from benchmarks.peers import STOP, Control, Link, SinkResult, seq
-from benchmarks.peers._common import Counter
+from ups.benchmarks.peers import STOP, Control, Link, SinkResult, seq
+from ups.benchmarks.peers._common import Counter
 
 BUFFER_SIZE = 1 << 16
 

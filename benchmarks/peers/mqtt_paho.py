@@ -26,9 +26,9 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from benchmarks._procs import process
-from benchmarks.peers import STOP, Control, Link, SinkResult, seq
-from benchmarks.peers._common import Counter
+from ups.benchmarks._procs import process
+from ups.benchmarks.peers import STOP, Control, Link, SinkResult, seq
+from ups.benchmarks.peers._common import Counter
 
 PING, PONG, DATA = "bench/ping", "bench/pong", "bench/data"
 SETUP_TIMEOUT = 10.0

@@ -5,8 +5,8 @@ from __future__ import annotations
 import socket
 import time
 
-from benchmarks.peers import PAYLOAD_SIZE, STOP, Control, Link, SinkResult, seq
-from benchmarks.peers._common import Counter
+from ups.benchmarks.peers import PAYLOAD_SIZE, STOP, Control, Link, SinkResult, seq
+from ups.benchmarks.peers._common import Counter
 
 
 def describe(link: Link) -> str:

@@ -35,9 +35,9 @@ import time
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from typing import TYPE_CHECKING, Any
 
-from benchmarks._procs import process
-from benchmarks.peers import PROBE, STOP, Control, Link, SinkResult, seq
-from benchmarks.peers._common import Counter
+from ups.benchmarks._procs import process
+from ups.benchmarks.peers import PROBE, STOP, Control, Link, SinkResult, seq
+from ups.benchmarks.peers._common import Counter
 
 if TYPE_CHECKING:
     from ups import Message, Node
@@ -57,7 +57,7 @@ def missing(link: Link) -> str | None:
     if link.options.get("loop") == "uvloop" and importlib.util.find_spec("uvloop") is None:
         return "uvloop is not installed (scripts/bench-setup)"
     if link.options.get("compiled"):
-        from benchmarks import _compiled
+        from ups.benchmarks import _compiled
 
         try:
             _compiled.build()
@@ -96,7 +96,7 @@ def _run(link: Link, main: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
 
 
 def _node(link: Link, name: str, node_id: int, peer_queue: int = 1024) -> Node:
-    from benchmarks import _compiled
+    from ups.benchmarks import _compiled
 
     compiled = _compiled.build() if link.options.get("compiled") else None
     node: Node = _compiled.import_ups(compiled).Node(

@@ -19,8 +19,8 @@ import threading
 import time
 from typing import Any
 
-from benchmarks.peers import STOP, Control, Link, SinkResult, seq
-from benchmarks.peers._common import Counter, probe_until_echoed
+from ups.benchmarks.peers import STOP, Control, Link, SinkResult, seq
+from ups.benchmarks.peers._common import Counter, probe_until_echoed
 
 PING, PONG, DATA = "bench/ping", "bench/pong", "bench/data"
 SETUP_TIMEOUT = 10.0

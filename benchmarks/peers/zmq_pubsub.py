@@ -17,8 +17,8 @@ import importlib.util
 import time
 from typing import Any
 
-from benchmarks.peers import STOP, Control, Link, SinkResult, seq
-from benchmarks.peers._common import Counter, probe_until_echoed
+from ups.benchmarks.peers import STOP, Control, Link, SinkResult, seq
+from ups.benchmarks.peers._common import Counter, probe_until_echoed
 
 RECV_TIMEOUT_MS = 30_000  # bounds every blocking receive
 

@@ -11,8 +11,8 @@ from typing import Any, NamedTuple
 
 import can
 
-from broker.can_ecb import CanEcb
 from ups._canlink import CanLink
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
     PUB_BIND,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from broker.can_ecb import CanEcb
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import Foreign, Hello, Malformed
 from ._wire import Wire, serving_ecb

@@ -3,8 +3,8 @@ node and our real Node against our CAN-ECB."""
 
 from __future__ import annotations
 
-from broker.can_ecb import CanEcb
 from ups import Node, name_to_uid
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
     BEST_EFFORT,

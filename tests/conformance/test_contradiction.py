@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from broker.can_ecb import CanEcb
 from ups import Node, Subscription, name_to_uid
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import PUB_BIND, SUB_BIND, Bind, Event, Request
 from ._wire import RawNode, Wire, bound_etag, txnode_of

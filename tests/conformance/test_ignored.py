@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import can
 
-from broker.can_ecb import CanEcb
 from ups import name_to_uid
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
     ECB,

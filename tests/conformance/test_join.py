@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from broker.can_ecb import CanEcb
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
     MAX_TXNODE,

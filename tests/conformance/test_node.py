@@ -11,8 +11,8 @@ from typing import TypeVar
 import can
 import pytest
 
-from broker.can_ecb import CanEcb
 from ups import Node, name_to_uid
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
     CLAIM,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from broker.can_ecb import CanEcb
 from ups import name_to_uid
+from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
     ECB_FRAMES,
