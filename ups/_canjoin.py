@@ -8,8 +8,9 @@ and is joined when an Assign names its id.
 A Stage frame it already heard from another joiner in answer to the same query is left out:
 on a real bus identical frames merge, and this does the same on buses that do not (emulated
 ones, or several nodes of one process). It knocks again when, for 0.3 s (doubling with each
-Knock up to 2 s), it has neither knocked nor heard a Census, Query or Offer; at once when a
-CAN-ECB says Hello; and it gives up after ``timeout``.
+Knock up to 2 s), it has neither knocked nor heard a Knock, Census, Query or Offer (another
+joiner's Knock is the same frame as its own: on a real bus they merge); at once when a CAN-ECB
+says Hello; and it gives up after ``timeout``.
 """
 
 from __future__ import annotations
@@ -84,6 +85,8 @@ class Joiner:
             self._burst(msg.epoch, 0)
         elif isinstance(msg, p.Hello):  # a CAN-ECB has just started: it takes knocks at once
             self._knock()
+        elif isinstance(msg, p.Knock):  # another joiner's: the same frame as ours would be
+            self._quiet_since = asyncio.get_running_loop().time()
         elif isinstance(msg, p.Query):
             self._heard()
             if self._nibbles[: len(msg.prefix)] == msg.prefix:
