@@ -20,6 +20,9 @@ Why standing by is stable: a serving CAN-ECB answers each Probe within ``SERVING
 the bus's delay), and a standing-by one probes every ``PROBE`` s, so it hears a Serving at
 least every ``PROBE + SERVING_GAP`` s (< ``TAKEOVER``) for as long as one serves; a candidate
 has said Hello and says Serving when its candidacy ends (``MAX_CANDIDACY`` < ``TAKEOVER``).
+Why the first to serve stays: a newcomer hears the answer to its Hello while it is a candidate,
+unless its candidacy is shorter than that answer's wait (at most ``SERVING_GAP``, and none
+when the serving one has answered nothing in the last second).
 Why two never stay serving: each sends a Serving at least every ``BEAT`` s, and the higher
 instance stands by on hearing the lower one's.
 """
@@ -31,7 +34,7 @@ import math
 
 from ups._canproto import Hello, Management, Probe, Serving
 
-SERVING_GAP = 1.0  #: at most one Serving per this many seconds (one due sooner waits)
+SERVING_GAP = 1.0  #: at most one Serving in answer per this many seconds (one due sooner waits)
 PROBE = 2.0  #: a standing-by CAN-ECB sends Probe this often
 TAKEOVER = 4.0  #: ... and takes over after this long without a Hello or Serving of another
 BEAT = 10.0  #: a serving CAN-ECB sends Serving at least this often, asked or not
@@ -59,7 +62,8 @@ class Election:
         self._until = math.inf  # candidate: when the candidacy ends
         self._heard = -math.inf  # standing by: the last Hello or Serving of another
         self._next_probe = math.inf
-        self._last_serving = -math.inf
+        self._last_serving = -math.inf  # any Serving (the beat counts from it)
+        self._last_answer = -math.inf  # a Serving in answer to another's frame
         self._due: float | None = None  # a Serving owed, to be sent at this time
 
     @property
@@ -112,10 +116,12 @@ class Election:
         """Timers: the candidacy's end, a Serving owed or due, a Probe, a takeover."""
         if self.role is Role.CANDIDATE and now >= self._until:
             self.role = Role.SERVING
-            return self._serve(now)  # standing-by CAN-ECBs hear that one serves
+            return self._announce(now)  # standing-by CAN-ECBs hear that one serves
         if self.role is Role.SERVING:
-            if (self._due is not None and now >= self._due) or now >= self._last_serving + BEAT:
+            if self._due is not None and now >= self._due:
                 return self._serve(now)
+            if now >= self._last_serving + BEAT:
+                return self._announce(now)
         elif self.role is Role.STANDBY:
             if now >= self._heard + TAKEOVER:
                 self.reason = ""
@@ -139,10 +145,16 @@ class Election:
         return []
 
     def _serve(self, now: float) -> list[Frame]:
-        """Serving now, or (within ``SERVING_GAP`` of the last) once the gap has passed."""
-        if now >= self._last_serving + SERVING_GAP:  # (as ``deadline`` adds them)
-            self._last_serving = now
+        """Serving in answer: now, or (within ``SERVING_GAP`` of the last answer) once the gap
+        has passed. The Serving that ends a candidacy and the beat answer nobody: they do not
+        count, so that a newcomer's Hello just after them is answered at once."""
+        if now >= self._last_answer + SERVING_GAP:  # (as ``deadline`` adds them)
+            self._last_answer = now
             self._due = None
-            return [Serving(self.instance)]
-        self._due = self._last_serving + SERVING_GAP
+            return self._announce(now)
+        self._due = self._last_answer + SERVING_GAP
         return []
+
+    def _announce(self, now: float) -> list[Frame]:
+        self._last_serving = now
+        return [Serving(self.instance)]

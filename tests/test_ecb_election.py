@@ -362,13 +362,14 @@ def test_a_serving_one_answers_a_probe_and_never_stands_by_for_one() -> None:
     assert ecb.role is Role.SERVING
 
 
-def test_serving_is_sent_once_a_second_and_one_due_sooner_waits() -> None:
+def test_answers_are_sent_once_a_second_and_one_due_sooner_waits() -> None:
     ecb = _serving()
-    assert ecb.heard(Hello(7), 0.2) == []  # within the gap of the candidacy's Serving
-    assert ecb.heard(Probe(8), 0.5) == []  # one Serving owed for both
-    assert ecb.deadline == e.SERVING_GAP
-    assert ecb.tick(e.SERVING_GAP) == [Serving(5)]
-    assert ecb.deadline == e.SERVING_GAP + e.BEAT  # nothing owed: the beat
+    assert ecb.heard(Hello(7), 0.2) == [Serving(5)]  # the candidacy's Serving answered nobody
+    assert ecb.heard(Probe(8), 0.5) == []  # within the gap: owed
+    assert ecb.heard(Hello(9), 0.7) == []  # one Serving owed for both
+    assert ecb.deadline == 0.2 + e.SERVING_GAP
+    assert ecb.tick(0.2 + e.SERVING_GAP) == [Serving(5)]
+    assert ecb.deadline == 0.2 + e.SERVING_GAP + e.BEAT  # nothing owed: the beat
 
 
 def test_a_serving_one_beats_unasked() -> None:
