@@ -13,7 +13,9 @@ bus without moving any etag. Requests for new bindings and joins wait for the wi
 Nothing a node or a stray frame says can make two channels share an etag: a report or a Bind
 that contradicts the tables is counted, logged and answered with the tables' own Binds, and
 nodes re-bind on any contradiction (docs/protocol.md). A second CAN-ECB is detected by its
-frames; the one that served first (else the lower instance id) stays, the other stands by.
+frames; which one serves and which stands by is the election's (``_election``): the one that
+served first stays (of two candidates, the lower instance), and a standing-by one takes over
+when the one that serves goes silent.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from ups._errors import DecodeError
 from ._admission import Admission
 from ._census import Census
 from ._channels import Channels
+from ._election import Election, Role
 from ._etags import Etags
 from ._store import Store
 from ._txnodes import TxNodes
@@ -47,8 +50,6 @@ HELLO_GAP = 10.0  #: at most one Hello per this many seconds for unknown TxNodes
 LEASE = 86_400.0  #: a TxNode or etag unused this long may be reclaimed when none is free
 MAX_CHANNELS = 8192  #: channels one TxNode may subscribe to or publish on (half the etags)
 LOG_GAP = 10.0  #: a repeated warning is logged at most this often
-SERVING_GAP = 1.0  #: at most one Serving per this many seconds
-STANDBY_PROBE = 2.0  #: a standing-by CAN-ECB asks this often whether the other still serves
 
 
 class CanEcb:
@@ -87,9 +88,8 @@ class CanEcb:
         self.strays: set[int] = set()  # TxNodes heard asking while unknown, since that Hello
         self.started_up = False  # the first recovery (after start) is over
         self._logged: dict[str, float] = {}
-        self._last_serving = -1.0
-        self._other_heard = 0.0  # in standby: when the serving CAN-ECB was last heard
-        self._probe_timer: asyncio.TimerHandle | None = None
+        self._election = Election(self.instance, recovery)
+        self._election_timer: asyncio.TimerHandle | None = None
         self.on_change: Callable[[int], None] | None = None
         self.on_standby: Callable[[str], None] | None = None
         self.counters = dict.fromkeys(
@@ -163,6 +163,7 @@ class CanEcb:
             "db": str(self._store.path),
             "healthy": self.healthy,
             "standby": self.standby,
+            "role": self._election.role.value,
             "instance": f"{self.instance:016x}",
         }
 
@@ -189,7 +190,7 @@ class CanEcb:
         self._store.start()
         self.link.add_handler(self._handler, None)
         self.link.start()
-        self._hello()
+        self._elect(self._election.start(asyncio.get_running_loop().time()))
         log.info(
             "CAN-ECB on %s: %d TxNodes, %d etags bound (%s), instance %016x",
             self.link.channel_info,
@@ -203,11 +204,11 @@ class CanEcb:
         """Stop serving the bus (the link stays open). Safe to call twice."""
         self._census.close()
         self._txnodes.close()
-        for timer in (self._recovery_timer, self._probe_timer):
+        for timer in (self._recovery_timer, self._election_timer):
             if timer is not None:
                 timer.cancel()
         self._recovery_timer = None
-        self._probe_timer = None
+        self._election_timer = None
         self._etags.close()
         self.link.remove_handler(self._handler)
         self._store.close()
@@ -303,25 +304,19 @@ class CanEcb:
     # --- another CAN-ECB, or forged frames ---------------------------------------------------
 
     def _on_foreign_ecb(self, msg: p.Management) -> None:
+        """A CAN-ECB frame this one did not send: correct what contradicts its tables, and let
+        the election answer (Serving) or stand this one by."""
         self.counters["foreign_ecb_frames"] += 1
-        if self.standby:
-            if isinstance(msg, p.Hello | p.Serving) and msg.instance != self.instance:
-                self._other_heard = time.monotonic()  # the one serving is still there
-            return
-        if isinstance(msg, p.Hello | p.Serving):
-            if msg.instance == self.instance:
-                return
-            first = isinstance(msg, p.Serving) and self.recovering
-            if first or (
-                (self.recovering or isinstance(msg, p.Serving)) and msg.instance < self.instance
-            ):
-                self._stand_by(f"CAN-ECB {msg.instance:016x} already serves this bus")
-                return
-            self._warn("ecb", "another CAN-ECB (%016x) on this bus: telling it to stand by",
-                       msg.instance)  # fmt: skip
-            self._serving()
-            return
-        if isinstance(msg, p.Bind) and self._etags.uid_at.get(msg.etag) != msg.uid:
+        if not self.standby:
+            self._correct(msg)
+        self._elect(self._election.heard(msg, asyncio.get_running_loop().time()))
+
+    def _correct(self, msg: p.Management) -> None:
+        if isinstance(msg, p.Hello | p.Serving | p.Probe):
+            if msg.instance != self.instance:
+                self._warn("ecb", "another CAN-ECB (%016x) on this bus: %s", msg.instance,
+                           type(msg).__name__)  # fmt: skip
+        elif isinstance(msg, p.Bind) and self._etags.uid_at.get(msg.etag) != msg.uid:
             self.counters["conflicts"] += 1
             self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
                        msg.etag, msg.uid)  # fmt: skip
@@ -336,38 +331,42 @@ class CanEcb:
         else:
             self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a "
                        "forger", type(msg).__name__)  # fmt: skip
-        self._serving()
 
-    def _serving(self) -> None:
-        """Tell whoever sends CAN-ECB frames that this one serves the bus (at most 1/s)."""
-        now = time.monotonic()
-        if now - self._last_serving >= SERVING_GAP:
-            self._last_serving = now
-            self._send(p.Serving(self.instance))
-
-    def _stand_by(self, reason: str) -> None:
-        """Another CAN-ECB serves the bus: answer nothing, but check now and then that it is
-        still there (it answers our Serving with its own); take over when it is not."""
-        self.standby = True
-        self._census.close()
-        self._other_heard = time.monotonic()
-        log.error("%s: this CAN-ECB stands by and answers nothing", reason)
-        if self.on_standby is not None:
-            self.on_standby(reason)
-        self._probe_timer = asyncio.get_running_loop().call_later(STANDBY_PROBE, self._probe)
-
-    def _probe(self) -> None:
-        self._probe_timer = None
-        if not self.standby:
-            return
-        if time.monotonic() - self._other_heard > 2 * STANDBY_PROBE:
+    def _elect(self, frames: list[p.Hello | p.Serving | p.Probe]) -> None:
+        """Carry out what the election decided: a change of role, its frames, its next timer."""
+        role = self._election.role
+        if role is Role.STANDBY and not self.standby:
+            self.standby = True  # answer nothing, but probe now and then (the election's)
+            self._census.close()
+            reason = self._election.reason
+            log.error("%s: this CAN-ECB stands by and answers nothing", reason)
+            if self.on_standby is not None:
+                self.on_standby(reason)
+        elif role is not Role.STANDBY and self.standby:
             log.warning("the other CAN-ECB is silent: this one serves the bus again")
             self.standby = False
             self.started_up = False  # it heard nothing while standing by: learn the bus anew
-            self._hello()
+        for frame in frames:
+            if isinstance(frame, p.Hello):
+                self._hello()  # and a recovery window (the candidacy ends with it, or sooner)
+            else:
+                self._send(frame)
+        deadline = self._election.deadline
+        timer = self._election_timer
+        if timer is not None and timer.when() == deadline:
             return
-        self._send(p.Serving(self.instance))  # a CAN-ECB that serves answers with its own
-        self._probe_timer = asyncio.get_running_loop().call_later(STANDBY_PROBE, self._probe)
+        if timer is not None:
+            timer.cancel()
+        self._election_timer = None
+        if deadline is not None:
+            self._election_timer = asyncio.get_running_loop().call_at(
+                deadline, self._election_due, deadline
+            )
+
+    def _election_due(self, deadline: float) -> None:
+        self._election_timer = None
+        now = max(asyncio.get_running_loop().time(), deadline)  # a timer may fire a bit early
+        self._elect(self._election.tick(now))
 
     def _log_failure(self, what: str) -> Callable[[BaseException | None], None]:
         """A write's callback when nobody waits for it: a failure is only counted and logged."""

@@ -48,6 +48,7 @@ management = st.one_of(
     st.builds(p.Knock),
     st.builds(p.Hello, u64),
     st.builds(p.Serving, u64),
+    st.builds(p.Probe, u64),
     st.builds(p.TxNodesFull, u64),
     st.builds(p.EtagsFull, u64),
     st.builds(p.Failed, u64),

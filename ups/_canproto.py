@@ -75,7 +75,7 @@ def id_of(nibbles: tuple[int, ...]) -> int:
 
 _OP_STAGE, _OP_QUERY, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
 _ST_CENSUS, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO, _ST_GRANT, _ST_REFUSE = range(6)
-_ST_SERVING, _ST_FAILED, _ST_LIMIT = 6, 7, 8
+_ST_SERVING, _ST_FAILED, _ST_LIMIT, _ST_PROBE = 6, 7, 8, 9
 _ST_KNOCK = 0xF
 _OFFER = 0x80  #: in an Assign frame's argument: only an offer
 
@@ -138,6 +138,14 @@ class Hello:
 @dataclass(frozen=True, slots=True)
 class Serving:
     """CAN-ECB ``instance`` serves this bus (the answer to another CAN-ECB's frames)."""
+
+    instance: int
+
+
+@dataclass(frozen=True, slots=True)
+class Probe:
+    """CAN-ECB ``instance`` stands by and asks whether another serves (a serving CAN-ECB answers
+    with its Serving; a Probe never makes one stand by)."""
 
     instance: int
 
@@ -266,6 +274,7 @@ Management = (
     | Assign
     | Hello
     | Serving
+    | Probe
     | TxNodesFull
     | EtagsFull
     | Failed
@@ -281,8 +290,8 @@ Management = (
 #: The frames only a CAN-ECB sends (a CAN-ECB that hears one it did not send knows that
 #: another CAN-ECB, or a forger, is on the bus).
 ECB_FRAMES = (
-    Census, Query, Offer, Assign, Hello, Serving, TxNodesFull, EtagsFull, Failed, Limit, Grant,
-    Refuse, Bind,
+    Census, Query, Offer, Assign, Hello, Serving, Probe, TxNodesFull, EtagsFull, Failed, Limit,
+    Grant, Refuse, Bind,
 )  # fmt: skip
 
 
@@ -308,6 +317,8 @@ def encode(msg: Management) -> tuple[int, bytes]:
         return _config_id(_OP_STATUS, _ST_HELLO << 8), msg.instance.to_bytes(8, "big")
     if isinstance(msg, Serving):
         return _config_id(_OP_STATUS, _ST_SERVING << 8), msg.instance.to_bytes(8, "big")
+    if isinstance(msg, Probe):
+        return _config_id(_OP_STATUS, _ST_PROBE << 8), msg.instance.to_bytes(8, "big")
     if isinstance(msg, TxNodesFull):
         return _config_id(_OP_STATUS, _ST_TXNODES_FULL << 8), msg.node_id.to_bytes(8, "big")
     if isinstance(msg, EtagsFull):
@@ -391,6 +402,8 @@ def _decode_status(status: int, low: int, data: bytes, can_id: int) -> Managemen
         return Hello(_u64(data, can_id))
     if status == _ST_SERVING:
         return Serving(_u64(data, can_id))
+    if status == _ST_PROBE:
+        return Probe(_u64(data, can_id))
     if status == _ST_TXNODES_FULL:
         return TxNodesFull(_u64(data, can_id))
     if status == _ST_ETAGS_FULL:

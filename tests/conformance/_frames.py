@@ -26,7 +26,7 @@ OP_STAGE, OP_QUERY, OP_ASSIGN, OP_STATUS = 0b00, 0b01, 0b10, 0b11
 OFFER_BIT = 0x80  #: in the etag field of op 0b10: an Offer, not an Assign
 # status codes: bits 11..8 of the etag field when the op is 0b11
 S_CENSUS, S_TXNODES_FULL, S_ETAGS_FULL, S_HELLO, S_GRANT = 0x0, 0x1, 0x2, 0x3, 0x4
-S_REFUSE, S_SERVING, S_FAILED, S_LIMIT, S_KNOCK = 0x5, 0x6, 0x7, 0x8, 0xF
+S_REFUSE, S_SERVING, S_FAILED, S_LIMIT, S_PROBE, S_KNOCK = 0x5, 0x6, 0x7, 0x8, 0x9, 0xF
 
 
 def ident(priority: int, txnode: int, etag: int) -> int:
@@ -118,6 +118,11 @@ class Serving:
 
 
 @dataclass(frozen=True, order=True)
+class Probe:
+    instance: int
+
+
+@dataclass(frozen=True, order=True)
 class Failed:
     value: int
 
@@ -203,6 +208,7 @@ Frame = (
     | Grant
     | Refuse
     | Serving
+    | Probe
     | Failed
     | Limit
     | Knock
@@ -224,6 +230,7 @@ ECB_FRAMES = (
     Assign,
     Hello,
     Serving,
+    Probe,
     TxNodesFull,
     EtagsFull,
     Failed,
@@ -289,6 +296,8 @@ def encode(frame: Frame) -> tuple[int, bytes]:
             return _status(S_REFUSE), data + resp.to_bytes(2, "big")
         case Serving(v):
             return _status(S_SERVING), _u64(v)
+        case Probe(v):
+            return _status(S_PROBE), _u64(v)
         case Failed(v):
             return _status(S_FAILED), _u64(v)
         case Limit(t, uid):
@@ -417,6 +426,7 @@ def _decode_ecb(etag: int, data: bytes) -> Frame | None:
         S_ETAGS_FULL: EtagsFull,
         S_HELLO: Hello,
         S_SERVING: Serving,
+        S_PROBE: Probe,
         S_FAILED: Failed,
     }
     cls = kinds.get(a)

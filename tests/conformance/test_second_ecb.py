@@ -17,6 +17,7 @@ from ._frames import (
     Grant,
     Hello,
     Knock,
+    Probe,
     Serving,
     sub_bind,
 )
@@ -100,3 +101,62 @@ async def test_a_bind_it_did_not_send_and_that_contradicts_nothing_gets_serving(
     since = raw.send(Bind(0x3ABD, name_to_uid("conformance/second-ecb/unknown")))
     await raw.expect(Serving(instance), since=since)
     assert (await node.ask(SUB_BIND, UID)).uid == UID
+
+
+# --- Probe: a standing-by CAN-ECB asks, and claims nothing ------------------------------------
+
+
+async def test_a_candidacy_ends_with_serving(raw: Wire, can_ecb: CanEcb, instance: int) -> None:
+    """ "serving, once its candidacy has ended; it then sends Serving(its instance) at once"."""
+    i_hello, _ = await raw.expect(Hello(instance))
+    await raw.expect(Serving(instance), since=i_hello)
+
+
+async def test_a_probe_is_answered_with_serving_and_never_makes_it_stand_by(
+    raw: Wire, can_ecb: CanEcb, instance: int
+) -> None:
+    """A Probe of the lowest instance: a Serving would make it stand by, a Probe must not."""
+    node = await _joined(raw)
+    since = raw.send(Probe(0))
+    first, _ = await raw.expect(Serving(instance), since=since)
+    since = raw.send(Probe(0), Probe(1))  # within the Serving gap: answered when it has passed
+    second, _ = await raw.expect(Serving(instance), since=since)
+    assert raw.log[second].at - raw.log[first].at >= 0.99
+    assert (await node.ask(SUB_BIND, UID)).uid == UID  # it serves on
+
+
+async def test_a_probe_during_the_candidacy_changes_nothing(
+    raw: Wire, channel: str, tmp_path: Path
+) -> None:
+    """A candidate sends nothing for a Probe, and serves when its candidacy ends."""
+    async with serving_ecb(channel, tmp_path / "ecb.db", recovery=1.0):
+        i_hello, hello = await raw.expect(Hello)
+        since = raw.send(Probe(0), Knock())
+        i_serving, _ = await raw.expect(Serving(hello.instance), since=since)
+        assert raw.log[i_serving].at - raw.log[i_hello].at >= 0.99  # at the candidacy's end
+        assert not raw.find(ECB_FRAMES, since=since, until=i_serving)
+        await raw.expect(Census, since=since)  # and it serves the Knock
+
+
+async def test_a_standing_by_can_ecb_probes_and_probes_do_not_keep_it_standing_by(
+    raw: Wire, can_ecb: CanEcb, instance: int
+) -> None:
+    """ "A standing-by CAN-ECB sends Probe(its instance) every 2 s ... When it has heard no Hello
+    or Serving of another instance for 4 s ... it sends Hello": another standing-by CAN-ECB's
+    Probes, answered at once, do not keep it standing by."""
+    await _joined(raw)
+    since = raw.send(Serving(0))  # a lower instance serves: ours stands by
+    rival = Probe(0)
+
+    def answer(frame: object) -> None:
+        if frame == Probe(instance):
+            raw.send(rival)
+
+    raw.handlers.append(answer)
+    try:
+        i_probe, _ = await raw.expect(Probe(instance), since=since, timeout=3.0)
+        i_hello, _ = await raw.expect(Hello(instance), since=i_probe, timeout=4.0)
+    finally:
+        raw.handlers.remove(answer)
+    assert raw.log[i_hello].at - raw.log[since].at >= 3.99  # the takeover time, from Serving(0)
+    assert not raw.find(Serving(instance), since=since, until=i_hello)  # it never claimed

@@ -1,0 +1,409 @@
+"""The election between CAN-ECBs (broker/_election.py), run by a simulated bus in virtual time.
+
+The state machine starts and stops two or three CAN-ECBs with random instances and recovery
+windows, lets time pass, and delivers every frame to every other running CAN-ECB after a
+random delay of at most ``DELAY``, each one possibly reordered with others and, while the
+medium is lossy, possibly lost. The CAN-ECBs are the real ``Election`` objects that ``CanEcb``
+drives; only the bus is simulated. Checked at every moment (just before and just after each
+event, the state being constant in between):
+
+- a serving CAN-ECB stands by only on the Serving of a lower instance, a candidate only on a
+  Serving or a lower Hello: never on a Probe;
+- exactly one CAN-ECB is active (candidate or serving) within ``BOUND`` of the last
+  disturbance (a lost frame, a start, a stop) -- the bound docs/protocol.md states;
+- with no frame lost for ``BOUND``: more than one is active only within ``OVERLAP`` after one
+  starts or takes over (a newcomer is a candidate until it hears the one that serves), and
+  none is only within ``TAKEOVER + DELAY`` after one stops.
+
+"At most one active at every moment" cannot hold on any bus that can lose frames: two
+CAN-ECBs that hear nothing of each other cannot tell the bus from one they are alone on, and
+each must then serve. Nor with any delay: two that start together are both candidates until
+their Hellos arrive. So the invariants bound when and how long it can happen.
+
+``test_the_machine_finds_the_old_deadlock`` runs the same machine against the rules before
+issue 29 (tests/_old_election.py) and expects it to fail.
+"""
+
+from __future__ import annotations
+
+import collections
+import heapq
+import itertools
+import math
+from collections.abc import Callable
+from typing import Protocol
+
+import pytest
+from hypothesis import HealthCheck, Phase, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    initialize,
+    invariant,
+    rule,
+    run_state_machine_as_test,
+)
+
+from broker import _election as e
+from broker._election import Election, Frame, Role
+from ups._canproto import Hello, Management, Probe, Serving
+
+from ._old_election import OldElection
+
+DELAY = 0.25  #: the simulated bus delivers every frame within this long
+OVERLAP = e.MAX_CANDIDACY + e.SERVING_GAP + 2 * DELAY
+BOUND = 14.0  #: docs/protocol.md, Timers: "one serving"
+assert BOUND >= e.BEAT + OVERLAP  # the reasoning in broker/_election.py's docstring
+EPSILON = 1e-9  #: times are sums of floats
+MAX_EVENTS = 20_000  #: per rule: more means the election loops in virtual time
+
+
+class Candidate(Protocol):
+    """What the machine needs of an election (``Election``, or the old rules)."""
+
+    instance: int
+    candidacy: float
+
+    @property
+    def role(self) -> Role: ...
+
+    @property
+    def active(self) -> bool: ...
+
+    @property
+    def deadline(self) -> float | None: ...
+
+    def start(self, now: float) -> list[Frame]: ...
+
+    def heard(self, msg: Management, now: float) -> list[Frame]: ...
+
+    def tick(self, now: float) -> list[Frame]: ...
+
+
+Make = Callable[[int, float], Candidate]
+
+delays = st.one_of(st.just(0.0), st.just(DELAY), st.floats(0.0, DELAY))
+instances = st.integers(0, (1 << 64) - 1)
+recoveries = st.sampled_from([0.0, 0.2, 0.5, 1.5, 2.0, 3.0])
+waits = st.one_of(
+    st.sampled_from([0.001, 0.05, 0.3, 1.0, 2.0, 4.0, 8.0, 20.0]), st.floats(0.0, 6.0)
+)
+
+
+class ElectionMachine(RuleBasedStateMachine):
+    make: Make = Election
+    slots = 3
+    lossless = False  #: the medium never loses a frame
+    seniority = True  #: check that a newcomer does not displace the one that serves
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.now = 0.0
+        self.ecbs: list[Candidate | None] = [None] * self.slots
+        self.lives = [0] * self.slots  # which run of each slot a frame is addressed to
+        self.queue: list[tuple[float, int, int, int, Frame]] = []  # (at, seq, slot, life, frame)
+        self.seq = itertools.count()
+        self.lossy = False
+        self.last_loss = -math.inf
+        self.last_start = -math.inf  # external starts, and takeovers
+        self.last_change = -math.inf  # starts and stops (the disturbances besides loss)
+        self.last_stop = -math.inf
+        self.used: set[int] = set()
+        self.activated: dict[int, tuple[float, float]] = {}  # instance -> last Hello, candidacy
+        self.serving_since: dict[int, float] = {}  # instance -> when it last began to serve
+        self.draw: Callable[[st.SearchStrategy[object]], object] | None = None
+        self.trace: collections.deque[str] = collections.deque(maxlen=40)  # for failures
+
+    # --- the medium -------------------------------------------------------------------------
+
+    def _broadcast(self, sender: int, frames: list[Frame]) -> None:
+        for frame in frames:
+            if isinstance(frame, Hello):  # a start, or a takeover
+                self.last_start = self.now
+                ecb = self.ecbs[sender]
+                assert ecb is not None
+                self.activated[frame.instance] = (self.now, ecb.candidacy)
+            for slot, ecb in enumerate(self.ecbs):
+                if slot == sender or ecb is None:
+                    continue
+                if self.lossy and self._draw(st.booleans()):
+                    self.last_loss = self.now
+                    self._note(f"{frame} from {sender} to {slot} lost")
+                    continue
+                delay = float(self._draw(delays)) if self.draw else DELAY  # type: ignore[arg-type]
+                item = (self.now + delay, next(self.seq), slot, self.lives[slot], frame)
+                heapq.heappush(self.queue, item)
+
+    def _draw(self, strategy: st.SearchStrategy[object]) -> object:
+        return False if self.draw is None else self.draw(strategy)
+
+    def _next_event(self) -> float:
+        deadlines = [d for ecb in self.ecbs if ecb is not None and (d := ecb.deadline) is not None]
+        queued = [self.queue[0][0]] if self.queue else []
+        return min([*deadlines, *queued], default=math.inf)
+
+    def _advance(self, until: float) -> None:
+        for _ in range(MAX_EVENTS):
+            at = max(self._next_event(), self.now)
+            if at > until:
+                self.now = until
+                self._check()
+                return
+            self.now = at
+            self._check()  # the state held until now
+            self._one_event()
+            self._check()
+        raise AssertionError(f"more than {MAX_EVENTS} events before {until:.3f} s")
+
+    def _one_event(self) -> None:
+        if self.queue and self.queue[0][0] <= self.now:
+            _, _, slot, life, frame = heapq.heappop(self.queue)
+            ecb = self.ecbs[slot]
+            if ecb is None or life != self.lives[slot]:
+                return  # sent to a run that has stopped
+            before = ecb.role
+            answer = ecb.heard(frame, self.now)
+            self._note(f"{slot} heard {frame}: {before.value} -> {ecb.role.value}, sent {answer}")
+            self._served(ecb, before)
+            self._check_stand_down(ecb, before, frame)
+            self._broadcast(slot, answer)
+            return
+        for slot, ecb in enumerate(self.ecbs):
+            deadline = None if ecb is None else ecb.deadline
+            if ecb is not None and deadline is not None and deadline <= self.now:
+                before = ecb.role
+                frames = ecb.tick(self.now)
+                self._note(f"{slot} tick: {before.value} -> {ecb.role.value}, sent {frames}")
+                self._served(ecb, before)
+                assert not (before is Role.SERVING and ecb.role is Role.STANDBY)
+                self._broadcast(slot, frames)
+                return
+        raise AssertionError("an event was due and none happened")
+
+    # --- what is checked --------------------------------------------------------------------
+
+    def _check_stand_down(self, ecb: Candidate, before: Role, frame: Frame) -> None:
+        if ecb.role is not Role.STANDBY or before is Role.STANDBY:
+            return
+        lower = isinstance(frame, Hello | Serving | Probe) and frame.instance < ecb.instance
+        if before is Role.SERVING:
+            assert isinstance(frame, Serving) and lower, f"a serving one stood by on {frame}"
+            if self.seniority and self.now - self.last_loss > BOUND:
+                # the first to serve stays, unless the newcomer's candidacy ended before the
+                # answer to its Hello could come (then the lower instance stays)
+                newer = self.activated[frame.instance][0] >= self.serving_since[ecb.instance]
+                assert not newer or self._hasty(frame.instance), (
+                    f"a serving one stood by for {frame}, which came later: {self._roles()}"
+                )
+        else:
+            assert isinstance(frame, Serving) or (isinstance(frame, Hello) and lower), (
+                f"a candidate stood by on {frame}"
+            )
+
+    def _served(self, ecb: Candidate, before: Role) -> None:
+        if ecb.role is Role.SERVING and before is not Role.SERVING:
+            self.serving_since[ecb.instance] = self.now
+
+    def _hasty(self, instance: int) -> bool:
+        """A newcomer that served before the answer to its Hello could come."""
+        since, candidacy = self.activated[instance]
+        newcomer = self.now - since <= OVERLAP + EPSILON
+        return newcomer and candidacy < e.SERVING_GAP + 2 * DELAY + EPSILON
+
+    def _check(self) -> None:
+        running = [ecb for ecb in self.ecbs if ecb is not None]
+        if not running:
+            return
+        active = sum(ecb.active for ecb in running)
+        disturbed = self.now - max(self.last_loss, self.last_change)
+        assert active == 1 or disturbed <= BOUND + EPSILON, (
+            f"{active} active {disturbed:.2f} s after the last disturbance: {self._roles()}"
+        )
+        if self.now - self.last_loss <= BOUND + EPSILON:
+            return
+        if active > 1:
+            assert self.now - self.last_start <= OVERLAP + EPSILON, (
+                f"{active} active {self.now - self.last_start:.2f} s after a start: {self._roles()}"
+            )
+        if active == 0:
+            assert self.now - self.last_stop <= e.TAKEOVER + DELAY + EPSILON, (
+                f"none active {self.now - self.last_stop:.2f} s after a stop: {self._roles()}"
+            )
+
+    def _roles(self) -> str:
+        roles = ", ".join(
+            "-" if ecb is None else f"{ecb.instance:x}:{ecb.role.value}" for ecb in self.ecbs
+        )
+        return f"{roles} at {self.now:.3f} s; last events:\n" + "\n".join(self.trace)
+
+    def _note(self, what: str) -> None:
+        self.trace.append(f"{self.now:9.3f} {what}")
+
+    # --- rules ------------------------------------------------------------------------------
+
+    @initialize(instance=instances, recovery=recoveries, data=st.data())
+    def first(self, instance: int, recovery: float, data: st.DataObject) -> None:
+        self.start(instance, recovery, data)
+
+    @rule(instance=instances, recovery=recoveries, data=st.data())
+    def start(self, instance: int, recovery: float, data: st.DataObject) -> None:
+        """A CAN-ECB starts (if a place is free)."""
+        if None not in self.ecbs or instance in self.used:
+            return
+        slot = self.ecbs.index(None)
+        self.used.add(instance)
+        ecb = type(self).make(instance, recovery)
+        self.ecbs[slot] = ecb
+        self.lives[slot] += 1
+        self.last_change = self.now
+        self.draw = data.draw
+        frames = ecb.start(self.now)
+        self._note(f"{slot} starts as {instance:x} (recovery {recovery} s), sent {frames}")
+        self._broadcast(slot, frames)
+        self._check()
+
+    @rule(which=st.integers(0, 2), active=st.booleans())
+    def stop(self, which: int, active: bool) -> None:
+        """A CAN-ECB stops: any, or one that is active (what takeovers are for)."""
+        slots = [
+            slot
+            for slot, ecb in enumerate(self.ecbs)
+            if ecb is not None and (ecb.active or not active)
+        ]
+        if not slots:
+            return
+        slot = slots[which % len(slots)]
+        self.ecbs[slot] = None
+        self.last_change = self.last_stop = self.now
+        self._note(f"{slot} stops")
+        self._check()
+
+    @rule(lossy=st.booleans())
+    def medium(self, lossy: bool) -> None:
+        self.lossy = lossy and not self.lossless
+        self._note("the medium loses frames" if lossy else "the medium loses none")
+
+    @rule(seconds=waits, data=st.data())
+    def wait(self, seconds: float, data: st.DataObject) -> None:
+        self.draw = data.draw
+        self._advance(self.now + seconds)
+
+    @invariant()
+    def checked(self) -> None:
+        self._check()
+
+    def teardown(self) -> None:
+        """The medium stops losing frames: within BOUND exactly one serves, and stays."""
+        self.lossy = False
+        self.draw = None  # every frame takes DELAY
+        if any(ecb is not None for ecb in self.ecbs):
+            self._advance(self.now + 3 * BOUND)
+            assert sum(ecb is not None and ecb.active for ecb in self.ecbs) == 1
+
+
+def _machine(
+    make: Make, slots: int, *, lossless: bool = False, seniority: bool = True
+) -> type[ElectionMachine]:
+    attributes = {
+        "make": staticmethod(make),
+        "slots": slots,
+        "lossless": lossless,
+        "seniority": seniority,
+    }
+    return type(f"Machine{slots}", (ElectionMachine,), attributes)
+
+
+SETTINGS = settings(
+    max_examples=800,
+    stateful_step_count=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+)
+
+TestTwoCanEcbs = _machine(Election, 2).TestCase
+TestTwoCanEcbs.settings = SETTINGS
+TestThreeCanEcbs = _machine(Election, 3).TestCase
+TestThreeCanEcbs.settings = settings(SETTINGS, max_examples=1500)
+
+
+@pytest.mark.parametrize("slots", [2, 3])
+def test_the_machine_finds_the_old_deadlock(slots: int) -> None:
+    """The old rules (a standby's probe was a Serving, which a serving CAN-ECB took as a
+    claim) fail this machine, even on a medium that loses nothing: two stand by for good."""
+    with pytest.raises(AssertionError, match="none active"):
+        run_state_machine_as_test(
+            _machine(OldElection, slots, lossless=True, seniority=False),
+            settings=settings(
+                SETTINGS,
+                max_examples=2000,
+                phases=[Phase.generate],
+                database=None,
+                report_multiple_bugs=False,
+            ),
+        )
+
+
+# --- the rules one by one (docs/protocol.md, "More than one CAN-ECB") ---------------------------
+
+
+def _serving(instance: int = 5, now: float = 0.0) -> Election:
+    ecb = Election(instance, recovery=0.0)
+    assert ecb.start(now) == [Hello(instance)]
+    assert ecb.tick(now) == [Serving(instance)]  # the candidacy's end
+    return ecb
+
+
+def test_a_serving_one_answers_a_probe_and_never_stands_by_for_one() -> None:
+    ecb = _serving()
+    assert ecb.heard(Probe(0), 1.5) == [Serving(5)]
+    for t in range(2, 200):  # a standing-by rival of the lowest instance, probing
+        ecb.heard(Probe(0), float(t))
+        ecb.tick(float(t))
+    assert ecb.role is Role.SERVING
+
+
+def test_answers_are_sent_once_a_second_and_one_due_sooner_waits() -> None:
+    ecb = _serving()
+    assert ecb.heard(Hello(7), 0.2) == [Serving(5)]  # the candidacy's Serving answered nobody
+    assert ecb.heard(Probe(8), 0.5) == []  # within the gap: owed
+    assert ecb.heard(Hello(9), 0.7) == []  # one Serving owed for both
+    assert ecb.deadline == 0.2 + e.SERVING_GAP
+    assert ecb.tick(0.2 + e.SERVING_GAP) == [Serving(5)]
+    assert ecb.deadline == 0.2 + e.SERVING_GAP + e.BEAT  # nothing owed: the beat
+
+
+def test_a_serving_one_beats_unasked() -> None:
+    ecb = _serving()
+    assert ecb.tick(e.BEAT - 0.01) == []
+    assert ecb.tick(e.BEAT) == [Serving(5)]
+
+
+def test_a_serving_one_stands_by_only_for_a_lower_serving() -> None:
+    ecb = _serving()
+    assert ecb.heard(Hello(0), 2.0) == [Serving(5)]
+    assert ecb.heard(Serving(9), 3.0) == [Serving(5)]
+    assert ecb.heard(Serving(5), 4.0) == []  # its own instance: not a rival
+    assert ecb.role is Role.SERVING
+    assert ecb.heard(Serving(4), 5.0) == [] and ecb.role is Role.STANDBY
+
+
+def test_a_candidate_stands_by_for_any_serving_and_a_lower_hello() -> None:
+    for frame, stands_by in [
+        (Serving(9), True), (Hello(4), True), (Hello(9), False), (Probe(0), False)
+    ]:  # fmt: skip
+        ecb = Election(5, recovery=2.0)
+        ecb.start(0.0)
+        assert ecb.heard(frame, 0.5) == []
+        assert (ecb.role is Role.STANDBY) == stands_by, frame
+
+
+def test_standing_by_it_probes_and_only_hello_or_serving_keeps_it_so() -> None:
+    ecb = _serving()
+    ecb.heard(Serving(4), 1.0)
+    assert ecb.deadline == 1.0 + e.PROBE
+    assert ecb.tick(1.0 + e.PROBE) == [Probe(5)]
+    ecb.heard(Serving(4), 3.0)
+    ecb.heard(Probe(4), 3.5)  # a Probe keeps nobody standing by
+    assert ecb.tick(3.0 + e.PROBE) == [Probe(5)]
+    assert ecb.tick(3.0 + e.TAKEOVER) == [Hello(5)]  # silent for the takeover time
+    assert ecb.role is Role.CANDIDATE
