@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import math
 
-from broker._election import Frame, Role
 from ups._canproto import Hello, Management, Serving
+from ups.broker._election import Frame, Role
 
 SERVING_GAP = 1.0
 STANDBY_PROBE = 2.0

@@ -44,9 +44,9 @@ from hypothesis.stateful import (
     run_state_machine_as_test,
 )
 
-from broker import _election as e
-from broker._election import Election, Frame, Role
 from ups._canproto import Hello, Management, Probe, Serving
+from ups.broker import _election as e
+from ups.broker._election import Election, Frame, Role
 
 from ._old_election import OldElection
 
