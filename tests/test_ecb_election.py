@@ -313,8 +313,10 @@ def _machine(
     return type(f"Machine{slots}", (ElectionMachine,), attributes)
 
 
+#: enough to find the old deadlock within a few hundred examples (checked below); the suite
+#: stays quick on a loaded machine, and the saved database replays what failed once
 SETTINGS = settings(
-    max_examples=800,
+    max_examples=300,
     stateful_step_count=40,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
@@ -323,7 +325,7 @@ SETTINGS = settings(
 TestTwoCanEcbs = _machine(Election, 2).TestCase
 TestTwoCanEcbs.settings = SETTINGS
 TestThreeCanEcbs = _machine(Election, 3).TestCase
-TestThreeCanEcbs.settings = settings(SETTINGS, max_examples=1500)
+TestThreeCanEcbs.settings = settings(SETTINGS, max_examples=400)
 
 
 @pytest.mark.parametrize("slots", [2, 3])
