@@ -24,8 +24,9 @@ exclusions keep the verdicts meaningful:
   channel under test, and Assign never names a real node id: again, that would be the node (or
   its CAN-ECB) speaking, not a stray frame.
 - Hello carries the CAN-ECB's own instance or a higher one, and Serving only its own: by
-  docs/protocol.md a Serving of a lower instance (or any Serving during recovery, which the
-  flood itself opens) makes the CAN-ECB stand by for good. ``--rivals`` lifts this.
+  docs/protocol.md a Serving of a lower instance (or any Serving while it is a candidate, which
+  the flood itself makes it by its Hellos) makes the CAN-ECB stand by, until it takes over
+  again 4 s after such frames stop. ``--rivals`` lifts this.
 """
 
 from __future__ import annotations
