@@ -110,13 +110,11 @@ int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data,
         node->tx[at] = node->tx[at - 1u];
         --at;
     }
-    ups_frame_t *frame = &node->tx[at];
-    frame->id = id;
-    frame->flags = (uint8_t)(flags | UPS_FRAME_EXT);
-    frame->len = (uint8_t)len;
-    ups__copy(frame->data, data, len);
-    for (unsigned i = len; i < UPS_MTU; ++i) {
-        frame->data[i] = 0u;
+    node->tx[at].id = id; /* indexed, not through a pointer: -fsanitize=bounds checks it */
+    node->tx[at].flags = (uint8_t)(flags | UPS_FRAME_EXT);
+    node->tx[at].len = (uint8_t)len;
+    for (unsigned i = 0; i < UPS_MTU; ++i) {
+        node->tx[at].data[i] = i < len ? data[i] : 0u;
     }
     node->tx_count = (uint8_t)(node->tx_count + 1u);
     return UPS_OK;
