@@ -1,11 +1,10 @@
 """``ups c-node``: the C node library (c/, libups) run as a node on any python-can bus, to try it
-without hardware and for the tests; ``ups uid``: channel UIDs as C constants. Arguments here
-(cheap to build), the work in ``run`` functions that import what they need."""
+without hardware and for the tests; ``ups uid`` and ``ups catalog --c-header``: channels as C
+constants. Arguments here (cheap to build), the work in ``run`` functions."""
 
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from collections.abc import Callable
 
@@ -78,21 +77,33 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     cmd.add_argument("names", nargs="+", metavar="NAME", help="channel names (or 0x UIDs)")
     cmd.set_defaults(run=_run_uid)
 
-
-def c_name(channel: Channel) -> str:
-    """The C macro of a channel: UPS_UID_ and its name in capitals, other characters as _."""
-    text = channel.name if channel.name is not None else f"{channel.uid:016x}"
-    return "UPS_UID_" + re.sub(r"[^A-Z0-9]", "_", text.upper())
-
-
-def c_define(channel: Channel) -> str:
-    comment = (channel.name or f"0x{channel.uid:016x}").replace("*/", "*\\/")
-    return f"#define {c_name(channel)} 0x{channel.uid:016x}ULL /* {comment} */"
+    cmd = command("catalog", help="write a catalog's channels as a C header (for libups)")
+    cmd.add_argument(
+        "--c-header", required=True, metavar="CATALOG",
+        help="the catalog (TOML) whose channels' UIDs and payload layouts to write",
+    )  # fmt: skip
+    cmd.add_argument("-o", "--output", default=None, help="the header file (default: stdout)")
+    cmd.set_defaults(run=_run_catalog)
 
 
 def _run_uid(args: argparse.Namespace) -> int:
+    from ups._cheader import c_define
+
     for name in args.names:
         print(c_define(channel_arg(name)))
+    return 0
+
+
+def _run_catalog(args: argparse.Namespace) -> int:
+    from ups._catalog import Catalog
+    from ups._cheader import c_header
+
+    text = c_header(Catalog.load(args.c_header), args.c_header)
+    if args.output is None:
+        sys.stdout.write(text)
+    else:
+        with open(args.output, "w") as out:
+            out.write(text)
     return 0
 
 
