@@ -99,6 +99,17 @@ static inline int valid_channel(const ups_node_t *node, int channel)
 
 /* ---- the TX queue -------------------------------------------------------------------------- */
 
+/** tx[to] = tx[from], field by field (a struct copy of 68 bytes would call memcpy). */
+static void move_frame(ups_node_t *node, unsigned to, unsigned from)
+{
+    node->tx[to].id = node->tx[from].id;
+    node->tx[to].flags = node->tx[from].flags;
+    node->tx[to].len = node->tx[from].len;
+    for (unsigned i = 0; i < UPS_MTU; ++i) {
+        node->tx[to].data[i] = node->tx[from].data[i];
+    }
+}
+
 int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len)
 {
     if (node->tx_count >= UPS_TX_DEPTH || len > UPS_MTU) {
@@ -107,7 +118,7 @@ int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data,
     }
     unsigned at = node->tx_count;
     while (at > 0u && node->tx[at - 1u].id > id) {
-        node->tx[at] = node->tx[at - 1u];
+        move_frame(node, at, at - 1u);
         --at;
     }
     node->tx[at].id = id; /* indexed, not through a pointer: -fsanitize=bounds checks it */
@@ -356,7 +367,7 @@ static int heard_other(ups_node_t *node, uint16_t etag, const uint8_t *uid)
         }
     }
     if (at == node->heard_next) {
-        node->heard_next = (uint8_t)((at + 1u) % UPS_HEARD_BINDS);
+        node->heard_next = (uint8_t)(at + 1u < UPS_HEARD_BINDS ? at + 1u : 0u);
     }
     node->heard_etag[at] = etag;
     ups__copy(node->heard_uid[at], uid, 8u);
@@ -470,24 +481,24 @@ static void announce_next(ups_node_t *node)
         push_request(node, 0u, RQ_CLAIM, node->node_id);
         return;
     }
-    while (node->announce_at < 1u + 3u * UPS_CHANNELS) {
+    while (node->announce_at < 1u + 4u * UPS_CHANNELS) { /* 4 items a channel: no division */
         unsigned item = node->announce_at - 1u;
-        ups_channel_t *ch = &node->channels[item / 3u];
+        ups_channel_t *ch = &node->channels[item >> 2];
         node->announce_at = (uint16_t)(node->announce_at + 1u);
         if (!(ch->flags & UPS__BOUND)) {
             continue;
         }
-        if (item % 3u == 0u && (ch->flags & UPS__SUB)) {
+        if ((item & 3u) == 0u && (ch->flags & UPS__SUB)) {
             send_holds(node, ch, 0);
             return;
         }
-        if (item % 3u == 1u && (ch->flags & UPS__PUB)) {
+        if ((item & 3u) == 1u && (ch->flags & UPS__PUB)) {
             send_holds(node, ch, 1);
             return;
         }
 #if UPS_DECLARATIONS
-        const ups_declaration_t *decl = declaration_of(node, item / 3u);
-        if (item % 3u == 2u && decl != NULL && decl->state == UPS__READY) {
+        const ups_declaration_t *decl = declaration_of(node, item >> 2);
+        if ((item & 3u) == 2u && decl != NULL && decl->state == UPS__READY) {
             send_declare(node, decl, ch->etag);
             return;
         }
@@ -911,7 +922,7 @@ void ups_tx_pop(ups_node_t *node)
     }
     node->tx_count = (uint8_t)(node->tx_count - 1u);
     for (unsigned i = 0; i < node->tx_count; ++i) {
-        node->tx[i] = node->tx[i + 1u];
+        move_frame(node, i, i + 1u);
     }
     refill(node);
 }
