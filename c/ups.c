@@ -317,14 +317,14 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     note(node, UPS_NOTE_CHANNELS);
     int asked_pub = asks_pub(ch);
     if ((ch->flags & UPS__SUB) && ups__class_max(cls) > UPS_MAX_EVENT) {
-        ch->flags = (uint8_t)(ch->flags & ~UPS__SUB); /* it would not fit: do not subscribe */
-        push_request(node, 0u, RQ_UNSUB, ch->uid);
-        if (!(ch->flags & UPS__PUB)) {
+        push_request(node, 0u, RQ_UNSUB, ch->uid); /* it would not fit: do not subscribe */
+        if (!(ch->flags & UPS__PUB)) { /* the entry stays, in error, until ups_unsubscribe */
             ch->flags = (uint8_t)(ch->flags & ~UPS__BOUND);
             ch->etag = 0u;
             ch->state = UPS_ERR_TOO_LARGE;
             return;
         }
+        ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
     }
     if (ch->flags & UPS__SUB) {
         note(node, UPS_NOTE_FILTERS);

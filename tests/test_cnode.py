@@ -185,3 +185,18 @@ def test_c_constants_match_the_header() -> None:
     for name in ("EXT", "FD", "BRS", "RTR", "ERR"):
         assert f"#define UPS_FRAME_{name} 0x{getattr(_cnode, 'FRAME_' + name):02x}u" in header
     assert CNode(1).config["mtu"] == 64
+
+
+async def test_a_node_does_not_subscribe_to_events_larger_than_it_buffers(
+    bus: str, ecb: CanEcb
+) -> None:
+    async with c_nodes(bus, 0xC7, variant="min") as c, Node(can=bus, node_id=0x7B) as py:
+        await py.advertise("big/in", max_size=100)  # class 2: events up to 1024 bytes
+        node = c.nodes[0]
+        big = node.subscribe(name_to_uid("big/in"), now_ms())
+        await c.until(lambda: node.channel_state(big) < 0)
+        assert ERRORS[node.channel_state(big)] == "TOO_LARGE"
+        assert node.filters() == [(0x7F << 14, 0x7F << 14)]
+        await eventually(lambda: not ecb.subscribers.get(name_to_uid("big/in")))
+        node.unsubscribe(big)  # the entry is free again
+        assert node.channel_state(big) == 0
