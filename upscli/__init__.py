@@ -241,6 +241,10 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
 
     _jaus.add_commands(command)
 
+    from . import _cnode
+
+    _cnode.add_commands(command)
+
     cmd = command("analyze", help="CAN response-time analysis of a message set")
     if only in (None, "analyze"):
         from ups.rt import cli as rt_cli

@@ -1,0 +1,357 @@
+/*
+ * libups: a UPS (Ulm Publisher/Subscriber) node for CAN, in C99, for microcontrollers.
+ *
+ * The protocol is docs/protocol.md (its CAN part). This library does what a *node* does there:
+ * it joins the bus (Knock, Census and Query answers, CLAIM of an Offer, Assign, moves), binds
+ * channels to etags (SUB_BIND, PUB_BIND, PUB_BIND(c), the request retry, the contradiction,
+ * doubt and settle rules), answers Hello, sends and receives events, declares real-time
+ * streams, and, when compiled in, carries events larger than one frame (transfers) and CAN FD.
+ *
+ * Its shape is libcanard's: no heap, no OS, no I/O, no floating point. The application
+ *   - feeds every received frame to ups_rx(), which may hand back one event;
+ *   - takes the frames to send with ups_tx_peek()/ups_tx_pop(), highest priority (lowest
+ *     identifier) first, whenever its controller has a free transmit mailbox;
+ *   - calls ups_tick() with the time, at least every few milliseconds (every millisecond for
+ *     the recommended 1 ms pacing of Hello answers);
+ *   - reads what happened with ups_notes() (joined, filters changed, a channel's state changed).
+ *
+ * Time is a uint32_t count of milliseconds from any origin, wrapping freely. Internally only
+ * differences of up to 32 s are taken, so the clock may wrap at any moment.
+ *
+ * Every table is sized at compile time by the macros below (define them before including this
+ * header, or with -D, identically for every file). ups_node_t is the whole state: place one
+ * (static storage is fine) and pass it to every call. Nothing here is thread-safe: call the
+ * library from one context (for instance the main loop, with the receive interrupt filling a
+ * ring that the loop drains). See c/README.md for porting.
+ *
+ * Every call that can fail returns a negative UPS_ERR_... code; 0 or a positive value is
+ * success. Nothing overflows: every table bound is checked, and what it turns away is counted
+ * in ups_counters_t.
+ */
+#ifndef UPS_H
+#define UPS_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* ---- compile-time configuration ------------------------------------------------------------ */
+
+/** Channels the node uses at once (subscribed, published or both), 1..126. */
+#ifndef UPS_CHANNELS
+#define UPS_CHANNELS 8
+#endif
+
+/** Frames waiting to be sent, 2..255. Answers to Census and Hello and the frames of transfers
+ *  are made as room appears, so a few suffice; a full queue turns events away (tx_dropped). */
+#ifndef UPS_TX_DEPTH
+#define UPS_TX_DEPTH 8
+#endif
+
+/** 1: events larger than one frame (size classes 1-4, transfers with CRC). 0: events of at
+ *  most 8 bytes only; channels bound to larger size classes are refused (UPS_ERR_TOO_LARGE). */
+#ifndef UPS_WITH_TRANSFERS
+#define UPS_WITH_TRANSFERS 0
+#endif
+
+/** 1: CAN FD buses (64-byte frames) are supported; ups_init() says whether this bus is one. */
+#ifndef UPS_WITH_FD
+#define UPS_WITH_FD 0
+#endif
+
+/** The largest event the node sends or receives, in bytes (8 without transfers; at most
+ *  65535). One transmit buffer and each receive slot hold this much. A subscription to a
+ *  channel whose size class carries larger events is refused (UPS_ERR_TOO_LARGE). */
+#ifndef UPS_MAX_EVENT
+#if UPS_WITH_TRANSFERS
+#define UPS_MAX_EVENT 64
+#else
+#define UPS_MAX_EVENT 8
+#endif
+#endif
+
+/** Transfers reassembled at once (one per sending TxNode and etag); the oldest is given up
+ *  when one more starts (counted in large_lost). Used only with UPS_WITH_TRANSFERS. */
+#ifndef UPS_RX_TRANSFERS
+#define UPS_RX_TRANSFERS 2
+#endif
+
+/** Real-time streams the node declares at once (DECLARE, Grant, Refuse); 0 leaves them out. */
+#ifndef UPS_DECLARATIONS
+#define UPS_DECLARATIONS 1
+#endif
+
+/** Binds of other channels remembered for the doubt rule (an answer naming an etag last heard
+ *  bound to another UID is not relied on until it comes again); 0 leaves it out. */
+#ifndef UPS_HEARD_BINDS
+#define UPS_HEARD_BINDS 0
+#endif
+
+/** Milliseconds a join may take before it is given up (UPS_ERR_TIMEOUT); 0: never. */
+#ifndef UPS_JOIN_GIVE_UP_MS
+#define UPS_JOIN_GIVE_UP_MS 30000u
+#endif
+
+/** The type of the counters (saturating): uint16_t saves RAM on the smallest parts. */
+#ifndef UPS_COUNTER_T
+#define UPS_COUNTER_T uint32_t
+#endif
+
+#if UPS_WITH_FD
+#define UPS_MTU 64
+#else
+#define UPS_MTU 8
+#endif
+
+#if !UPS_WITH_TRANSFERS && UPS_MAX_EVENT > 8
+#error "UPS_MAX_EVENT above 8 needs UPS_WITH_TRANSFERS"
+#endif
+#if UPS_CHANNELS < 1 || UPS_CHANNELS > 126 || UPS_TX_DEPTH < 2 || UPS_TX_DEPTH > 255
+#error "UPS_CHANNELS must be 1..126 and UPS_TX_DEPTH 2..255"
+#endif
+#if UPS_MAX_EVENT > 65535 || UPS_RX_TRANSFERS < 1 || UPS_DECLARATIONS > UPS_CHANNELS
+#error "UPS_MAX_EVENT must be at most 65535, UPS_RX_TRANSFERS at least 1"
+#endif
+
+/* ---- results ------------------------------------------------------------------------------- */
+
+#define UPS_OK 0
+#define UPS_ERR_ARGUMENT (-1)    /**< an argument out of range (a channel index, a priority, ...) */
+#define UPS_ERR_FULL (-2)        /**< a table is full (channels, declarations, the TX queue) */
+#define UPS_ERR_UNBOUND (-3)     /**< the channel has no etag this node relies on (yet) */
+#define UPS_ERR_TOO_LARGE (-4)   /**< the event exceeds the channel's size class, or the node's */
+#define UPS_ERR_BUSY (-5)        /**< a transfer is still being sent; try again after ups_tx_pop */
+#define UPS_ERR_NOT_JOINED (-6)  /**< the node holds no TxNode */
+#define UPS_ERR_TIMEOUT (-7)     /**< no answer in time (join: UPS_JOIN_GIVE_UP_MS; binding: 5 s) */
+#define UPS_ERR_TXNODES_FULL (-8) /**< TxNodesFull: the CAN-ECB has no TxNode left for this node */
+#define UPS_ERR_ETAGS_FULL (-9)  /**< EtagsFull: the CAN-ECB has no etag left for the channel */
+#define UPS_ERR_LIMIT (-10)      /**< Limit: this node uses as many channels as it may */
+#define UPS_ERR_FAILED (-11)     /**< Failed: the CAN-ECB could not store it; ask again later */
+#define UPS_ERR_REFUSED (-12)    /**< Refuse: the declared stream was not admitted */
+
+/* ---- frames -------------------------------------------------------------------------------- */
+
+#define UPS_FRAME_EXT 0x01u /**< 29-bit identifier (UPS uses no other) */
+#define UPS_FRAME_FD 0x02u  /**< CAN FD frame */
+#define UPS_FRAME_BRS 0x04u /**< CAN FD bit-rate switch (set on every FD frame this node sends) */
+#define UPS_FRAME_RTR 0x08u /**< remote frame (foreign to UPS) */
+#define UPS_FRAME_ERR 0x10u /**< error frame (foreign to UPS) */
+
+/** One CAN frame, received or to send. */
+typedef struct {
+    uint32_t id;             /**< the identifier (29 bits when UPS_FRAME_EXT is set) */
+    uint8_t flags;           /**< UPS_FRAME_... */
+    uint8_t len;             /**< data bytes: 0..8, or a CAN FD length up to 64 */
+    uint8_t data[UPS_MTU];
+} ups_frame_t;
+
+/** An acceptance filter: a frame passes when (frame id & mask) == (id & mask), extended only. */
+typedef struct {
+    uint32_t id;
+    uint32_t mask;
+} ups_filter_t;
+
+/** One received event. data points into the frame given to ups_rx() (one-frame events) or into
+ *  the node (transfers): valid until the next call into the library. */
+typedef struct {
+    const uint8_t *data;
+    uint16_t size;
+    uint8_t channel;  /**< the index ups_subscribe() returned */
+    uint8_t priority; /**< of the frame(s) it came in */
+    uint8_t txnode;   /**< the sender's TxNode */
+} ups_event_t;
+
+/** What the library ignored, turned away or gave up, each counted (saturating). */
+typedef struct {
+    UPS_COUNTER_T foreign;      /**< not UPS: 11-bit, remote, error frames, FD management frames */
+    UPS_COUNTER_T malformed;    /**< UPS management frames matching no table row, bad lengths */
+    UPS_COUNTER_T unknown;      /**< events on etags this node never saw bound */
+    UPS_COUNTER_T filtered;     /**< events on etags bound to channels this node does not receive */
+    UPS_COUNTER_T own_echo;     /**< this node's own frames, handed back by the bus */
+    UPS_COUNTER_T unbound_dropped; /**< events not sent: the channel's binding was contradicted */
+    UPS_COUNTER_T tx_dropped;   /**< frames that did not fit the TX queue */
+    UPS_COUNTER_T rebinds;      /**< contradicting or doubted Binds (the channel is bound again) */
+    UPS_COUNTER_T moves;        /**< channels moved to a larger size class, or TxNode moves */
+    UPS_COUNTER_T large_lost;   /**< transfers given up (broken, stale, evicted, without start) */
+} ups_counters_t;
+
+/* ---- notes: what changed since the application last asked (ups_notes) -------------------- */
+
+#define UPS_NOTE_JOINED 0x01u   /**< the node holds a TxNode now (or again, after a move) */
+#define UPS_NOTE_JOIN_FAILED 0x02u /**< the join ended: see ups_join_state() */
+#define UPS_NOTE_FILTERS 0x04u  /**< the acceptance filters changed: reprogram with ups_filters() */
+#define UPS_NOTE_CHANNELS 0x08u /**< a channel's state changed: see ups_channel_state() */
+#define UPS_NOTE_DECLARATIONS 0x10u /**< a declaration was granted, refused or given up */
+
+/* ---- the node ------------------------------------------------------------------------------ */
+
+/** A channel's entry. Private: read it through the functions below. */
+typedef struct {
+    uint8_t uid[8];   /* big-endian, as on the wire */
+    uint16_t etag;    /* bound, or the candidate while settling; 0: none */
+    uint16_t t0;      /* request start / settle start / ready time (low 16 bits of ms) */
+    uint8_t flags;    /* UPS__SUB, UPS__PUB, ... (ups.c) */
+    uint8_t step;     /* request retry step (low nibble) | wanted size class << 4 */
+    int8_t state;     /* 0 free, 1 waiting, 2 bound, or a UPS_ERR_ code */
+    uint8_t priority; /* for this node's events on the channel */
+} ups_channel_t;
+
+#if UPS_DECLARATIONS
+typedef struct {
+    uint8_t channel;  /* 0xFF: unused */
+    int8_t state;     /* 1 waiting, 2 granted, or a UPS_ERR_ code */
+    uint8_t step;     /* retry step */
+    uint8_t size;
+    uint16_t t0;
+    uint16_t period;
+    uint16_t deadline;
+    uint8_t jitter;
+} ups_declaration_t;
+#endif
+
+#if UPS_WITH_TRANSFERS
+typedef struct {
+    uint16_t etag;    /* 0: unused */
+    uint16_t length;  /* L, the event's size */
+    uint16_t got;     /* stream bytes received so far */
+    uint16_t crc;     /* CRC of the event bytes received so far */
+    uint16_t t_last;  /* when its last frame came */
+    uint8_t txnode;
+    uint8_t header;   /* tid | the toggle expected next; 0xFF: an orphan run being dropped */
+    uint8_t mtu;      /* 8 or 64 */
+    uint8_t buf[UPS_MAX_EVENT + 2]; /* the event, then its CRC */
+} ups_rx_transfer_t;
+#endif
+
+/** The whole state of one node. Private: set up with ups_init(), then use the functions. */
+typedef struct {
+    uint8_t node_id[8];
+    uint8_t txnode;       /* 0x7F while joining */
+    int8_t join;          /* 0 not started, 1 joining, 2 joined, or a UPS_ERR_ code */
+    uint8_t notes;
+    uint8_t mode;         /* UPS__FD, UPS__ANNOUNCE_DUE, UPS__ANNOUNCING, UPS__RECENT, ... */
+    uint8_t knock_step;
+    uint16_t announce_at; /* the next item of the answer to Hello */
+    uint32_t t_join;      /* join start (for the give-up) */
+    uint16_t t_quiet;     /* joining: last Knock sent or Census/Query/Offer heard */
+    uint16_t t_announce;  /* joined: when the last answer to Hello started */
+    uint16_t t_pace;      /* joined: when its last frame was queued */
+    uint8_t burst[2][2];  /* Stage answers still to send: {epoch, next stage}; stage 16: none */
+    uint8_t tx_count;
+    ups_frame_t tx[UPS_TX_DEPTH];
+    ups_channel_t channels[UPS_CHANNELS];
+#if UPS_DECLARATIONS
+    ups_declaration_t decl[UPS_DECLARATIONS];
+#endif
+#if UPS_HEARD_BINDS
+    uint8_t heard_uid[UPS_HEARD_BINDS][8];
+    uint16_t heard_etag[UPS_HEARD_BINDS];
+    uint8_t heard_next;
+#endif
+#if UPS_WITH_TRANSFERS
+    uint16_t tx_left;     /* stream bytes of the transfer being sent still to queue */
+    uint16_t tx_length;
+    uint32_t tx_id;
+    uint8_t tx_header;
+    uint8_t tids[UPS_CHANNELS];  /* the next transfer id per channel */
+    uint8_t tx_buf[UPS_MAX_EVENT + 2];
+    ups_rx_transfer_t rx[UPS_RX_TRANSFERS];
+#endif
+    ups_counters_t counters;
+} ups_node_t;
+
+/** Bus modes for ups_init(). */
+#define UPS_BUS_CLASSIC 0u /**< a classic CAN bus: every frame at most 8 bytes */
+#define UPS_BUS_FD 1u      /**< a CAN FD bus: event frames are FD frames with bit-rate switching
+                                (needs UPS_WITH_FD); management frames stay classic */
+
+/** Set up @p node with its 64-bit node id (unique on the bus, the same at every start) for a bus
+ *  of @p bus_mode (UPS_BUS_CLASSIC or UPS_BUS_FD). The node does nothing until ups_start().
+ *  Returns UPS_OK, or UPS_ERR_ARGUMENT (FD without UPS_WITH_FD). */
+int ups_init(ups_node_t *node, uint64_t node_id, unsigned bus_mode);
+
+/** Start joining (Knock) at @p now_ms; also after a join that failed. Channels may be added
+ *  before or after: their etags are asked for once the node is joined. */
+void ups_start(ups_node_t *node, uint32_t now_ms);
+
+/** Feed one received frame (every frame the controller accepted, in order, own echoes
+ *  included). Returns 1 when @p event holds an event for the application, else 0. Frames that
+ *  are not UPS, malformed or not for this node are ignored and counted. */
+int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_event_t *event);
+
+/** Run the timers (knock retry, request retry, settling, Hello answers, transfer timeouts).
+ *  Call it at least every few milliseconds, and ideally every millisecond. */
+void ups_tick(ups_node_t *node, uint32_t now_ms);
+
+/** The frame to send next (the lowest identifier queued), or NULL. It stays queued until
+ *  ups_tx_pop(): send it, then pop it (or pop it to drop it). */
+const ups_frame_t *ups_tx_peek(const ups_node_t *node);
+
+/** Remove the frame ups_tx_peek() returned (it was sent). */
+void ups_tx_pop(ups_node_t *node);
+
+/** What happened since the last call (UPS_NOTE_... bits), cleared by the call. */
+unsigned ups_notes(ups_node_t *node);
+
+/** The join: 0 not started, 1 joining, 2 joined, or UPS_ERR_TIMEOUT, UPS_ERR_TXNODES_FULL,
+ *  UPS_ERR_FAILED when it ended. */
+int ups_join_state(const ups_node_t *node);
+
+/** This node's TxNode (0..126), or -1 while it holds none. */
+int ups_txnode(const ups_node_t *node);
+
+/** Subscribe to channel @p uid. Returns the channel's index (the same for every role of one
+ *  UID), or UPS_ERR_FULL. The node asks for the etag (SUB_BIND) once joined. */
+int ups_subscribe(ups_node_t *node, uint64_t uid, uint32_t now_ms);
+
+/** Publish on channel @p uid events of up to @p max_size bytes (its size class follows: PUB_BIND
+ *  for 8 bytes or fewer, PUB_BIND(c) above). Returns the channel's index, UPS_ERR_FULL, or
+ *  UPS_ERR_TOO_LARGE (above UPS_MAX_EVENT). */
+int ups_advertise(ups_node_t *node, uint64_t uid, uint16_t max_size, uint32_t now_ms);
+
+/** Stop receiving channel @p channel (sends UNSUB). A channel nobody publishes is freed. */
+int ups_unsubscribe(ups_node_t *node, int channel);
+
+/** Queue one event of @p size bytes on @p channel (copied: the buffer is free on return).
+ *  UPS_OK, or UPS_ERR_UNBOUND (no etag relied on yet, or being bound again), UPS_ERR_TOO_LARGE,
+ *  UPS_ERR_FULL (queue full: counted in tx_dropped), UPS_ERR_BUSY (a transfer is being sent). */
+int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t size);
+
+/** Set the priority of this node's events on @p channel: 0x02..0xFF (default 0x80; 0x00 and
+ *  0x01 are management: given 0 or 1, the node uses 0x02). A Grant sets it too. */
+int ups_set_priority(ups_node_t *node, int channel, uint8_t priority);
+
+/** A channel's state: 0 free, 1 waiting for its etag (or being bound again, or a publisher's
+ *  150 ms pause on a larger size class), 2 bound, or a UPS_ERR_ code (the request ended:
+ *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE). */
+int ups_channel_state(const ups_node_t *node, int channel);
+
+/** The etag @p channel is bound to and relied on, or 0. */
+uint16_t ups_channel_etag(const ups_node_t *node, int channel);
+
+/** Write the acceptance filters the node needs into @p out (at most @p max) and return how
+ *  many it needs: one for the CAN-ECB's frames, one per received etag. When it needs more than
+ *  @p max, accept every extended frame instead: the library filters in software. */
+int ups_filters(const ups_node_t *node, ups_filter_t *out, int max);
+
+/** Declare @p channel (published and bound) a real-time stream: at most one event of @p size
+ *  bytes (frames per event on a larger size class) every @p period, released up to @p jitter
+ *  late, due within @p deadline; times in units of 100 us. Sends DECLARE until Grant or Refuse.
+ *  Returns UPS_OK, UPS_ERR_UNBOUND, UPS_ERR_ARGUMENT or UPS_ERR_FULL. */
+int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, uint16_t deadline,
+                uint8_t jitter, uint32_t now_ms);
+
+/** The declaration of @p channel: 0 none, 1 waiting, 2 granted (its priority is the
+ *  channel's), or UPS_ERR_REFUSED, UPS_ERR_TIMEOUT. */
+int ups_declaration_state(const ups_node_t *node, int channel);
+
+/** The counters (read-only; they saturate). */
+const ups_counters_t *ups_counters(const ups_node_t *node);
+
+#ifdef __cplusplus
+}
+#endif
+#endif /* UPS_H */

@@ -1,0 +1,102 @@
+/*
+ * libups internals shared by ups.c and ups_transfer.c: the identifier layout, flags, and small
+ * helpers. Not part of the API.
+ */
+#ifndef UPS_INTERNAL_H
+#define UPS_INTERNAL_H
+
+#include "ups.h"
+
+#define UPS__PRIO_SHIFT 21u
+#define UPS__TXNODE_SHIFT 14u
+#define UPS__ETAG_MASK 0x3FFFu
+#define UPS__MGMT 0x7Fu
+#define UPS__FIRST_ETAG 0x0010u
+#define UPS__LARGE_ETAG 0x3000u
+#define UPS__DEFAULT_PRIORITY 0x80u
+
+/* channel flags */
+#define UPS__SUB 0x01u    /* the application receives it */
+#define UPS__PUB 0x02u    /* the application publishes on it */
+#define UPS__BOUND 0x04u  /* etag is relied on */
+#define UPS__PEND 0x08u   /* a request is outstanding (or due once joined) */
+#define UPS__ASKED 0x10u  /* ... and has been sent: Binds from now on may answer it */
+#define UPS__REBIND 0x20u /* bound again after a contradiction: answers settle first */
+#define UPS__CAND 0x40u   /* etag is a candidate answer, settling */
+#define UPS__WAIT 0x80u   /* a publisher's pause before its first event on a larger class */
+
+/* node mode bits */
+#define UPS__FD 0x01u
+#define UPS__ANNOUNCING 0x02u
+#define UPS__ANNOUNCE_DUE 0x04u
+#define UPS__RECENT 0x08u
+
+/* channel and join states (besides the UPS_ERR_ codes) */
+#define UPS__FREE 0
+#define UPS__WAITING 1
+#define UPS__READY 2
+
+static inline uint32_t ups__make_id(uint32_t priority, uint32_t txnode, uint32_t etag)
+{
+    return (priority << UPS__PRIO_SHIFT) | (txnode << UPS__TXNODE_SHIFT) | etag;
+}
+
+/** Milliseconds from @p then to @p now, both the low 16 bits of the clock. */
+static inline uint16_t ups__since(uint16_t now, uint16_t then)
+{
+    return (uint16_t)(now - then);
+}
+
+/** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
+static inline unsigned ups__class(uint16_t etag)
+{
+    return etag < UPS__LARGE_ETAG ? 0u : 1u + ((unsigned)(etag - UPS__LARGE_ETAG) >> 10);
+}
+
+/** The largest event of a size class. */
+static inline uint32_t ups__class_max(unsigned cls)
+{
+    static const uint32_t largest[5] = {8u, 64u, 1024u, 4096u, 65535u};
+    return largest[cls < 5u ? cls : 4u];
+}
+
+static inline void ups__count(UPS_COUNTER_T *counter)
+{
+    if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
+        ++*counter;
+    }
+}
+
+static inline void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
+{
+    for (unsigned i = 0; i < n; ++i) {
+        to[i] = from[i];
+    }
+}
+
+static inline int ups__same8(const uint8_t *a, const uint8_t *b)
+{
+    unsigned diff = 0;
+    for (unsigned i = 0; i < 8u; ++i) {
+        diff |= (unsigned)(a[i] ^ b[i]);
+    }
+    return diff == 0u;
+}
+
+/** Queue a frame (sorted by identifier, FIFO among equals). 0, or UPS_ERR_FULL (counted). */
+int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len);
+
+/** The index of the received channel bound to @p etag, or -1. */
+int ups__rx_channel(const ups_node_t *node, uint16_t etag);
+
+#if UPS_WITH_TRANSFERS
+/* ups_transfer.c */
+int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, uint8_t txnode,
+                     uint16_t etag, ups_event_t *event);
+int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
+                     uint16_t size);
+void ups__transfer_refill(ups_node_t *node);
+void ups__transfer_tick(ups_node_t *node, uint16_t now);
+#endif
+
+#endif /* UPS_INTERNAL_H */

@@ -1,0 +1,53 @@
+"""libups builds clean: gcc with -std=c99 -Wall -Wextra -Werror -pedantic -Wconversion
+-Wsign-conversion in every configuration, gcc -fanalyzer and cppcheck (``make -C c check``); and
+the SocketCAN examples build (``make -C c examples``; tests/socketcan runs them)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import pytest
+
+from .procs import ROOT
+
+
+def make(*targets: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        ["make", "-C", str(ROOT / "c"), *targets],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+
+
+def test_make_check_is_clean() -> None:
+    if shutil.which("cppcheck") is None:
+        pytest.fail("cppcheck is missing: scripts/setup --test installs it")
+    done = make("check")
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert "warning" not in done.stderr.lower()
+
+
+def test_examples_build() -> None:
+    done = make("examples")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (ROOT / "c" / "build" / "ups-sensor").exists()
+    assert (ROOT / "c" / "build" / "ups-actuator").exists()
+
+
+def test_sizes_are_measured_and_the_minimal_node_fits_the_target() -> None:
+    if shutil.which("arm-none-eabi-gcc") is None:
+        pytest.fail("arm-none-eabi-gcc is missing: scripts/setup --test installs it")
+    done = make("size")
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    results = json.loads((ROOT / "c" / "build" / "size.json").read_text())
+    assert {(r["cpu"], r["config"]) for r in results} >= {
+        ("cortex-m0plus", "minimal"), ("cortex-m0plus", "full"), ("cortex-m4", "full"),
+    }  # fmt: skip
+    for r in results:
+        assert r["flash"] > 1000 and r["ram"] >= r["node"] > 0 and 0 < r["stack"] < 1024
+    (minimal,) = [r for r in results if (r["cpu"], r["config"]) == ("cortex-m0plus", "minimal")]
+    assert minimal["flash"] <= 4096 and minimal["ram"] <= 256, minimal

@@ -1,0 +1,413 @@
+"""libups under a Hypothesis state machine: random, semi-valid and hostile frames and timer ticks.
+
+The machine plays an honest CAN-ECB (``Model``: it answers Knock, Stage, CLAIM and binding
+requests at once, and corrects every forged Bind and Assign at once, as ours does) and every
+other node on the bus, and throws at the C node: honest events and transfers on the etags the
+CAN-ECB bound, broken transfers (a frame dropped, repeated, swapped, a header bit flipped),
+forged Binds, Assigns, Hellos, refusals and verdicts, random frames of any identifier, length
+and flags, and time jumps (from just before the 32-bit millisecond clock wraps). It checks:
+
+- every event delivered is on a channel the application subscribes to, and the etag it came on
+  is bound to that channel's UID (never another channel's event), with the data that was sent;
+- every event the node sends is on the etag the CAN-ECB bound to a channel it publishes on;
+- every etag the node relies on (``ups_channel_etag``) is the CAN-ECB's for that UID;
+- counters never go back.
+
+``test_machine_under_sanitizers`` runs the machine in a child process on ``libups-asan.so``
+(AddressSanitizer and UndefinedBehaviorSanitizer, which abort on the first error); the child
+needs libasan preloaded into Python, which is why it is a separate process.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
+
+from ups import _canproto as p
+from ups import _cantransfer as t
+from ups._cnode import FRAME_EXT, FRAME_FD, CNode, Event, build
+from ups._errors import ConfigError
+
+VARIANT = os.environ.get("UPS_CNODE_FUZZ", "full")
+NODE_ID = 0x0123_4567_89AB_CDEF
+UIDS = [0x1111_0000_0000_0000 + i for i in range(6)]
+SIZES = [0, 8, 64, 1000, 1024, 4096]
+ETAGS = [0x10, 0x11, 0x12, 0x13, 0x3000, 0x3001, 0x3400, 0x3401, 0x3800, 0x3FFF, 0x2FFF]
+
+frames = st.tuples(
+    st.integers(0, 0x1FFFFFFF) | st.sampled_from([p.make_id(0, 0x7F, e) for e in range(0x4000)]),
+    st.binary(max_size=64),
+    st.sampled_from([FRAME_EXT, FRAME_EXT | FRAME_FD, 0, FRAME_EXT | 0x08, FRAME_EXT | 0x10]),
+)
+
+
+class Model:
+    """The honest CAN-ECB: TxNode and etag tables, answering the node's frames at once."""
+
+    def __init__(self) -> None:
+        self.txnode: int | None = None  # the node's, once assigned
+        self.offered: int | None = None
+        self.stages: dict[int, set[int]] = {}
+        self.etags: dict[int, int] = {}  # uid -> etag
+        self.epoch = 0
+
+    def uid_at(self, etag: int) -> int | None:
+        return next((u for u, e in self.etags.items() if e == etag), None)
+
+    def bind(self, uid: int, cls: int) -> int:
+        etag = self.etags.get(uid)
+        if etag is None or t.size_class(etag) < cls:  # new, or moved to a larger class
+            used = set(self.etags.values())
+            etag = next(e for e in t.class_etags(cls) if e not in used)
+            self.etags[uid] = etag
+        return etag
+
+    def corrections(self, msg: p.Management) -> list[p.Management]:
+        """What the CAN-ECB sends when it hears a frame it did not send."""
+        out: list[p.Management] = []
+        if isinstance(msg, p.Bind):
+            if (other := self.uid_at(msg.etag)) is not None and other != msg.uid:
+                out.append(p.Bind(msg.etag, other))
+            if (etag := self.etags.get(msg.uid)) is not None and etag != msg.etag:
+                out.append(p.Bind(etag, msg.uid))
+        elif (
+            isinstance(msg, p.Assign)
+            and msg.node_id == NODE_ID
+            and self.txnode is not None
+            and msg.txnode != self.txnode
+        ):
+            out.append(p.Assign(self.txnode, NODE_ID))
+        return out
+
+    def answer(self, msg: p.Management) -> list[p.Management]:
+        """The CAN-ECB's answer to one frame of the node."""
+        if isinstance(msg, p.Knock) and self.txnode is None:
+            self.epoch = (self.epoch + 1) % 16
+            self.stages[self.epoch] = set()
+            return [p.Census(self.epoch)]
+        if isinstance(msg, p.Stage) and msg.epoch in self.stages:
+            self.stages[msg.epoch].add(msg.stage << 4 | msg.nibble)
+            if len(self.stages[msg.epoch]) == 16 and self.txnode is None:
+                self.offered = 0x42
+                return [p.Offer(0x42, NODE_ID)]
+        if isinstance(msg, p.Request) and msg.kind == p.CLAIM:
+            if msg.txnode == self.offered and msg.value == NODE_ID:
+                self.txnode, self.offered = msg.txnode, None
+                return [p.Assign(msg.txnode, NODE_ID)]
+            if msg.txnode != self.txnode:
+                return [p.Assign(self.txnode, NODE_ID)] if self.txnode is not None else []
+        if isinstance(msg, p.Request) and msg.kind in (p.SUB_BIND, p.PUB_BIND):
+            assert msg.txnode == self.txnode, f"request from TxNode {msg.txnode}"
+            return [p.Bind(self.bind(msg.value, msg.size_class), msg.value)]
+        if isinstance(msg, p.Holds):
+            return self.corrections(p.Bind(msg.etag, msg.uid))
+        if isinstance(msg, p.Declare):
+            return [p.Grant(msg.etag, msg.txnode, 0x02)]
+        return []
+
+
+class CNodeMachine(RuleBasedStateMachine):
+    def __init__(self) -> None:
+        super().__init__()
+        self.node = CNode(NODE_ID, variant=VARIANT)
+        self.model = Model()
+        self.now = 0xFFFF_FF00  # the 32-bit clock wraps within the first steps
+        self.channels: dict[int, int] = {}  # channel index -> uid, as the node returned them
+        self.subscribed: set[int] = set()  # uids
+        self.published: set[int] = set()
+        self.tids: dict[tuple[int, int], int] = {}
+        self.stalled = False  # the controller's mailboxes are busy: nothing is sent
+        self.last_counters = self.node.counters()
+
+    # --- plumbing --------------------------------------------------------------------------
+
+    def feed(self, can_id: int, data: bytes, flags: int = FRAME_EXT) -> Event | None:
+        """Feed one frame; check the event it delivers against the CAN-ECB's table."""
+        event = self.node.rx_raw(can_id, data, flags, self.now)
+        if event is not None:
+            uid = self.channels.get(event.channel)
+            assert uid is not None and uid in self.subscribed, f"event on channel {event}"
+            etag = can_id & p.ETAG_MASK
+            assert self.model.uid_at(etag) == uid, f"{event} came on etag {etag:#x}"
+        self.drain()
+        return event
+
+    def feed_msg(self, msg: p.Management) -> None:
+        can_id, data = p.encode(msg)
+        assert self.feed(can_id, data) is None
+
+    def drain(self) -> None:
+        """Send what the node queued; the CAN-ECB answers each frame at once."""
+        for _ in range(0 if self.stalled else 200):
+            sent = list(self.node.tx())
+            if not sent:
+                return
+            for can_id, flags, data in sent:
+                self.check_sent(can_id, flags, data)
+
+    def check_sent(self, can_id: int, flags: int, data: bytes) -> None:
+        assert flags & FRAME_EXT
+        if not p.is_management(can_id):
+            priority, txnode, etag = p.split_id(can_id)
+            assert priority >= 2 and txnode == self.model.txnode
+            uid = self.model.uid_at(etag)
+            assert uid in self.published, f"event on etag {etag:#x}, bound to {uid}"
+            return
+        msg = p.decode(can_id, data)  # raises on a malformed frame of the node
+        for reply in self.model.answer(msg):
+            self.feed_msg(reply)
+
+    def ms(self, dt: int) -> None:
+        self.now = (self.now + dt) & 0xFFFFFFFF
+        self.node.tick(self.now)
+        self.drain()
+
+    # --- rules -----------------------------------------------------------------------------
+
+    @initialize()
+    def start(self) -> None:
+        self.node.start(self.now)
+        self.drain()
+        for _ in range(5):
+            self.ms(1)
+        assert self.node.txnode == 0x42
+
+    @rule(dt=st.integers(0, 60) | st.sampled_from([150, 400, 1100, 2500, 6000]))
+    def tick(self, dt: int) -> None:
+        self.ms(dt)
+
+    @rule(stalled=st.booleans())
+    def stall(self, stalled: bool) -> None:
+        self.stalled = stalled
+        self.drain()
+
+    @rule(i=st.integers(0, len(UIDS) - 1))
+    def subscribe(self, i: int) -> None:
+        try:
+            channel = self.node.subscribe(UIDS[i], self.now)
+        except ConfigError:  # every channel is in use
+            return
+        self.channels[channel] = UIDS[i]
+        self.subscribed.add(UIDS[i])
+        self.drain()
+
+    @rule(i=st.integers(0, len(UIDS) - 1), size=st.sampled_from(SIZES))
+    def advertise(self, i: int, size: int) -> None:
+        try:
+            channel = self.node.advertise(UIDS[i], size, self.now)
+        except ConfigError:  # every channel is in use, or larger than the node's events
+            return
+        self.channels[channel] = UIDS[i]
+        self.published.add(UIDS[i])
+        self.drain()
+
+    @rule(i=st.integers(0, len(UIDS) - 1))
+    def unsubscribe(self, i: int) -> None:
+        uid = UIDS[i]
+        channel = next((c for c, u in self.channels.items() if u == uid), None)
+        if channel is None or uid not in self.subscribed:
+            return
+        self.node.unsubscribe(channel)
+        self.subscribed.discard(uid)
+        if uid not in self.published:
+            del self.channels[channel]
+        self.drain()
+
+    @rule(i=st.integers(0, len(UIDS) - 1), data=st.binary(max_size=1100))
+    def publish(self, i: int, data: bytes) -> None:
+        channel = next((c for c, u in self.channels.items() if u == UIDS[i]), None)
+        if channel is not None and UIDS[i] in self.published:
+            self.node.publish(channel, data)
+            self.drain()
+
+    @rule(
+        i=st.integers(0, len(UIDS) - 1),
+        data=st.binary(max_size=1100),
+        sender=st.integers(0, 0x7E),
+        fd=st.booleans(),
+        mangle=st.sampled_from(["none", "drop", "repeat", "swap", "flip", "cut"]),
+        at=st.integers(0, 200),
+    )
+    def event(self, i: int, data: bytes, sender: int, fd: bool, mangle: str, at: int) -> None:
+        """An event of another node on the etag the CAN-ECB bound, maybe broken on the way."""
+        etag = self.model.etags.get(UIDS[i])
+        if etag is None or sender == self.model.txnode:
+            return
+        can_id = p.make_id(0x80, sender, etag)
+        flags = FRAME_EXT | (FRAME_FD if fd else 0)
+        if etag < p.LARGE_FIRST_ETAG:
+            parts = [data[:8]]
+        else:
+            data = data[: t.max_size(etag)]
+            tid = self.tids.get((sender, etag), 0)
+            self.tids[(sender, etag)] = (tid + 1) & 0x1F
+            parts = _mangle(t.segment(data, tid, 64 if fd else 8), mangle, at)
+        delivered = []
+        for part in parts:
+            event = self.feed(can_id, part, flags)
+            if event is not None:
+                delivered.append(event.data)
+        # a broken transfer may still deliver its event (a frame repeated after its end), but
+        # only whole and unaltered, and only once
+        assert delivered in ([], [parts[0] if etag < p.LARGE_FIRST_ETAG else data])
+        if mangle == "none":
+            assert len(delivered) == (etag in self.subscribed_etags())
+
+    @rule(etag=st.sampled_from(ETAGS), i=st.integers(0, len(UIDS) - 1))
+    def forged_bind(self, etag: int, i: int) -> None:
+        msg = p.Bind(etag, UIDS[i])
+        self.feed_msg(msg)
+        for correction in self.model.corrections(msg):  # the CAN-ECB's, at once
+            self.feed_msg(correction)
+
+    @rule(
+        msg=st.one_of(
+            st.builds(p.Hello, st.integers(0, 2**64 - 1)),
+            st.builds(p.Assign, st.integers(0, 0x7E), st.just(NODE_ID)),
+            st.builds(p.Offer, st.integers(0, 0x7E), st.just(NODE_ID)),
+            st.builds(p.Census, st.integers(0, 15)),
+            st.builds(p.Limit, st.integers(0, 0x7E), st.sampled_from(UIDS)),
+            st.builds(p.EtagsFull, st.sampled_from(UIDS)),
+            st.builds(p.Failed, st.sampled_from([*UIDS, NODE_ID])),
+            st.builds(p.TxNodesFull, st.just(NODE_ID)),
+            st.builds(p.Grant, st.sampled_from(ETAGS), st.just(0x42), st.integers(0, 255)),
+            st.builds(
+                p.Refuse,
+                st.sampled_from(ETAGS),
+                st.just(0x42),
+                st.just(0x10),
+                st.just(1),
+                st.integers(0, 0xFFFF),
+            ),
+            st.builds(
+                p.Holds,
+                st.booleans(),
+                st.integers(0, 0x7E),
+                st.sampled_from(ETAGS),
+                st.sampled_from(UIDS),
+            ),
+        )
+    )
+    def forged_management(self, msg: p.Management) -> None:
+        self.feed_msg(msg)
+        for correction in self.model.corrections(msg):
+            self.feed_msg(correction)
+
+    @rule(frame=frames)
+    def random_frame(self, frame: tuple[int, bytes, int]) -> None:
+        can_id, data, flags = frame
+        if flags & FRAME_EXT and p.is_management(can_id):
+            try:
+                msg = p.decode(can_id, data)
+            except Exception:
+                msg = None
+            if isinstance(msg, p.Bind | p.Assign):  # a valid forgery: as forged_management
+                self.forged_management(msg)
+                return
+        else:
+            _, txnode, _ = p.split_id(can_id)
+            if txnode == self.model.txnode:
+                return  # that would be the node itself speaking
+        event = self.feed(can_id, data, flags)
+        if event is not None:  # one frame on a bound etag: it is that channel's, as it is
+            assert event.data == data
+
+    @rule(channel=st.integers(0, 40), size=st.integers(0, 9))
+    def declare(self, channel: int, size: int) -> None:
+        self.node.declare(channel, size, 100, 50, 0, self.now)
+        self.drain()
+
+    def subscribed_etags(self) -> set[int]:
+        return {self.node.channel_etag(c) for c, u in self.channels.items() if u in self.subscribed}
+
+    # --- invariants ------------------------------------------------------------------------
+
+    @invariant()
+    def relies_only_on_the_ecbs_bindings(self) -> None:
+        for channel, uid in self.channels.items():
+            etag = self.node.channel_etag(channel)
+            assert etag == 0 or self.model.etags.get(uid) == etag
+
+    @invariant()
+    def counters_never_go_back(self) -> None:
+        counters = self.node.counters()
+        assert all(counters[k] >= v for k, v in self.last_counters.items())
+        self.last_counters = counters
+
+
+def _mangle(parts: list[bytes], how: str, at: int) -> list[bytes]:
+    if how == "none" or len(parts) < 2:
+        return parts
+    k = at % len(parts)
+    if how == "drop":
+        return parts[:k] + parts[k + 1 :]
+    if how == "repeat":
+        return parts[: k + 1] + parts[k:]
+    if how == "swap":
+        j = (k + 1) % len(parts)
+        parts = list(parts)
+        parts[k], parts[j] = parts[j], parts[k]
+        return parts
+    if how == "flip":  # E, T or a transfer id bit (never S: that would start a transfer)
+        bit = (0x40, 0x20, 0x01, 0x10)[at % 4]
+        return [*parts[:k], bytes([parts[k][0] ^ bit]) + parts[k][1:], *parts[k + 1 :]]
+    return [*parts[:-1], parts[-1][:-1]]  # cut: the last frame one byte short
+
+
+CNodeMachine.TestCase.settings = settings(
+    max_examples=int(
+        os.environ.get("UPS_CNODE_FUZZ_EXAMPLES", "200" if VARIANT == "asan" else "60")
+    ),
+    stateful_step_count=40,
+    deadline=None,
+    suppress_health_check=list(HealthCheck),
+    derandomize=False,
+)
+TestCNodeMachine = CNodeMachine.TestCase
+
+
+def test_machine_under_sanitizers() -> None:
+    """The same machine in a child process on the library built with ASan and UBSan."""
+    if VARIANT == "asan":
+        pytest.skip("this is the child")
+    lib = build("asan")
+    libasan = subprocess.run(
+        ["cc", "-print-file-name=libasan.so"], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    env = {
+        **os.environ,
+        "UPS_CNODE_FUZZ": "asan",
+        "LD_PRELOAD": libasan,
+        "ASAN_OPTIONS": "detect_leaks=0:abort_on_error=0:exitcode=99",
+        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1:exitcode=98",
+    }
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-s",
+            "-x",
+            "-p",
+            "no:cacheprovider",
+            "-p",
+            "no:xdist",
+            f"{Path(__file__)}::TestCNodeMachine",
+        ],  # -s: the sanitizers' reports
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
+    output = done.stdout[-6000:] + done.stderr[-6000:]
+    assert done.returncode == 0, f"{lib} under the machine:\n{output}"
+    assert "1 passed" in done.stdout, output
