@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 
 import can
 
-from broker.can_ecb import CanEcb  # the one import of broker in the C node's tests
 from ups._cnode import CNode, CNodeRunner, Event, now_ms
+from ups.broker.can_ecb import CanEcb  # the one import of broker in the C node's tests
 
 from .conftest import eventually
 
