@@ -20,6 +20,10 @@ from types import ModuleType
 ROOT = Path(__file__).resolve().parents[1]
 BUILD_TIMEOUT = 900.0  # seconds; about 30 s on a 2-core machine
 _COPIED = ("setup.py", "pyproject.toml", "README.md")
+#: the project's other packages, installed inside ``ups`` (the links ``ups/broker`` ->
+#: ``../broker``, ...): not compiled; the copy links to the checkout's, and their modules stay
+#: loaded when a process switches to the copy
+LINKED = ("broker", "gateway", "jaus", "examples", "benchmarks")
 
 
 def unavailable() -> str | None:
@@ -43,6 +47,8 @@ def key() -> str:
     """What the copy is built from: every file of ``ups/``, the build files, the versions."""
     digest = hashlib.sha256(f"{sys.version}|{importlib.metadata.version('mypy')}".encode())
     for path in sorted((ROOT / "ups").rglob("*.py")):
+        if path.relative_to(ROOT / "ups").parts[0] in LINKED:
+            continue
         digest.update(str(path.relative_to(ROOT)).encode())
         digest.update(path.read_bytes())
     for name in _COPIED[:2]:
@@ -61,7 +67,15 @@ def build() -> Path:
         return dest
     tmp = dest.with_name(f"{dest.name}.tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(ROOT / "ups", tmp / "ups", ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    skip = shutil.ignore_patterns("__pycache__", "*.so")
+    top = str(ROOT / "ups")
+
+    def ignore(folder: str, names: list[str]) -> set[str]:
+        return set(skip(folder, names)) | (set(LINKED) if folder == top else set())
+
+    shutil.copytree(ROOT / "ups", tmp / "ups", ignore=ignore)
+    for name in LINKED:
+        (tmp / "ups" / name).symlink_to(ROOT / name)
     for name in _COPIED:
         shutil.copy2(ROOT / name, tmp / name)
     env = dict(os.environ, UPS_COMPILE="1")
@@ -93,6 +107,8 @@ def use(path: Path | str) -> None:
     path = str(path)
     if sys.path[0] != path:
         for name in [n for n in sys.modules if n == "ups" or n.startswith("ups.")]:
+            if name.split(".")[1:2] != [] and name.split(".")[1] in LINKED:
+                continue  # not compiled: the module already loaded is the one to keep
             del sys.modules[name]
         sys.path.insert(0, path)
     import ups._tcplink
