@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import queue
 import socket
+import threading
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -17,6 +19,7 @@ from pathlib import Path
 import pytest
 from prometheus_client import ProcessCollector
 
+from ups import _metrics as ups_metrics
 from ups._metrics import NODE, NODE_UNEXPOSED
 from ups._tcpface import query_status
 from ups.broker._metrics import TCP_ECB
@@ -151,6 +154,40 @@ def test_the_console_counts_the_events_it_follows() -> None:
         with urllib.request.urlopen(f"{page}/snapshot", timeout=15) as response:
             snapshot = json.load(response)
         assert uncovered(snapshot["counters"], [CONSOLE]) == set()
+
+
+async def test_counters_are_read_on_the_event_loop_and_a_held_up_loop_is_a_503(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A scrape never reads the counters from its own thread (it could see a change half
+    made): the loop reads them. While the loop cannot, the scrape gives up: 503."""
+    monkeypatch.setattr(ups_metrics, "SCRAPE_TIMEOUT", 0.5)
+    readers: list[threading.Thread] = []
+    counters = {"published": 7}
+
+    def read() -> ups_metrics.Reading:
+        readers.append(threading.current_thread())
+        return [(NODE, counters, {"network": "tcp"})]
+
+    async with ups_metrics.serving_metrics("127.0.0.1:0", "test", read) as server:
+        assert server is not None
+        found = await asyncio.to_thread(scrape, server.url)
+        assert found.value("ups_node_published_total", network="tcp") == 7
+        assert readers == [threading.current_thread()]  # the loop's thread, not the server's
+        answered: queue.Queue[int] = queue.Queue()
+
+        def scrape_status() -> None:
+            try:
+                urllib.request.urlopen(server.url, timeout=15)
+                answered.put(200)
+            except urllib.error.HTTPError as exc:
+                answered.put(exc.code)
+
+        threading.Thread(target=scrape_status, daemon=True).start()
+        assert answered.get(timeout=15) == 503  # the loop is held up right here, waiting
+        counters["published"] = 8
+        found = await asyncio.to_thread(scrape, server.url)  # the loop free again: answered
+        assert found.value("ups_node_published_total", network="tcp") == 8
 
 
 @pytest.mark.parametrize(
