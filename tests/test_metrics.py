@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 from prometheus_client import ProcessCollector
 
+from ups import Node
 from ups import _metrics as ups_metrics
 from ups._metrics import NODE, NODE_UNEXPOSED
 from ups._tcpface import query_status
@@ -188,6 +189,19 @@ async def test_counters_are_read_on_the_event_loop_and_a_held_up_loop_is_a_503(
         counters["published"] = 8
         found = await asyncio.to_thread(scrape, server.url)  # the loop free again: answered
         assert found.value("ups_node_published_total", network="tcp") == 8
+
+
+async def test_a_zenoh_nodes_counters_are_all_served(zenoh_router: str) -> None:
+    """The process tests run nodes on TCP/IP and CAN; a Zenoh node's counters, here, through
+    the same table and reading as a daemon's."""
+    async with Node(zenoh=zenoh_router, node_id=0x3E73) as node:
+        await node.publish("metrics/zenoh", b"1")
+        stats = node.stats()
+        assert uncovered(stats, [NODE], NODE_UNEXPOSED) == set()
+        found = {s.name: s for s in ups_metrics.samples([(NODE, stats, {"network": "zenoh"})])}
+        assert found["ups_node_sent_total"].value == 1
+        assert found["ups_node_router_connected"].labels == (("network", "zenoh"),)
+        assert "ups_node_peers" not in found  # a TCP node's: not served for this one
 
 
 @pytest.mark.parametrize(
