@@ -432,14 +432,18 @@ class CanEcb:
 
 async def serve(
     bus: str, db_path: str | Path, bitrate: int = 500_000, status: str | None = None,
-    **options: float | int,
+    metrics: str | None = None, **options: float | int,
 ) -> int:  # fmt: skip
     """Run a standalone CAN-ECB on ``bus`` until cancelled; with ``status`` (HOST:PORT) its
-    tables are served there to ``ups status`` and ``ups ls --can ... --ecb``.
+    tables are served there to ``ups status`` and ``ups ls --can ... --ecb``; with ``metrics``
+    (HOST:PORT) its counters, to Prometheus.
 
     Returns 1 if the database failed during the run, else 0. Standing by for another CAN-ECB
     is logged; it serves again when the other goes silent.
     """
+    from ups._metrics import serving_metrics
+
+    from ._metrics import can_ecb_reading
     from ._status import StatusServer
 
     link = CanLink.open(bus)
@@ -452,8 +456,9 @@ async def serve(
     try:
         if server is not None:
             await server.start()
-        await ecb.start()
-        await asyncio.Event().wait()
+        async with serving_metrics(metrics, "can-broker", lambda: can_ecb_reading(ecb, server)):
+            await ecb.start()
+            await asyncio.Event().wait()
         return 0
     except asyncio.CancelledError:
         return 1 if ecb.counters["storage_errors"] else 0

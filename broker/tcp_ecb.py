@@ -514,13 +514,20 @@ def _uid_of(name: str) -> int | None:
 
 
 async def serve(
-    listen: str, liveness: float, recovery: float, tls: Tls | None = None, acl: Acl | None = None
-) -> None:
-    """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled."""
+    listen: str, liveness: float, recovery: float, tls: Tls | None = None, acl: Acl | None = None,
+    metrics: str | None = None,
+) -> None:  # fmt: skip
+    """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled; with ``metrics`` (HOST:PORT),
+    its counters are served there to Prometheus."""
+    from ups._metrics import serving_metrics
+
+    from ._metrics import tcp_ecb_reading
+
     host, port = parse_address(listen)
     ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl)
-    await ecb.start()
-    try:
-        await asyncio.Event().wait()
-    finally:
-        await ecb.close()
+    async with serving_metrics(metrics, "broker", lambda: tcp_ecb_reading(ecb)):
+        await ecb.start()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await ecb.close()

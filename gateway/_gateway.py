@@ -244,6 +244,16 @@ class Gateway:
 
     # --- statistics ------------------------------------------------------------------------
 
+    @property
+    def link(self) -> CanLink | None:
+        """The CAN bus, shared by the gateway's CAN node and the CAN-ECB it hosts."""
+        return self._link
+
+    @property
+    def can_ecb(self) -> CanEcb | None:
+        """The CAN-ECB the gateway hosts (None with ``host_can_ecb=False``)."""
+        return self._ecb
+
     def stats(self) -> dict[str, int]:
         """Events forwarded each way, drops, and the channels forwarded."""
         can_stats = self.can.stats() if self.can else {}
@@ -457,9 +467,14 @@ class Gateway:
         return int(self.can.stats()["txnode"])
 
 
-async def serve(gateway: Gateway) -> None:
-    """Run ``gateway`` until cancelled; log its counters when it stops."""
-    async with gateway:
+async def serve(gateway: Gateway, metrics: str | None = None) -> None:
+    """Run ``gateway`` until cancelled; log its counters when it stops. With ``metrics``
+    (HOST:PORT), its counters are served there to Prometheus."""
+    from ups._metrics import serving_metrics
+
+    from ._metrics import gateway_reading
+
+    async with serving_metrics(metrics, "gateway", lambda: gateway_reading(gateway)), gateway:
         try:
             await asyncio.Event().wait()
         finally:

@@ -9,10 +9,12 @@ import logging
 from ups import ConfigError
 from ups._address import parse_address
 from ups._cliargs import network_choice, say
+from ups._metrics import Reading, serving_metrics
 
 from ._codec import JausId
 from ._host import JausHost
 from ._mapping import Bridge
+from ._metrics import jaus_reading
 
 log = logging.getLogger("ups.jaus")
 
@@ -40,7 +42,12 @@ async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
         name="ups-jaus",
         join_timeout=args.timeout,
     )
-    async with node:
+    component: JausHost | None = None  # its counters are served once it exists
+
+    def reading() -> Reading:
+        return [] if component is None else jaus_reading(component, node, kind)
+
+    async with serving_metrics(getattr(args, "metrics", None), "jaus", reading), node:
         component = JausHost(node, bridge, me, name=args.name, authority=args.authority)
         try:
             bound = await component.start(host or "0.0.0.0", port)

@@ -10,7 +10,7 @@ import sys
 
 from .procs import ROOT
 
-HEAVY = ("can", "msgpack", "asyncio", "cryptography", "ups.rt._analysis")
+HEAVY = ("can", "msgpack", "asyncio", "cryptography", "ups.rt._analysis", "prometheus_client")
 
 
 def loaded_after(code: str) -> set[str]:
@@ -26,6 +26,16 @@ def test_ups_help_loads_nothing_heavy() -> None:
     code = "import contextlib, io\nimport upscli\nwith contextlib.suppress(SystemExit), "
     code += "contextlib.redirect_stdout(io.StringIO()):\n    upscli.main(['--help'])"
     assert loaded_after(code) == set()
+
+
+def test_a_daemons_help_loads_nothing_heavy() -> None:
+    """``--metrics`` is offered by every daemon; prometheus-client loads only to serve."""
+    for daemon in ("broker", "can-broker", "gateway", "jaus", "console"):
+        code = "import contextlib, io\nimport upscli\nwith contextlib.suppress(SystemExit), "
+        code += (
+            f"contextlib.redirect_stdout(io.StringIO()):\n    upscli.main([{daemon!r}, '--help'])"
+        )
+        assert loaded_after(code) == set(), daemon
 
 
 def test_importing_ups_loads_nothing_heavy() -> None:

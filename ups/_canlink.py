@@ -174,6 +174,18 @@ class CanLink:
     def __str__(self) -> str:
         return self._spec or str(getattr(self.bus, "channel_info", "a CAN bus"))
 
+    def stats(self) -> dict[str, int]:
+        """Frames read and sent, and what went wrong, since the link opened."""
+        return {
+            "rx_frames": self.rx_frames,
+            "tx_frames": self.tx_frames,
+            "tx_failed": self.tx_failed,
+            "backlog_full": self.backlog_full,
+            "rx_errors": self.rx_errors,
+            "handler_errors": self.handler_errors,
+            "backlog": len(self._backlog),
+        }
+
     @classmethod
     def open(cls, spec: str) -> CanLink:
         """Open the bus named by ``spec``; it is CAN FD when the spec says ``fd=True``."""

@@ -30,6 +30,7 @@ from ups._cliargs import (
     tls_of,
 )
 from ups._errors import ConfigError, UpsError
+from ups._metrics import add_metrics
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
@@ -141,6 +142,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         help="also serve the tables (nodes, etags, who publishes and subscribes) there, for "
         "'ups status' and 'ups ls --can BUS --ecb HOST:PORT' (default: not served)",
     )  # fmt: skip
+    add_metrics(cmd)
     cmd.set_defaults(run=_run_can_broker)
 
     cmd = command("broker", help="run a TCP-ECB (the registry of a TCP/IP network)")
@@ -162,6 +164,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         "0xUIDs], status = true; needs TLS; an identity not listed may do nothing",
     )  # fmt: skip
     add_tls(cmd)
+    add_metrics(cmd)
     cmd.set_defaults(run=_run_broker)
 
     cmd = command("gateway", help="forward subscribed events between a CAN bus and TCP/IP or Zenoh")
@@ -188,6 +191,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
     add_tls(cmd, node=True)
+    add_metrics(cmd)
     cmd.set_defaults(run=_run_gateway)
 
     cmd = command("status", help="print the tables and counters of a TCP daemon, or of every "
@@ -337,7 +341,7 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 
     async def run() -> int:
         return await serve(
-            args.can, db, args.bitrate, status=args.status,
+            args.can, db, args.bitrate, status=args.status, metrics=args.metrics,
             recovery=args.recovery, lease=args.lease, max_channels=args.max_channels,
         )  # fmt: skip
 
@@ -352,7 +356,7 @@ def _run_broker(args: argparse.Namespace) -> int:
     acl = Acl.load(args.acl) if args.acl is not None else None
 
     async def run() -> int:
-        await serve(args.listen, args.liveness, args.recovery, tls, acl)
+        await serve(args.listen, args.liveness, args.recovery, tls, acl, args.metrics)
         return 0
 
     return run_until_signal(run())
@@ -384,7 +388,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
     )
 
     async def run() -> int:
-        await serve(gateway)
+        await serve(gateway, args.metrics)
         return 0
 
     return run_until_signal(run())

@@ -9,6 +9,7 @@ from typing import Any
 
 from ups._cliargs import add_catalog, add_network, positive_float, run_until_signal
 from ups._errors import ConfigError
+from ups._metrics import add_metrics
 
 OCU_HELP = "a small JAUS operator control unit: discover, query, control, send, watch, waypoints"
 
@@ -33,6 +34,7 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     add_network(cmd, "the robot's CAN bus", "the robot's IP network")
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
     cmd.add_argument("--timeout", type=positive_float, default=30.0, help="seconds to join")
+    add_metrics(cmd)
     jaus_commands = cmd.add_subparsers(dest="jaus_command", required=False, metavar="ACTION")
     act = jaus_commands.add_parser(
         "check", help="check a mapping of JAUS messages onto UPS channels; exit 2 naming the line"

@@ -185,6 +185,26 @@ class Live:
 
     # --- reading ----------------------------------------------------------------------------
 
+    def stats(self, now: float | None = None) -> dict[str, float | None]:
+        """The counters, with what is tracked and the bus load (``ups console --metrics``)."""
+        return {
+            **self.counters,
+            "events": sum(c.count for c in self.channels.values()),
+            "channels": len(self.channels),
+            "nodes": sum(1 for n in self.nodes.values() if n.alive),
+            "jaus": len(self.jaus),
+            "bus_load": self.bus_load(now),
+        }
+
+    def bus_load(self, now: float | None = None) -> float | None:
+        """The share of the bus's bit rate its frames took in the last ``WINDOW`` s (CAN)."""
+        if self.network != "can":
+            return None
+        now = time.time() if now is None else now
+        return _per_second(self._bits, now, now if self._began is None else self._began) / (
+            self.bitrate
+        )
+
     def snapshot(self, now: float | None = None) -> dict[str, Any]:
         now = time.time() if now is None else now
         since = now - WINDOW

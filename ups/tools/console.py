@@ -33,6 +33,7 @@ from .._cliargs import (
     tls_of,
 )
 from .._errors import ConfigError
+from .._metrics import NODE, Metric, Reading, add_metrics, serving_metrics, table
 from ._net import IpNetwork, network_of
 
 
@@ -47,6 +48,27 @@ DEFAULT_LISTEN = "127.0.0.1:8470"
 SNAPSHOT_EVERY = 0.5  #: seconds between snapshots sent to each page
 MAX_PAGES = 32  #: pages followed at once; more are answered 503
 WRITE_TIMEOUT = 5.0  #: seconds a page may take to read a snapshot before it is let go
+
+#: ``Live.stats()``, with the pages open (``--metrics``; docs/metrics.md)
+CONSOLE = table(
+    "ups_console",
+    {
+        "events": "events seen on the channels tracked",
+        "foreign": "frames that are not UPS (CAN)",
+        "malformed": "UPS frames that could not be read (CAN)",
+        "dropped": "events dropped: CAN frames the loop had no room for; on IP, the node's "
+        "dropped and lost events",
+        "untracked": "channels, nodes and JAUS components beyond the bounds, not tracked",
+        "status_failures": "status requests that failed (TCP-ECB, Zenoh, JAUS components)",
+    },
+    {
+        "channels": "channels tracked",
+        "nodes": "nodes tracked and alive",
+        "jaus": "JAUS components shown",
+        "pages": "pages following the live view",
+        "bus_load": "share of the bus's bit rate its frames took in the last 5 s (CAN)",
+    },
+)
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
@@ -63,6 +85,7 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
     add_tls(cmd, node=True)
+    add_metrics(cmd)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -117,23 +140,36 @@ async def _serve(
         web.get("/", _page), web.get("/events", _events), web.get("/snapshot", _snapshot),
         web.get("/history", _history), web.post("/publish", _publish),
     ])  # fmt: skip
+
+    def reading() -> Reading:
+        readings: list[tuple[list[Metric], dict[str, Any], dict[str, str]]] = [
+            (CONSOLE, {**live.stats(), "pages": app["pages"]}, {})
+        ]
+        if node is not None:  # on IP at once; on CAN once the page published
+            network = "can" if net is None else net.label
+            readings.append((NODE, dict(node.stats()), {"network": network}))
+        return readings
+
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
     try:
-        site = web.TCPSite(runner, host, port, ssl_context=_https(tls))
-        await site.start()
-        scheme = "https" if tls is not None else "http"
-        bound = runner.addresses[0][1]  # the port, when --listen asked for any (0)
-        app["hosts"] = _hosts(host, bound)
-        if net is not None:  # the page is served first: a port in use is said at once
-            node = net.node("ups-console")
-            await node.start()
-        say(args, f"console on {scheme}://{host}:{bound}")
-        if can is not None:
-            await feed_can(live, can, bindings)
-        else:
-            assert node is not None and net is not None
-            await feed_tcp(live, node, net, [])
+        async with serving_metrics(args.metrics, "console", reading) as metrics:
+            if metrics is not None:
+                say(args, f"metrics on {metrics.url}")
+            site = web.TCPSite(runner, host, port, ssl_context=_https(tls))
+            await site.start()
+            scheme = "https" if tls is not None else "http"
+            bound = runner.addresses[0][1]  # the port, when --listen asked for any (0)
+            app["hosts"] = _hosts(host, bound)
+            if net is not None:  # the page is served first: a port in use is said at once
+                node = net.node("ups-console")
+                await node.start()
+            say(args, f"console on {scheme}://{host}:{bound}")
+            if can is not None:
+                await feed_can(live, can, bindings)
+            else:
+                assert node is not None and net is not None
+                await feed_tcp(live, node, net, [])
     except asyncio.CancelledError:
         pass  # Ctrl-C, SIGTERM: the way to stop it
     finally:

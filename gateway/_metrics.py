@@ -1,0 +1,68 @@
+"""The gateway's metrics (``ups gateway --metrics``): its forwarding, its two nodes (CAN and
+the IP side), its CAN link and the CAN-ECB it hosts (see ``ups/_metrics.py``; every one in
+docs/metrics.md)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from ups._metrics import CAN_LINK, COUNTER, GAUGE, NODE, Metric, Reading, table
+from ups.broker._metrics import CAN_ECB
+
+if TYPE_CHECKING:
+    from ._gateway import Gateway
+
+#: ``Gateway.stats()`` read the same on either IP side
+_COMMON = table(
+    "ups_gateway",
+    {
+        "can_dropped": "events to CAN dropped, the oldest first, because the queue was full",
+        "too_large_for_can": "events to CAN larger than a channel on the bus can carry",
+        "reconcile_errors": "failures to bring a channel's forwarding in line (tried again)",
+        "pacer_errors": "events to CAN whose frames could not be sent",
+        "denied": "channels the TCP-ECB's ACL does not let the gateway forward",
+    },
+    {"can_queued": "events waiting to go to CAN, paced to the bit rate"},
+)
+
+
+def gateway_table(side: str) -> list[Metric]:
+    """``Gateway.stats()`` of a gateway whose IP side is ``side`` (tcp or zenoh)."""
+    forwarded, forwarding = "ups_gateway_forwarded_total", "ups_gateway_forwarding_channels"
+    return [
+        Metric(forwarded, COUNTER, "events forwarded, by direction", "to_can",
+               (("direction", "to_can"),)),
+        Metric(forwarded, COUNTER, "events forwarded, by direction", f"to_{side}",
+               (("direction", "to_ip"),)),
+        Metric(forwarding, GAUGE, "channels forwarded, by direction", "forwarding_to_can",
+               (("direction", "to_can"),)),
+        Metric(forwarding, GAUGE, "channels forwarded, by direction", f"forwarding_to_{side}",
+               (("direction", "to_ip"),)),
+        *_COMMON,
+    ]  # fmt: skip
+
+
+#: what ``Gateway.stats()`` has and ``gateway_table`` leaves out, and why (SIDE: tcp or zenoh)
+GATEWAY_UNEXPOSED = {
+    "SIDE_dropped": "the IP node's peer_dropped, as ups_node_peer_dropped_total",
+    "SIDE_lost": "the IP node's lost, as ups_node_lost_total",
+    "can_tx_failed": "the CAN link's, as ups_can_tx_failed_total",
+    "bindings": "the CAN node's, as ups_node_bindings",
+    "txnode": "the CAN node's, as ups_node_txnode",
+}
+
+
+def gateway_reading(gateway: Gateway) -> Reading:
+    reading: list[tuple[list[Metric], dict[str, Any], dict[str, str]]] = [
+        (gateway_table(gateway.side), dict(gateway.stats()), {})
+    ]
+    if gateway.can is not None:
+        reading.append((NODE, dict(gateway.can.stats()), {"network": "can"}))
+    if gateway.ip is not None:
+        reading.append((NODE, dict(gateway.ip.stats()), {"network": gateway.side}))
+    link, ecb = gateway.link, gateway.can_ecb
+    if link is not None:
+        reading.append((CAN_LINK, dict(link.stats()), {}))
+    if ecb is not None:
+        reading.append((CAN_ECB, ecb.stats(), {}))
+    return reading
