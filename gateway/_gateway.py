@@ -302,10 +302,12 @@ class Gateway:
                         if not fut.done():
                             fut.set_result(None)
 
-    async def _until_settled(self, uid: int) -> None:
+    async def _until_settled(self, uid: int, txnode: int) -> None:
         """Wait until the forwarding of ``uid`` follows the tables (the CAN-ECB's bind gate: a
-        new publisher's first events are then forwarded to subscribers already on TCP)."""
-        if uid not in self._dirty and uid != self._current:
+        new publisher's first events are then forwarded to subscribers already on TCP). Not
+        for the gateway's own binding: its reconcile waits for that one (it used to wait out
+        the gate's timeout, a second per channel forwarded to CAN)."""
+        if (uid not in self._dirty and uid != self._current) or txnode == self._can_face_txnode():
             return
         fut = asyncio.get_running_loop().create_future()
         self._settled.setdefault(uid, []).append(fut)

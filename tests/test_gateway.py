@@ -344,3 +344,20 @@ async def test_a_forged_bind_never_stops_tcp_to_can(
         stats = gw.stats()
         assert stats["pacer_errors"] == 0 and stats["reconcile_errors"] == 0
         assert gw._ecb is not None and gw._ecb.stats()["conflicts"] >= 1
+
+
+async def test_the_gateways_own_binding_passes_its_bind_gate(
+    bus: str, tcp_ecb: TcpEcb, tmp_path: Path
+) -> None:
+    """While the gateway brings a channel's forwarding in line, a CAN publisher's binding of
+    it waits (the CAN-ECB's bind gate), but not the gateway's own: the reconcile awaits that
+    one, and waited out the gate's timeout, a second for every channel forwarded to CAN."""
+    async with gateway(bus, tcp_ecb, tmp_path / "gw.db") as gw:
+        uid, own = name_to_uid("cmd"), gw.stats()["txnode"]
+        gw._current = uid  # as while reconciling it
+        mine = asyncio.ensure_future(gw._until_settled(uid, own))
+        other = asyncio.ensure_future(gw._until_settled(uid, own + 1))
+        await asyncio.sleep(0)
+        assert mine.done() and not other.done()
+        other.cancel()
+        gw._current = None
