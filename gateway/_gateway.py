@@ -50,6 +50,7 @@ from ._tables import Tables
 log = logging.getLogger("ups.gateway")
 
 _BURST = 4  # frames the pacer may send back to back after an idle spell
+CLOSE_TRIES = 5  # times close() cancels a task (a second apart) before it gives up on it
 
 
 class _Forward:
@@ -224,8 +225,16 @@ class Gateway:
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            for _ in range(CLOSE_TRIES):  # Python 3.11's wait_for can swallow a cancel that
+                await asyncio.wait({task}, timeout=1.0)  # meets its result: ask again
+                if task.done():
+                    break
+                task.cancel()
+            if task.done():
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            else:
+                log.warning("a gateway task did not end when cancelled: %s", task)
         self._tasks.clear()
         if self._tables is not None:
             self._tables.on_change = None

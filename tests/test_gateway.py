@@ -361,3 +361,26 @@ async def test_the_gateways_own_binding_passes_its_bind_gate(
         assert mine.done() and not other.done()
         other.cancel()
         gw._current = None
+
+
+async def test_close_ends_a_task_that_swallowed_its_cancel(
+    bus: str, tcp_ecb: TcpEcb, tmp_path: Path
+) -> None:
+    """Python 3.11's wait_for can swallow a cancel that meets its result: the reconcile loop
+    then waited for work forever, close() with it, and ``ups demo`` hung on Ctrl-C. close()
+    cancels again until the task ends."""
+    gw = Gateway(bus, addr(tcp_ecb), db=tmp_path / "gw.db", node_id=0x6A7E)
+    await gw.start()
+
+    async def stubborn() -> None:
+        with contextlib.suppress(asyncio.CancelledError):  # swallowed once, as wait_for may
+            await asyncio.Event().wait()
+        await asyncio.Event().wait()
+
+    task = asyncio.create_task(stubborn())
+    gw._tasks.append(task)
+    await asyncio.sleep(0)  # it runs, and waits
+    closing = asyncio.create_task(gw.close())
+    await asyncio.wait({closing}, timeout=30)  # a bound for a hang, not a measurement
+    assert closing.done() and task.cancelled()
+    closing.cancel()  # if it hung: the test's own end
