@@ -13,6 +13,7 @@ import re
 import socket
 import struct
 from collections.abc import Iterator
+from datetime import UTC, datetime
 
 import pytest
 
@@ -57,6 +58,12 @@ def test_query_global_pose_is_a_plausible_fix(demo: Proc) -> None:
     assert pose["altitude"] == pytest.approx(ORIGIN_ALT, abs=0.01)
     assert -math.pi <= pose["yaw"] <= math.pi
     assert pose["position_rms"] == pytest.approx(0.71, abs=0.01)  # 0.5 m of noise per axis
+    stamp = pose["timestamp"]  # when the fix arrived, UTC: now, give or take a busy machine
+    assert isinstance(stamp, dict)
+    now = datetime.now(UTC)
+    assert 1 <= stamp["day"] <= 31
+    of_day = stamp["hour"] * 3600 + stamp["minute"] * 60 + stamp["second"]
+    assert (now.hour * 3600 + now.minute * 60 + now.second - of_day) % 86400 < 120
 
 
 def test_a_10_hz_global_pose_event_keeps_coming(demo: Proc) -> None:

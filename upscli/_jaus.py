@@ -136,7 +136,8 @@ def _run_jaus(args: argparse.Namespace) -> int:
     for name, entry in bridge.items():
         way = "JAUS -> UPS" if entry.command else "UPS -> JAUS"
         fields = ", ".join(f"{f.jaus}->{f.ups}" for f in entry.fields)
-        print(f"{name}: {way} on {entry.channel.channel} ({fields})")
+        stamp = ", time stamp: the event's" if entry.stamped else ""
+        print(f"{name}: {way} on {entry.channel.channel} ({fields}{stamp})")
     return 0
 
 
