@@ -187,13 +187,12 @@ limits it to 40 cm/s (the wheel encoder says so)."""
 
 async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
     """A JAUS component on the robot's bus, driving it through examples/robot.jaus.toml."""
-    from ups._address import parse_address
     from ups.jaus import JUDP_PORT, JausId
     from ups.jaus._host import JausHost
     from ups.jaus._mapping import load_mapping
+    from ups.jaus._serve import bind_error, parse_judp_address
 
-    address, port = parse_address(where)
-    address = address or "127.0.0.1"
+    address, port = parse_judp_address(where)
     node = Node(can=bus, name="jaus", node_id=0x0D3E_00A0)
     await node.start()
     try:
@@ -202,10 +201,8 @@ async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
         try:
             bound = await host.start(address, port)
         except OSError as exc:
-            raise ConfigError(
-                f"the JAUS component cannot listen on {address}:{port} (UDP): "
-                f"{exc.strerror or exc}; give another with --jaus HOST:PORT"
-            ) from None
+            error = bind_error(f"{address}:{port}", exc)
+            raise ConfigError(f"the JAUS component {error}; try --jaus HOST:PORT") from None
     except BaseException:
         await node.close()
         raise

@@ -42,7 +42,6 @@ from collections.abc import Iterator
 from typing import Any
 
 from ups import ConfigError, UpsError
-from ups._address import parse_address
 
 from ._codec import AckNak, JausDecodeError, JausId
 from ._codes import message_name
@@ -254,13 +253,12 @@ def _query_of(topic: str) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     """One action; without --target, the component is found first (``_find``)."""
-    from ._serve import parse_jaus_id
+    from ._serve import parse_jaus_id, parse_judp_address
 
     me = parse_jaus_id(args.id)
     to = parse_jaus_id(args.to) if args.to else None
     if args.target:
-        host, port = parse_address(args.target)
-        targets = [(host or "127.0.0.1", port or JUDP_PORT)]
+        targets = [parse_judp_address(args.target)]
     else:
         targets = [(args.broadcast, JUDP_PORT)] if args.broadcast else list(DEFAULT_TARGETS)
     ocu = Ocu(me, targets, ra33=args.framing == "ra33", broadcast=not args.target,

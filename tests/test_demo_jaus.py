@@ -48,6 +48,11 @@ def test_discover_finds_the_demo_with_no_options(demo: Proc) -> None:
                      "type": 60001}  # fmt: skip
 
 
+def test_a_target_without_a_port_is_on_judps_port(demo: Proc) -> None:
+    (status,) = ocu("--target", "127.0.0.1", "query", "Status")
+    assert status["message"] == "ReportStatus" and status["from"] == "1.1.1"
+
+
 def test_query_global_pose_is_a_plausible_fix(demo: Proc) -> None:
     (answer,) = ocu("query", "GlobalPose")
     assert answer["message"] == "ReportGlobalPose" and answer["from"] == "1.1.1"
@@ -132,3 +137,13 @@ def test_a_failing_waypoints_says_why_in_one_line_naming_no_class(
     assert code == 2, proc.stderr_lines
     (line,) = proc.stderr_lines
     assert line.startswith("ups jaus-ocu: ") and not CLASS_NAME.search(line), line
+
+
+def test_a_second_jaus_demo_on_the_same_port_says_why_in_one_line(demo: Proc) -> None:
+    with Proc("demo", "--jaus") as second:
+        code, _ = second.finish(timeout=120)
+    errors = [line for line in second.stderr_lines if " WARNING: " not in line]
+    assert code == 2 and errors == [
+        "ups demo: the JAUS component cannot listen on 127.0.0.1:3794 (UDP): Address already in "
+        "use; try --jaus HOST:PORT\n"
+    ]
