@@ -34,8 +34,8 @@ MAX_DEFERRED = 4096  #: binding requests held during the recovery window
 class Etags:
     """``uid_at`` (etag -> UID) beside the store's UID -> etag; ``seen`` (etag -> when its
     last event came, else the start) for the lease; ``deferred``: the requests held during a
-    recovery window, answered by :meth:`replay`. ``gate(uid)``, when set, is awaited (at most
-    ``GATE_TIMEOUT`` s) before a publisher's Bind is sent.
+    recovery window, answered by :meth:`replay`. ``gate(uid, txnode)``, when set, is awaited (at
+    most ``GATE_TIMEOUT`` s) before the Bind answering publisher ``txnode`` is sent.
 
     Handed the CAN-ECB's ``phase``, its channel table (``channels``: who uses each channel,
     each TxNode's limit), its ``admission`` (streams declared on an etag that is left are
@@ -69,7 +69,7 @@ class Etags:
         self._stored = stored
         self._log_failure = log_failure
         self._lease = lease
-        self.gate: Callable[[int], Awaitable[None]] | None = None
+        self.gate: Callable[[int, int], Awaitable[None]] | None = None
         self.uid_at = {e: u for u, e in store.etags.items()}  # etag -> UID
         #: uid -> the etag being stored for it, and the (kind, TxNode, size class) waiting for it
         self._pending: dict[int, tuple[int, list[tuple[int, int, int]]]] = {}
@@ -163,17 +163,17 @@ class Etags:
         publish = kind == p.PUB_BIND
         self._channels.use(publish, uid, txnode)
         if publish and self.gate is not None:
-            task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid))
+            task = asyncio.get_running_loop().create_task(self._gated_bind(etag, uid, txnode))
             self._gated.add(task)
             task.add_done_callback(self._gated.discard)
         else:
             self._send(p.Bind(etag, uid))
 
-    async def _gated_bind(self, etag: int, uid: int) -> None:
+    async def _gated_bind(self, etag: int, uid: int, txnode: int) -> None:
         assert self.gate is not None
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(GATE_TIMEOUT):
-                await self.gate(uid)
+                await self.gate(uid, txnode)
         self._send(p.Bind(etag, uid))
 
     def _free(self, writes: list[Write], size_class: int) -> int | None:

@@ -57,10 +57,10 @@ class CanEcb:
 
     ``subscribers`` and ``publishers`` map each channel UID to the TxNodes that subscribe to or
     publish on it. ``on_change(uid)`` is called whenever either set of a channel changes (the
-    gateway forwards by them). ``bind_gate(uid)``, when set, is awaited (at most
-    ``_etags.GATE_TIMEOUT`` s) before a publisher's binding is answered, so that a gateway is
-    forwarding the channel before its first event is sent. ``on_standby(reason)`` is called
-    when another CAN-ECB serves the bus and this one stops answering.
+    gateway forwards by them). ``bind_gate(uid, txnode)``, when set, is awaited (at most
+    ``_etags.GATE_TIMEOUT`` s) before the binding of publisher ``txnode`` is answered, so that a
+    gateway is forwarding the channel before its first event is sent. ``on_standby(reason)`` is
+    called when another CAN-ECB serves the bus and this one stops answering.
     """
 
     def __init__(
@@ -122,11 +122,11 @@ class CanEcb:
     # --- tables and statistics -------------------------------------------------------------
 
     @property
-    def bind_gate(self) -> Callable[[int], Awaitable[None]] | None:
+    def bind_gate(self) -> Callable[[int, int], Awaitable[None]] | None:
         return self._etags.gate
 
     @bind_gate.setter
-    def bind_gate(self, gate: Callable[[int], Awaitable[None]] | None) -> None:
+    def bind_gate(self, gate: Callable[[int, int], Awaitable[None]] | None) -> None:
         self._etags.gate = gate
 
     @property

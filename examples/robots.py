@@ -6,13 +6,16 @@ Runs in one process on a python-can ``virtual`` bus and loopback TCP, so it need
 * a TCP-ECB (the TCP/IP registry) listens on a free loopback port;
 * the gateway joins the bus and the TCP network; it hosts the bus's CAN-ECB, which hands out
   TxNodes and etags;
-* a wheel encoder publishes ``robot/speed`` (cm/s, int16) at 20 Hz, never above the limit it
-  last got on ``robot/max-speed``;
+* a wheel encoder publishes ``robot/speed`` (cm/s, int16) at 20 Hz: 50 cm/s, or the limit it
+  last got on ``robot/max-speed`` when that is lower;
 * a sonar publishes ``robot/distance`` (cm, uint16) at 10 Hz, the obstacle coming closer;
 * a motor controller subscribes to both and publishes ``robot/brake`` when an obstacle is
   near while the robot moves. It declares ``robot/brake`` a real-time channel (at most every
   50 ms, due on the bus within 2 ms): the CAN-ECB checks that the bus can guarantee it and
   gives it a priority above all best-effort traffic;
+* a navigator (``navigation.py``) integrates the speed into the robot's local pose
+  (``robot/local-pose``, odometry), simulates a GPS fix (``robot/global-pose``), both at 10 Hz,
+  and steers toward the waypoint it last got on ``robot/waypoint``;
 * a dashboard subscribes to everything and prints what it sees;
 * the operator station, a TCP/IP node, subscribes to ``robot/speed`` and ``robot/brake``
   (the gateway forwards them from CAN, because someone on TCP subscribes) and publishes
@@ -30,9 +33,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from ups import Node
+from ups import ConfigError, Node
 from ups.broker.tcp_ecb import TcpEcb
 from ups.gateway import Gateway
+
+from .navigation import GLOBAL_POSE, LOCAL_POSE, advertise, navigator
 
 SPEED, DISTANCE, BRAKE, MAX_SPEED = (
     "robot/speed",
@@ -42,17 +47,18 @@ SPEED, DISTANCE, BRAKE, MAX_SPEED = (
 )
 NEAR_CM = 40
 LIMIT_CM_S = 30
+CRUISE_CM_S = 50
 
 
 async def wheel_encoder(node: Node, stop: asyncio.Event) -> None:
-    speed = 50
+    speed = CRUISE_CM_S
     limits = await node.subscribe(MAX_SPEED)
     while not stop.is_set():
         while limits.pending:
             msg = await limits.get_msg()
             (limit,) = struct.unpack(">h", msg.data)
             print(f"wheel-encoder: speed limit {limit} cm/s from TxNode 0x{msg.source:02x}")
-            speed = min(speed, limit)
+            speed = max(0, min(CRUISE_CM_S, limit))
         await node.publish(SPEED, struct.pack(">h", speed))
         await asyncio.sleep(0.05)
 
@@ -88,7 +94,7 @@ async def motor_controller(node: Node, stop: asyncio.Event) -> None:
 
 
 async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> None:
-    sub = await node.subscribe(SPEED, DISTANCE, BRAKE)
+    sub = await node.subscribe(SPEED, DISTANCE, BRAKE, LOCAL_POSE, GLOBAL_POSE)
     while not stop.is_set():
         try:
             msg = await sub.get_msg(timeout=0.2)
@@ -100,6 +106,15 @@ async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> No
             if seen[name] == 1:
                 txnode, priority = msg.source, msg.priority
                 print(f"dashboard: BRAKE from TxNode 0x{txnode:02x} (priority {priority:#04x})")
+        elif name == LOCAL_POSE:
+            if seen[name] % 20 == 1:
+                x, y, yaw = struct.unpack(">iih", msg.data)
+                print(f"dashboard: {name} x={x / 1000:.2f} m y={y / 1000:.2f} m "
+                      f"yaw={yaw / 10000:.2f} rad")  # fmt: skip
+        elif name == GLOBAL_POSE:
+            if seen[name] % 20 == 1:
+                lat, lon = struct.unpack_from(">ii", msg.data)
+                print(f"dashboard: {name} {lat / 1e7:.7f} {lon / 1e7:.7f}")
         elif seen[name] % 10 == 1:
             (value,) = struct.unpack(">h" if name == SPEED else ">H", msg.data)
             print(f"dashboard: {name} = {value} (from TxNode 0x{msg.source:02x})")
@@ -132,7 +147,7 @@ async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]
 
 
 INTRO = """\
-UPS demo: four robot parts on one CAN bus, an operator station on TCP/IP, a gateway between.
+UPS demo: five robot parts on one CAN bus, an operator station on TCP/IP, a gateway between.
 - Each CAN node joins the bus and gets a TxNode (its 7-bit sender number) from the CAN-ECB,
   the bus's broker, hosted here by the gateway.
 - Channels have names (robot/speed); on CAN each one is bound to a 14-bit etag. Frames carry
@@ -157,46 +172,64 @@ On a real bus: ups gateway --can socketcan:vcan0 --broker 127.0.0.1:7411, then -
 
 
 JAUS_TRY = """\
-JAUS component 1.1.1 of the robot on {where} (JUDP and RA 3.3; mapping examples/robot.jaus.toml).
+JAUS component 1.1.1 of the robot on {where} (JUDP and RA 3.3; mapping examples/robot.jaus.toml):
+the IGVC profile's Primitive Driver, Global and Local Pose Sensors, Velocity State Sensor, Local
+Waypoint Driver and Local Waypoint List Driver, and the core services.
 Try, in another shell (Ctrl-C here ends the demo):
-  ups jaus-ocu --target {where} query Identification
-  ups jaus-ocu --target {where} query Status
-  ups jaus-ocu --target {where} watch VelocityState --rate 5 --count 5
-  ups jaus-ocu --target {where} send SetWrenchEffort propulsive_linear_x=20 --control
-  ups jaus-ocu --target {where} watch Control --rate 2 --count 4
-The third limits the robot to 40 cm/s: the wheel encoder says so here."""
+  ups jaus-ocu {target}discover
+  ups jaus-ocu {target}query GlobalPose
+  ups jaus-ocu {target}watch LocalPose --rate 10 --count 20
+  ups jaus-ocu {target}waypoints 2,0 2,2 0,2 --speed 0.3
+  ups jaus-ocu {target}send SetWrenchEffort propulsive_linear_x=20 --control
+The waypoints drive the robot around a square (the navigator says so here); the last command
+limits it to 40 cm/s (the wheel encoder says so)."""
 
 
 async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
     """A JAUS component on the robot's bus, driving it through examples/robot.jaus.toml."""
-    from ups._address import parse_address
-    from ups.jaus import JausId
+    from ups.jaus import JUDP_PORT, JausId
     from ups.jaus._host import JausHost
     from ups.jaus._mapping import load_mapping
+    from ups.jaus._serve import bind_error, parse_judp_address
 
+    address, port = parse_judp_address(where)
     node = Node(can=bus, name="jaus", node_id=0x0D3E_00A0)
     await node.start()
-    host = JausHost(node, load_mapping(Path(__file__).with_name("robot.jaus.toml")),
-                    JausId(1, 1, 1), name="UPS demo robot")  # fmt: skip
-    address, port = parse_address(where)
-    bound = await host.start(address or "127.0.0.1", port)
-    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}"), flush=True)
+    try:
+        host = JausHost(node, load_mapping(Path(__file__).with_name("robot.jaus.toml")),
+                        JausId(1, 1, 1), name="UPS demo robot")  # fmt: skip
+        try:
+            bound = await host.start(address, port)
+        except OSError as exc:
+            error = bind_error(f"{address}:{port}", exc)
+            raise ConfigError(f"the JAUS component {error}; try --jaus HOST:PORT") from None
+    except BaseException:
+        await node.close()
+        raise
+    # ups jaus-ocu asks this host's 127.0.0.1:3794 (and the network, by broadcast) by default
+    found = bound[1] == JUDP_PORT and bound[0] in ("127.0.0.1", "0.0.0.0")
+    target = "" if found else f"--target {bound[0]}:{bound[1]} "
+    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}", target=target), flush=True)
     return node, host
 
 
 async def run_demo(
     duration: float | None = 3.0, bus: str = "virtual:ups-demo", jaus: str | None = None
 ) -> int:
+    """The demo in this process, for ``duration`` seconds (None: until cancelled, Ctrl-C);
+    every part's task is ended and awaited before the nodes close, however it stops."""
     print(INTRO)
     with tempfile.TemporaryDirectory() as tmp:
         registry = TcpEcb("127.0.0.1", 0, recovery=0)  # any free port
         await registry.start()
         broker = f"127.0.0.1:{registry.port}"
         gateway = Gateway(bus, broker, db=Path(tmp) / "gateway.db", node_id=0x0D3E_00FF)
-        names = ("wheel-encoder", "sonar", "motor-controller", "dashboard")
+        names = ("wheel-encoder", "sonar", "motor-controller", "dashboard", "navigator")
         nodes = [Node(can=bus, name=name, node_id=0x0D3E_0000 + i) for i, name in enumerate(names)]
         operator = Node(broker=broker, name="operator", node_id=0x0D3E_0100)
         jaus_host: Any = None
+        stop = asyncio.Event()
+        tasks: list[asyncio.Task[None]] = []
         try:
             await gateway.start()
             txnode = gateway.stats()["txnode"]
@@ -204,20 +237,21 @@ async def run_demo(
             for node in nodes:
                 await node.start()
                 print(f"{node.name}: joined as TxNode 0x{node.stats()['txnode']:02x}")
+            await advertise(nodes[4])  # the poses, at their size, before anyone subscribes
             await operator.start()
             if jaus is not None:
                 jaus_node, jaus_host = await jaus_face(bus, jaus)  # closed below
                 nodes.append(jaus_node)
-            stop = asyncio.Event()
             seen: dict[str, int] = {}
             remote: dict[str, int] = {}
-            encoder, sensor, controller, board = nodes[:4]
+            encoder, sensor, controller, board, steering = nodes[:5]
             tasks = [
                 asyncio.create_task(dashboard(board, stop, seen)),
                 asyncio.create_task(operator_station(operator, stop, remote)),
                 asyncio.create_task(motor_controller(controller, stop)),
                 asyncio.create_task(wheel_encoder(encoder, stop)),
                 asyncio.create_task(sonar(sensor, stop)),
+                asyncio.create_task(navigator(steering, stop)),
             ]
             if duration is None:
                 await asyncio.Event().wait()  # until Ctrl-C
@@ -227,11 +261,15 @@ async def run_demo(
             print(f"dashboard saw {seen}")
             print(f"operator saw {remote}")
             print(f"gateway: {gateway.stats()}")
-            local_ok = all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE))
+            local_ok = all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE, LOCAL_POSE, GLOBAL_POSE))
             remote_ok = all(remote.get(ch) for ch in (SPEED, BRAKE, "slowed"))
             print(_outro(local_ok, remote_ok, seen, remote))
             return 0 if local_ok and remote_ok else 1
         finally:
+            stop.set()
+            for task in tasks:  # Ctrl-C: each part ends here, before its node closes
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
             if jaus_host is not None:
                 jaus_host.close()
             await operator.close()
@@ -241,7 +279,7 @@ async def run_demo(
             await registry.close()
 
 
-PARTS = ("wheel-encoder", "sonar", "motor-controller", "dashboard", "operator")
+PARTS = ("wheel-encoder", "sonar", "motor-controller", "dashboard", "navigator", "operator")
 
 
 async def run_part(part: str, can: str | None, broker: str | None, node_id: int) -> int:
@@ -267,6 +305,8 @@ async def run_part(part: str, can: str | None, broker: str | None, node_id: int)
             await motor_controller(node, stop)
         elif part == "dashboard":
             await dashboard(node, stop, seen)
+        elif part == "navigator":
+            await navigator(node, stop)
         else:
             await operator_station(node, stop, seen)
     return 0

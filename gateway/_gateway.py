@@ -50,6 +50,7 @@ from ._tables import Tables
 log = logging.getLogger("ups.gateway")
 
 _BURST = 4  # frames the pacer may send back to back after an idle spell
+CLOSE_TRIES = 5  # times close() cancels a task (a second apart) before it gives up on it
 
 
 class _Forward:
@@ -224,8 +225,16 @@ class Gateway:
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            for _ in range(CLOSE_TRIES):  # Python 3.11's wait_for can swallow a cancel that
+                await asyncio.wait({task}, timeout=1.0)  # meets its result: ask again
+                if task.done():
+                    break
+                task.cancel()
+            if task.done():
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            else:
+                log.warning("a gateway task did not end when cancelled: %s", task)
         self._tasks.clear()
         if self._tables is not None:
             self._tables.on_change = None
@@ -312,10 +321,12 @@ class Gateway:
                         if not fut.done():
                             fut.set_result(None)
 
-    async def _until_settled(self, uid: int) -> None:
+    async def _until_settled(self, uid: int, txnode: int) -> None:
         """Wait until the forwarding of ``uid`` follows the tables (the CAN-ECB's bind gate: a
-        new publisher's first events are then forwarded to subscribers already on TCP)."""
-        if uid not in self._dirty and uid != self._current:
+        new publisher's first events are then forwarded to subscribers already on TCP). Not
+        for the gateway's own binding: its reconcile waits for that one (it used to wait out
+        the gate's timeout, a second per channel forwarded to CAN)."""
+        if (uid not in self._dirty and uid != self._current) or txnode == self._can_face_txnode():
             return
         fut = asyncio.get_running_loop().create_future()
         self._settled.setdefault(uid, []).append(fut)

@@ -79,7 +79,7 @@ class Component:
         self._send = send
         self.access = Access(minimum_authority=minimum_authority, timeout=control_timeout)
         self.authority = minimum_authority  # this component's own authority (Set Authority)
-        self.latest: dict[str, bytes] = {}  # mapped report -> its channel's latest event
+        self.latest: dict[str, tuple[bytes, float]] = {}  # report -> its latest event, when
         self.last_command: dict[str, Any] = {}  # mapped command -> the last one carried out
         self.counters = counters
         for key in (
@@ -200,8 +200,8 @@ class Component:
         report = f"Report{topic}"
         entry = self.bridge.get(report)
         if entry is not None and not entry.command:  # the mapping first: the robot's data
-            data = self.latest.get(report)
-            return None if data is None else _narrow(entry.from_ups(data), query)
+            latest = self.latest.get(report)
+            return None if latest is None else _narrow(entry.from_ups(*latest), query)
         fixed = self._fixed_answer(name, query)
         if fixed is not None:
             return fixed
@@ -339,7 +339,7 @@ class Component:
 
     def _keeper(self, report: str) -> Callable[[Message], None]:
         def keep(msg: Message) -> None:
-            self.latest[report] = msg.data
+            self.latest[report] = (msg.data, msg.timestamp)
             self.events.changed(report)
 
         waypoints = self.waypoints

@@ -6,7 +6,10 @@ its first bytes: ``JAUS01.0`` is the RA 3.3 framing of paper 001, a first byte 2
 (AS5669A). A client is answered in the framing it spoke last.
 
 Messages are served when addressed to this component or broadcast (a part of the
-destination 0xFFFF/0xFF in JUDP, 0xFF in RA 3.3); others are counted (``not_for_me``).
+destination 0xFFFF/0xFF in JUDP, 0xFF in RA 3.3); others are counted (``not_for_me``). In RA
+3.3, where each service is a component of its own with a fixed id (``RA33_COMPONENTS``: paper
+001's OCU asks the Global Pose Sensor, component 38), a message to the id of a service this
+component offers, on its subsystem and node, is served too, and answered from that id.
 
 Bounds, each counted when it bites:
 
@@ -62,6 +65,15 @@ if TYPE_CHECKING:
 log = logging.getLogger("ups.jaus")
 
 MAX_CLIENTS = 64  #: clients (OCUs) known at once
+#: RA 3.3's component ids of the mobility services offered here (OpenJAUS's jausComponent.h,
+#: "pre-defined Jaus Component Ids according to RA 3.2"; paper 001 names 33 and 38)
+RA33_COMPONENTS = {
+    "urn:jaus:jss:mobility:PrimitiveDriver": 33,
+    "urn:jaus:jss:mobility:GlobalPoseSensor": 38,
+    "urn:jaus:jss:mobility:LocalPoseSensor": 41,
+    "urn:jaus:jss:mobility:VelocityStateSensor": 42,
+    "urn:jaus:jss:mobility:LocalWaypointDriver": 46,
+}
 CLIENT_TIMEOUT = EVENT_TIMEOUT  #: seconds of silence after which a client is forgotten
 TICK = 0.5  #: seconds between housekeeping passes (control timeout, silent clients)
 
@@ -76,6 +88,7 @@ class Client:
     instance: int  #: its RA 3.3 instance
     heard: float
     messages: int = 0
+    ra33_as: int = 0  #: the RA 3.3 component id it spoke to last (answers come from it)
 
 
 class JausHost(asyncio.DatagramProtocol):
@@ -126,6 +139,11 @@ class JausHost(asyncio.DatagramProtocol):
         self._sequence = 0
         self._reassembler = Reassembler()
         self._ticker: asyncio.TimerHandle | None = None
+        self.ra33_ids = {me.component} | {  # the RA 3.3 ids served: its own, its services'
+            RA33_COMPONENTS[uri]
+            for uri, _, _ in self.component.services()
+            if uri in RA33_COMPONENTS
+        }
 
     async def start(self, host: str, port: int) -> tuple[str, int]:
         """Bind the mapped channels, open the UDP socket; returns the address bound."""
@@ -218,7 +236,9 @@ class JausHost(asyncio.DatagramProtocol):
         message = decode_ra33(data)
         h = message.header
         to = h.destination
-        if not _for(self.me, JausId(to.subsystem, to.node, to.component), 0xFF):
+        as_id = self.me.component if to.component == 0xFF else to.component  # answered as
+        here = JausId(to.subsystem, to.node, self.me.component)
+        if as_id not in self.ra33_ids or not _for(self.me, here, 0xFF):
             self.counters["not_for_me"] += 1
             return
         src = h.source
@@ -232,19 +252,26 @@ class JausHost(asyncio.DatagramProtocol):
             True,
             src.instance,
             lambda: decode_ra33_payload(h.command_code, message.data),
+            as_id,
         )
         if h.ack_nak == AckNak.REQUEST:
             ack = replace(
                 h,
                 destination=h.source,
-                source=Ra33Address(self.me.subsystem, self.me.node, self.me.component),
+                source=Ra33Address(self.me.subsystem, self.me.node, as_id),
                 ack_nak=AckNak.ACK,
             )
             self._sendto(encode_ra33(Ra33Message(ack)), addr)
             self.counters["acks"] += 1
 
     def _serve(
-        self, source: JausId, addr: tuple[str, int], ra33: bool, instance: int, decode: Any
+        self,
+        source: JausId,
+        addr: tuple[str, int],
+        ra33: bool,
+        instance: int,
+        decode: Any,
+        ra33_as: int = 0,
     ) -> None:
         try:
             payload = decode()
@@ -254,6 +281,7 @@ class JausHost(asyncio.DatagramProtocol):
             return
         self.counters["received"] += 1
         client = self._client(source, addr, ra33, instance)
+        client.ra33_as = ra33_as or self.me.component
         if payload is None:
             self.component.counters["unserved"] += 1
             return
@@ -305,7 +333,7 @@ class JausHost(asyncio.DatagramProtocol):
     def _send(self, client: Client, payload: Any) -> None:
         if client.ra33:
             code, body = encode_ra33_payload(payload)
-            me = Ra33Address(self.me.subsystem, self.me.node, self.me.component)
+            me = Ra33Address(self.me.subsystem, self.me.node, client.ra33_as or self.me.component)
             to = Ra33Address(
                 client.id.subsystem, client.id.node, client.id.component, client.instance
             )
@@ -340,4 +368,4 @@ def _for(me: JausId, to: JausId, broadcast_subsystem: int) -> bool:
     )
 
 
-__all__ = ["CLIENT_TIMEOUT", "MAX_CLIENTS", "Client", "JausHost"]
+__all__ = ["CLIENT_TIMEOUT", "MAX_CLIENTS", "RA33_COMPONENTS", "Client", "JausHost"]

@@ -15,11 +15,13 @@
     channel = "robot/pose"
     rate = 10.0                          # the most reports per second a connection gets
     fields.latitude = { field = "lat" }
+    timestamp = "event"                  # the time stamp: when the channel's event arrived
 
 A command (``Set…``, ``Request…``) is published on its channel from the JAUS fields; every
 field of the channel must then be mapped or constant. A report (``Report…``) is made from the
 channel's latest event; every field of the JAUS message must then be mapped, constant or
-ignored. :func:`load_mapping` checks all of it once, at start, and raises
+ignored, or for a time stamp filled (``timestamp = "event"``: when the channel's event arrived,
+UTC). :func:`load_mapping` checks all of it once, at start, and raises
 :class:`MappingError` naming the file and line of the first problem; the result converts
 with plain arithmetic, nothing read from the file on the way.
 """
@@ -39,6 +41,7 @@ from ups import ConfigError, parse_channel
 from ups._catalog import Catalog, ChannelSpec
 
 from ._messages import TYPES
+from ._payloads import TimeStamp
 
 #: the JAUS messages a mapping can name: the payload classes with fields
 MESSAGES: dict[str, type] = {
@@ -76,6 +79,7 @@ class MessageMap:
     ignored: frozenset[str]
     rate: float | None
     line: int
+    stamped: bool = False  #: a report's time stamp is when its event arrived
 
     def to_ups(self, payload: Any) -> bytes:
         """A command's payload as the channel's event."""
@@ -85,10 +89,13 @@ class MessageMap:
             values[f.ups] = 0.0 if value is None else value * f.scale + f.offset
         return self.channel.encode(values)
 
-    def from_ups(self, data: bytes) -> Any:
-        """A report's payload from the channel's event."""
+    def from_ups(self, data: bytes, when: float | None = None) -> Any:
+        """A report's payload from the channel's event (that arrived at ``when``, seconds since
+        the epoch: the time stamp, when the mapping asks for one)."""
         values = self.channel.decode(data)
         out: dict[str, Any] = dict(self.constants)
+        if self.stamped and when is not None:
+            out["timestamp"] = TimeStamp.at(when)
         for f in self.fields:
             value = (float(values[f.ups]) - f.offset) / f.scale
             out[f.jaus] = round(value) if f.integer else value
@@ -162,7 +169,7 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
         raise fail(f"unknown JAUS message {name!r} (known: {', '.join(sorted(MESSAGES))})")
     if not isinstance(entry, dict):
         raise fail("must be a table")
-    extra = set(entry) - {"channel", "fields", "constants", "ignore", "rate"}
+    extra = set(entry) - {"channel", "fields", "constants", "ignore", "rate", "timestamp"}
     if extra:
         raise fail(f"unknown key {sorted(extra)[0]!r}", sorted(extra)[0])
     if "channel" not in entry:
@@ -221,7 +228,9 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
     for key in ignored:
         if key not in jaus_fields:
             raise fail(f"ignore: {name} has no field {key!r}", str(key))
-    covered = {m.ups for m in maps} if command else {m.jaus for m in maps}
+    stamped = _stamped(entry.get("timestamp"), command, jaus_fields, set(constants) | set(ignored),
+                       fail)  # fmt: skip
+    covered = {m.ups for m in maps} if command else {m.jaus for m in maps} | stamped
     if command:
         missing = sorted(set(ups_fields) - covered - set(constants))
     else:
@@ -237,8 +246,23 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
         constants = {k: int(v) if _integer(jaus_fields[k]) else v for k, v in constants.items()}
     return MessageMap(
         name, command, spec, tuple(maps), dict(constants), frozenset(map(str, ignored)),
-        None if rate is None else float(rate), where.line(name, None),
+        None if rate is None else float(rate), where.line(name, None), bool(stamped),
     )  # fmt: skip
+
+
+def _stamped(kind: Any, command: bool, jaus_fields: dict[str, Any], elsewhere: set[str],
+             fail: Any) -> set[str]:  # fmt: skip
+    """``{"timestamp"}`` when a report's time stamp is filled (``timestamp = "event"``)."""
+    if kind is None:
+        return set()
+    if command or "timestamp" not in jaus_fields:
+        raise fail("timestamp: only a report with a time stamp has one", "timestamp")
+    if kind != "event":
+        raise fail('timestamp = "event" (when the channel\'s event arrived) is the one kind',
+                   "timestamp")  # fmt: skip
+    if "timestamp" in elsewhere:
+        raise fail("timestamp is filled: it is neither constant nor ignored", "timestamp")
+    return {"timestamp"}
 
 
 def _numeric(hint: Any) -> bool:

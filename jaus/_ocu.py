@@ -3,12 +3,18 @@ JSON object per line.
 
 ::
 
-    ups jaus-ocu discover                              # broadcast Query Identification
+    ups jaus-ocu discover                   # Query Identification: broadcast, and this host
+    ups jaus-ocu query GlobalPose           # of the first component that answers
     ups jaus-ocu --target 127.0.0.1:3794 query GlobalPose
     ups jaus-ocu --target … control request --authority 10
     ups jaus-ocu --target … send SetWrenchEffort propulsive_linear_x=25 --control
     ups jaus-ocu --target … watch GlobalPose --rate 10 --count 20
     ups jaus-ocu --target … waypoints 5,0 5,5 0,5 --speed 1.5
+
+Without ``--target``, Query Identification goes to 255.255.255.255:3794 (the network) and to
+127.0.0.1:3794 (a component on this host listening on loopback, as ``ups demo --jaus`` does,
+hears no broadcast), or only to ``--broadcast ADDRESS``; ``discover`` prints every component
+that answers (once each), the other actions talk to the first (of id ``--to``, when given).
 
 Every command speaks JUDP (``--framing ra33`` for paper 001's RA 3.3 framing) from the JAUS id
 ``--id`` (default 200.1.1): a component recognises its controller by that id, so ``control
@@ -17,6 +23,9 @@ within the component's control timeout. ``send --control`` takes control, resume
 releases in one go; ``waypoints`` takes control, loads a local waypoint list, executes it and
 follows it (one line each time the active waypoint changes) until the robot has reached the
 last, keeping control all along, then releases it.
+
+Whatever goes wrong is one line naming the messages as the standard does ("no answer (Report
+Global Pose) to Query Global Pose from 127.0.0.1:3794 within 2 s"), and exit 2.
 """
 
 from __future__ import annotations
@@ -29,12 +38,13 @@ import socket
 import sys
 import time
 import typing
+from collections.abc import Iterator
 from typing import Any
 
-from ups import ConfigError
-from ups._address import parse_address
+from ups import ConfigError, UpsError
 
 from ._codec import AckNak, JausDecodeError, JausId
+from ._codes import message_name
 from ._judp import JUDP_PORT, Broadcast, JudpHeader, JudpMessage, decode_judp, encode_judp
 from ._lists import ALL_ELEMENTS, Element
 from ._messages import PAYLOAD_TYPES, decode_payload, encode_payload
@@ -44,16 +54,27 @@ from ._ra33_payloads import decode_ra33_payload, encode_ra33_payload
 
 BY_NAME = {cls.__name__: cls for cls in PAYLOAD_TYPES.values()}
 EVERYONE = JausId(0xFFFF, 0xFF, 0xFF)
+#: where ``discover`` asks by default: the network by broadcast, and this host (a component
+#: listening on loopback, as ``ups demo --jaus`` does, hears no broadcast)
+DEFAULT_TARGETS = (("255.255.255.255", JUDP_PORT), ("127.0.0.1", JUDP_PORT))
+MAX_EVENT_RATE = 1092.0  #: Hz: Create Event's rate field, scaled 0..1092
 
 
 class Ocu:
-    """One OCU socket: sends messages in one framing, reads what comes back."""
+    """One OCU socket: sends messages in one framing to its targets, reads what comes back."""
 
     def __init__(
-        self, me: JausId, target: tuple[str, int], *, ra33: bool, broadcast: bool, timeout: float
+        self,
+        me: JausId,
+        targets: list[tuple[str, int]],
+        *,
+        ra33: bool,
+        broadcast: bool,
+        timeout: float,
     ) -> None:
-        self.me, self.target, self.ra33, self.broadcast = me, target, ra33, broadcast
+        self.me, self.targets, self.ra33, self.broadcast = me, targets, ra33, broadcast
         self.timeout = timeout
+        self.unreachable: dict[tuple[str, int], str] = {}  # targets a send could not reach
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         if broadcast:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
@@ -62,6 +83,9 @@ class Ocu:
 
     def close(self) -> None:
         self.sock.close()
+
+    def where(self) -> str:
+        return " and ".join(f"{host}:{port}" for host, port in self.targets)
 
     def send(self, payload: Any, to: JausId | None = None) -> None:
         to = to or EVERYONE
@@ -83,7 +107,16 @@ class Ocu:
                 broadcast=Broadcast.GLOBAL if to == EVERYONE else Broadcast.NONE,
             )
             datagram = encode_judp([JudpMessage(header, code, body)])
-        self.sock.sendto(datagram, self.target)
+        sent = 0
+        for target in self.targets:
+            try:
+                self.sock.sendto(datagram, target)
+                sent += 1
+            except OSError as exc:  # a broadcast with no network to go out on, say
+                self.unreachable[target] = exc.strerror or str(exc)
+        if not sent:
+            why = "; ".join(f"{h}:{p}: {text}" for (h, p), text in self.unreachable.items())
+            raise ConfigError(f"cannot send to {why}")
 
     def receive(self, until: float) -> tuple[JausId, Any, tuple[str, int]] | None:
         """The next message decoded (its sender's id, payload and address), or None at
@@ -94,6 +127,8 @@ class Ocu:
                 data, addr = self.sock.recvfrom(65536)
             except TimeoutError:
                 return None
+            except ConnectionRefusedError:  # an ICMP "port unreachable" from a target
+                continue
             try:
                 if data.startswith(RA33_PREFIX):
                     m = decode_ra33(data)
@@ -120,8 +155,16 @@ class Ocu:
         while (got := self.receive(until)) is not None:
             if isinstance(got[1], answer):
                 return got[0], got[1]
-        what = getattr(answer, "__name__", answer)
-        raise ConfigError(f"no {what} within {self.timeout} s from {self.target}")
+        raise ConfigError(
+            f"no answer ({' or '.join(_named(a) for a in typing.get_args(answer) or (answer,))})"
+            f" to {_named(type(payload))} from {self.where()} within {self.timeout:g} s"
+        )
+
+
+def _named(cls: type) -> str:
+    """A message's name as the standard writes it: "Report Global Pose"."""
+    code = getattr(cls, "CODE", None)
+    return (message_name(code) if code is not None else None) or cls.__name__
 
 
 def to_json(source: JausId, payload: Any) -> str:
@@ -154,10 +197,31 @@ def build(name: str, assignments: list[str]) -> Any:
             fields = ", ".join(f.name for f in dataclasses.fields(cls))
             raise ConfigError(f"{name}: give FIELD=VALUE, fields: {fields}")
         values[key] = _convert(hints[key], raw, f"{name}.{key}")
+    required = [
+        f.name
+        for f in dataclasses.fields(cls)
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
+    missing = [f"{key}=VALUE" for key in required if key not in values]
+    if missing:
+        raise ConfigError(f"{name} needs {', '.join(missing)}")
     try:
-        return cls(**values)
+        message = cls(**values)
+        encode_payload(message)
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{name}: {exc}") from None
+        raise ConfigError(f"{name}{_culprit(cls, values, required)}: {exc}") from None
+    return message
+
+
+def _culprit(cls: type, values: dict[str, Any], required: list[str]) -> str:
+    """``.FIELD=VALUE`` of the first value that cannot be sent alone (with 0 in every other
+    required field), or nothing when none is to blame alone."""
+    for key, value in values.items():
+        try:
+            encode_payload(cls(**{**dict.fromkeys(required, 0), key: value}))
+        except (TypeError, ValueError):
+            return f".{key}={value}"
+    return ""
 
 
 def _convert(hint: Any, raw: str, what: str) -> Any:
@@ -177,52 +241,88 @@ def _convert(hint: Any, raw: str, what: str) -> Any:
 
 
 def _query_of(topic: str) -> Any:
-    """Query<topic>: all fields asked for."""
+    """Query<topic>, asking for every field (the query's default presence vector)."""
     cls = BY_NAME.get(f"Query{topic.removeprefix('Query').removeprefix('Report')}")
     if cls is None:
         raise ConfigError(f"no Query message for {topic!r}")
-    names = {f.name for f in dataclasses.fields(cls)}
-    return cls(presence_vector=0xFFFF) if "presence_vector" in names else cls()
+    try:
+        return cls()
+    except TypeError:
+        raise ConfigError(f"{_named(cls)} needs fields: send {cls.__name__} FIELD=VALUE") from None
 
 
 def run(args: argparse.Namespace) -> int:
-    from ._serve import parse_jaus_id
+    """One action; without --target, the component is found first (``_find``)."""
+    from ._serve import parse_jaus_id, parse_judp_address
 
     me = parse_jaus_id(args.id)
-    host, port = parse_address(args.target) if args.target else (args.broadcast, JUDP_PORT)
-    broadcast = args.target is None
-    to = None if broadcast else parse_jaus_id(args.to) if args.to else None
-    ocu = Ocu(
-        me,
-        (host or "127.0.0.1", port or JUDP_PORT),
-        ra33=args.framing == "ra33",
-        broadcast=broadcast,
-        timeout=args.timeout,
-    )
+    to = parse_jaus_id(args.to) if args.to else None
+    if args.target:
+        targets = [parse_judp_address(args.target)]
+    else:
+        targets = [(args.broadcast, JUDP_PORT)] if args.broadcast else list(DEFAULT_TARGETS)
+    ocu = Ocu(me, targets, ra33=args.framing == "ra33", broadcast=not args.target,
+              timeout=args.timeout)  # fmt: skip
     try:
+        if not args.target and args.ocu_command != "discover":
+            to, address = _find(ocu, to)
+            ocu.targets = [address]
         return _ACTIONS[args.ocu_command](ocu, to, args)
+    except UpsError:
+        raise
+    except ValueError as exc:  # a value JAUS cannot carry: one line, no traceback
+        raise ConfigError(str(exc)) from None
     finally:
         ocu.close()
 
 
-def _discover(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+def _identify(ocu: Ocu, to: JausId | None) -> Iterator[tuple[JausId, Any, tuple[str, int]]]:
+    """Every Report Identification that answers one Query Identification within the timeout,
+    each component once (one on this host that hears the broadcast answers twice)."""
     ocu.send(p.QueryIdentification(p.QueryType.COMPONENT), to)
-    until, found = time.monotonic() + ocu.timeout, 0
+    until, seen = time.monotonic() + ocu.timeout, set()
     while (got := ocu.receive(until)) is not None:
         source, payload, addr = got
-        if isinstance(payload, p.ReportIdentification):
-            found += 1
-            print(
-                json.dumps(
-                    {
-                        "id": str(source),
-                        "address": f"{addr[0]}:{addr[1]}",
-                        "name": payload.identification,
-                        "type": int(payload.identification_type),
-                    }
-                ),
-                flush=True,
-            )
+        if not isinstance(payload, p.ReportIdentification):
+            continue
+        key = (source, payload.identification, addr[1])
+        if key not in seen:
+            seen.add(key)
+            yield got
+
+
+def _nobody(ocu: Ocu) -> str:
+    asked = ocu.where()
+    if ocu.unreachable:
+        asked += "; " + "; ".join(f"{h}:{p}: {why}" for (h, p), why in ocu.unreachable.items())
+    return f"no JAUS component answered Query Identification within {ocu.timeout:g} s ({asked})"
+
+
+def _find(ocu: Ocu, to: JausId | None) -> tuple[JausId, tuple[str, int]]:
+    """The first component that answers (``to``, when given), and its address."""
+    for source, _, address in _identify(ocu, to):
+        if to is None or source == to:
+            return source, address
+    raise ConfigError(f"{_nobody(ocu)}: give --target HOST:PORT")
+
+
+def _discover(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    found = 0
+    for source, payload, addr in _identify(ocu, to):
+        found += 1
+        print(
+            json.dumps(
+                {
+                    "id": str(source),
+                    "address": f"{addr[0]}:{addr[1]}",
+                    "name": payload.identification,
+                    "type": int(payload.identification_type),
+                }
+            ),
+            flush=True,
+        )
+    if not found:
+        print(f"ups jaus-ocu: {_nobody(ocu)}", file=sys.stderr)
     return 0 if found else 1
 
 
@@ -263,6 +363,8 @@ def _send(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
 
 
 def _watch(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    if args.rate > MAX_EVENT_RATE:
+        raise ConfigError(f"--rate is at most {MAX_EVENT_RATE:g} Hz (Create Event's range)")
     query = _query_of(args.message)
     code, body = encode_payload(query)
     kind = 1 if args.change else 0
@@ -290,12 +392,21 @@ def _watch(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
 
 
 def _waypoints(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
+    if ocu.ra33:
+        raise ConfigError("waypoints needs --framing judp: the List Manager's messages are "
+                          "served in JUDP only")  # fmt: skip
+    if args.tolerance is not None and args.tolerance > 100:
+        raise ConfigError("--tolerance is at most 100 m (Set Local Waypoint's range)")
+    if args.speed > 327.67:
+        raise ConfigError("--speed is at most 327.67 m/s (Execute List's range)")
     elements = []
     for i, text in enumerate(args.points):
         try:
             x, y = (float(v) for v in text.split(","))
         except ValueError:
             raise ConfigError(f"a waypoint is X,Y in metres, not {text!r}") from None
+        if not (abs(x) <= 100000 and abs(y) <= 100000):
+            raise ConfigError(f"waypoint {text}: x and y are -100000..100000 m in JAUS")
         code, body = encode_payload(p.SetLocalWaypoint(x, y, waypoint_tolerance=args.tolerance))
         after = i + 2 if i + 1 < len(args.points) else 0
         elements.append(Element(i + 1, i, after, code.to_bytes(2, "little") + body))

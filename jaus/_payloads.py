@@ -7,6 +7,7 @@ little-endian. ``docs/jaus.md`` ("Payloads") gives the bytes and the sources. Pu
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from enum import IntEnum
 from math import pi
 from typing import ClassVar, Self, TypeVar
@@ -266,6 +267,12 @@ class TimeStamp:
             self.millisecond | self.second << 10 | self.minute << 16 | self.hour << 22
             | self.day << 27
         )  # fmt: skip
+
+    @classmethod
+    def at(cls, epoch: float) -> TimeStamp:
+        """The time stamp of ``epoch`` (seconds since 1970), in UTC."""
+        t = datetime.fromtimestamp(epoch, UTC)
+        return cls(t.day, t.hour, t.minute, t.second, t.microsecond // 1000)
 
     @classmethod
     def from_int(cls, value: int) -> TimeStamp:

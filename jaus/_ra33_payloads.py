@@ -23,7 +23,7 @@ from math import pi
 from typing import Any
 
 from ._codec import JausDecodeError, Reader, from_scaled, to_scaled
-from ._codes import MessageCode
+from ._codes import MessageCode, message_name
 from ._messages import PAYLOAD_TYPES
 from ._payloads import (
     RejectControl,
@@ -215,7 +215,8 @@ def encode_ra33_payload(payload: Any) -> tuple[int, bytes]:
         return code, RA33_TYPES[code][1](payload)
     if code in SAME:
         return code, payload.to_bytes()
-    raise ValueError(f"{type(payload).__name__} is not served in the RA 3.3 framing")
+    name = message_name(code) or f"message {code:#06x}"
+    raise ValueError(f"{name} is not served in the RA 3.3 framing")
 
 
 __all__ = ["RA33_TYPES", "decode_ra33_payload", "encode_ra33_payload"]

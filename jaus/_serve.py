@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 
 from ups import ConfigError
 from ups._address import parse_address
@@ -13,10 +14,26 @@ from ups._metrics import Reading, serving_metrics
 
 from ._codec import JausId
 from ._host import JausHost
+from ._judp import JUDP_PORT
 from ._mapping import Bridge
 from ._metrics import jaus_reading
 
 log = logging.getLogger("ups.jaus")
+
+
+def parse_judp_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT``, or ``HOST`` on JUDP's port 3794."""
+    host, port = parse_address(text)
+    _, colon, last = text.rpartition(":")
+    return (host, port) if colon and "]" not in last else (host, JUDP_PORT)
+
+
+def bind_error(where: str, exc: OSError) -> ConfigError:
+    """One line for a UDP socket that cannot be bound: the system's reason (uvloop puts it in
+    the cause, under a message showing a Python tuple)."""
+    cause = exc.__cause__ if isinstance(exc.__cause__, OSError) else exc
+    why = cause.strerror or (os.strerror(cause.errno) if cause.errno else str(cause))
+    return ConfigError(f"cannot listen on {where} (UDP): {why}")
 
 
 def parse_jaus_id(text: str) -> JausId:
@@ -31,7 +48,7 @@ async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
     from ups import Node
 
     me = parse_jaus_id(args.id)
-    host, port = parse_address(args.listen)
+    host, port = parse_judp_address(args.listen)
     kind, where = network_choice(args)
     node = Node(
         can=where if kind == "can" else None,
@@ -52,7 +69,7 @@ async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
         try:
             bound = await component.start(host or "0.0.0.0", port)
         except OSError as exc:
-            raise ConfigError(f"cannot listen on {args.listen} (UDP): {exc.strerror}") from None
+            raise bind_error(f"{host or '0.0.0.0'}:{port}", exc) from None
         face = node.face
         if hasattr(face, "extra_status"):  # TCP and Zenoh nodes answer `ups status`
             face.extra_status = component.status

@@ -43,6 +43,7 @@ class Proc:
         self.stderr_lines: list[str] = []
         self.stdout_lines: list[str] = []
         self._lines: queue.Queue[str | None] = queue.Queue()
+        self._out: queue.Queue[str | None] = queue.Queue()
         self._readers = [
             threading.Thread(target=self._read, daemon=True),
             threading.Thread(target=self._read_stdout, daemon=True),
@@ -54,6 +55,8 @@ class Proc:
         assert self.popen.stdout is not None
         for line in self.popen.stdout:
             self.stdout_lines.append(line)
+            self._out.put(line)
+        self._out.put(None)
 
     def _read(self) -> None:
         assert self.popen.stderr is not None
@@ -62,12 +65,14 @@ class Proc:
             self._lines.put(line)
         self._lines.put(None)
 
-    def wait_for_line(self, pattern: str, timeout: float = 20.0) -> str:
-        """Block until a stderr line matches ``pattern``; fail if the process ends first."""
+    def wait_for_line(self, pattern: str, timeout: float = 20.0, *, stdout: bool = False) -> str:
+        """Block until a stderr line (with ``stdout``, a stdout line) matches ``pattern``; fail
+        if the process ends first."""
         regex = re.compile(pattern)
+        lines = self._out if stdout else self._lines
         while True:
             try:
-                line = self._lines.get(timeout=timeout)
+                line = lines.get(timeout=timeout)
             except queue.Empty:
                 raise AssertionError(f"{self.args[0]}: no line matching {pattern!r}") from None
             if line is None:

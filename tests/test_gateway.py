@@ -344,3 +344,43 @@ async def test_a_forged_bind_never_stops_tcp_to_can(
         stats = gw.stats()
         assert stats["pacer_errors"] == 0 and stats["reconcile_errors"] == 0
         assert gw._ecb is not None and gw._ecb.stats()["conflicts"] >= 1
+
+
+async def test_the_gateways_own_binding_passes_its_bind_gate(
+    bus: str, tcp_ecb: TcpEcb, tmp_path: Path
+) -> None:
+    """While the gateway brings a channel's forwarding in line, a CAN publisher's binding of
+    it waits (the CAN-ECB's bind gate), but not the gateway's own: the reconcile awaits that
+    one, and waited out the gate's timeout, a second for every channel forwarded to CAN."""
+    async with gateway(bus, tcp_ecb, tmp_path / "gw.db") as gw:
+        uid, own = name_to_uid("cmd"), gw.stats()["txnode"]
+        gw._current = uid  # as while reconciling it
+        mine = asyncio.ensure_future(gw._until_settled(uid, own))
+        other = asyncio.ensure_future(gw._until_settled(uid, own + 1))
+        await asyncio.sleep(0)
+        assert mine.done() and not other.done()
+        other.cancel()
+        gw._current = None
+
+
+async def test_close_ends_a_task_that_swallowed_its_cancel(
+    bus: str, tcp_ecb: TcpEcb, tmp_path: Path
+) -> None:
+    """Python 3.11's wait_for can swallow a cancel that meets its result: the reconcile loop
+    then waited for work forever, close() with it, and ``ups demo`` hung on Ctrl-C. close()
+    cancels again until the task ends."""
+    gw = Gateway(bus, addr(tcp_ecb), db=tmp_path / "gw.db", node_id=0x6A7E)
+    await gw.start()
+
+    async def stubborn() -> None:
+        with contextlib.suppress(asyncio.CancelledError):  # swallowed once, as wait_for may
+            await asyncio.Event().wait()
+        await asyncio.Event().wait()
+
+    task = asyncio.create_task(stubborn())
+    gw._tasks.append(task)
+    await asyncio.sleep(0)  # it runs, and waits
+    closing = asyncio.create_task(gw.close())
+    await asyncio.wait({closing}, timeout=30)  # a bound for a hang, not a measurement
+    assert closing.done() and task.cancelled()
+    closing.cancel()  # if it hung: the test's own end

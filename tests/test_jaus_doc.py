@@ -183,3 +183,18 @@ def test_the_hosts_documented_bounds_are_the_codes() -> None:
         ("tolerance (else 1 m)", DEFAULT_TOLERANCE == 1.0),
     ):
         assert row in bounds and value, row
+
+
+def test_the_mapping_shown_is_the_demo_robots() -> None:
+    """Each paragraph of the TOML shown is verbatim in examples/robot.jaus.toml, and the
+    demo's mapping loads."""
+    from ups.jaus._mapping import load_mapping
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "robot.jaus.toml"
+    text = section("## The mapping file: JAUS messages onto UPS channels")
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert len(blocks) == 2
+    mapping = path.read_text()
+    for paragraph in "\n\n".join(blocks).split("\n\n"):
+        assert paragraph.strip() and paragraph.strip() + "\n" in mapping, paragraph
+    assert {"ReportGlobalPose", "SetTravelSpeed"} <= set(load_mapping(path))

@@ -226,3 +226,51 @@ async def test_velocity_state_from_the_wheels_and_wrench_effort_from_the_last_co
     code, body = await first.ask(0x2405, struct.pack("<H", 0xFFFF))
     assert code == 0x4405 and body == effort(30)  # Report Wrench Effort: the same record
     assert host.stats()["not_yet"] == 1
+
+
+IGVC_MOBILITY = ("PrimitiveDriver", "GlobalPoseSensor", "LocalPoseSensor", "VelocityStateSensor",
+                 "LocalWaypointDriver", "LocalWaypointListDriver", "ListManager")  # fmt: skip
+
+
+def ra33(code: int, component: int, payload: bytes = b"") -> bytes:
+    """Paper 001's framing: "JAUS01.0", properties (priority 6, version 2 in bits 8-13), the
+    code, the destination (instance 1, ``component``, node 1, subsystem 1), the source
+    (instance 1, component 1, node 1, subsystem 42), data control (the data size), sequence
+    number 0; then the data."""
+    header = struct.pack("<HH", 6 | 2 << 8, code) + bytes((1, component, 1, 1, 1, 1, 1, 42))
+    return b"JAUS01.0" + header + struct.pack("<HH", len(payload), 0) + payload
+
+
+async def test_the_demo_robot_offers_the_igvc_profile_and_answers_ra33_at_its_service_ids(
+    robot: tuple[JausHost, tuple[str, int], Node],
+) -> None:
+    """Report Services lists every IGVC mobility service; an RA 3.3 OCU, which addresses a
+    service as a component of its own (RA 3.3's ids: 33 Primitive Driver, 38 Global Pose
+    Sensor, 41 Local Pose Sensor, ...), is answered from the id it asked; an id of a service
+    not offered is not this component's."""
+    host, address, gps = robot
+    uris = {uri for uri, _, _ in host.component.services()}
+    assert {f"urn:jaus:jss:mobility:{name}" for name in IGVC_MOBILITY} <= uris
+    assert host.ra33_ids == {1, 33, 38, 41, 42, 46}
+    fix = host.component.bridge["ReportGlobalPose"].channel
+    await gps.publish("robot/global-pose", fix.encode({"lat": 48.4, "lon": 9.95, "yaw": 0.5,
+                                                      "rms": 0.71}))  # fmt: skip
+    await eventually(lambda: "ReportGlobalPose" in host.component.latest)
+    loop = asyncio.get_running_loop()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.setblocking(False)
+        await loop.sock_sendto(sock, ra33(0x2402, 38, struct.pack("<H", 0x01FF)), address)
+        async with asyncio.timeout(5):
+            data = await loop.sock_recv(sock, 65536)
+        assert struct.unpack_from("<H", data, 10)[0] == 0x4402  # Report Global Pose
+        assert tuple(data[16:20]) == (1, 38, 1, 1)  # from the Global Pose Sensor
+        (lat,) = struct.unpack_from("<i", data, 26)  # signed, over [-90, 90] (OpenJAUS)
+        assert lat * 180 / 4294967294 == pytest.approx(48.4, abs=1e-6)
+        before = host.stats()["not_for_me"]
+        await loop.sock_sendto(sock, ra33(0x2202, 50, b""), address)  # a Range Sensor: no
+        await loop.sock_sendto(sock, ra33(0x2202, 33, b""), address)  # the Primitive Driver
+        async with asyncio.timeout(5):
+            data = await loop.sock_recv(sock, 65536)
+        assert struct.unpack_from("<H", data, 10)[0] == 0x4202  # Report Heartbeat Pulse
+        assert tuple(data[16:20]) == (1, 33, 1, 1)
+    assert host.stats()["not_for_me"] == before + 1

@@ -11,7 +11,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from ups._catalog import Catalog
-from ups.jaus import ReportAuthority, ReportGlobalPose, SetWrenchEffort, encode_payload
+from ups.jaus import (
+    ReportAuthority,
+    ReportGlobalPose,
+    SetWrenchEffort,
+    TimeStamp,
+    encode_payload,
+)
 from ups.jaus._mapping import MappingError, load_mapping
 
 from .procs import ROOT, Proc
@@ -144,7 +150,38 @@ BAD = [
         5,
         "is an integer, not 2.5",
     ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\ntimestamp = 'event'\n"
+        "fields.propulsive_linear_x = 'limit'\n",
+        5,
+        "only a report with a time stamp",
+    ),
+    (
+        "[message.ReportGlobalPose]\nchannel = 'robot/pose'\nfields.latitude = 'lat'\n"
+        "timestamp = 'now'\n",
+        6,
+        'timestamp = "event"',
+    ),
+    (
+        "[message.ReportGlobalPose]\nchannel = 'robot/pose'\nfields.latitude = 'lat'\n"
+        "timestamp = 'event'\nignore = ['longitude', 'altitude', 'position_rms', 'roll', "
+        "'pitch', 'yaw', 'attitude_rms', 'timestamp']\n",
+        6,
+        "neither constant nor ignored",
+    ),
 ]
+
+
+def test_a_report_can_be_stamped_with_its_events_arrival(tmp_path: Path) -> None:
+    body = GOOD.replace('"attitude_rms", "timestamp"]', '"attitude_rms"]\ntimestamp = "event"')
+    pose = load_mapping(write(tmp_path, body))["ReportGlobalPose"]
+    event = pose.channel.encode({"lat": 48.4, "lon": 9.95, "heading": 0.0})
+    when = 1_700_000_000.25  # 2023-11-14 22:13:20.250 UTC
+    report = pose.from_ups(event, when)
+    assert report.timestamp == TimeStamp(day=14, hour=22, minute=13, second=20, millisecond=250)
+    assert pose.from_ups(event).timestamp is None  # no time given: none made up
+    _, data = encode_payload(report)
+    assert int.from_bytes(data[:2], "little") >> 8 & 1  # presence bit 8: the time stamp
 
 
 @pytest.mark.parametrize(("body", "line", "says"), BAD)

@@ -134,7 +134,8 @@ def priority_arg(text: str) -> int:
 
 def run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
     """Run ``coro`` (on uvloop when installed); SIGTERM and SIGINT cancel it, so every
-    resource closes before exit."""
+    resource closes before exit. The exit code is then 0 after SIGTERM (a daemon asked to
+    stop) and 130 after SIGINT (Ctrl-C, as a shell reports it), else what ``coro`` returns."""
 
     import asyncio
     import signal
@@ -143,12 +144,19 @@ def run_until_signal(coro: Coroutine[Any, Any, int]) -> int:
         task = asyncio.current_task()
         assert task is not None
         loop = asyncio.get_running_loop()
+        caught: list[int] = []
+
+        def stop(sig: int) -> None:
+            caught.append(sig)
+            task.cancel()
+
         for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, task.cancel)
+            loop.add_signal_handler(sig, stop, sig)
         try:
-            return await coro
+            code = await coro
         except asyncio.CancelledError:
-            return 0
+            code = 0
+        return 130 if signal.SIGINT in caught else code
 
     try:
         import uvloop  # the faster event loop, when installed (pip install ups-pubsub[fast])

@@ -7,7 +7,13 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from ups._cliargs import add_catalog, add_network, positive_float, run_until_signal
+from ups._cliargs import (
+    add_catalog,
+    add_network,
+    positive_float,
+    positive_int,
+    run_until_signal,
+)
 from ups._errors import ConfigError
 from ups._metrics import add_metrics
 
@@ -28,7 +34,7 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     cmd.add_argument("--map", metavar="FILE", help="the mapping of JAUS messages onto channels")
     cmd.add_argument("--name", default="UPS robot", help="what Report Identification says")
     cmd.add_argument(
-        "--authority", type=int, default=0, metavar="0-255",
+        "--authority", type=authority, default=0, metavar="0-255",
         help="the lowest authority an OCU needs to take control (default 0)",
     )  # fmt: skip
     add_network(cmd, "the robot's CAN bus", "the robot's IP network")
@@ -50,13 +56,24 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     cmd.set_defaults(run=_run_ocu)
 
 
+def authority(text: str) -> int:
+    """A JAUS authority code: 0-255."""
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text}") from None
+    if not 0 <= value <= 255:
+        raise argparse.ArgumentTypeError(f"an authority is 0-255, not {value}")
+    return value
+
+
 def _add_ocu_arguments(cmd: argparse.ArgumentParser) -> None:
     where = cmd.add_mutually_exclusive_group()
     where.add_argument("--target", metavar="HOST:PORT", help="the component's UDP address")
     where.add_argument(
-        "--broadcast", metavar="ADDRESS", default="255.255.255.255",
-        help="without --target: broadcast to ADDRESS:3794 (default 255.255.255.255; only on "
-        "a network you may broadcast on)",
+        "--broadcast", metavar="ADDRESS", default=None,
+        help="without --target: ask by broadcast to ADDRESS:3794 only (default: "
+        "255.255.255.255:3794 and this host's 127.0.0.1:3794); the first to answer is used",
     )  # fmt: skip
     cmd.add_argument("--to", metavar="S.N.C", help="the component's JAUS id (default: anyone)")
     cmd.add_argument("--id", default="200.1.1", metavar="S.N.C", help="this OCU's JAUS id")
@@ -70,19 +87,20 @@ def _add_ocu_arguments(cmd: argparse.ArgumentParser) -> None:
     act.add_argument("message", metavar="MESSAGE")
     act = actions.add_parser("control", help="request, release or query control")
     act.add_argument("action", choices=("request", "release", "query"))
-    act.add_argument("--authority", type=int, default=10, help="0-255 (default 10)")
+    act.add_argument("--authority", type=authority, default=10, help="0-255 (default 10)")
     act = actions.add_parser("send", help="send a command: MESSAGE FIELD=VALUE ...")
     act.add_argument("message", metavar="MESSAGE", help="e.g. SetWrenchEffort")
     act.add_argument("fields", nargs="*", metavar="FIELD=VALUE")
     act.add_argument("--control", action="store_true",
                      help="take control and resume first, release after")  # fmt: skip
-    act.add_argument("--authority", type=int, default=10, help="0-255 (default 10)")
+    act.add_argument("--authority", type=authority, default=10, help="0-255 (default 10)")
     act = actions.add_parser("watch", help="an event subscription: each report as it comes")
     act.add_argument("message", metavar="MESSAGE", help="e.g. GlobalPose")
     act.add_argument("--rate", type=positive_float, default=1.0,
                      help="reports per second (default 1)")  # fmt: skip
     act.add_argument("--change", action="store_true", help="on every change, not periodic")
-    act.add_argument("--count", type=int, default=None, help="stop after COUNT reports")
+    act.add_argument("--count", type=positive_int, default=None,
+                     help="stop after COUNT reports")  # fmt: skip
     act = actions.add_parser(
         "waypoints", help="load a local waypoint list, execute it, follow it to its end"
     )
@@ -100,7 +118,7 @@ def _add_ocu_arguments(cmd: argparse.ArgumentParser) -> None:
         default=0.5,
         help="seconds between questions about the active waypoint (default 0.5)",
     )
-    act.add_argument("--authority", type=int, default=10, help="0-255 (default 10)")
+    act.add_argument("--authority", type=authority, default=10, help="0-255 (default 10)")
 
 
 def _run_jaus(args: argparse.Namespace) -> int:
@@ -109,8 +127,6 @@ def _run_jaus(args: argparse.Namespace) -> int:
     if args.jaus_command is None:
         if args.map is None:
             raise ConfigError("ups jaus needs --map FILE (or: ups jaus check FILE)")
-        if not 0 <= args.authority <= 255:
-            raise ConfigError(f"--authority is 0-255, not {args.authority}")
         bridge = load_mapping(args.map)
         from ups.jaus._serve import serve
 
@@ -122,7 +138,8 @@ def _run_jaus(args: argparse.Namespace) -> int:
     for name, entry in bridge.items():
         way = "JAUS -> UPS" if entry.command else "UPS -> JAUS"
         fields = ", ".join(f"{f.jaus}->{f.ups}" for f in entry.fields)
-        print(f"{name}: {way} on {entry.channel.channel} ({fields})")
+        stamp = ", time stamp: the event's" if entry.stamped else ""
+        print(f"{name}: {way} on {entry.channel.channel} ({fields}{stamp})")
     return 0
 
 

@@ -1,0 +1,149 @@
+"""``ups demo --jaus`` and ``ups jaus-ocu`` as a user types them, each a process, inside a
+private network namespace (the demo's JAUS component takes UDP port 3794 on loopback, and
+``discover`` broadcasts): the OCU finds the demo with no options, its Global Pose is plausible,
+a 10 Hz Global Pose event keeps coming, paper 001's RA 3.3 pose query to the Global Pose
+Sensor (component 38) is answered, a waypoint list is driven to its end, and a failing
+``waypoints`` says why in one line that names no Python class."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import socket
+import struct
+from collections.abc import Iterator
+from datetime import UTC, datetime
+
+import pytest
+
+from .procs import Proc, private_multicast_bus
+
+pytestmark = [pytest.mark.netns, pytest.mark.timeout(300)]
+
+ORIGIN_LAT, ORIGIN_LON, ORIGIN_ALT = 48.4, 9.95, 480.0  # examples/navigation.py ORIGIN
+CLASS_NAME = re.compile(r"\b[A-Z][a-z0-9]+[A-Z]\w*|Error\b|ups\.\w+|\('")  # CamelCase, repr
+
+
+@pytest.fixture(scope="module")
+def demo() -> Iterator[Proc]:
+    private_multicast_bus()  # skips (or fails) outside a private network namespace
+    with Proc("demo", "--jaus") as proc:
+        proc.wait_for_line(r"Try, in another shell", timeout=120, stdout=True)
+        yield proc
+
+
+def ocu(*args: str, timeout: float = 60) -> list[dict[str, object]]:
+    """``ups jaus-ocu ARGS``: its JSON lines; it must exit 0."""
+    with Proc("jaus-ocu", *args) as proc:
+        code, out = proc.finish(timeout=timeout)
+    assert code == 0, "".join(proc.stderr_lines)
+    return [json.loads(line) for line in out.splitlines()]
+
+
+def test_discover_finds_the_demo_with_no_options(demo: Proc) -> None:
+    assert "  ups jaus-ocu discover\n" in demo.stdout_lines  # what the demo tells a user to try
+    (found,) = ocu("discover")
+    assert found == {"id": "1.1.1", "address": "127.0.0.1:3794", "name": "UPS demo robot",
+                     "type": 60001}  # fmt: skip
+
+
+def test_a_target_without_a_port_is_on_judps_port(demo: Proc) -> None:
+    (status,) = ocu("--target", "127.0.0.1", "query", "Status")
+    assert status["message"] == "ReportStatus" and status["from"] == "1.1.1"
+
+
+def test_query_global_pose_is_a_plausible_fix(demo: Proc) -> None:
+    (answer,) = ocu("query", "GlobalPose")
+    assert answer["message"] == "ReportGlobalPose" and answer["from"] == "1.1.1"
+    pose = answer["fields"]
+    assert isinstance(pose, dict)
+    # near the origin (the robot circles 2 m around it; 0.001 degrees is about 100 m)
+    assert abs(pose["latitude"] - ORIGIN_LAT) < 1e-3 and abs(pose["longitude"] - ORIGIN_LON) < 1e-3
+    assert pose["altitude"] == pytest.approx(ORIGIN_ALT, abs=0.01)
+    assert -math.pi <= pose["yaw"] <= math.pi
+    assert pose["position_rms"] == pytest.approx(0.71, abs=0.01)  # 0.5 m of noise per axis
+    stamp = pose["timestamp"]  # when the fix arrived, UTC: now, give or take a busy machine
+    assert isinstance(stamp, dict)
+    now = datetime.now(UTC)
+    assert 1 <= stamp["day"] <= 31
+    of_day = stamp["hour"] * 3600 + stamp["minute"] * 60 + stamp["second"]
+    assert (now.hour * 3600 + now.minute * 60 + now.second - of_day) % 86400 < 120
+
+
+def test_a_10_hz_global_pose_event_keeps_coming(demo: Proc) -> None:
+    reports = ocu("watch", "GlobalPose", "--rate", "10", "--count", "30")
+    assert [r["message"] for r in reports] == ["ReportGlobalPose"] * 30
+    fixes = {(r["fields"]["latitude"], r["fields"]["longitude"]) for r in reports}  # type: ignore[index]
+    assert len(fixes) > 1  # each event the latest fix, and fixes move (the robot, the noise)
+
+
+def test_paper_001s_ra33_pose_query_to_the_global_pose_sensor_is_answered(demo: Proc) -> None:
+    """docs/jaus.md's second RA 3.3 worked example, byte for byte: "JAUS01.0", properties
+    0x0206 (priority 6, version 2), Query Global Pose 0x2402, to instance 1 of component 38
+    (the Global Pose Sensor) of node 1 of subsystem 1, from component 1 of node 1 of subsystem
+    42, 2 bytes of data (presence vector 0x01FF), sequence number 3."""
+    query = bytes.fromhex(
+        "4a 41 55 53 30 31 2e 30 06 02 02 24 01 26 01 01 01 01 01 2a 02 00 03 00 ff 01"
+    )
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.settimeout(10)
+        sock.sendto(query, ("127.0.0.1", 3794))
+        data, _ = sock.recvfrom(65536)
+    assert data[:8] == b"JAUS01.0"
+    props, code = struct.unpack_from("<HH", data, 8)
+    assert props >> 8 & 0x3F == 2 and code == 0x4402  # RA 3.2/3.3, Report Global Pose
+    assert tuple(data[12:16]) == (1, 1, 1, 42)  # to instance 1, component 1, node 1, subsystem 42
+    assert tuple(data[16:20]) == (1, 38, 1, 1)  # from the Global Pose Sensor, as asked
+    size = struct.unpack_from("<H", data, 20)[0] & 0x0FFF
+    assert len(data) == 24 + size
+    presence, lat, lon = struct.unpack_from("<Hii", data, 24)
+    assert presence & 0b11 == 0b11  # latitude, longitude; signed scaled integers (OpenJAUS)
+    assert abs(lat * 180 / 4294967294 - ORIGIN_LAT) < 1e-3
+    assert abs(lon * 360 / 4294967294 - ORIGIN_LON) < 1e-3
+
+
+def test_a_waypoint_list_is_driven_to_its_end(demo: Proc) -> None:
+    lines = ocu("waypoints", "2,0", "2,2", "0,2", "--speed", "0.3", timeout=240)
+    assert (
+        lines[0]["message"] == "ConfirmControl" and lines[1]["message"] == "ConfirmElementRequest"
+    )
+    active = [line["active"] for line in lines[2:]]
+    assert active[-1] == 0 and set(active) <= {0, 1, 2, 3} and 3 in active  # to the tail
+    heading = [line for line in demo.stdout_lines if line.startswith("navigator: heading for")]
+    assert "navigator: heading for the waypoint x=0.00 m, y=2.00 m\n" in heading
+    (pose,) = ocu("query", "LocalPose")
+    fields = pose["fields"]
+    assert isinstance(fields, dict)  # it drove there: within the robot's 1 m and a turn
+    assert math.hypot(fields["x"] - 0, fields["y"] - 2) < 1.6
+    (speed,) = ocu("query", "TravelSpeed")
+    assert speed["fields"] == {"speed": pytest.approx(0.3, abs=0.01)}
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("--to", "9.9.9", "--timeout", "1", "waypoints", "2,0"),  # nobody of that id answers
+        ("--framing", "ra33", "waypoints", "2,0"),  # the list messages have no RA 3.3 form
+        ("waypoints", "2,0", "5"),  # not X,Y
+        ("waypoints", "2,0", "--tolerance", "500"),  # beyond JAUS's range
+    ],
+)
+def test_a_failing_waypoints_says_why_in_one_line_naming_no_class(
+    demo: Proc, args: tuple[str, ...]
+) -> None:
+    with Proc("jaus-ocu", "--target", "127.0.0.1:3794", *args) as proc:
+        code, _ = proc.finish(timeout=60)
+    assert code == 2, proc.stderr_lines
+    (line,) = proc.stderr_lines
+    assert line.startswith("ups jaus-ocu: ") and not CLASS_NAME.search(line), line
+
+
+def test_a_second_jaus_demo_on_the_same_port_says_why_in_one_line(demo: Proc) -> None:
+    with Proc("demo", "--jaus") as second:
+        code, _ = second.finish(timeout=120)
+    errors = [line for line in second.stderr_lines if " WARNING: " not in line]
+    assert code == 2 and errors == [
+        "ups demo: the JAUS component cannot listen on 127.0.0.1:3794 (UDP): Address already in "
+        "use; try --jaus HOST:PORT\n"
+    ]
