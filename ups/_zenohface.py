@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ._errors import BrokerUnavailable, ConfigError, PayloadTooLarge
+from ._extras import require
 
 if TYPE_CHECKING:
     from ._face import ChannelState, FaceContext
@@ -87,10 +88,16 @@ def from_zenoh_priority(band: int) -> int:
     return -(-(band - 1) * 256 // 7)
 
 
+def require_zenoh() -> None:
+    """Raise ``ConfigError`` saying how to install Zenoh when it is not installed."""
+    require("zenoh", "zenoh", "Zenoh is not installed (eclipse-zenoh)")
+
+
 def zenoh_config(endpoint: str, config: str | Path | None, mode: str = "client") -> Any:
     """A Zenoh config: the file's when given, else Zenoh's defaults, with ``endpoint`` added
     to connect to. ``mode`` and multicast scouting off, unless the file names them (a key
     ``mode``, a key ``multicast``): UPS never scouts a real LAN unasked."""
+    require_zenoh()
     import zenoh
 
     text = ""
@@ -453,9 +460,8 @@ async def query_status(
     endpoint: str, config: str | Path | None = None, timeout: float = 5.0
 ) -> list[dict[str, Any]]:
     """The status of every UPS node and gateway on the Zenoh network at ``endpoint``."""
+    conf = zenoh_config(endpoint, config)  # first: it says when Zenoh is not installed
     import zenoh
-
-    conf = zenoh_config(endpoint, config)
 
     def ask() -> list[dict[str, Any]]:
         try:

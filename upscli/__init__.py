@@ -433,9 +433,11 @@ def _run_bench(args: argparse.Namespace) -> int:
     try:
         from ups.benchmarks import bench
     except ImportError as exc:
+        from ups._extras import install_hint
+
         raise ConfigError(
-            f"the benchmarks are not installed ({exc}): pip install 'ups-pubsub[bench]', or run "
-            "from a checkout of the repository"
+            f"the benchmarks cannot be loaded ({exc.name or exc} is missing): "
+            f"{install_hint('bench')}"
         ) from None
     argv = ["--quick"] if args.quick else []
     argv += ["--json", args.json] if args.json else []
