@@ -226,10 +226,10 @@ def add_network(cmd: argparse.ArgumentParser, can_help: str, ip_help: str) -> No
     add_zenoh_config(cmd)
 
 
-def add_catalog(cmd: argparse.ArgumentParser) -> None:
+def add_catalog(cmd: argparse.ArgumentParser, what: str = "names and payload layouts") -> None:
     cmd.add_argument(
         "--catalog", metavar="FILE", default=None,
-        help="TOML channel catalog: names and payload layouts (default: $UPS_CATALOG)",
+        help=f"TOML channel catalog: {what} (default: $UPS_CATALOG)",
     )  # fmt: skip
 
 

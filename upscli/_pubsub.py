@@ -23,6 +23,7 @@ from ups._cliargs import (
 )
 
 if TYPE_CHECKING:
+    from ups._catalog import Catalog
     from ups._message import Message
 
 EXIT_TIMEOUT = 1  #: ups sub saw fewer events than --count before --timeout
@@ -57,6 +58,7 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
 
     cmd = command("sub", help="print the events of channels")
     cmd.add_argument("channels", nargs="+", type=channel_arg, metavar="CHANNEL")
+    add_catalog(cmd, "names and payload layouts: events printed as decoded values")
     add_node_options(cmd)
     cmd.add_argument("--count", type=positive_int, default=None, help="exit 0 after N events")
     cmd.add_argument(
@@ -109,6 +111,10 @@ def _run_pub(args: argparse.Namespace) -> int:
 def _run_sub(args: argparse.Namespace) -> int:
     import asyncio
 
+    from ups._catalog import load_catalog
+
+    catalog = load_catalog(args.catalog)
+
     async def run() -> int:
         got = 0
         code = 0
@@ -128,7 +134,7 @@ def _run_sub(args: argparse.Namespace) -> int:
                         code = EXIT_TIMEOUT
                         break
                     got += 1
-                    print(_event_line(msg, args.json, args.on_can), flush=True)
+                    print(_event_line(msg, args.json, args.on_can, catalog), flush=True)
             except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
                 pass
             stats = node.stats()
@@ -146,22 +152,31 @@ def _run_sub(args: argparse.Namespace) -> int:
     return run_until_signal(run())
 
 
-def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
-    """One event as ``ups sub`` prints it. The source is hex: a TxNode (2 digits) on CAN, a
-    node id (16 digits) on TCP/IP, null for the node's own events."""
+def _event_line(msg: Message, as_json: bool, on_can: bool, catalog: Catalog) -> str:
+    """One event as ``ups sub`` prints it: its channel (named by the catalog when the event
+    came by UID), its data (decoded by the catalog's layout of the channel, if any), priority
+    and source. The source is hex: a TxNode (2 digits) on CAN, a node id (16 digits) on TCP/IP
+    and Zenoh, null for the node's own events."""
     digits = 2 if on_can else 16
     source = None if msg.source is None else f"0x{msg.source:0{digits}x}"
+    uid = msg.channel.uid
+    name = msg.channel.name or catalog.channel(uid).name
     if as_json:
         import json  # cached after the first event: a dict lookup
 
+        values = catalog.decode(uid, msg.data)
         return json.dumps(
             {
-                "uid": f"0x{msg.uid:016x}",
-                "channel": msg.channel.name,
+                "uid": f"0x{uid:016x}",
+                "channel": name,
                 "data": msg.data.hex(),
+                "values": None
+                if values is None
+                else {k: v.hex() if isinstance(v, bytes) else v for k, v in values.items()},
                 "timestamp": msg.timestamp,
                 "priority": msg.priority,
                 "source": source,
             }
         )
-    return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}  from={source or '-'}"
+    value = catalog.format(uid, msg.data)
+    return f"{name or msg.channel}  {value}  prio={msg.priority}  from={source or '-'}"
