@@ -93,6 +93,10 @@ class Proc:
         self.popen.kill()
         self.popen.wait()
 
+    def interrupt(self) -> None:
+        """SIGINT: what Ctrl-C in its terminal sends."""
+        self.popen.send_signal(signal.SIGINT)
+
     def pause(self) -> None:
         self.popen.send_signal(signal.SIGSTOP)
 

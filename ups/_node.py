@@ -168,8 +168,9 @@ class Node:
             key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
             self._node_id, self._id_lock = claim_node_id(key)
         face = self._build_face(self._node_id)
+        bound = "" if self._join_timeout is None else f" (up to {self._join_timeout:g} s)"
         waiting = asyncio.get_running_loop().call_later(
-            1.0, log.warning, "waiting for %s (up to %s s)", face.where, self._join_timeout
+            1.0, log.warning, "waiting for %s%s", face.where, bound if self._join_timeout else ""
         )  # a second of silence is long enough to say why
         try:
             await face.start()

@@ -184,10 +184,7 @@ class ZenohFace:
                 break
             except zenoh.ZError as exc:
                 if deadline is not None and loop.time() + delay > deadline:
-                    raise BrokerUnavailable(
-                        f"could not join {self.where} within {self._join_timeout:g} s ({exc}); "
-                        "start a router with 'ups zenoh-router'"
-                    ) from None
+                    raise BrokerUnavailable(self._unavailable(exc)) from None
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, _RETRY_MAX)
         self._queryable = self._session.declare_queryable(
@@ -196,6 +193,15 @@ class ZenohFace:
         self._reporter = loop.call_later(1.0, self._report)
         log.info("node %016x joined %s (Zenoh id %s)", self.node_id, self.where,
                  self._session.zid())  # fmt: skip
+
+    def _unavailable(self, exc: BaseException) -> str:
+        """Why joining failed, for people (Zenoh's own text without its source location)."""
+        waited = f" within {self._join_timeout:g} s" if self._join_timeout else ""
+        reason = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+        if reason.startswith("Unable to connect"):
+            reason = "nothing answers there"
+        router = f"'ups zenoh-router --listen {self._endpoint}'" if self._endpoint else "one"
+        return f"could not join {self.where}{waited} ({reason}); start a router with {router}"
 
     async def close(self) -> None:
         if self._closed:

@@ -23,11 +23,13 @@ from ups._cliargs import (
     add_tls,
     add_zenoh,
     add_zenoh_config,
+    explained,
     nonnegative_float,
     positive_float,
     positive_int,
     run_until_signal,
     tls_of,
+    warn_if_virtual,
 )
 from ups._errors import ConfigError, UpsError
 
@@ -52,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         result: int = args.run(args)
         return result
     except UpsError as exc:
-        print(f"ups {args.command}: {exc}", file=sys.stderr)
+        print(f"ups {args.command}: {explained(args, exc)}", file=sys.stderr)
         return EXIT_USAGE
     except BrokenPipeError:  # the reader of our output went away: a way to stop, not an error
         with contextlib.suppress(OSError):
@@ -330,6 +332,7 @@ def _run_can_broker(args: argparse.Namespace) -> int:
     from ups.broker.can_ecb import serve
 
     db = args.db if args.db is not None else default_db(args.can)
+    warn_if_virtual(args.can)
 
     async def run() -> int:
         return await serve(
@@ -378,6 +381,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         listen=args.listen,
         tls=tls_of(args),
     )
+    warn_if_virtual(args.can)
 
     async def run() -> int:
         await serve(gateway)
@@ -410,7 +414,7 @@ def _run_status(args: argparse.Namespace) -> int:
 
             info = await query_zenoh(args.zenoh or "", args.zenoh_config, args.timeout)
         else:
-            from ups._tcpface import query_status
+            from ups._tcpquery import query_status
 
             info = await query_status(args.address, args.timeout, tls_of(args))
         print(json.dumps(info, indent=2))
