@@ -410,7 +410,7 @@ def _run_status(args: argparse.Namespace) -> int:
     async def run() -> int:
         info: Any
         if args.address is None:
-            from ups._zenohface import query_status as query_zenoh
+            from ups._zenohstatus import query_status as query_zenoh
 
             info = await query_zenoh(args.zenoh or "", args.zenoh_config, args.timeout)
         else:

@@ -47,7 +47,7 @@ class IpNetwork:
             from .._tcpquery import query_status
 
             return await query_status(self.where, self._timeout, self.tls)
-        from .._zenohface import network_status
+        from .._zenohstatus import network_status
 
         return await network_status(self.where, self._config, self._timeout)
 
