@@ -142,13 +142,21 @@ UPS demo: four robot parts on one CAN bus, an operator station on TCP/IP, a gate
 """
 
 
+def first_in_a_shell() -> str:
+    """The line to type first in each new shell, when ``ups`` is not on its PATH (else none)."""
+    from ups._extras import activation
+
+    line = activation()
+    return "" if line is None else f"\n  {line:<44} # first in each: puts ups on the PATH"
+
+
 def _outro(local_ok: bool, remote_ok: bool, seen: dict[str, int], remote: dict[str, int]) -> str:
     verdict = "everything arrived" if local_ok and remote_ok else "something did NOT arrive"
     return f"""
 In short: {verdict}. The dashboard (CAN) got {sum(seen.values())} events, the operator (TCP/IP)
 {sum(remote.values())}; the brake went out at real-time priority 0x02 and crossed the gateway.
 
-Try next (each in its own shell):
+Try next (each in its own shell):{first_in_a_shell()}
   ups broker                                   # a TCP-ECB on 127.0.0.1:7411
   ups sub robot/speed --broker 127.0.0.1:7411
   ups pub robot/speed 0032 --broker 127.0.0.1:7411 --count 5
@@ -158,7 +166,7 @@ On a real bus: ups gateway --can socketcan:vcan0 --broker 127.0.0.1:7411, then -
 
 JAUS_TRY = """\
 JAUS component 1.1.1 of the robot on {where} (JUDP and RA 3.3; mapping examples/robot.jaus.toml).
-Try, in another shell (Ctrl-C here ends the demo):
+Try, in another shell (Ctrl-C here ends the demo):{first}
   ups jaus-ocu --target {where} query Identification
   ups jaus-ocu --target {where} query Status
   ups jaus-ocu --target {where} watch VelocityState --rate 5 --count 5
@@ -180,7 +188,7 @@ async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
                     JausId(1, 1, 1), name="UPS demo robot")  # fmt: skip
     address, port = parse_address(where)
     bound = await host.start(address or "127.0.0.1", port)
-    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}"), flush=True)
+    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}", first=first_in_a_shell()), flush=True)
     return node, host
 
 

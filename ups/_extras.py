@@ -1,4 +1,5 @@
-"""The optional parts of UPS (its extras), and the one line that says how to install a missing one.
+"""The optional parts of UPS (its extras), the one line that says how to install a missing one,
+and the one that puts ``ups`` on a new shell's PATH.
 
 UPS itself needs python-can, msgpack and cryptography. The rest is optional, by extra:
 ``zenoh`` (eclipse-zenoh: ``Node(zenoh=...)``, ``--zenoh``, ``ups zenoh-router``), ``tools``
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -43,6 +45,23 @@ def install_hint(extra: str) -> str:
     pip = Path(sys.executable).with_name("pip")  # else an environment without a pip script:
     installer = _shown(pip) if pip.exists() else f"{_shown(Path(sys.executable))} -m pip"
     return f"{installer} install -e '{_shown(root)}[{extra}]'"
+
+
+def activation() -> str | None:
+    """What to type in a new shell before ``ups ...`` runs this installation: ``source
+    .venv/bin/activate`` (the path as seen from here), or None when the ``ups`` on the PATH is
+    this installation's already (or none can be told: ``ups`` not beside this Python)."""
+    bin_dir = Path(sys.executable).parent
+    ours = bin_dir / "ups"
+    if not ours.exists():
+        return None
+    found = shutil.which("ups")
+    if found is not None and Path(found).resolve() == ours.resolve():
+        return None
+    activate = bin_dir / "activate"
+    if activate.exists():
+        return f"source {_shown(activate)}"
+    return f'export PATH="{bin_dir}:$PATH"'
 
 
 def checkout() -> Path | None:
