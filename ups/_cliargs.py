@@ -231,9 +231,6 @@ def open_node(args: argparse.Namespace) -> Node:
     join_timeout = args.join_timeout
     if join_timeout is None:
         join_timeout = CAN_JOIN_TIMEOUT if kind == "can" else 0.0  # 0: one try
-    timeout = getattr(args, "timeout", None)  # ups sub --timeout: the join counts too
-    if timeout is not None:
-        join_timeout = min(join_timeout, timeout) if join_timeout else join_timeout
     return Node(
         can=where if kind == "can" else None,
         broker=where if kind == "broker" else None,
