@@ -8,7 +8,7 @@ import os
 from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any
 
-from ._channel import Channel, parse_channel
+from ._channel import Channel, check_pattern, is_pattern, parse_channel
 from ._errors import BrokerUnavailable, ConfigError, UpsError
 
 if TYPE_CHECKING:
@@ -115,8 +115,23 @@ def tls_of(args: argparse.Namespace) -> Tls | None:
 
 
 def channel_arg(text: str) -> Channel:
+    """A channel: a name, or 0x + hex for a UID. A pattern is refused (never taken as the
+    name of one channel): only ``ups sub`` takes patterns."""
+    if is_pattern(text):
+        raise argparse.ArgumentTypeError(
+            f"{text} is a pattern (it holds *, ? or [), and this command takes channels; a "
+            "channel whose name holds one is given by its UID, 0x..."
+        )
     try:
         return parse_channel(text)
+    except UpsError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def channel_or_pattern_arg(text: str) -> Channel | str:
+    """A channel (as ``channel_arg``), or a pattern: a name holding ``*``, ``?`` or ``[``."""
+    try:
+        return check_pattern(text) if is_pattern(text) else parse_channel(text)
     except UpsError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
@@ -231,6 +246,9 @@ def open_node(args: argparse.Namespace) -> Node:
     join_timeout = args.join_timeout
     if join_timeout is None:
         join_timeout = CAN_JOIN_TIMEOUT if kind == "can" else 0.0  # 0: one try
+    catalog = None  # on CAN, where names come from for pattern subscriptions
+    if kind == "can" and hasattr(args, "catalog"):
+        catalog = args.catalog or os.environ.get("UPS_CATALOG") or None
     return Node(
         can=where if kind == "can" else None,
         broker=where if kind == "broker" else None,
@@ -241,6 +259,7 @@ def open_node(args: argparse.Namespace) -> Node:
         join_timeout=join_timeout,
         tls=tls,
         zenoh_config=getattr(args, "zenoh_config", None),
+        catalog=catalog,
     )
 
 

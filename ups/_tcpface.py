@@ -24,13 +24,14 @@ from ._errors import (
     PayloadTooLarge,
     UpsError,
 )
-from ._face import OVERFLOWS, Overflow
+from ._face import OVERFLOWS, Found, Overflow
 from ._statuspacer import StatusPacer
 from ._subscription import DEFAULT_QUEUE
 from ._tcpinbox import Inbox
 from ._tcplink import Link
 from ._tcpoutbox import Outbox
-from ._tcpquery import query_status as query_status  # it lived here: importers keep working
+from ._tcpquery import query_status as query_status
+from ._tcpwatch import TcpWatches  # it lived here: importers keep working
 from ._tls import Tls, identity
 from ._tlsprobe import mismatch
 
@@ -130,6 +131,7 @@ class TcpFace:
             ("lost", "unsubscribed", "malformed", "reconnects", "denied", "unvouched",
              "impostors"), 0,
         )  # fmt: skip
+        self._watches = TcpWatches(self.counters, _BIND_TIMEOUT)  # patterns: see _tcpwatch
         #: answers every StatusRequest (listening port, links to subscribers, the ECB link)
         self._pacer = StatusPacer(self.status, self.counters, who=f"node {node_id:016x}")
         self._inbox = Inbox(
@@ -213,6 +215,7 @@ class TcpFace:
         self._pacer.close()
         for fut in self._acks.values():
             fut.cancel()
+        self._watches.close()
         self._report_drops()  # what was lost since the last report
 
     def stats(self) -> dict[str, int]:
@@ -277,6 +280,16 @@ class TcpFace:
         """Wait until every subscriber of the channel has room in its queue."""
         await self._outbox.room(state.channel.uid)
 
+    async def watch(self, pattern: str, found: Found) -> None:
+        """The TCP-ECB names the channels it knows that match (Watch, Names)."""
+        ecb = self._ecb if self._ecb is not None and not self._ecb.lost.done() else None
+        await self._watches.watch(pattern, found, None if ecb is None else ecb.send_control)
+
+    async def unwatch(self, pattern: str) -> None:
+        frame = self._watches.unwatch(pattern)
+        if frame is not None and self._ecb is not None and not self._ecb.lost.done():
+            self._ecb.send_control(frame)
+
     # --- the ECB link ----------------------------------------------------------------------
 
     async def _connect_ecb(self) -> None:
@@ -302,6 +315,8 @@ class TcpFace:
             link.send_control(w.encode(self._registration(uid, True)))
         for uid in self._advertised:
             link.send_control(w.encode(self._registration(uid, False)))
+        for frame in self._watches.frames():
+            link.send_control(frame)
         link.send_control(w.encode(w.Ping()))  # ends the registration: the ECB forgets the rest
 
     def _new_ecb_link(self) -> Link:
@@ -414,6 +429,8 @@ class TcpFace:
             self._acked(True, frame.uid)
         elif isinstance(frame, w.Refused):
             self._on_refused(frame)
+        elif isinstance(frame, w.Names):
+            self._watches.names(frame)
         elif isinstance(frame, w.Hello):
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_result(None)
@@ -429,6 +446,8 @@ class TcpFace:
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_exception(error)
             return
+        if frame.right == "watch":
+            self._watches.refused(frame)
         if frame.right not in ("publish", "subscribe"):
             return
         subscribe = frame.right == "subscribe"

@@ -29,9 +29,10 @@ from typing import TYPE_CHECKING, Any
 
 from ._errors import BrokerUnavailable, ConfigError, PayloadTooLarge
 from ._extras import require
+from ._zenohwatch import ZenohWatches
 
 if TYPE_CHECKING:
-    from ._face import ChannelState, FaceContext
+    from ._face import ChannelState, FaceContext, Found
 
 log = logging.getLogger("ups.zenoh")
 
@@ -152,9 +153,12 @@ class ZenohFace:
         self._subscribers: dict[int, Any] = {}  # uid -> Zenoh subscriber
         self._seq: dict[int, int] = {}  # uid -> this node's next number on it
         self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
-        self._rx: collections.deque[tuple[int, bytes, bytes | None, int, float]] = (
+        #: samples: UID, data, attachment, Zenoh priority, receive time, and the channel's name
+        #: when it came by a pattern (see _zenohwatch), else None
+        self._rx: collections.deque[tuple[int, bytes, bytes | None, int, float, str | None]] = (
             collections.deque()
         )
+        self._watches = ZenohWatches(self._subscribers, self._expected)
         self._rx_scheduled = False
         self._rx_lock = threading.Lock()  # Zenoh may call back from several threads
         self._queryable: Any = None
@@ -209,6 +213,7 @@ class ZenohFace:
         self._closed = True
         if self._reporter is not None:
             self._reporter.cancel()
+        self._watches.close()
         session, self._session = self._session, None
         if session is not None:
             with contextlib.suppress(Exception):
@@ -248,7 +253,7 @@ class ZenohFace:
         if subscribe:
             if uid not in self._subscribers:
                 self._subscribers[uid] = session.declare_subscriber(
-                    subscription_key(uid), self._sample_handler(uid)
+                    subscription_key(uid), lambda sample, uid=uid: self._receive(uid, sample)
                 )
                 await self._sync()  # the router has it: what is put from now on reaches us
             return
@@ -291,6 +296,15 @@ class ZenohFace:
     async def room(self, state: ChannelState) -> None:
         """Zenoh queues and drops on its own (congestion control "drop"): nothing to wait for
         here; what a subscriber misses it counts from the sequence numbers."""
+
+    async def watch(self, pattern: str, found: Found) -> None:
+        """Names travel in keys: a channel is found with its first event that carries its
+        name (see _zenohwatch)."""
+        self._watches.declare(self._live_session(), pattern, found, self._receive)
+        await self._sync()  # the router has it: what is put from now on reaches us
+
+    async def unwatch(self, pattern: str) -> None:
+        self._watches.undeclare(pattern)
 
     async def _sync(self) -> None:
         """One round trip through the router: a get that nobody answers ends when the router
@@ -347,28 +361,27 @@ class ZenohFace:
 
     # --- receiving -------------------------------------------------------------------------
 
-    def _sample_handler(self, uid: int) -> Any:
-        rx, limit, counters = self._rx, RX_QUEUE, self.counters
-
-        def on_sample(sample: Any) -> None:  # in a Zenoh thread
-            if len(rx) >= limit:
-                counters["rx_overflow"] += 1
-                return
-            attachment = sample.attachment
-            rx.append((
-                uid,
-                sample.payload.to_bytes(),
-                None if attachment is None else attachment.to_bytes(),
-                int(sample.priority),
-                time.time(),
-            ))  # fmt: skip
-            if not self._rx_scheduled:
-                with self._rx_lock:
-                    if not self._rx_scheduled:
-                        self._rx_scheduled = True
-                        self._threadsafe(self._drain)
-
-        return on_sample
+    def _receive(self, uid: int, sample: Any, name: str | None = None) -> None:
+        """Queue a sample for the event loop (in a Zenoh thread); ``name``: it came by a
+        pattern, under that name."""
+        rx = self._rx
+        if len(rx) >= RX_QUEUE:
+            self.counters["rx_overflow"] += 1
+            return
+        attachment = sample.attachment
+        rx.append((
+            uid,
+            sample.payload.to_bytes(),
+            None if attachment is None else attachment.to_bytes(),
+            int(sample.priority),
+            time.time(),
+            name,
+        ))  # fmt: skip
+        if not self._rx_scheduled:
+            with self._rx_lock:
+                if not self._rx_scheduled:
+                    self._rx_scheduled = True
+                    self._threadsafe(self._drain)
 
     def _threadsafe(self, callback: Any, *args: Any) -> None:
         loop = self._loop
@@ -383,9 +396,12 @@ class ZenohFace:
         for _ in range(_DRAIN_BATCH):
             if not rx:
                 return
-            uid, data, attachment, band, ts = rx.popleft()
+            uid, data, attachment, band, ts, name = rx.popleft()
+            if name is not None and not self._watches.discovered(uid, name):
+                counters["foreign"] += 1  # a name that is not its UID's: not a UPS key
+                continue
             state = channels.get(uid)
-            if state is None or not state.subs or uid not in self._subscribers:
+            if state is None or not state.subs or (name is None and uid not in self._subscribers):
                 counters["unsubscribed"] += 1
                 continue
             if len(data) > MAX_DATA:
@@ -394,6 +410,8 @@ class ZenohFace:
             if attachment is not None and len(attachment) == ATTACHMENT.size:
                 version, priority, source, seq = ATTACHMENT.unpack(attachment)
                 if version == VERSION:
+                    if self._watches.duplicate(source, uid, seq, name is not None):
+                        continue
                     self._follow(source, uid, seq)
                     counters["received"] += 1
                     self._deliver(state, data, priority, source, ts)

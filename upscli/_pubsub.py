@@ -12,6 +12,7 @@ from ups._cliargs import (
     add_catalog,
     add_node_options,
     channel_arg,
+    channel_or_pattern_arg,
     hex_arg,
     nonnegative_float,
     open_node,
@@ -21,10 +22,13 @@ from ups._cliargs import (
     run_until_signal,
     say,
 )
+from ups._errors import ConfigError
 
 if TYPE_CHECKING:
     from ups._catalog import Catalog
+    from ups._channel import Channel
     from ups._message import Message
+    from ups._subscription import Subscription
 
 EXIT_TIMEOUT = 1  #: ups sub saw fewer events than --count before --timeout
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
@@ -56,8 +60,15 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     )  # fmt: skip
     cmd.set_defaults(run=_run_pub)
 
-    cmd = command("sub", help="print the events of channels")
-    cmd.add_argument("channels", nargs="+", type=channel_arg, metavar="CHANNEL")
+    cmd = command("sub", help="print the events of channels, or of every channel a pattern "
+                  "matches")  # fmt: skip
+    cmd.add_argument(
+        "channels", nargs="+", type=channel_or_pattern_arg, metavar="CHANNEL",
+        help="a name, 0x + hex for a UID, or a pattern: a name with *, ? or [ (robot/*; '*' "
+        "crosses '/'), for every channel whose name matches, now and later: on TCP/IP the "
+        "TCP-ECB's names, on Zenoh names in keys (from a channel's first event), on CAN the "
+        "catalog's (--catalog)",
+    )  # fmt: skip
     add_catalog(cmd, "names and payload layouts: events printed as decoded values")
     add_node_options(cmd)
     cmd.add_argument("--count", type=positive_int, default=None, help="exit 0 after N events")
@@ -114,14 +125,19 @@ def _run_sub(args: argparse.Namespace) -> int:
     from ups._catalog import load_catalog
 
     catalog = load_catalog(args.catalog)
+    node = open_node(args)
+    patterns = [c for c in args.channels if isinstance(c, str)]
+    if patterns and args.on_can and catalog.path is None:  # said before joining the bus
+        raise ConfigError(f"on CAN, channel names come only from a channel catalog: "
+                          f"subscribing to {patterns[0]} needs one (--catalog FILE or "
+                          "$UPS_CATALOG)")  # fmt: skip
 
     async def run() -> int:
         got = 0
         code = 0
-        async with open_node(args) as node:
+        async with node:
             sub = await node.subscribe(*args.channels, maxlen=args.queue)
-            names = ", ".join(str(c) for c in args.channels)
-            say(args, f"subscribed to {names}")
+            say(args, f"subscribed to {_subscribed(args.channels, sub)}")
             loop = asyncio.get_running_loop()
             deadline = None if args.timeout is None else loop.time() + args.timeout
             try:
@@ -150,6 +166,17 @@ def _run_sub(args: argparse.Namespace) -> int:
         return code
 
     return run_until_signal(run())
+
+
+def _subscribed(asked: list[Channel | str], sub: Subscription) -> str:
+    """What ``ups sub`` says it subscribed to: the channels, and for patterns what they match."""
+    said = [str(c) for c in asked if not isinstance(c, str)]
+    if sub.patterns:
+        matched = [str(c) for c in sub.channels if all(c != a for a in asked)]
+        now = ", ".join(matched[:10]) + (f" and {len(matched) - 10} more" if matched[10:] else "")
+        said.append(f"{', '.join(sub.patterns)} ({now or 'no channel yet'}; more join as they "
+                    "are named)")  # fmt: skip
+    return ", ".join(said)
 
 
 def _event_line(msg: Message, as_json: bool, on_can: bool, catalog: Catalog) -> str:
