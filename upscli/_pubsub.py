@@ -137,7 +137,7 @@ def _run_sub(args: argparse.Namespace) -> int:
         code = 0
         async with node:
             sub = await node.subscribe(*args.channels, maxlen=args.queue)
-            say(args, f"subscribed to {_subscribed(args.channels, sub)}")
+            say(args, f"subscribed to {_subscribed(args.channels, sub, args.on_can)}")
             loop = asyncio.get_running_loop()
             deadline = None if args.timeout is None else loop.time() + args.timeout
             try:
@@ -168,14 +168,15 @@ def _run_sub(args: argparse.Namespace) -> int:
     return run_until_signal(run())
 
 
-def _subscribed(asked: list[Channel | str], sub: Subscription) -> str:
-    """What ``ups sub`` says it subscribed to: the channels, and for patterns what they match."""
+def _subscribed(asked: list[Channel | str], sub: Subscription, on_can: bool) -> str:
+    """What ``ups sub`` says it subscribed to: the channels, and for patterns what they match
+    (on CAN the catalog's channels, all known at once; elsewhere more come as they are named)."""
     said = [str(c) for c in asked if not isinstance(c, str)]
     if sub.patterns:
         matched = [str(c) for c in sub.channels if all(c != a for a in asked)]
         now = ", ".join(matched[:10]) + (f" and {len(matched) - 10} more" if matched[10:] else "")
-        said.append(f"{', '.join(sub.patterns)} ({now or 'no channel yet'}; more join as they "
-                    "are named)")  # fmt: skip
+        later = "" if on_can else "; more join as they are named"
+        said.append(f"{', '.join(sub.patterns)} ({now or 'no channel yet'}{later})")
     return ", ".join(said)
 
 
