@@ -339,7 +339,9 @@ def markdown(r: dict[str, Any], images: list[str]) -> str:
     if images:
         md += ["## Plots", "", *[f"![{name}]({name})" for name in images], ""]
     elif importlib.util.find_spec("matplotlib") is None:
-        md += ["No plots: matplotlib is not installed (pip install 'ups-pubsub[bench]').", ""]
+        from ups._extras import install_hint
+
+        md += [f"No plots: matplotlib is not installed ({install_hint('bench')}).", ""]
     return "\n".join(md)
 
 

@@ -444,9 +444,11 @@ def main(argv: list[str] | None = None) -> int:
 
     missing = _report.missing_peers()
     if missing:
+        from ups._extras import install_hint
+
         print(
-            f"ups bench: {', '.join(missing)} not installed, skipped: "
-            "pip install 'ups-pubsub[bench]' (mosquitto: scripts/bench-setup)",
+            f"ups bench: {', '.join(missing)} not installed, skipped: {install_hint('bench')} "
+            "(in a checkout, scripts/bench-setup installs them all, mosquitto too)",
             file=sys.stderr,
         )
     started = time.monotonic()

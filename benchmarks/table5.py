@@ -116,7 +116,7 @@ def udp_drops(pid: int) -> int:
 
 
 def status(address: str) -> dict[str, Any]:
-    from ups._tcpface import query_status
+    from ups._tcpquery import query_status
 
     return dict(asyncio.run(query_status(address, timeout=10)))
 

@@ -42,6 +42,7 @@ from ups._tls import Tls, identity
 
 from ._acl import Acl
 from ._tcpstatus import registry_status
+from ._watches import Watches
 
 log = logging.getLogger("ups.tcp_ecb")
 
@@ -117,6 +118,7 @@ class TcpEcb:
         self._tls = tls
         self._acl = acl
         self._names: dict[int, str] = {}  # uid -> its name, checked against the UID
+        self._watches = Watches(self._names, self._members, acl)
         self._refusals_logged: set[tuple[str | None, str, int]] = set()
         self._owners: dict[int, str] = {}  # node id -> the identity that registered it
         self._doorman = Doorman(
@@ -172,7 +174,9 @@ class TcpEcb:
         return {
             **self.counters,
             **self._doorman.counters,
+            **self._watches.counters,
             "nodes": len(self._members),
+            "watches": len(self._watches),
             "channels": self._channel_count,
             "links": self._doorman.links,
         }
@@ -230,6 +234,9 @@ class TcpEcb:
         member.heard = time.monotonic()
         if isinstance(frame, w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise):
             self._register(member, frame)
+        elif isinstance(frame, w.Watch | w.Unwatch):  # see _watches
+            if (why := self._watches.handle(member.node_id, frame)) is not None:
+                self._refuse(link, 0, "watch", why)
         elif isinstance(frame, w.Ping):
             if member.stale is not None:
                 self._forget_stale(member)
@@ -305,6 +312,7 @@ class TcpEcb:
                 hello.port,
             )
         else:  # the same node again: after a lost link, or restarted
+            self._watches.forget(hello.node_id)  # it watches again what it still watches
             old = member.link
             member.link = link
             member.name = hello.name
@@ -344,8 +352,9 @@ class TcpEcb:
             if uid not in self._subscribers and uid not in self._publishers:
                 self._channel_count += 1
             table.setdefault(uid, set()).add(member.node_id)
-            if frame.name is not None:
+            if frame.name is not None and self._names.get(uid) != frame.name:
                 self._names[uid] = frame.name
+                self._watches.named(uid, frame.name)
             if subscribe:
                 self._answer(member, uid, subscribe=True)
                 if new:
@@ -393,6 +402,7 @@ class TcpEcb:
 
     def _leave(self, member: _Member, why: str) -> None:
         del self._members[member.node_id]
+        self._watches.forget(member.node_id)
         self.counters["left"] += 1
         log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
         for uid in member.pubs:  # out of every table first: then tell the others

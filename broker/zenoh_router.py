@@ -19,14 +19,11 @@ async def serve(listen: list[str], connect: list[str], config: str | Path | None
     """Run a Zenoh router listening on ``listen`` and linked to the routers at ``connect``
     until cancelled. ``config`` (a Zenoh JSON5 file: TLS, authentication, access control) is
     read first; the endpoints given here are added to it."""
-    try:
-        import zenoh
-    except ImportError:
-        raise ConfigError("the Zenoh router needs eclipse-zenoh: pip install 'ups-pubsub[zenoh]'"
-                          ) from None  # fmt: skip
     from ups._zenohface import zenoh_config
 
-    conf = zenoh_config("", config, mode="router")
+    conf = zenoh_config("", config, mode="router")  # first: it says when Zenoh is missing
+    import zenoh
+
     try:
         conf.insert_json5("mode", json.dumps("router"))
         conf.insert_json5("listen/endpoints", json.dumps(listen))

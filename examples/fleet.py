@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ups import UpsError
 
-from .robots import PARTS
+from .robots import PARTS, first_in_a_shell
 
 ROOT = Path(__file__).resolve().parent.parent
 CATALOG = Path(__file__).resolve().parent / "robots.toml"
@@ -55,7 +55,8 @@ async def run_fleet(bus: str, listen: str, duration: float | None) -> int:
             where = ("--broker", listen) if part == "operator" else ("--can", bus)
             await spawn(part, "-m", "ups.examples.robots", part, *where,
                         "--node-id", hex(0x0D3E_0000 + i))  # fmt: skip
-        print(_WATCH.format(bus=bus, broker=listen, catalog=CATALOG), flush=True)
+        print(_WATCH.format(bus=bus, broker=listen, catalog=CATALOG, first=first_in_a_shell()),
+              flush=True)  # fmt: skip
         if duration is None:
             await asyncio.gather(*(p.wait() for p in children))
         else:
@@ -114,7 +115,7 @@ async def _pump(
 
 
 _WATCH = """
-The robot runs as separate processes. Watch it from another shell:
+The robot runs as separate processes. Watch it from another shell:{first}
   ups monitor --can {bus} --catalog {catalog}
   ups console --broker {broker} --catalog {catalog}      # then open http://127.0.0.1:8470
   ups ls --broker {broker} --catalog {catalog}

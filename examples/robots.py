@@ -157,13 +157,21 @@ UPS demo: five robot parts on one CAN bus, an operator station on TCP/IP, a gate
 """
 
 
+def first_in_a_shell() -> str:
+    """The line to type first in each new shell, when ``ups`` is not on its PATH (else none)."""
+    from ups._extras import activation
+
+    line = activation()
+    return "" if line is None else f"\n  {line:<44} # first in each: puts ups on the PATH"
+
+
 def _outro(local_ok: bool, remote_ok: bool, seen: dict[str, int], remote: dict[str, int]) -> str:
     verdict = "everything arrived" if local_ok and remote_ok else "something did NOT arrive"
     return f"""
 In short: {verdict}. The dashboard (CAN) got {sum(seen.values())} events, the operator (TCP/IP)
 {sum(remote.values())}; the brake went out at real-time priority 0x02 and crossed the gateway.
 
-Try next (each in its own shell):
+Try next (each in its own shell):{first_in_a_shell()}
   ups broker                                   # a TCP-ECB on 127.0.0.1:7411
   ups sub robot/speed --broker 127.0.0.1:7411
   ups pub robot/speed 0032 --broker 127.0.0.1:7411 --count 5
@@ -175,7 +183,7 @@ JAUS_TRY = """\
 JAUS component 1.1.1 of the robot on {where} (JUDP and RA 3.3; mapping examples/robot.jaus.toml):
 the IGVC profile's Primitive Driver, Global and Local Pose Sensors, Velocity State Sensor, Local
 Waypoint Driver and Local Waypoint List Driver, and the core services.
-Try, in another shell (Ctrl-C here ends the demo):
+Try, in another shell (Ctrl-C here ends the demo):{first}
   ups jaus-ocu {target}discover
   ups jaus-ocu {target}query GlobalPose
   ups jaus-ocu {target}watch LocalPose --rate 10 --count 20
@@ -209,7 +217,8 @@ async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
     # ups jaus-ocu asks this host's 127.0.0.1:3794 (and the network, by broadcast) by default
     found = bound[1] == JUDP_PORT and bound[0] in ("127.0.0.1", "0.0.0.0")
     target = "" if found else f"--target {bound[0]}:{bound[1]} "
-    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}", target=target), flush=True)
+    print(JAUS_TRY.format(where=f"{bound[0]}:{bound[1]}", target=target, first=first_in_a_shell()),
+          flush=True)  # fmt: skip
     return node, host
 
 

@@ -103,6 +103,10 @@ class Gateway:
             raise ConfigError("a gateway joins one IP network: broker='HOST:PORT' or zenoh=...")
         if tls is not None and broker is None:
             raise ConfigError("tls= is for the TCP/IP side; on Zenoh, TLS is in its config")
+        if broker is None:  # before anything opens: say so now when Zenoh is not installed
+            from ups._zenohface import require_zenoh
+
+            require_zenoh()
         self._can_spec = can
         self._tls = tls
         #: the IP side: ("broker", HOST:PORT) or ("zenoh", ENDPOINT)

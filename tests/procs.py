@@ -27,21 +27,31 @@ class Proc:
         prefix: tuple[str, ...] = (),
         env: dict[str, str] | None = None,
         cwd: Path = ROOT,
+        shell: str | None = None,
+        exact_env: bool = False,
     ) -> None:
         """``ups ARGS...``; ``prefix`` runs it under another command (say ``unshare``), ``env``
-        adds to the environment."""
-        self.args = args
+        adds to the environment. ``shell``: a command line that bash runs instead, as a person
+        types it; ``exact_env``: ``env`` is the whole environment."""
+        self.args = args or (shell or "",)
+        command = ["bash", "-c", shell] if shell is not None else [sys.executable, "-m", "upscli"]
+        if exact_env:
+            environment = env
+        else:
+            environment = None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env}
         self.popen = subprocess.Popen(
-            [*prefix, sys.executable, "-m", "upscli", *args],
+            [*prefix, *command, *args],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
             cwd=cwd,
-            env=None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env},
+            env=environment,
         )
         self.stderr_lines: list[str] = []
         self.stdout_lines: list[str] = []
+        self._stdout_grew = threading.Condition()
+        self._stdout_ended = False
         self._lines: queue.Queue[str | None] = queue.Queue()
         self._out: queue.Queue[str | None] = queue.Queue()
         self._readers = [
@@ -54,9 +64,29 @@ class Proc:
     def _read_stdout(self) -> None:
         assert self.popen.stdout is not None
         for line in self.popen.stdout:
-            self.stdout_lines.append(line)
+            with self._stdout_grew:
+                self.stdout_lines.append(line)
+                self._stdout_grew.notify_all()
             self._out.put(line)
         self._out.put(None)
+        with self._stdout_grew:
+            self._stdout_ended = True  # whoever waits for more lines can stop
+            self._stdout_grew.notify_all()
+
+    def wait_for_stdout(self, count: int, timeout: float = 20.0) -> list[str]:
+        """Block until ``count`` lines came on stdout; fail if the process ends first."""
+        with self._stdout_grew:
+            if (
+                not self._stdout_grew.wait_for(
+                    lambda: len(self.stdout_lines) >= count or self._stdout_ended,
+                    timeout,
+                )
+                or len(self.stdout_lines) < count
+            ):
+                raise AssertionError(
+                    f"{self.args[0]}: {len(self.stdout_lines)} of {count} lines on stdout"
+                )
+            return list(self.stdout_lines)
 
     def _read(self) -> None:
         assert self.popen.stderr is not None
@@ -97,6 +127,10 @@ class Proc:
         """SIGKILL: the process gets no chance to tidy up."""
         self.popen.kill()
         self.popen.wait()
+
+    def interrupt(self) -> None:
+        """SIGINT: what Ctrl-C in its terminal sends."""
+        self.popen.send_signal(signal.SIGINT)
 
     def pause(self) -> None:
         self.popen.send_signal(signal.SIGSTOP)
@@ -143,12 +177,10 @@ def start_tcp_broker(*options: str, port: int = 0) -> tuple[Proc, str]:
     return broker, found.group(1)
 
 
-def private_multicast_bus() -> str:
-    """A udp_multicast bus spec on a free port, only inside a namespace with no way out.
-
-    Multicast must never leave the machine: refuse (skip, or fail under UPS_REQUIRE_NETNS=1)
-    unless there is no default route, i.e. only loopback exists.
-    """
+def private_network() -> None:
+    """Go on only inside a private network namespace with no way out (scripts/netns-run): skip,
+    or fail under UPS_REQUIRE_NETNS=1, unless there is no default route, i.e. only loopback
+    exists. For multicast, which must never leave the machine, and for fixed ports."""
     routes = subprocess.run(
         ["ip", "route", "show", "default"], capture_output=True, text=True, check=False
     )
@@ -157,6 +189,11 @@ def private_multicast_bus() -> str:
         if os.environ.get("UPS_REQUIRE_NETNS") == "1":
             pytest.fail(reason)
         pytest.skip(reason)
+
+
+def private_multicast_bus() -> str:
+    """A udp_multicast bus spec on a free port, only inside a namespace with no way out."""
+    private_network()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

@@ -29,6 +29,7 @@ TCP_TESTS = (
     "tests/test_tcp_loss.py",
     "tests/test_tcp_invariants.py",
     "tests/test_fast_path.py",
+    "tests/test_patterns.py",
 )
 RUN_TIMEOUT = 600.0
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from ups import Node, jaus
-from ups._zenohface import network_status
+from ups._zenohstatus import network_status
 from ups.jaus import JausId
 from ups.jaus._host import JausHost
 from ups.jaus._mapping import load_mapping

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from ups import AccessDenied, BrokerUnavailable, Node, Tls
+from ups import AccessDenied, BrokerUnavailable, ConfigError, Node, Tls
 from ups._tcpface import query_status
 from ups.broker.tcp_ecb import TcpEcb
 
@@ -66,7 +66,7 @@ async def test_a_client_without_a_fleet_certificate_is_refused(
     fleet: Path, ecb: TcpEcb, tmp_path: Path
 ) -> None:
     address = f"127.0.0.1:{ecb.port}"
-    with pytest.raises(BrokerUnavailable):  # plain TCP
+    with pytest.raises(ConfigError, match="expects TLS"):  # plain TCP: said at once
         await Node(broker=address, node_id=0xC1, join_timeout=1).start()
     certs(tmp_path, "ca", str(tmp_path))  # another CA, and a certificate from it
     certs(tmp_path, "issue", str(tmp_path), "alice")

@@ -46,5 +46,11 @@ def test_the_wheel_installs_only_our_names_and_the_demo_runs_from_it(tmp_path: P
     assert top == OUR_NAMES, listing  # ".." is bin/ups, the console script
     assert "everything arrived" in sh(ups, "demo", cwd=elsewhere)
     assert "usage: ups bench" in sh(ups, "bench", "--help", cwd=elsewhere)
+    without = subprocess.run(  # installed without its extras: a missing one says what to do
+        [ups, "sub", "x", "--zenoh", "tcp/127.0.0.1:1"], cwd=elsewhere, capture_output=True,
+        text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert without.returncode == 2, without.stderr
+    assert without.stderr.strip().endswith("pip install 'ups-pubsub[zenoh]'"), without.stderr
     sh(python, "-c", "import ups.broker, ups.gateway, ups.jaus, ups.examples, ups.benchmarks",
        cwd=elsewhere)  # fmt: skip

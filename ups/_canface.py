@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import can
@@ -23,6 +24,7 @@ from ._canbinding import RETRY_FIRST, SETTLE, Bindings
 from ._canjoin import Joiner
 from ._canlink import CanLink
 from ._canstreams import declaration, refusal
+from ._catalog import Catalog
 from ._errors import (
     BrokerUnavailable,
     ConfigError,
@@ -30,7 +32,7 @@ from ._errors import (
     Exhausted,
     PayloadTooLarge,
 )
-from ._face import ChannelState, Deliver, FaceContext
+from ._face import ChannelState, Deliver, FaceContext, Found
 
 log = logging.getLogger("ups.can")
 
@@ -52,7 +54,7 @@ _MGMT_FILTER = {
 
 
 #: the Node options a CAN face takes (see ``Node``)
-OPTIONS = frozenset({"filter_limit", "max_event"})
+OPTIONS = frozenset({"filter_limit", "max_event", "catalog"})
 
 
 def build(
@@ -61,8 +63,9 @@ def build(
     *,
     filter_limit: int = 16,
     max_event: int = t.MAX_EVENT,
+    catalog: str | Path | Catalog | None = None,
 ) -> CanFace:
-    return CanFace(
+    face = CanFace(
         bus,
         context.node_id,
         deliver=context.deliver,
@@ -71,6 +74,8 @@ def build(
         filter_limit=filter_limit,
         max_event=max_event,
     )
+    face.catalog = Catalog.load(catalog) if isinstance(catalog, str | Path) else catalog
+    return face
 
 
 class CanFace:
@@ -104,6 +109,8 @@ class CanFace:
         else:
             raise ConfigError(f"can= takes 'INTERFACE:CHANNEL' or a python-can bus, not {bus!r}")
         self.node_id = node_id
+        #: where channel names come from on CAN (frames carry none): for pattern subscriptions
+        self.catalog: Catalog | None = None
         self.where = f"the CAN-ECB on {self.link}"
         self.txnode: int | None = None
         self._joiner = Joiner(node_id, self._send, self.link.channel_info, join_timeout)
@@ -289,6 +296,21 @@ class CanFace:
         frames = t.segment(data, tid, self.link.mtu)
         if self.link.send_transfer(can_id, frames, self._handler, self.link.fd):
             self.counters["sent"] += 1
+
+    async def watch(self, pattern: str, found: Found) -> None:
+        """On CAN names come only from the channel catalog: ``found`` gets each of its named
+        channels (the node keeps those that match), once; without a catalog, ``ConfigError``."""
+        if self.catalog is None:
+            raise ConfigError(
+                f"on CAN, channel names come only from a channel catalog: subscribing to "
+                f"{pattern} needs one (--catalog FILE or $UPS_CATALOG; Node(catalog=FILE))"
+            )
+        for spec in self.catalog:
+            if spec.name is not None:
+                found(spec.channel)
+
+    async def unwatch(self, pattern: str) -> None:
+        """Nothing to undo: the catalog does not change."""
 
     async def room(self, state: ChannelState) -> None:
         """The interface takes frames or refuses them (counted): nothing to wait for."""

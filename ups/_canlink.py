@@ -99,10 +99,17 @@ def _check_options(kwargs: dict[str, Any]) -> None:
         )
 
 
-def open_bus(spec: str) -> can.BusABC:
-    """Open the python-can bus named by ``spec`` (see ``parse_bus_spec``)."""
+def check_bus_spec(spec: str) -> dict[str, Any]:
+    """``parse_bus_spec``, and the options checked against the interface's (a typo is an
+    error, not an option python-can passes on unused)."""
     kwargs = parse_bus_spec(spec)
     _check_options(kwargs)
+    return kwargs
+
+
+def open_bus(spec: str) -> can.BusABC:
+    """Open the python-can bus named by ``spec`` (see ``parse_bus_spec``)."""
+    kwargs = check_bus_spec(spec)
     try:
         bus = can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:

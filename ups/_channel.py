@@ -1,6 +1,16 @@
-"""Channels: 64-bit UIDs, given as an int or as a name mapped by a stable hash."""
+"""Channels: 64-bit UIDs, given as an int or as a name mapped by a stable hash; and patterns,
+globs over channel names.
+
+A *pattern* is a name that contains ``*``, ``?`` or ``[`` (as in the TCP-ECB's access control
+lists): ``*`` matches any characters, ``/`` too, ``?`` one, ``[...]`` one of a set, as in
+shell patterns (``fnmatch``, case-sensitive). ``node.subscribe("robot/*")`` subscribes to every
+channel whose name matches, now and later. A channel whose name really holds one of those
+characters is subscribed to as ``Channel.named(name)``, by its UID, or by the pattern that
+matches it alone (``robot/[*]``)."""
 
 from __future__ import annotations
+
+from typing import TypeGuard
 
 from ._errors import ConfigError
 
@@ -39,6 +49,37 @@ class Channel:
     def __str__(self) -> str:
         return self.name if self.name is not None else f"0x{self.uid:016x}"
 
+    @classmethod
+    def named(cls, name: str) -> Channel:
+        """The channel called ``name``, taken as it is: never a pattern, whatever it holds."""
+        return cls(name_to_uid(name), name)
+
+
+#: the characters that make a name a pattern
+PATTERN_CHARACTERS = frozenset("*?[")
+
+
+def is_pattern(channel: object) -> TypeGuard[str]:
+    """Whether ``channel`` is a pattern: a str holding ``*``, ``?`` or ``[``."""
+    return isinstance(channel, str) and not PATTERN_CHARACTERS.isdisjoint(channel)
+
+
+def check_pattern(pattern: str) -> str:
+    """``pattern`` if it may be one (the rules of a name: 1..255 UTF-8 bytes, no control
+    characters), else ``ConfigError``."""
+    name_to_uid(pattern)
+    return pattern
+
+
+def matches(pattern: str, name: str | None) -> bool:
+    """Whether the channel called ``name`` (None: a channel known only by its UID, which no
+    pattern matches) matches ``pattern``."""
+    if name is None:
+        return False
+    import fnmatch  # here: the command line imports this module
+
+    return fnmatch.fnmatchcase(name, pattern)
+
 
 def name_to_uid(name: str) -> int:
     """The UID of a channel name: the first 8 bytes of SHA-256(UTF-8 name), big-endian.
@@ -71,6 +112,17 @@ def as_channel(channel: ChannelLike) -> Channel:
     if isinstance(channel, str):
         return Channel(name_to_uid(channel), channel)
     raise ConfigError(f"a channel is an int UID or a name, not {type(channel).__name__}")
+
+
+def as_literal(channel: ChannelLike) -> Channel:
+    """``as_channel``, but a pattern is refused (``ConfigError``): where one channel is meant
+    (publishing), never take a glob for the name of a channel."""
+    if is_pattern(channel):
+        raise ConfigError(
+            f"{channel} is a pattern: publish on a channel (Channel.named({channel!r}) is the "
+            "one so called)"
+        )
+    return as_channel(channel)
 
 
 def parse_channel(text: str) -> Channel:

@@ -8,12 +8,36 @@ import os
 from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any
 
-from ._channel import Channel, parse_channel
-from ._errors import ConfigError, UpsError
+from ._channel import Channel, check_pattern, is_pattern, parse_channel
+from ._errors import BrokerUnavailable, ConfigError, UpsError
 
 if TYPE_CHECKING:
     from ._node import Node
     from ._tls import Tls
+
+
+#: seconds a command waits for a CAN-ECB unless told (--join-timeout): on a bus, nothing
+#: refuses a connection, and a CAN-ECB is known only by its answer
+CAN_JOIN_TIMEOUT = 30.0
+#: why a command that joins a bus as a node refuses a python-can virtual bus
+VIRTUAL_ALONE = (
+    "{bus} is a python-can virtual bus, which lives inside one process: this command would be "
+    "alone on it, whatever another process opens under that name; across processes use "
+    "--can udp_multicast:239.74.163.2,port=43114 inside scripts/netns-run, or SocketCAN "
+    "(--can socketcan:vcan0)"
+)
+
+
+def warn_if_virtual(bus: str) -> None:
+    """A daemon on a python-can virtual bus is alone there: say so, once, at start."""
+    if bus.split(":", 1)[0].strip() == "virtual":
+        import logging
+
+        logging.getLogger("ups").warning(
+            "%s is a python-can virtual bus, which lives inside this process: nodes in other "
+            "processes cannot reach it (across processes: --can udp_multicast:239.74.163.2,"
+            "port=43114 inside scripts/netns-run, or --can socketcan:vcan0)", bus,
+        )  # fmt: skip
 
 
 def add_can(cmd: argparse.ArgumentParser) -> None:
@@ -46,11 +70,11 @@ def add_node_options(cmd: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
     cmd.add_argument(
-        "--join-timeout",
-        type=positive_float,
-        default=30.0,
-        help="seconds to wait for the broker",
-    )
+        "--join-timeout", type=positive_float, default=None, metavar="S",
+        help="wait up to S seconds for the broker (TCP-ECB, Zenoh router or CAN-ECB), also one "
+        "not started yet (default: on TCP/IP and Zenoh one try, so nothing listening fails at "
+        f"once; on CAN {CAN_JOIN_TIMEOUT:g} s, as a CAN-ECB is known only by its answer)",
+    )  # fmt: skip
     add_zenoh_config(cmd)
     add_tls(cmd, node=True)
 
@@ -91,8 +115,23 @@ def tls_of(args: argparse.Namespace) -> Tls | None:
 
 
 def channel_arg(text: str) -> Channel:
+    """A channel: a name, or 0x + hex for a UID. A pattern is refused (never taken as the
+    name of one channel): only ``ups sub`` takes patterns."""
+    if is_pattern(text):
+        raise argparse.ArgumentTypeError(
+            f"{text} is a pattern (it holds *, ? or [), and this command takes channels; a "
+            "channel whose name holds one is given by its UID, 0x..."
+        )
     try:
         return parse_channel(text)
+    except UpsError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def channel_or_pattern_arg(text: str) -> Channel | str:
+    """A channel (as ``channel_arg``), or a pattern: a name holding ``*``, ``?`` or ``[``."""
+    try:
+        return check_pattern(text) if is_pattern(text) else parse_channel(text)
     except UpsError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
@@ -195,6 +234,9 @@ def network_choice(args: argparse.Namespace) -> tuple[str, str]:
 
 
 def open_node(args: argparse.Namespace) -> Node:
+    """The node of a command that joins a network (``add_node_options``; not started). Unless
+    ``--join-timeout`` says to wait, a TCP-ECB or Zenoh router that is not there fails at
+    once; so does a virtual CAN bus, where this process would be alone."""
     from ._node import Node
 
     kind, where = network_choice(args)
@@ -203,7 +245,18 @@ def open_node(args: argparse.Namespace) -> Node:
     tls = tls_of(args)
     if tls is not None and kind != "broker":
         raise ConfigError("--tls-* is for TCP/IP nodes; on Zenoh, TLS is in --zenoh-config")
+    if kind == "can":
+        from ._canlink import check_bus_spec
+
+        if check_bus_spec(where)["interface"] == "virtual":
+            raise ConfigError(VIRTUAL_ALONE.format(bus=where))
     args.on_can = kind == "can"  # what ``source`` is: a TxNode or a node id
+    join_timeout = args.join_timeout
+    if join_timeout is None:
+        join_timeout = CAN_JOIN_TIMEOUT if kind == "can" else 0.0  # 0: one try
+    catalog = None  # on CAN, where names come from for pattern subscriptions
+    if kind == "can" and hasattr(args, "catalog"):
+        catalog = args.catalog or os.environ.get("UPS_CATALOG") or None
     return Node(
         can=where if kind == "can" else None,
         broker=where if kind == "broker" else None,
@@ -211,10 +264,21 @@ def open_node(args: argparse.Namespace) -> Node:
         listen=args.listen,
         node_id=args.node_id,
         name=f"ups-{args.command}",
-        join_timeout=args.join_timeout,
+        join_timeout=join_timeout,
         tls=tls,
         zenoh_config=getattr(args, "zenoh_config", None),
+        catalog=catalog,
     )
+
+
+def explained(args: argparse.Namespace, exc: UpsError) -> str:
+    """The line a command prints for ``exc``: its text, and how to wait for a broker that is
+    not up yet when the command did not wait (``--join-timeout``)."""
+    text = str(exc)
+    waits = getattr(args, "join_timeout", 0)
+    if isinstance(exc, BrokerUnavailable) and waits is None and not getattr(args, "on_can", 1):
+        text += "; or give --join-timeout S to wait up to S s for it"
+    return text
 
 
 def add_network(cmd: argparse.ArgumentParser, can_help: str, ip_help: str) -> None:
@@ -234,10 +298,10 @@ def add_network(cmd: argparse.ArgumentParser, can_help: str, ip_help: str) -> No
     add_zenoh_config(cmd)
 
 
-def add_catalog(cmd: argparse.ArgumentParser) -> None:
+def add_catalog(cmd: argparse.ArgumentParser, what: str = "names and payload layouts") -> None:
     cmd.add_argument(
         "--catalog", metavar="FILE", default=None,
-        help="TOML channel catalog: names and payload layouts (default: $UPS_CATALOG)",
+        help=f"TOML channel catalog: {what} (default: $UPS_CATALOG)",
     )  # fmt: skip
 
 

@@ -42,6 +42,8 @@ class ChannelState:
 #: ``deliver(state, data, priority, source, timestamp)``: hand one received event to the
 #: local subscriptions of its channel.
 Deliver = Callable[[ChannelState, bytes, int, int | None, float], None]
+#: ``found(channel)``: a face learnt of a named channel that a watched pattern may match
+Found = Callable[[Channel], None]
 
 
 class FaceContext(NamedTuple):
@@ -80,5 +82,14 @@ class Face(Protocol):
 
     async def room(self, state: ChannelState) -> None:
         """Wait until ``send`` on this channel would drop nothing (backpressure)."""
+
+    async def watch(self, pattern: str, found: Found) -> None:
+        """Call ``found`` with each channel whose name the network knows and ``pattern`` (a
+        glob: ``_channel``) matches: those it knows now, before returning, and those it learns
+        of later, until ``unwatch``. It may also name channels that do not match (the node
+        checks). Raises ``ConfigError`` where the network knows no names."""
+
+    async def unwatch(self, pattern: str) -> None:
+        """No subscription of the node watches ``pattern`` any more."""
 
     def stats(self) -> dict[str, int]: ...

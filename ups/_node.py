@@ -18,11 +18,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any, Final
 
-from ._channel import Channel, ChannelLike, as_channel
+from ._channel import Channel, ChannelLike, as_channel, as_literal, check_pattern, is_pattern
 from ._errors import Closed, ConfigError
 from ._face import DEFAULT_PRIORITY, OVERFLOWS, ChannelState, Face, FaceContext, Overflow, Sink
 from ._message import Message
 from ._nodeid import claim_node_id
+from ._patterns import Watching
 from ._subscription import DEFAULT_QUEUE, YIELD_EVERY, Subscription, wait
 from ._tls import Tls
 
@@ -56,7 +57,8 @@ class Node:
     and filters in software. ``max_event``: the largest event (in bytes) this node buffers; it
     refuses (``PayloadTooLarge``) to subscribe to a channel whose size class carries larger ones.
     Events up to 65535 bytes travel as transfers of several frames (CAN FD frames on a bus
-    opened with ``fd=True``).
+    opened with ``fd=True``). ``catalog``: a channel catalog (a file, see ``docs/files.md``):
+    on CAN, where frames carry no names, the channels a pattern subscription may match.
 
     TCP/IP only: ``listen`` (HOST:PORT) is where publishers reach this node; by default the
     address it reaches the TCP-ECB from, on a free port. Each subscribing peer gets a queue of
@@ -90,6 +92,7 @@ class Node:
         peer_overflow: Overflow | None = None,
         tls: Tls | None = None,
         zenoh_config: str | Path | None = None,
+        catalog: str | Path | None = None,
     ) -> None:
         networks = {
             kind: where
@@ -106,20 +109,12 @@ class Node:
         if node_id is not None and not 0 <= node_id < 1 << 64:
             raise ConfigError(f"node_id must fit in 64 bits, got {node_id!r}")
         ((self._network, self._where),) = networks.items()
+        options: dict[str, Any] = dict(
+            filter_limit=filter_limit, max_event=max_event, listen=listen, peer_queue=peer_queue,
+            peer_overflow=peer_overflow, tls=tls, config=zenoh_config, catalog=catalog,
+        )  # fmt: skip
         # the options of one kind of network: its face refuses those that are not its own
-        self._options: dict[str, Any] = {
-            key: value
-            for key, value in (
-                ("filter_limit", filter_limit),
-                ("max_event", max_event),
-                ("listen", listen),
-                ("peer_queue", peer_queue),
-                ("peer_overflow", peer_overflow),
-                ("tls", tls),
-                ("config", zenoh_config),
-            )
-            if value is not None
-        }
+        self._options = {key: value for key, value in options.items() if value is not None}
         self.name = name or _program_name()
         self._node_id = node_id
         self._id_lock: IO[bytes] | None = None
@@ -130,6 +125,7 @@ class Node:
         self._publishing: dict[ChannelLike, ChannelState] = {}
         self._priorities: dict[int, int] = {}
         self._subs: list[Subscription] = []
+        self._watching = Watching(self._state, lambda: self.face)
         self._any_waiter: asyncio.Future[None] | None = None
         self._closed = False
         self.published = 0
@@ -168,8 +164,9 @@ class Node:
             key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
             self._node_id, self._id_lock = claim_node_id(key)
         face = self._build_face(self._node_id)
+        bound = "" if self._join_timeout is None else f" (up to {self._join_timeout:g} s)"
         waiting = asyncio.get_running_loop().call_later(
-            1.0, log.warning, "waiting for %s (up to %s s)", face.where, self._join_timeout
+            1.0, log.warning, "waiting for %s%s", face.where, bound if self._join_timeout else ""
         )  # a second of silence is long enough to say why
         try:
             await face.start()
@@ -205,6 +202,7 @@ class Node:
                     with contextlib.suppress(Exception):
                         await face.unsubscribe(state)
         self._closed = True
+        self._watching.close()
         for sub in self._subs:
             sub._close()
         self._subs.clear()
@@ -298,7 +296,12 @@ class Node:
         callback: Callable[[Message], object] | None = None,
     ) -> Subscription:
         """Subscribe to one or more channels; events arrive in the returned Subscription, or
-        (with ``callback``) are handed to ``callback(msg)`` as they arrive, without a queue."""
+        (with ``callback``) are handed to ``callback(msg)`` as they arrive, without a queue.
+
+        A name holding ``*``, ``?`` or ``[`` is a pattern (a glob over names: ``_channel``): the
+        subscription gets every channel whose name matches, named now or later (by the TCP-ECB;
+        in Zenoh keys, with a channel's first event; on CAN, by the ``catalog``). Where no names
+        are known (CAN without a catalog) it raises ``ConfigError``."""
         self._check_open()
         if not channels:
             raise ConfigError("subscribe needs at least one channel")
@@ -306,25 +309,30 @@ class Node:
             raise ConfigError(f"maxlen must be at least 1, got {maxlen}")
         if overflow not in OVERFLOWS:
             raise ConfigError(f"overflow must be one of {OVERFLOWS}, got {overflow!r}")
-        chans = tuple(dict.fromkeys(as_channel(c) for c in channels))
-        sub = Subscription(self, chans, maxlen, overflow, callback)
+        patterns = tuple(dict.fromkeys(check_pattern(c) for c in channels if is_pattern(c)))
+        chans = tuple(dict.fromkeys(as_channel(c) for c in channels if not is_pattern(c)))
+        sub = Subscription(self, chans, maxlen, overflow, callback, patterns)
         attached: list[Channel] = []
         try:
             for chan in chans:
                 await self._attach(chan, sub)
                 attached.append(chan)
+            if patterns:
+                await self._watching.add(sub)
         except BaseException as exc:  # e.g. AccessDenied for one of them: take back the others
             sub._close()
-            for chan in attached:
+            for chan in attached + [c for c in sub.channels if c not in chans]:
                 await self._detach(chan, sub)
             raise exc  # named, as in start
         self._subs.append(sub)
         return sub
 
     async def unsubscribe(self, target: Subscription | ChannelLike) -> None:
-        """End a subscription, or every subscription of this node to a channel."""
+        """End a subscription, or every subscription of this node to a channel (or pattern)."""
         if isinstance(target, Subscription):
             subs = [target]
+        elif is_pattern(target):
+            subs = [s for s in self._subs if target in s.patterns]
         else:
             state = self._states.get(as_channel(target).uid)
             subs = [s for s in state.subs if isinstance(s, Subscription)] if state else []
@@ -336,6 +344,8 @@ class Node:
                 self._subs.remove(sub)
             for chan in sub.channels:
                 await self._detach(chan, sub)
+            if sub.patterns:
+                await self._watching.remove(sub)
 
     async def get_msg(self, timeout: float | None = None) -> Message:
         """The next event from any of this node's subscriptions, oldest first.
@@ -418,6 +428,7 @@ class Node:
             "delivered": self.delivered,
             "dropped": sum(sub.dropped for sub in self._subs),
             "callback_errors": sum(sub.errors for sub in self._subs),
+            **self._watching.counters,
         }
         if self._face is not None:
             counters.update(self._face.stats())
@@ -436,6 +447,8 @@ class Node:
         if state is None:
             priority = self._priorities.get(chan.uid, DEFAULT_PRIORITY)
             state = self._states[chan.uid] = ChannelState(chan, priority)
+            if chan.name is not None and self._watching.active:  # a name used here: after
+                asyncio.get_running_loop().call_soon(self._watching.found, chan)  # this bind
         return state
 
     async def _attach(self, chan: Channel, sink: Sink) -> ChannelState:
@@ -459,7 +472,7 @@ class Node:
 
     async def _publishing_state(self, channel: ChannelLike, size: int = 0) -> ChannelState:
         self._check_open()
-        state = self._state(as_channel(channel))
+        state = self._state(as_literal(channel))  # a pattern is refused
         if not state.published:
             await self.face.bind(state, subscribe=False, size=size)
             state.published = True

@@ -39,6 +39,10 @@ class Subscription:
     as it arrives, in the event loop's thread, with no task switch (``get_msg`` is not for it).
     An exception the callback raises is logged and counted (``errors``); the next event comes
     all the same.
+
+    ``patterns`` are the globs it was made with (``subscribe("robot/*")``); ``channels`` holds
+    its channels, those the globs matched included, and grows as the network names more. Each
+    message says its channel.
     """
 
     def __init__(
@@ -48,8 +52,10 @@ class Subscription:
         maxlen: int,
         overflow: Overflow,
         callback: Callable[[Message], object] | None = None,
+        patterns: tuple[str, ...] = (),
     ) -> None:
         self.channels = channels
+        self.patterns = patterns
         self.maxlen = maxlen
         self.overflow: Overflow = overflow
         self.callback = callback
@@ -64,7 +70,7 @@ class Subscription:
         self._served = 0
 
     def __repr__(self) -> str:
-        names = ", ".join(str(c) for c in self.channels)
+        names = ", ".join([*self.patterns, *(str(c) for c in self.channels)])
         return f"<Subscription [{names}] queued={len(self._queue)} dropped={self.dropped}>"
 
     @property

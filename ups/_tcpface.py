@@ -11,19 +11,29 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
 from ._address import parse_address
-from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
-from ._face import OVERFLOWS, Overflow
+from ._errors import (
+    AccessDenied,
+    BrokerUnavailable,
+    ConfigError,
+    PayloadTooLarge,
+    UpsError,
+)
+from ._face import OVERFLOWS, Found, Overflow
 from ._statuspacer import StatusPacer
 from ._subscription import DEFAULT_QUEUE
 from ._tcpinbox import Inbox
 from ._tcplink import Link
 from ._tcpoutbox import Outbox
+from ._tcpquery import query_status as query_status
+from ._tcpwatch import TcpWatches  # it lived here: importers keep working
 from ._tls import Tls, identity
+from ._tlsprobe import mismatch
 
 if TYPE_CHECKING:
     from ._face import ChannelState, Deliver, FaceContext
@@ -121,6 +131,7 @@ class TcpFace:
             ("lost", "unsubscribed", "malformed", "reconnects", "denied", "unvouched",
              "impostors"), 0,
         )  # fmt: skip
+        self._watches = TcpWatches(self.counters, _BIND_TIMEOUT)  # patterns: see _tcpwatch
         #: answers every StatusRequest (listening port, links to subscribers, the ECB link)
         self._pacer = StatusPacer(self.status, self.counters, who=f"node {node_id:016x}")
         self._inbox = Inbox(
@@ -149,6 +160,7 @@ class TcpFace:
         loop = asyncio.get_running_loop()
         deadline = None if self._join_timeout is None else loop.time() + self._join_timeout
         delay = _RETRY_FIRST
+        probed = False  # whether TLS on one side only was looked for (once)
         while True:
             try:
                 await self._connect_ecb()
@@ -156,12 +168,13 @@ class TcpFace:
             except AccessDenied:
                 raise
             except (OSError, TimeoutError, UpsError) as exc:
+                if not probed and not isinstance(exc, ConnectionRefusedError | TimeoutError):
+                    probed = True  # it answered, and hung up: it may speak TLS, or not
+                    why = await mismatch(*self.broker, self._tls is not None, "the TCP-ECB")
+                    if why is not None:
+                        raise ConfigError(why) from None
                 if deadline is not None and loop.time() + delay > deadline:
-                    host, port = self.broker
-                    raise BrokerUnavailable(
-                        f"no TCP-ECB answered at {host}:{port} within {self._join_timeout:g} s "
-                        f"({exc}); start one with 'ups broker'"
-                    ) from None
+                    raise BrokerUnavailable(self._unavailable(exc)) from None
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, _RETRY_MAX)
         self._runner = loop.create_task(self._run())
@@ -171,6 +184,19 @@ class TcpFace:
             *self.broker,
             *self._my_address(),
         )
+
+    def _unavailable(self, exc: BaseException) -> str:
+        """Why joining failed, for people: nothing listening, or no answer."""
+        host, port = self.broker
+        waited = f" within {self._join_timeout:g} s" if self._join_timeout else ""
+        if isinstance(exc, ConnectionRefusedError):
+            listens = "listened" if waited else "listens"
+            return (
+                f"nothing {listens} at {host}:{port}{waited} (connection refused); start a "
+                f"TCP-ECB there with 'ups broker --listen {host}:{port}'"
+            )
+        reason = re.sub(r"^\[Errno -?\d+\] ", "", str(exc)) or "no answer"
+        return f"no TCP-ECB answered at {host}:{port}{waited} ({reason})"
 
     async def close(self) -> None:
         if self._closed:
@@ -189,6 +215,7 @@ class TcpFace:
         self._pacer.close()
         for fut in self._acks.values():
             fut.cancel()
+        self._watches.close()
         self._report_drops()  # what was lost since the last report
 
     def stats(self) -> dict[str, int]:
@@ -253,6 +280,16 @@ class TcpFace:
         """Wait until every subscriber of the channel has room in its queue."""
         await self._outbox.room(state.channel.uid)
 
+    async def watch(self, pattern: str, found: Found) -> None:
+        """The TCP-ECB names the channels it knows that match (Watch, Names)."""
+        ecb = self._ecb if self._ecb is not None and not self._ecb.lost.done() else None
+        await self._watches.watch(pattern, found, None if ecb is None else ecb.send_control)
+
+    async def unwatch(self, pattern: str) -> None:
+        frame = self._watches.unwatch(pattern)
+        if frame is not None and self._ecb is not None and not self._ecb.lost.done():
+            self._ecb.send_control(frame)
+
     # --- the ECB link ----------------------------------------------------------------------
 
     async def _connect_ecb(self) -> None:
@@ -278,6 +315,8 @@ class TcpFace:
             link.send_control(w.encode(self._registration(uid, True)))
         for uid in self._advertised:
             link.send_control(w.encode(self._registration(uid, False)))
+        for frame in self._watches.frames():
+            link.send_control(frame)
         link.send_control(w.encode(w.Ping()))  # ends the registration: the ECB forgets the rest
 
     def _new_ecb_link(self) -> Link:
@@ -390,6 +429,8 @@ class TcpFace:
             self._acked(True, frame.uid)
         elif isinstance(frame, w.Refused):
             self._on_refused(frame)
+        elif isinstance(frame, w.Names):
+            self._watches.names(frame)
         elif isinstance(frame, w.Hello):
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_result(None)
@@ -405,6 +446,8 @@ class TcpFace:
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_exception(error)
             return
+        if frame.right == "watch":
+            self._watches.refused(frame)
         if frame.right not in ("publish", "subscribe"):
             return
         subscribe = frame.right == "subscribe"
@@ -443,33 +486,3 @@ class TcpFace:
     def _report_drops(self) -> None:
         self._outbox.report()
         self._inbox.report()
-
-
-async def query_status(
-    address: str, timeout: float = 5.0, tls: Tls | None = None
-) -> dict[str, Any]:
-    """Ask the TCP-ECB, gateway or node listening at ``address`` for its tables and counters."""
-    host, port = parse_address(address)
-    try:
-        async with asyncio.timeout(timeout):
-            reader, writer = await asyncio.open_connection(
-                host, port, ssl=tls.client() if tls else None
-            )
-            try:
-                writer.write(w.encode(w.StatusRequest()))
-                decoder = w.Decoder(max_frame=w.MAX_BODY)
-                while data := await reader.read(1 << 16):
-                    for frame in decoder.feed(data):
-                        if isinstance(frame, w.Status):
-                            return frame.info
-                        if isinstance(frame, w.Refused):
-                            raise AccessDenied(
-                                f"{host}:{port} does not show its status: {frame.reason}",
-                                "",
-                                frame.right,
-                            )
-            finally:
-                writer.close()
-    except (OSError, TimeoutError) as exc:
-        raise BrokerUnavailable(f"no status from {host}:{port}: {exc or 'timed out'}") from None
-    raise BrokerUnavailable(f"{host}:{port} closed the link without a status")

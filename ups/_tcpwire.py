@@ -29,8 +29,9 @@ DEFAULT_MAX_FRAME = MAX_DATA + 18  #: ... in the longest body a receiver accepts
 
 (
     _HELLO, _EVENT, _SUB, _UNSUB, _ADVERTISE, _UNADVERTISE, _SUBSCRIBERS, _PING, _PONG,
-    _STATUS_REQUEST, _STATUS, _START, _PUBLISHERS, _REFUSED,
-) = range(14)  # fmt: skip
+    _STATUS_REQUEST, _STATUS, _START, _PUBLISHERS, _REFUSED, _WATCH, _UNWATCH, _NAMES,
+) = range(17)  # fmt: skip
+NAMES_PER_FRAME: Final = 256  #: channels one Names frame lists at most
 _HEAD = struct.Struct(">I")
 _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, seq
 #: a whole Event frame, by its data size up to 256 bytes: header, kind, priority, uid, seq, data
@@ -135,6 +136,29 @@ class Subscribers:
 
 
 @dataclass(frozen=True, slots=True)
+class Watch:
+    """Node -> ECB: tell me the channels whose names match ``pattern`` (a glob), those known
+    now (answered with Names, the last one ``done``) and those named later (pushed)."""
+
+    pattern: str
+
+
+@dataclass(frozen=True, slots=True)
+class Unwatch:
+    pattern: str
+
+
+@dataclass(frozen=True, slots=True)
+class Names:
+    """ECB -> node: channels (UID, name) whose names match ``pattern``; ``done`` on the last
+    frame of the answer to a Watch, and on every later push."""
+
+    pattern: str
+    channels: tuple[tuple[int, str], ...]
+    done: bool = True
+
+
+@dataclass(frozen=True, slots=True)
 class Ping:
     pass
 
@@ -156,7 +180,7 @@ class Status:
     info: dict[str, Any]
 
 
-RIGHTS = ("publish", "subscribe", "status", "connect")
+RIGHTS = ("publish", "subscribe", "status", "connect", "watch")
 
 Frame = (
     Hello
@@ -173,6 +197,9 @@ Frame = (
     | Start
     | Publishers
     | Refused
+    | Watch
+    | Unwatch
+    | Names
 )
 
 _packer = msgpack.Packer(use_bin_type=True)
@@ -230,6 +257,10 @@ def _fields(frame: Frame) -> tuple[Any, ...]:
         return (_PUBLISHERS, frame.uid, [list(p) for p in frame.publishers])
     if isinstance(frame, Refused):
         return (_REFUSED, frame.uid, frame.right, frame.reason)
+    if isinstance(frame, Watch | Unwatch):
+        return (_WATCH if isinstance(frame, Watch) else _UNWATCH, frame.pattern)
+    if isinstance(frame, Names):
+        return (_NAMES, frame.pattern, [list(c) for c in frame.channels], frame.done)
     if isinstance(frame, Status):
         return (_STATUS, frame.info)
     if isinstance(frame, StatusRequest):
@@ -382,6 +413,14 @@ def _frame(f: tuple[Any, ...]) -> Frame:
         if right not in RIGHTS:
             raise ValueError(f"unknown right {right!r:.30}")
         return Refused(_uid(uid), right, _str(reason))
+    if kind in (_WATCH, _UNWATCH):
+        _, pattern = f
+        return (Watch if kind == _WATCH else Unwatch)(_str(pattern))
+    if kind == _NAMES:
+        _, pattern, channels, done = f
+        if type(done) is not bool:
+            raise TypeError(f"done must be true or false: {done!r:.30}")
+        return Names(_str(pattern), tuple(_named(c) for c in _array(channels)), done)
     if kind in (_PING, _PONG, _STATUS_REQUEST) and len(f) == 1:
         return Ping() if kind == _PING else Pong() if kind == _PONG else StatusRequest()
     if kind == _STATUS:
@@ -396,6 +435,11 @@ def _array(value: Any) -> tuple[Any, ...]:
     if not isinstance(value, tuple):
         raise TypeError(f"not an array: {_short(value)}")
     return value
+
+
+def _named(value: Any) -> tuple[int, str]:
+    uid, name = _array(value)
+    return _uid(uid), _str(name)
 
 
 def _voucher(value: Any) -> tuple[int, str]:

@@ -28,9 +28,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ._errors import BrokerUnavailable, ConfigError, PayloadTooLarge
+from ._extras import require
+from ._zenohwatch import ZenohWatches
 
 if TYPE_CHECKING:
-    from ._face import ChannelState, FaceContext
+    from ._face import ChannelState, FaceContext, Found
 
 log = logging.getLogger("ups.zenoh")
 
@@ -87,10 +89,16 @@ def from_zenoh_priority(band: int) -> int:
     return -(-(band - 1) * 256 // 7)
 
 
+def require_zenoh() -> None:
+    """Raise ``ConfigError`` saying how to install Zenoh when it is not installed."""
+    require("zenoh", "zenoh", "Zenoh is not installed (eclipse-zenoh)")
+
+
 def zenoh_config(endpoint: str, config: str | Path | None, mode: str = "client") -> Any:
     """A Zenoh config: the file's when given, else Zenoh's defaults, with ``endpoint`` added
     to connect to. ``mode`` and multicast scouting off, unless the file names them (a key
     ``mode``, a key ``multicast``): UPS never scouts a real LAN unasked."""
+    require_zenoh()
     import zenoh
 
     text = ""
@@ -145,9 +153,12 @@ class ZenohFace:
         self._subscribers: dict[int, Any] = {}  # uid -> Zenoh subscriber
         self._seq: dict[int, int] = {}  # uid -> this node's next number on it
         self._expected: dict[tuple[int, int], int] = {}  # (publisher, uid) -> next number
-        self._rx: collections.deque[tuple[int, bytes, bytes | None, int, float]] = (
+        #: samples: UID, data, attachment, Zenoh priority, receive time, and the channel's name
+        #: when it came by a pattern (see _zenohwatch), else None
+        self._rx: collections.deque[tuple[int, bytes, bytes | None, int, float, str | None]] = (
             collections.deque()
         )
+        self._watches = ZenohWatches(self._subscribers, self._expected)
         self._rx_scheduled = False
         self._rx_lock = threading.Lock()  # Zenoh may call back from several threads
         self._queryable: Any = None
@@ -177,10 +188,7 @@ class ZenohFace:
                 break
             except zenoh.ZError as exc:
                 if deadline is not None and loop.time() + delay > deadline:
-                    raise BrokerUnavailable(
-                        f"could not join {self.where} within {self._join_timeout:g} s ({exc}); "
-                        "start a router with 'ups zenoh-router'"
-                    ) from None
+                    raise BrokerUnavailable(self._unavailable(exc)) from None
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, _RETRY_MAX)
         self._queryable = self._session.declare_queryable(
@@ -190,12 +198,22 @@ class ZenohFace:
         log.info("node %016x joined %s (Zenoh id %s)", self.node_id, self.where,
                  self._session.zid())  # fmt: skip
 
+    def _unavailable(self, exc: BaseException) -> str:
+        """Why joining failed, for people (Zenoh's own text without its source location)."""
+        waited = f" within {self._join_timeout:g} s" if self._join_timeout else ""
+        reason = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+        if reason.startswith("Unable to connect"):
+            reason = "nothing answers there"
+        router = f"'ups zenoh-router --listen {self._endpoint}'" if self._endpoint else "one"
+        return f"could not join {self.where}{waited} ({reason}); start a router with {router}"
+
     async def close(self) -> None:
         if self._closed:
             return
         self._closed = True
         if self._reporter is not None:
             self._reporter.cancel()
+        self._watches.close()
         session, self._session = self._session, None
         if session is not None:
             with contextlib.suppress(Exception):
@@ -235,7 +253,7 @@ class ZenohFace:
         if subscribe:
             if uid not in self._subscribers:
                 self._subscribers[uid] = session.declare_subscriber(
-                    subscription_key(uid), self._sample_handler(uid)
+                    subscription_key(uid), lambda sample, uid=uid: self._receive(uid, sample)
                 )
                 await self._sync()  # the router has it: what is put from now on reaches us
             return
@@ -278,6 +296,15 @@ class ZenohFace:
     async def room(self, state: ChannelState) -> None:
         """Zenoh queues and drops on its own (congestion control "drop"): nothing to wait for
         here; what a subscriber misses it counts from the sequence numbers."""
+
+    async def watch(self, pattern: str, found: Found) -> None:
+        """Names travel in keys: a channel is found with its first event that carries its
+        name (see _zenohwatch)."""
+        self._watches.declare(self._live_session(), pattern, found, self._receive)
+        await self._sync()  # the router has it: what is put from now on reaches us
+
+    async def unwatch(self, pattern: str) -> None:
+        self._watches.undeclare(pattern)
 
     async def _sync(self) -> None:
         """One round trip through the router: a get that nobody answers ends when the router
@@ -334,28 +361,27 @@ class ZenohFace:
 
     # --- receiving -------------------------------------------------------------------------
 
-    def _sample_handler(self, uid: int) -> Any:
-        rx, limit, counters = self._rx, RX_QUEUE, self.counters
-
-        def on_sample(sample: Any) -> None:  # in a Zenoh thread
-            if len(rx) >= limit:
-                counters["rx_overflow"] += 1
-                return
-            attachment = sample.attachment
-            rx.append((
-                uid,
-                sample.payload.to_bytes(),
-                None if attachment is None else attachment.to_bytes(),
-                int(sample.priority),
-                time.time(),
-            ))  # fmt: skip
-            if not self._rx_scheduled:
-                with self._rx_lock:
-                    if not self._rx_scheduled:
-                        self._rx_scheduled = True
-                        self._threadsafe(self._drain)
-
-        return on_sample
+    def _receive(self, uid: int, sample: Any, name: str | None = None) -> None:
+        """Queue a sample for the event loop (in a Zenoh thread); ``name``: it came by a
+        pattern, under that name."""
+        rx = self._rx
+        if len(rx) >= RX_QUEUE:
+            self.counters["rx_overflow"] += 1
+            return
+        attachment = sample.attachment
+        rx.append((
+            uid,
+            sample.payload.to_bytes(),
+            None if attachment is None else attachment.to_bytes(),
+            int(sample.priority),
+            time.time(),
+            name,
+        ))  # fmt: skip
+        if not self._rx_scheduled:
+            with self._rx_lock:
+                if not self._rx_scheduled:
+                    self._rx_scheduled = True
+                    self._threadsafe(self._drain)
 
     def _threadsafe(self, callback: Any, *args: Any) -> None:
         loop = self._loop
@@ -370,9 +396,12 @@ class ZenohFace:
         for _ in range(_DRAIN_BATCH):
             if not rx:
                 return
-            uid, data, attachment, band, ts = rx.popleft()
+            uid, data, attachment, band, ts, name = rx.popleft()
+            if name is not None and not self._watches.discovered(uid, name):
+                counters["foreign"] += 1  # a name that is not its UID's: not a UPS key
+                continue
             state = channels.get(uid)
-            if state is None or not state.subs or uid not in self._subscribers:
+            if state is None or not state.subs or (name is None and uid not in self._subscribers):
                 counters["unsubscribed"] += 1
                 continue
             if len(data) > MAX_DATA:
@@ -381,6 +410,8 @@ class ZenohFace:
             if attachment is not None and len(attachment) == ATTACHMENT.size:
                 version, priority, source, seq = ATTACHMENT.unpack(attachment)
                 if version == VERSION:
+                    if self._watches.duplicate(source, uid, seq, name is not None):
+                        continue
                     self._follow(source, uid, seq)
                     counters["received"] += 1
                     self._deliver(state, data, priority, source, ts)
@@ -447,70 +478,3 @@ class ZenohFace:
 def _resolve(future: asyncio.Future[None]) -> None:
     if not future.done():
         future.set_result(None)
-
-
-async def query_status(
-    endpoint: str, config: str | Path | None = None, timeout: float = 5.0
-) -> list[dict[str, Any]]:
-    """The status of every UPS node and gateway on the Zenoh network at ``endpoint``."""
-    import zenoh
-
-    conf = zenoh_config(endpoint, config)
-
-    def ask() -> list[dict[str, Any]]:
-        try:
-            session = zenoh.open(conf)
-        except zenoh.ZError as exc:
-            raise BrokerUnavailable(f"could not join Zenoh at {endpoint}: {exc}") from None
-        try:
-            answers = []
-            replies = session.get(
-                f"{STATUS_PREFIX}/*",
-                target=zenoh.QueryTarget.ALL,  # every node's, not the best matching one's
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=timeout,
-            )
-            for reply in replies:
-                if reply.ok is not None:
-                    with contextlib.suppress(ValueError):
-                        answers.append(json.loads(reply.ok.payload.to_string()))
-            return answers
-        finally:
-            session.close()  # type: ignore[no-untyped-call]
-
-    return await asyncio.to_thread(ask)
-
-
-async def network_status(
-    endpoint: str, config: str | Path | None = None, timeout: float = 5.0
-) -> dict[str, Any]:
-    """The UPS nodes and channels of a Zenoh network, from every node's status, in the shape
-    of a TCP-ECB's Status (``nodes``, ``channels``), for the operators' tools."""
-    answers = await query_status(endpoint, config, timeout)
-    channels: dict[str, dict[str, Any]] = {}
-    nodes = []
-    for answer in answers:
-        node_id = answer.get("node_id")
-        if not isinstance(node_id, str):
-            continue
-        names = answer.get("names") or {}
-        for role, key in (("subscribed", "subscribers"), ("published", "publishers")):
-            for uid in answer.get(role) or ():
-                entry = channels.setdefault(
-                    uid, {"uid": uid, "name": None, "publishers": [], "subscribers": []}
-                )
-                entry[key].append(node_id)
-                entry["name"] = entry["name"] or names.get(uid)
-        nodes.append({
-            "node_id": node_id,
-            "name": answer.get("name"),
-            "address": answer.get("zenoh_id"),
-            "connected": True,
-            "subscribed": list(answer.get("subscribed") or ()),
-            "published": list(answer.get("published") or ()),
-            **({"jaus": answer["jaus"]} if isinstance(answer.get("jaus"), dict) else {}),
-        })  # fmt: skip
-    return {
-        "nodes": sorted(nodes, key=lambda n: n["node_id"]),
-        "channels": [channels[uid] for uid in sorted(channels)],
-    }

@@ -23,11 +23,13 @@ from ups._cliargs import (
     add_tls,
     add_zenoh,
     add_zenoh_config,
+    explained,
     nonnegative_float,
     positive_float,
     positive_int,
     run_until_signal,
     tls_of,
+    warn_if_virtual,
 )
 from ups._errors import ConfigError, UpsError
 from ups._metrics import add_metrics
@@ -53,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
         result: int = args.run(args)
         return result
     except UpsError as exc:
-        print(f"ups {args.command}: {exc}", file=sys.stderr)
+        print(f"ups {args.command}: {explained(args, exc)}", file=sys.stderr)
         return EXIT_USAGE
     except BrokenPipeError:  # the reader of our output went away: a way to stop, not an error
         with contextlib.suppress(OSError):
@@ -338,6 +340,7 @@ def _run_can_broker(args: argparse.Namespace) -> int:
     from ups.broker.can_ecb import serve
 
     db = args.db if args.db is not None else default_db(args.can)
+    warn_if_virtual(args.can)
 
     async def run() -> int:
         return await serve(
@@ -386,6 +389,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         listen=args.listen,
         tls=tls_of(args),
     )
+    warn_if_virtual(args.can)
 
     async def run() -> int:
         await serve(gateway, args.metrics)
@@ -414,11 +418,11 @@ def _run_status(args: argparse.Namespace) -> int:
     async def run() -> int:
         info: Any
         if args.address is None:
-            from ups._zenohface import query_status as query_zenoh
+            from ups._zenohstatus import query_status as query_zenoh
 
             info = await query_zenoh(args.zenoh or "", args.zenoh_config, args.timeout)
         else:
-            from ups._tcpface import query_status
+            from ups._tcpquery import query_status
 
             info = await query_status(args.address, args.timeout, tls_of(args))
         print(json.dumps(info, indent=2))
@@ -441,9 +445,11 @@ def _run_bench(args: argparse.Namespace) -> int:
     try:
         from ups.benchmarks import bench
     except ImportError as exc:
+        from ups._extras import install_hint
+
         raise ConfigError(
-            f"the benchmarks are not installed ({exc}): pip install 'ups-pubsub[bench]', or run "
-            "from a checkout of the repository"
+            f"the benchmarks cannot be loaded ({exc.name or exc} is missing): "
+            f"{install_hint('bench')}"
         ) from None
     argv = ["--quick"] if args.quick else []
     argv += ["--json", args.json] if args.json else []

@@ -12,6 +12,7 @@ from ups._cliargs import (
     add_catalog,
     add_node_options,
     channel_arg,
+    channel_or_pattern_arg,
     hex_arg,
     nonnegative_float,
     open_node,
@@ -21,9 +22,13 @@ from ups._cliargs import (
     run_until_signal,
     say,
 )
+from ups._errors import ConfigError
 
 if TYPE_CHECKING:
+    from ups._catalog import Catalog
+    from ups._channel import Channel
     from ups._message import Message
+    from ups._subscription import Subscription
 
 EXIT_TIMEOUT = 1  #: ups sub saw fewer events than --count before --timeout
 EXIT_LOST = 1  #: ups sub lost events, ups pub could not deliver some
@@ -55,8 +60,16 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     )  # fmt: skip
     cmd.set_defaults(run=_run_pub)
 
-    cmd = command("sub", help="print the events of channels")
-    cmd.add_argument("channels", nargs="+", type=channel_arg, metavar="CHANNEL")
+    cmd = command("sub", help="print the events of channels, or of every channel a pattern "
+                  "matches")  # fmt: skip
+    cmd.add_argument(
+        "channels", nargs="+", type=channel_or_pattern_arg, metavar="CHANNEL",
+        help="a name, 0x + hex for a UID, or a pattern: a name with *, ? or [ (robot/*; '*' "
+        "crosses '/'), for every channel whose name matches, now and later: on TCP/IP the "
+        "TCP-ECB's names, on Zenoh names in keys (from a channel's first event), on CAN the "
+        "catalog's (--catalog)",
+    )  # fmt: skip
+    add_catalog(cmd, "names and payload layouts: events printed as decoded values")
     add_node_options(cmd)
     cmd.add_argument("--count", type=positive_int, default=None, help="exit 0 after N events")
     cmd.add_argument(
@@ -109,13 +122,22 @@ def _run_pub(args: argparse.Namespace) -> int:
 def _run_sub(args: argparse.Namespace) -> int:
     import asyncio
 
+    from ups._catalog import load_catalog
+
+    catalog = load_catalog(args.catalog)
+    node = open_node(args)
+    patterns = [c for c in args.channels if isinstance(c, str)]
+    if patterns and args.on_can and catalog.path is None:  # said before joining the bus
+        raise ConfigError(f"on CAN, channel names come only from a channel catalog: "
+                          f"subscribing to {patterns[0]} needs one (--catalog FILE or "
+                          "$UPS_CATALOG)")  # fmt: skip
+
     async def run() -> int:
         got = 0
         code = 0
-        async with open_node(args) as node:
+        async with node:
             sub = await node.subscribe(*args.channels, maxlen=args.queue)
-            names = ", ".join(str(c) for c in args.channels)
-            say(args, f"subscribed to {names}")
+            say(args, f"subscribed to {_subscribed(args.channels, sub, args.on_can)}")
             loop = asyncio.get_running_loop()
             deadline = None if args.timeout is None else loop.time() + args.timeout
             try:
@@ -128,7 +150,7 @@ def _run_sub(args: argparse.Namespace) -> int:
                         code = EXIT_TIMEOUT
                         break
                     got += 1
-                    print(_event_line(msg, args.json, args.on_can), flush=True)
+                    print(_event_line(msg, args.json, args.on_can, catalog), flush=True)
             except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
                 pass
             stats = node.stats()
@@ -146,22 +168,43 @@ def _run_sub(args: argparse.Namespace) -> int:
     return run_until_signal(run())
 
 
-def _event_line(msg: Message, as_json: bool, on_can: bool) -> str:
-    """One event as ``ups sub`` prints it. The source is hex: a TxNode (2 digits) on CAN, a
-    node id (16 digits) on TCP/IP, null for the node's own events."""
+def _subscribed(asked: list[Channel | str], sub: Subscription, on_can: bool) -> str:
+    """What ``ups sub`` says it subscribed to: the channels, and for patterns what they match
+    (on CAN the catalog's channels, all known at once; elsewhere more come as they are named)."""
+    said = [str(c) for c in asked if not isinstance(c, str)]
+    if sub.patterns:
+        matched = [str(c) for c in sub.channels if all(c != a for a in asked)]
+        now = ", ".join(matched[:10]) + (f" and {len(matched) - 10} more" if matched[10:] else "")
+        later = "" if on_can else "; more join as they are named"
+        said.append(f"{', '.join(sub.patterns)} ({now or 'no channel yet'}{later})")
+    return ", ".join(said)
+
+
+def _event_line(msg: Message, as_json: bool, on_can: bool, catalog: Catalog) -> str:
+    """One event as ``ups sub`` prints it: its channel (named by the catalog when the event
+    came by UID), its data (decoded by the catalog's layout of the channel, if any), priority
+    and source. The source is hex: a TxNode (2 digits) on CAN, a node id (16 digits) on TCP/IP
+    and Zenoh, null for the node's own events."""
     digits = 2 if on_can else 16
     source = None if msg.source is None else f"0x{msg.source:0{digits}x}"
+    uid = msg.channel.uid
+    name = msg.channel.name or catalog.channel(uid).name
     if as_json:
         import json  # cached after the first event: a dict lookup
 
+        values = catalog.decode(uid, msg.data)
         return json.dumps(
             {
-                "uid": f"0x{msg.uid:016x}",
-                "channel": msg.channel.name,
+                "uid": f"0x{uid:016x}",
+                "channel": name,
                 "data": msg.data.hex(),
+                "values": None
+                if values is None
+                else {k: v.hex() if isinstance(v, bytes) else v for k, v in values.items()},
                 "timestamp": msg.timestamp,
                 "priority": msg.priority,
                 "source": source,
             }
         )
-    return f"{msg.channel}  {msg.data.hex() or '-'}  prio={msg.priority}  from={source or '-'}"
+    value = catalog.format(uid, msg.data)
+    return f"{name or msg.channel}  {value}  prio={msg.priority}  from={source or '-'}"

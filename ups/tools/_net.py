@@ -44,16 +44,16 @@ class IpNetwork:
         """Its nodes and channels: the TCP-ECB's Status, or on Zenoh every node's, merged in
         the same shape (``nodes``, ``channels``)."""
         if self.kind == "broker":
-            from .._tcpface import query_status
+            from .._tcpquery import query_status
 
             return await query_status(self.where, self._timeout, self.tls)
-        from .._zenohface import network_status
+        from .._zenohstatus import network_status
 
         return await network_status(self.where, self._config, self._timeout)
 
     async def node_status(self, address: str) -> dict[str, Any]:
         """The status of the TCP/IP node listening at ``address`` (as ``ups status`` shows)."""
-        from .._tcpface import query_status
+        from .._tcpquery import query_status
 
         return await query_status(address, self._timeout, self.tls)
 

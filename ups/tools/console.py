@@ -92,12 +92,10 @@ def run(args: argparse.Namespace) -> int:
     from .._address import parse_address
     from .._bindings import Bindings
     from .._catalog import load_catalog
+    from .._extras import require
     from ._live import Live
 
-    try:
-        import aiohttp  # noqa: F401
-    except ImportError:
-        raise ConfigError("ups console needs aiohttp: pip install 'ups-pubsub[tools]'") from None
+    require("aiohttp", "tools", "ups console needs aiohttp, which is not installed")
     host, port = parse_address(args.listen)
     can, net = network_of(args)
     live = Live(load_catalog(args.catalog), net.label if net else "can", can or str(net),

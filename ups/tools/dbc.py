@@ -49,7 +49,9 @@ def run(args: argparse.Namespace) -> int:
     import os
 
     from .._catalog import load_catalog
+    from .._extras import require
 
+    require("cantools", "tools", "ups dbc writes with cantools, which is not installed")
     catalog = load_catalog(args.catalog)
     if args.recording is not None:
         bindings, streams = _from_recording(args.recording)

@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         if args.ecb is not None:  # its tables, subscribers included, from its status port
 
             async def ask_ecb() -> dict[str, Any]:
-                from .._tcpface import query_status
+                from .._tcpquery import query_status
 
                 return await query_status(args.ecb, args.timeout)  # plain TCP, no TLS
 

@@ -64,13 +64,10 @@ def run(args: argparse.Namespace) -> int:
         bindings.load_bus_db(can, args.db)
     screen = not (args.plain or args.json) and sys.stdout.isatty()
     if screen:
-        try:
-            import rich  # noqa: F401
-        except ImportError:
-            from .._errors import ConfigError
+        from .._extras import require
 
-            raise ConfigError("the live screen needs rich: pip install 'ups-pubsub[tools]' "
-                              "(or use --plain)") from None  # fmt: skip
+        require("rich", "tools", "the live screen needs rich, which is not installed",
+                " (or give --plain)")  # fmt: skip
     return run_until_signal(_watch(args, live, bindings, can, net, screen))
 
 

@@ -1,0 +1,156 @@
+"""Pattern subscriptions in one process, on every network that knows names: a real TCP-ECB
+(with and without an ACL), a real Zenoh router, and a virtual CAN bus with its CAN-ECB and a
+channel catalog. A channel that is named later joins; a literal name is never a pattern."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from ups import AccessDenied, Channel, ConfigError, Message, Node, Subscription, name_to_uid
+from ups._catalog import Catalog
+from ups.broker._acl import Acl
+from ups.broker.tcp_ecb import TcpEcb
+
+from .conftest import eventually
+from .test_tcp_node import addr, running_tcp_ecb, tcp_node
+from .test_tls import certs, tls
+
+CATALOG = Path(__file__).resolve().parent.parent / "examples" / "robots.toml"
+
+
+async def received(sub: Subscription, publisher: Node, channel: str, data: bytes) -> Message:
+    """Publish ``data`` on ``channel`` until ``sub`` has it: a channel named just now joins once
+    the subscriber has heard of it and subscribed, and what was published before is gone."""
+    for _ in range(200):
+        await publisher.publish(channel, data)
+        with contextlib.suppress(TimeoutError):
+            while (msg := await sub.get_msg(timeout=0.1)).channel.name != channel:
+                pass
+            return msg
+    raise AssertionError(f"{channel} never reached the subscription: {sub!r}")
+
+
+def names(sub: Subscription) -> set[str | None]:
+    return {c.name for c in sub.channels}
+
+
+@pytest.fixture
+async def tcp_ecb() -> AsyncIterator[TcpEcb]:
+    async with running_tcp_ecb() as ecb:
+        yield ecb
+
+
+async def test_tcp_a_pattern_gets_the_channels_named_now_and_later(tcp_ecb: TcpEcb) -> None:
+    async with tcp_node(tcp_ecb, "a") as a, tcp_node(tcp_ecb, "b") as b:
+        await b.advertise("robot/speed")  # named before the subscription
+        await b.advertise("other/x")
+        sub = await a.subscribe("robot/*")
+        assert sub.patterns == ("robot/*",) and names(sub) == {"robot/speed"}
+        msg = await received(sub, b, "robot/speed", b"\x32")
+        assert msg.channel == Channel.named("robot/speed") and msg.source == b.node_id
+        later = await received(sub, b, "robot/distance", b"\xc8")  # named after it
+        assert later.channel.name == "robot/distance" and later.data == b"\xc8"
+        await b.publish("other/x", b"\x01")
+        assert names(sub) == {"robot/speed", "robot/distance"}
+        assert tcp_ecb.stats()["watches"] == 1
+        await a.unsubscribe("robot/*")
+        await eventually(lambda: tcp_ecb.stats()["watches"] == 0)
+
+
+async def test_a_name_that_holds_a_star_is_a_channel_only_when_asked_so(tcp_ecb: TcpEcb) -> None:
+    literal = Channel.named("robot/*")
+    async with tcp_node(tcp_ecb, "a") as a, tcp_node(tcp_ecb, "b") as b:
+        sub = await a.subscribe(literal)
+        assert sub.patterns == () and sub.channels == (literal,)
+        await b.advertise(literal)
+        await b.publish(literal, b"\x07")
+        assert (await sub.get_msg(timeout=10)).channel == literal
+        with pytest.raises(ConfigError, match="is a pattern"):
+            await b.publish("robot/*", b"\x07")  # never a silent literal
+        escaped = await a.subscribe("robot/[*]")  # the pattern that matches it alone
+        assert escaped.channels == (literal,)
+
+
+async def test_tcp_a_node_watches_at_most_64_patterns(tcp_ecb: TcpEcb) -> None:
+    async with tcp_node(tcp_ecb, "a") as a:
+        for i in range(64):
+            await a.subscribe(f"p{i}/*")
+        with pytest.raises(AccessDenied, match="at most 64 patterns") as refused:
+            await a.subscribe("p64/*")
+        assert refused.value.right == "watch"
+        assert tcp_ecb.stats()["watch_limited"] == 1 and tcp_ecb.stats()["watches"] == 64
+
+
+async def test_tcp_with_an_acl_a_pattern_names_only_what_the_identity_may_have(
+    tmp_path: Path,
+) -> None:
+    certs(tmp_path, "ca", str(tmp_path))
+    for name in ("broker", "alice", "bob"):
+        certs(tmp_path, "issue", str(tmp_path), name)
+    acl = Acl.parse('[identity.alice]\nsubscribe = ["robot/speed"]\n'
+                    '[identity.bob]\npublish = ["robot/*"]\n')  # fmt: skip
+    async with running_tcp_ecb(tls=tls(tmp_path, "broker"), acl=acl) as ecb:
+        alice = Node(broker=addr(ecb), name="alice", tls=tls(tmp_path, "alice"))
+        bob = Node(broker=addr(ecb), name="bob", tls=tls(tmp_path, "bob"))
+        async with alice, bob:
+            await bob.advertise("robot/speed")
+            await bob.advertise("robot/brake")
+            sub = await alice.subscribe("robot/*")
+            assert names(sub) == {"robot/speed"}  # robot/brake is not named to alice
+            assert (await received(sub, bob, "robot/speed", b"\x01")).data == b"\x01"
+            await bob.advertise("robot/distance")
+            await bob.publish("robot/speed", b"\x02")
+            assert (await sub.get_msg(timeout=10)).data == b"\x02"
+            assert names(sub) == {"robot/speed"} and alice.stats()["pattern_refused"] == 0
+
+
+async def test_zenoh_a_pattern_gets_every_event_of_a_channel_from_its_first(
+    zenoh_router: str,
+) -> None:
+    async with Node(zenoh=zenoh_router, name="a") as a, Node(zenoh=zenoh_router, name="b") as b:
+        sub = await a.subscribe("robot/*")
+        assert names(sub) == set()  # on Zenoh a channel is named by its events
+        await b.advertise("robot/speed")
+        face: Any = b.face
+        await eventually(lambda: face.subscribed_elsewhere(name_to_uid("robot/speed")))
+        for i in range(50):
+            await b.publish("robot/speed", bytes([i]))
+            await b.publish("other/x", bytes([i]))
+        got = [await sub.get_msg(timeout=10) for _ in range(50)]
+        assert [m.data[0] for m in got] == list(range(50))  # once each, in order, none lost
+        assert {m.channel.name for m in got} == {"robot/speed"} and names(sub) == {"robot/speed"}
+        assert a.stats()["lost"] == 0 and a.stats()["restarts"] == 0
+        forged = f"ups/{name_to_uid('robot/speed') ^ 1:016x}/robot/speed"  # not its UID's name
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps([zenoh_router]))
+        plain = zenoh.open(conf)
+        try:
+            plain.put(forged, b"\xff")
+            await b.publish("robot/speed", b"\x99")
+            assert (await sub.get_msg(timeout=10)).data == b"\x99"  # the forged one is not
+        finally:
+            plain.close()  # type: ignore[no-untyped-call]
+        await eventually(lambda: a.stats()["foreign"] >= 1)
+
+
+async def test_can_a_pattern_takes_its_names_from_the_catalog(bus: str, ecb: Any) -> None:
+    async with (
+        Node(can=bus, name="a", catalog=CATALOG) as a,
+        Node(can=bus, name="b") as b,
+    ):
+        sub = await a.subscribe("robot/*")
+        catalogued = {s.name for s in Catalog.load(CATALOG) if (s.name or "").startswith("robot/")}
+        assert names(sub) == catalogued and "robot/brake" in catalogued
+        await b.publish("robot/brake", b"\x01")
+        msg = await sub.get_msg(timeout=10)
+        assert msg.channel.name == "robot/brake" and msg.data == b"\x01"
+        with pytest.raises(ConfigError, match="names come only from a channel catalog"):
+            await b.subscribe("robot/*")  # no catalog: refused, never a literal
