@@ -222,11 +222,21 @@ async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
     return node, host
 
 
+GRACE = 30.0  #: seconds the demo waits past its duration for events it has not seen yet
+
+
+def _arrived(seen: dict[str, int], remote: dict[str, int]) -> tuple[bool, bool]:
+    """Whether the dashboard (on the bus) and the operator (on TCP/IP) saw every kind of event."""
+    local_ok = all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE, LOCAL_POSE, GLOBAL_POSE))
+    return local_ok, all(remote.get(ch) for ch in (SPEED, BRAKE, "slowed"))
+
+
 async def run_demo(
     duration: float | None = 3.0, bus: str = "virtual:ups-demo", jaus: str | None = None
 ) -> int:
-    """The demo in this process, for ``duration`` seconds (None: until cancelled, Ctrl-C);
-    every part's task is ended and awaited before the nodes close, however it stops."""
+    """The demo in this process, for ``duration`` seconds and then until every kind of event
+    arrived (at most ``GRACE`` s more; None: until cancelled, Ctrl-C); every part's task is
+    ended and awaited before the nodes close, however it stops."""
     print(INTRO)
     with tempfile.TemporaryDirectory() as tmp:
         registry = TcpEcb("127.0.0.1", 0, recovery=0)  # any free port
@@ -265,13 +275,18 @@ async def run_demo(
             if duration is None:
                 await asyncio.Event().wait()  # until Ctrl-C
             await asyncio.sleep(duration or 0)
+            # a busy machine may need longer for the whole story (a brake, the operator's answer)
+            deadline = asyncio.get_running_loop().time() + GRACE
+            while not all(_arrived(seen, remote)):
+                if asyncio.get_running_loop().time() > deadline:
+                    break
+                await asyncio.sleep(0.1)
             stop.set()
             await asyncio.gather(*tasks)
             print(f"dashboard saw {seen}")
             print(f"operator saw {remote}")
             print(f"gateway: {gateway.stats()}")
-            local_ok = all(seen.get(ch) for ch in (SPEED, DISTANCE, BRAKE, LOCAL_POSE, GLOBAL_POSE))
-            remote_ok = all(remote.get(ch) for ch in (SPEED, BRAKE, "slowed"))
+            local_ok, remote_ok = _arrived(seen, remote)
             print(_outro(local_ok, remote_ok, seen, remote))
             return 0 if local_ok and remote_ok else 1
         finally:
