@@ -242,7 +242,10 @@ async def run_demo(
         registry = TcpEcb("127.0.0.1", 0, recovery=0)  # any free port
         await registry.start()
         broker = f"127.0.0.1:{registry.port}"
-        gateway = Gateway(bus, broker, db=Path(tmp) / "gateway.db", node_id=0x0D3E_00FF)
+        # a bus of this process only, a fresh table: nobody to hear out before serving
+        gateway = Gateway(
+            bus, broker, db=Path(tmp) / "gateway.db", node_id=0x0D3E_00FF, recovery=0.05
+        )
         names = ("wheel-encoder", "sonar", "motor-controller", "dashboard", "navigator")
         nodes = [Node(can=bus, name=name, node_id=0x0D3E_0000 + i) for i, name in enumerate(names)]
         operator = Node(broker=broker, name="operator", node_id=0x0D3E_0100)

@@ -42,7 +42,7 @@ from ups._node import Node
 from ups._nodeid import claim_node_id
 from ups._tls import Tls
 from ups.broker._store import default_db
-from ups.broker.can_ecb import CanEcb
+from ups.broker.can_ecb import RECOVERY, CanEcb
 from ups.rt import frame_bits
 
 from ._tables import Tables
@@ -74,7 +74,9 @@ class Gateway:
     ``host_can_ecb=False`` uses a CAN-ECB that already serves the bus. In that case the gateway
     learns who subscribes and publishes from the nodes' requests, so it sees only what nodes
     register after it starts, or re-announce when their CAN-ECB restarts. ``bitrate`` is the
-    bus's bit rate (admission control, pacing). ``listen`` is where TCP publishers reach it
+    bus's bit rate (admission control, pacing). ``recovery`` is the hosted CAN-ECB's recovery
+    window after its Hello (``CanEcb``'s; shorter only where no node can be on the bus before
+    the gateway, as in the demo's own virtual bus). ``listen`` is where TCP publishers reach it
     (and ``ups status`` too).
     """
 
@@ -88,6 +90,7 @@ class Gateway:
         db: str | Path | None = None,
         host_can_ecb: bool = True,
         bitrate: int = 500_000,
+        recovery: float = RECOVERY,
         node_id: int | None = None,
         name: str = "ups-gateway",
         listen: str | None = None,
@@ -117,6 +120,7 @@ class Gateway:
         self._db = db
         self._host_can_ecb = host_can_ecb
         self.bitrate = bitrate
+        self._recovery = recovery
         self._node_id = node_id
         self.name = name
         self._listen = listen
@@ -180,7 +184,9 @@ class Gateway:
                 if not isinstance(self._can_spec, str):
                     raise ConfigError("a gateway on a CanLink needs db=: the bus has no name")
                 db = default_db(self._can_spec)
-            self._ecb = self._tables = CanEcb(self._link, db, bitrate=self.bitrate)
+            self._ecb = self._tables = CanEcb(
+                self._link, db, bitrate=self.bitrate, recovery=self._recovery
+            )
             await self._ecb.start()
         else:
             self._tables = Tables(self._link)
