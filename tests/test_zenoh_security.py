@@ -1,4 +1,4 @@
-"""Security on the Zenoh face is Zenoh's own: the README's recipe (mutual TLS with the fleet's
+"""Security on the Zenoh face is Zenoh's own: the recipe of docs/zenoh.md (mutual TLS with the fleet's
 certificates from ``ups certs``, and an access control list by certificate name), run as
 processes exactly as written, and user/password authentication."""
 
