@@ -244,6 +244,8 @@ static void join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
         } else {
             joined_as(node, arg, now);
         }
+    } else if (op == OP_STATUS && (arg >> 8) == ST_KNOCK) {
+        node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
     } else if (op == OP_STATUS && (arg >> 8) == ST_HELLO) {
         knock(node, now); /* a CAN-ECB has just started: it takes knocks at once */
     } else if (op == OP_STATUS && (arg >> 8) == ST_TXNODES_FULL &&
