@@ -19,6 +19,7 @@
 #define ST_SERVING 6u
 #define ST_FAILED 7u
 #define ST_LIMIT 8u
+#define ST_PROBE 9u
 #define ST_KNOCK 15u
 #define OFFER_BIT 0x80u
 /* node requests (etag field) */
@@ -572,9 +573,14 @@ int ups__rx_channel(const ups_node_t *node, uint16_t etag)
     return -1;
 }
 
+static int etag_ok(uint16_t etag)
+{
+    return etag >= UPS__FIRST_ETAG && etag <= UPS__ETAG_MASK;
+}
+
 static int stream_ok(uint16_t etag, unsigned txnode)
 {
-    return etag >= UPS__FIRST_ETAG && txnode < UPS__MGMT;
+    return etag_ok(etag) && txnode < UPS__MGMT;
 }
 
 /** Whether a node frame (another node's request, SUB_AT or PUB_AT) is well formed. */
@@ -592,7 +598,7 @@ static int node_frame_ok(unsigned priority, uint16_t etag, const uint8_t *data, 
     if (etag == RQ_DECLARE) {
         uint16_t decl_etag = get16(data);
         unsigned largest = decl_etag < UPS__LARGE_ETAG ? 8u : 255u;
-        return decl_etag >= UPS__FIRST_ETAG && data[2] <= largest &&
+        return etag_ok(decl_etag) && data[2] <= largest &&
                (data[2] != 0u || decl_etag < UPS__LARGE_ETAG) && get16(data + 3) != 0u &&
                get16(data + 5) != 0u;
     }
@@ -620,7 +626,7 @@ static int on_status(ups_node_t *node, unsigned arg, const uint8_t *data, unsign
         }
         return 1;
     }
-    if (low != 0u || status == ST_CENSUS || status == ST_LIMIT || status > ST_LIMIT) {
+    if (low != 0u || status == ST_CENSUS || status == ST_LIMIT || status > ST_PROBE) {
         return status == ST_KNOCK && low == 0u && len == 0u;
     }
     if (len != 8u) {

@@ -32,3 +32,19 @@ def test_another_joiners_knock_counts_as_its_own() -> None:
     assert w.mgmt().count(p.Knock()) == 1
     w.tick(300)
     assert w.mgmt().count(p.Knock()) == 2  # nobody knocked for 0.3 s: it does
+
+
+# --- management frames ----------------------------------------------------------------------
+
+
+def test_every_row_of_the_table_is_well_formed() -> None:
+    """Probe and Serving are CAN-ECB frames a node ignores, not malformed ones; a Grant or a
+    DECLARE naming an etag beyond 0x3FFF is malformed."""
+    w = Wire()
+    w.join()
+    for msg in (p.Probe(7), p.Serving(7), p.Hello(7), p.Knock(), p.Census(1)):
+        w.feed(msg)
+    assert w.node.counters()["malformed"] == 0
+    w.feed(p.Grant(0x4000, 5, 2))
+    w.feed(p.Declare(3, 0x4010, 1, 10, 10, 0))
+    assert w.node.counters()["malformed"] == 2
