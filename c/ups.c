@@ -264,20 +264,41 @@ static inline unsigned wanted_class(const ups_channel_t *ch)
     return (unsigned)ch->step >> 4;
 }
 
+/** The request the channel's roles ask: SUB_BIND for a subscriber of one-frame events, else
+ *  PUB_BIND, or PUB_BIND(c) for a size class above 0. */
+static unsigned request_kind(const ups_channel_t *ch)
+{
+    unsigned cls = wanted_class(ch);
+    if (!(ch->flags & UPS__PUB) || (cls == 0u && (ch->flags & UPS__SUB))) {
+        return RQ_SUB_BIND;
+    }
+    return cls > 0u ? RQ_PUB_BIND_CLASS + cls : RQ_PUB_BIND;
+}
+
 /** Whether the channel's request is a PUB_BIND (else SUB_BIND). */
 static inline int asks_pub(const ups_channel_t *ch)
 {
-    return (ch->flags & UPS__PUB) && (wanted_class(ch) > 0u || !(ch->flags & UPS__SUB));
+    return request_kind(ch) != RQ_SUB_BIND;
 }
 
 static void send_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
 {
-    unsigned kind = RQ_SUB_BIND;
-    if (asks_pub(ch)) {
-        kind = wanted_class(ch) > 0u ? RQ_PUB_BIND_CLASS + wanted_class(ch) : RQ_PUB_BIND;
-    }
     ch->t0 = now;
-    push_request(node, 0u, kind, ch->uid);
+    push_request(node, 0u, request_kind(ch), ch->uid);
+}
+
+/** The roles of a channel waiting for its etag changed, and with them the request (it was
+ *  @p asked): an answer to the old one would not tell the CAN-ECB the new role (a subscriber
+ *  added to a PUB_BIND, a publisher left alone with a SUB_BIND), so only an answer to the new
+ *  request counts, and the request retry sends it at the next tick. */
+static void reask(ups_channel_t *ch, unsigned asked)
+{
+    if ((ch->flags & UPS__PEND) && request_kind(ch) != asked) {
+        ch->flags = (uint8_t)(ch->flags & ~(UPS__ASKED | UPS__CAND));
+        ch->etag = 0u;
+        ch->step = (uint8_t)(ch->step & 0xF0u);
+        ch->t0 = (uint16_t)(ch->t0 - RETRY_MAX); /* due at once */
+    }
 }
 
 /** Ask for the channel's etag now, and from now on by the request retry. */
@@ -974,10 +995,12 @@ static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, 
     }
     ups_channel_t *ch = &node->channels[i];
     uint8_t had = ch->flags;
+    unsigned asked = request_kind(ch);
     ch->flags = (uint8_t)(ch->flags | role);
     if (cls > wanted_class(ch)) {
         ch->step = (uint8_t)((ch->step & 0x0Fu) | (cls << 4));
     }
+    reask(ch, asked);
     if (ch->state < 0) {
         start_request(node, ch, now); /* it failed before: ask again */
     } else if ((had & UPS__BOUND) && !(had & role)) {
@@ -1015,7 +1038,9 @@ int ups_unsubscribe(ups_node_t *node, int channel)
     }
     ups_channel_t *ch = &node->channels[channel];
     if (ch->flags & UPS__SUB) {
+        unsigned asked = request_kind(ch);
         ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
+        reask(ch, asked);
         note(node, UPS_NOTE_FILTERS);
         if (joined(node)) {
             push_request(node, 0u, RQ_UNSUB, ch->uid);

@@ -11,7 +11,7 @@ from __future__ import annotations
 from ups import _canproto as p
 from ups import name_to_uid
 
-from .cnode_helpers import Wire
+from .cnode_helpers import CanEcb, Wire, c_nodes, now_ms
 
 A, B = 0xAAAA_0000_0000_0001, 0xAAAA_0000_0000_0002
 CMD = name_to_uid("robot/cmd")
@@ -48,3 +48,31 @@ def test_every_row_of_the_table_is_well_formed() -> None:
     w.feed(p.Grant(0x4000, 5, 2))
     w.feed(p.Declare(3, 0x4010, 1, 10, 10, 0))
     assert w.node.counters()["malformed"] == 2
+
+
+# --- binding --------------------------------------------------------------------------------
+
+
+async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
+    bus: str, ecb: CanEcb
+) -> None:
+    """A channel advertised, then subscribed before the answer to its PUB_BIND: the CAN-ECB
+    must learn the subscription too; and, the other way round, a publication that stays when
+    the subscription whose SUB_BIND asked for the etag goes."""
+    speed_uid = name_to_uid("robot/speed")
+    async with c_nodes(bus, 0xC8, 0xC9) as c:
+        await c.joined()
+        node, other = c.nodes
+        await c.bound(other, other.advertise(speed_uid, 8, now_ms()))  # the CAN-ECB knows it
+        cmd = node.advertise(CMD, 8, now_ms())  # PUB_BIND queued ...
+        assert node.subscribe(CMD, now_ms()) == cmd  # ... and now it subscribes too
+        speed = node.subscribe(speed_uid, now_ms())  # SUB_BIND queued ...
+        node.advertise(speed_uid, 8, now_ms())
+        node.unsubscribe(speed)  # ... and now it only publishes
+        await c.bound(node, cmd)
+        await c.bound(node, speed)
+        txnode = node.txnode
+        await c.until(lambda: txnode in ecb.subscribers.get(CMD, ()), timeout=3)
+        assert txnode in ecb.publishers.get(CMD, ())
+        await c.until(lambda: txnode in ecb.publishers.get(speed_uid, ()), timeout=3)
+        assert txnode not in ecb.subscribers.get(speed_uid, ())
