@@ -301,9 +301,29 @@ static void reask(ups_channel_t *ch, unsigned asked)
     }
 }
 
+/** The node stops relying on @p etag: what is queued on it does not go out (by the time it
+ *  would, the etag may be another channel's), nor does the rest of a transfer on it, and no
+ *  transfer begun on it is finished (contradiction rule 1). */
+static void drop_etag(ups_node_t *node, uint16_t etag)
+{
+    unsigned kept = 0u;
+    for (unsigned i = 0; i < node->tx_count; ++i) {
+        if ((node->tx[i].id & UPS__ETAG_MASK) != etag) { /* requests: etags below 0x10 */
+            move_frame(node, kept++, i);
+        }
+    }
+    node->tx_count = (uint8_t)kept;
+#if UPS_WITH_TRANSFERS
+    ups__transfer_drop(node, etag);
+#endif
+}
+
 /** Ask for the channel's etag now, and from now on by the request retry. */
 static void start_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
 {
+    if (ch->flags & UPS__BOUND) {
+        drop_etag(node, ch->etag);
+    }
     ch->flags = (uint8_t)((ch->flags | UPS__PEND) & ~(UPS__ASKED | UPS__CAND | UPS__BOUND));
     ch->etag = 0u;
     ch->step = (uint8_t)(ch->step & 0xF0u);

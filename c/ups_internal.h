@@ -97,6 +97,9 @@ int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *
                      uint16_t size);
 void ups__transfer_refill(ups_node_t *node);
 void ups__transfer_tick(ups_node_t *node, uint16_t now);
+/** The node stops relying on @p etag: the rest of a transfer being sent on it is not sent, and
+ *  transfers being received on it are given up. */
+void ups__transfer_drop(ups_node_t *node, uint16_t etag);
 #endif
 
 #endif /* UPS_INTERNAL_H */

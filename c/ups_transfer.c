@@ -308,6 +308,22 @@ void ups__transfer_tick(ups_node_t *node, uint16_t now)
     }
 }
 
+void ups__transfer_drop(ups_node_t *node, uint16_t etag)
+{
+    if ((node->tx_id & UPS__ETAG_MASK) == etag) {
+        node->tx_left = 0u;
+    }
+    for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
+        ups_rx_transfer_t *slot = &node->rx[i];
+        if (slot->etag == etag) {
+            if (!(slot->header & ORPHAN)) {
+                ups__count(&node->counters.large_lost);
+            }
+            slot->etag = 0u;
+        }
+    }
+}
+
 #else
 typedef int ups_transfer_unused; /* ISO C forbids an empty translation unit */
 #endif

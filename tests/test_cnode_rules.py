@@ -9,6 +9,7 @@ before its fix.
 from __future__ import annotations
 
 from ups import _canproto as p
+from ups import _cantransfer as t
 from ups import name_to_uid
 
 from .cnode_helpers import CanEcb, Wire, c_nodes, now_ms
@@ -53,6 +54,34 @@ def test_every_row_of_the_table_is_well_formed() -> None:
 # --- binding --------------------------------------------------------------------------------
 
 
+def test_no_event_goes_out_on_an_etag_after_its_binding_is_contradicted() -> None:
+    """Contradiction rule 1: the node sends no event of the channels involved, including those
+    still waiting in its TX queue (the etag may be another channel's by the time they go)."""
+    w = Wire(variant="min")
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.bind(a, 0x20, A)
+    assert w.node.publish(a, b"old") == 0  # queued, not sent yet
+    w.feed(p.Bind(0x20, B))  # etag 0x20 is B's now
+    w.drain()
+    assert w.events() == []
+    assert w.node.channel_state(a) == 1
+
+
+def test_no_transfer_frame_goes_out_on_an_etag_after_its_binding_is_contradicted() -> None:
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 1000, w.now)
+    w.bind(a, 0x3400, A)
+    w.tick(200)  # the publisher's pause after a Bind of a larger class
+    assert w.node.publish(a, bytes(1000)) == 0  # 144 frames: more than the queue holds
+    w.feed(p.Bind(0x3400, B))
+    for _ in range(200):
+        w.drain()
+        w.tick(1)
+    assert w.events() == []
+
+
 async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
     bus: str, ecb: CanEcb
 ) -> None:
@@ -76,3 +105,26 @@ async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
         assert txnode in ecb.publishers.get(CMD, ())
         await c.until(lambda: txnode in ecb.publishers.get(speed_uid, ()), timeout=3)
         assert txnode not in ecb.subscribers.get(speed_uid, ())
+
+
+# --- transfers ------------------------------------------------------------------------------
+
+
+def test_a_transfer_begun_before_a_contradiction_is_not_finished_as_another_channel() -> None:
+    """Frames of a transfer on etag E that began while E was channel A's and end once E is
+    channel B's are not an event of B."""
+    w = Wire()
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    b = w.node.subscribe(B, w.now)
+    w.bind(a, 0x3000, A)
+    frames = t.segment(bytes(range(30)), 4, 8)  # 5 frames
+    can_id = p.make_id(0x80, 9, 0x3000)
+    for data in frames[:2]:
+        assert w.feed_raw(can_id, data) is None
+    for _ in range(5):  # the CAN-ECB's answer for B (doubted at first: 0x3000 was A's)
+        w.feed(p.Bind(0x3000, B))
+        w.tick(60)
+    assert w.node.channel_etag(b) == 0x3000
+    delivered = [w.feed_raw(can_id, data) for data in frames[2:]]
+    assert delivered == [None, None, None]
