@@ -317,7 +317,9 @@ int ups_unsubscribe(ups_node_t *node, int channel);
 
 /** Queue one event of @p size bytes on @p channel (copied: the buffer is free on return).
  *  UPS_OK, or UPS_ERR_UNBOUND (no etag relied on yet, or being bound again), UPS_ERR_TOO_LARGE,
- *  UPS_ERR_FULL (queue full: counted in tx_dropped), UPS_ERR_BUSY (a transfer is being sent). */
+ *  UPS_ERR_FULL (queue full: counted in tx_dropped), UPS_ERR_BUSY (a transfer of several
+ *  frames is being queued, or, for a transfer, frames of this channel queued at another
+ *  priority still wait: the frames of one etag go in order). */
 int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t size);
 
 /** Set the priority of this node's events on @p channel: 0x02..0xFF (default 0x80; 0x00 and

@@ -59,11 +59,30 @@ static inline uint8_t event_flags(const ups_node_t *node)
 
 /* ---- sending ------------------------------------------------------------------------------- */
 
+/** Whether a transfer with identifier @p id must wait: the frames of one etag go in order, so
+ *  it may start neither while the transfer being queued is on its etag (or is any other
+ *  transfer of several frames: there is one transmit buffer), nor while frames of its etag
+ *  with another identifier wait in the queue (the channel's priority changed: they would be
+ *  overtaken, and the receiver would take the new first frame as the end of the old
+ *  transfer). */
+static int must_wait(const ups_node_t *node, uint32_t id, int several)
+{
+    if (node->tx_left > 0u && (several || ((node->tx_id ^ id) & UPS__ETAG_MASK) == 0u)) {
+        return 1;
+    }
+    for (unsigned i = 0; i < node->tx_count; ++i) {
+        if (((node->tx[i].id ^ id) & UPS__ETAG_MASK) == 0u && node->tx[i].id != id) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
 int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
                      uint16_t size)
 {
     unsigned chunk = node_mtu(node) - 1u;
-    if (2u + size > chunk && node->tx_left > 0u) {
+    if (must_wait(node, id, 2u + size > chunk)) {
         return UPS_ERR_BUSY;
     }
     unsigned tid = node->tids[channel] & T_TID;

@@ -110,6 +110,33 @@ async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
 # --- transfers ------------------------------------------------------------------------------
 
 
+def test_a_transfer_does_not_overtake_the_one_before_it_on_its_etag() -> None:
+    """The frames of one etag go in order: a transfer published after its channel's priority
+    changed (ups_set_priority, or a Grant that another declaration caused) must not overtake
+    the frames of the previous one still queued (the receiver would take its first frame as
+    the end of the transfer in progress: lost)."""
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 1000, w.now)
+    w.bind(a, 0x3400, A)
+    w.tick(200)
+    first, second = bytes(range(200)), bytes(100)
+    assert w.node.publish(a, first) == 0  # 30 frames, all queued
+    sending = w.node.tx()
+    w.sent += [next(sending) for _ in range(3)]  # its first frames are on the bus
+    w.feed(p.Grant(0x3400, 5, 0x10))  # unasked: another declaration moved this stream
+    published = [first] + ([second] if w.node.publish(a, second) == 0 else [])
+    for _ in range(100):
+        w.drain()
+    rx = t.Reassembler()
+    got = []
+    for can_id, data in w.events():
+        event = rx.feed((5, can_id & p.ETAG_MASK), data, False, 1024, 0.0)
+        if event is not None:
+            got.append(event)
+    assert got == published and rx.lost == 0
+
+
 def test_a_transfer_begun_before_a_contradiction_is_not_finished_as_another_channel() -> None:
     """Frames of a transfer on etag E that began while E was channel A's and end once E is
     channel B's are not an event of B."""
