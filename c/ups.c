@@ -83,10 +83,12 @@ static inline void note(ups_node_t *node, unsigned bits)
     node->notes = (uint8_t)(node->notes | bits);
 }
 
+/** The entry of @p uid: one in use, or one that still owes the UID's UNSUB. */
 static int find_uid(const ups_node_t *node, const uint8_t *uid)
 {
     for (int i = 0; i < UPS_CHANNELS; ++i) {
-        if (node->channels[i].flags != 0u && ups__same8(node->channels[i].uid, uid)) {
+        const ups_channel_t *ch = &node->channels[i];
+        if ((ch->flags | ch->owe) != 0u && ups__same8(ch->uid, uid)) {
             return i;
         }
     }
@@ -160,6 +162,10 @@ static void refill_stages(ups_node_t *node)
 static void refill(ups_node_t *node)
 {
     if (node->join == UPS__WAITING) {
+        if ((node->mode & UPS__OWE_CLAIM) && node->tx_count < UPS_TX_DEPTH) {
+            node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM); /* before the Stage answers */
+            push_request(node, 0u, RQ_CLAIM, node->node_id); /* from the offered TxNode */
+        }
         refill_stages(node);
     }
 #if UPS_WITH_TRANSFERS
@@ -209,6 +215,7 @@ static void joined_as(ups_node_t *node, unsigned txnode, uint16_t now)
 {
     node->txnode = (uint8_t)txnode;
     node->join = UPS__READY;
+    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
     node->burst[0][1] = node->burst[1][1] = 16u;
     node->tx_count = 0u; /* Knocks and Stages still queued are of no use now */
     note(node, UPS_NOTE_JOINED);
@@ -240,8 +247,8 @@ static void join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
     } else if (op == OP_ASSIGN && ups__same8(data, node->node_id)) {
         if (arg & OFFER_BIT) {
             heard(node, now);
-            uint32_t id = ups__make_id(0u, arg & 0x7Fu, RQ_CLAIM);
-            (void)ups__push(node, id, 0u, node->node_id, 8u);
+            node->txnode = (uint8_t)(arg & 0x7Fu);
+            node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
         } else {
             joined_as(node, arg, now);
         }
@@ -361,7 +368,7 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     note(node, UPS_NOTE_CHANNELS);
     int asked_pub = asks_pub(ch);
     if ((ch->flags & UPS__SUB) && ups__class_max(cls) > UPS_MAX_EVENT) {
-        push_request(node, 0u, RQ_UNSUB, ch->uid); /* it would not fit: do not subscribe */
+        ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB); /* it would not fit: do not subscribe */
         if (!(ch->flags & UPS__PUB)) { /* the entry stays, in error, until ups_unsubscribe */
             ch->flags = (uint8_t)(ch->flags & ~UPS__BOUND);
             ch->etag = 0u;
@@ -373,11 +380,11 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     if (ch->flags & UPS__SUB) {
         note(node, UPS_NOTE_FILTERS);
         if (asked_pub) {
-            send_holds(node, ch, 0);
+            ch->owe = (uint8_t)(ch->owe | UPS__OWE_SUB_AT);
         }
     }
     if ((ch->flags & UPS__PUB) && !asked_pub) {
-        send_holds(node, ch, 1);
+        ch->owe = (uint8_t)(ch->owe | UPS__OWE_PUB_AT);
     }
     if ((ch->flags & UPS__PUB) && cls > 0u) {
         ch->flags = (uint8_t)(ch->flags | UPS__WAIT); /* subscribers re-bind after a move */
@@ -479,23 +486,6 @@ static void on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_
 
 /* ---- Hello answers ------------------------------------------------------------------------- */
 
-static void start_announcing(ups_node_t *node, uint16_t now)
-{
-    node->mode = (uint8_t)((node->mode | UPS__ANNOUNCING | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
-    node->announce_at = 0u;
-    node->t_announce = now;
-    node->t_pace = (uint16_t)(now - ANNOUNCE_PACE);
-}
-
-static void on_hello(ups_node_t *node, uint16_t now)
-{
-    if (node->mode & (UPS__RECENT | UPS__ANNOUNCING)) {
-        node->mode = (uint8_t)(node->mode | UPS__ANNOUNCE_DUE); /* when the second has passed */
-    } else {
-        start_announcing(node, now);
-    }
-}
-
 #if UPS_DECLARATIONS
 static ups_declaration_t *declaration_of(ups_node_t *node, unsigned channel)
 {
@@ -516,39 +506,87 @@ static void send_declare(ups_node_t *node, const ups_declaration_t *decl, uint16
 }
 #endif
 
-/** Queue the next frame of the answer to Hello: CLAIM, then SUB_AT/PUB_AT of every channel
- *  relied on at this moment, then DECLARE of every admitted stream. */
-static void announce_next(ups_node_t *node)
+/** The answer to Hello: CLAIM, then SUB_AT/PUB_AT of every channel relied on when its frame
+ *  goes, then DECLARE of every admitted stream (queue_owed() keeps that order). */
+static void start_announcing(ups_node_t *node, uint16_t now)
 {
-    if (node->announce_at == 0u) {
-        node->announce_at = 1u;
-        push_request(node, 0u, RQ_CLAIM, node->node_id);
-        return;
+    node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
+    node->t_announce = now;
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+        ups_channel_t *ch = &node->channels[i];
+        unsigned owe = UPS__OWE_DECLARE;
+        if (ch->flags & UPS__SUB) {
+            owe |= UPS__OWE_SUB_AT;
+        }
+        if (ch->flags & UPS__PUB) {
+            owe |= UPS__OWE_PUB_AT;
+        }
+        ch->owe = (uint8_t)(ch->owe | owe);
     }
-    while (node->announce_at < 1u + 4u * UPS_CHANNELS) { /* 4 items a channel: no division */
-        unsigned item = node->announce_at - 1u;
-        ups_channel_t *ch = &node->channels[item >> 2];
-        node->announce_at = (uint16_t)(node->announce_at + 1u);
-        if (!(ch->flags & UPS__BOUND)) {
-            continue;
+}
+
+static void on_hello(ups_node_t *node, uint16_t now)
+{
+    if (node->mode & UPS__RECENT) {
+        node->mode = (uint8_t)(node->mode | UPS__ANNOUNCE_DUE); /* when the second has passed */
+    } else {
+        start_announcing(node, now);
+    }
+}
+
+/** Queue owed frame @p bit of channel @p i; 0 when it is owed no more (a SUB_AT, PUB_AT or
+ *  DECLARE reports only a binding the node relies on at this moment, and an admitted stream). */
+static int queue_one(ups_node_t *node, unsigned i, unsigned bit)
+{
+    ups_channel_t *ch = &node->channels[i];
+    if (bit == UPS__OWE_UNSUB) {
+        push_request(node, 0u, RQ_UNSUB, ch->uid);
+        return 1;
+    }
+    if (!(ch->flags & UPS__BOUND)) {
+        return 0;
+    }
+    if (bit == UPS__OWE_SUB_AT || bit == UPS__OWE_PUB_AT) {
+        int publish = bit == UPS__OWE_PUB_AT;
+        if (!(ch->flags & (publish ? UPS__PUB : UPS__SUB))) {
+            return 0;
         }
-        if ((item & 3u) == 0u && (ch->flags & UPS__SUB)) {
-            send_holds(node, ch, 0);
-            return;
-        }
-        if ((item & 3u) == 1u && (ch->flags & UPS__PUB)) {
-            send_holds(node, ch, 1);
-            return;
-        }
+        send_holds(node, ch, publish);
+        return 1;
+    }
 #if UPS_DECLARATIONS
-        const ups_declaration_t *decl = declaration_of(node, item >> 2);
-        if ((item & 3u) == 2u && decl != NULL && decl->state == UPS__READY) {
-            send_declare(node, decl, ch->etag);
-            return;
-        }
-#endif
+    const ups_declaration_t *decl = declaration_of(node, i);
+    if (decl != NULL && decl->state == UPS__READY) {
+        send_declare(node, decl, ch->etag);
+        return 1;
     }
-    node->mode = (uint8_t)(node->mode & ~UPS__ANNOUNCING);
+#endif
+    return 0;
+}
+
+/** Queue the next owed frame, if any: the CLAIM, then every SUB_AT and PUB_AT, then DECLARE
+ *  and UNSUB. Returns 1 when it queued one. */
+static int queue_owed(ups_node_t *node)
+{
+    if (node->mode & UPS__OWE_CLAIM) {
+        node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+        push_request(node, 0u, RQ_CLAIM, node->node_id);
+        return 1;
+    }
+    for (unsigned mask = UPS__OWE_SUB_AT | UPS__OWE_PUB_AT; mask < 0x10u; mask <<= 2) {
+        for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+            ups_channel_t *ch = &node->channels[i];
+            while (ch->owe & mask) {
+                unsigned owed = ch->owe & mask;
+                unsigned bit = owed & (0u - owed); /* the lowest */
+                ch->owe = (uint8_t)(ch->owe & ~bit);
+                if (queue_one(node, i, bit)) {
+                    return 1;
+                }
+            }
+        }
+    }
+    return 0;
 }
 
 /** Assign(t', this node's id) with another TxNode: move at once and announce. */
@@ -897,14 +935,14 @@ void ups_tick(ups_node_t *node, uint32_t now_ms)
         if ((node->mode & UPS__RECENT) && ups__since(now, node->t_announce) >= HELLO_GAP) {
             node->mode = (uint8_t)(node->mode & ~UPS__RECENT);
         }
-        if ((node->mode & (UPS__ANNOUNCE_DUE | UPS__RECENT | UPS__ANNOUNCING)) ==
-            UPS__ANNOUNCE_DUE) {
+        if ((node->mode & (UPS__ANNOUNCE_DUE | UPS__RECENT)) == UPS__ANNOUNCE_DUE) {
             start_announcing(node, now);
         }
-        if ((node->mode & UPS__ANNOUNCING) && node->tx_count < UPS_TX_DEPTH &&
-            ups__since(now, node->t_pace) >= ANNOUNCE_PACE) {
+        /* one owed frame at a time, paced, once the management frames before it are sent */
+        if (node->tx_count < UPS_TX_DEPTH &&
+            (node->tx_count == 0u || node->tx[0].id >= (2u << UPS__PRIO_SHIFT)) &&
+            ups__since(now, node->t_pace) >= ANNOUNCE_PACE && queue_owed(node)) {
             node->t_pace = now;
-            announce_next(node);
         }
     }
 #if UPS_WITH_TRANSFERS
@@ -943,6 +981,7 @@ void ups_start(ups_node_t *node, uint32_t now_ms)
     }
     node->join = UPS__WAITING;
     node->txnode = UPS__MGMT;
+    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
     node->t_join = now_ms;
     node->knock_step = 0u;
     knock(node, now16(now_ms));
@@ -1000,20 +1039,25 @@ static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, 
     put64(raw, uid);
     int i = find_uid(node, raw);
     if (i < 0) {
-        for (i = 0; i < UPS_CHANNELS && node->channels[i].flags != 0u; ++i) {
+        for (i = 0; i < UPS_CHANNELS && (node->channels[i].flags | node->channels[i].owe) != 0u;
+             ++i) {
         }
         if (i == UPS_CHANNELS) {
             return UPS_ERR_FULL;
         }
-        ups_channel_t *ch = &node->channels[i];
-        ups__copy(ch->uid, raw, 8u);
+        ups__copy(node->channels[i].uid, raw, 8u);
+    }
+    ups_channel_t *ch = &node->channels[i];
+    if (role == UPS__SUB) {
+        ch->owe = (uint8_t)(ch->owe & ~UPS__OWE_UNSUB); /* back before its UNSUB went */
+    }
+    if (ch->flags == 0u) { /* a new entry, or one whose UNSUB was still owed */
         ch->priority = UPS__DEFAULT_PRIORITY;
         ch->flags = role;
         ch->step = (uint8_t)(cls << 4);
         start_request(node, ch, now);
         return i;
     }
-    ups_channel_t *ch = &node->channels[i];
     uint8_t had = ch->flags;
     unsigned asked = request_kind(ch);
     ch->flags = (uint8_t)(ch->flags | role);
@@ -1027,7 +1071,7 @@ static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, 
         if (ups__class(ch->etag) < wanted_class(ch)) {
             start_request(node, ch, now); /* move it to a larger size class (PUB_BIND(c)) */
         } else {
-            send_holds(node, ch, role == UPS__PUB);
+            ch->owe = (uint8_t)(ch->owe | (role == UPS__PUB ? UPS__OWE_PUB_AT : UPS__OWE_SUB_AT));
         }
         note(node, UPS_NOTE_FILTERS | UPS_NOTE_CHANNELS);
     }
@@ -1063,19 +1107,14 @@ int ups_unsubscribe(ups_node_t *node, int channel)
         reask(ch, asked);
         note(node, UPS_NOTE_FILTERS);
         if (joined(node)) {
-            push_request(node, 0u, RQ_UNSUB, ch->uid);
+            ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB);
         }
     }
-    if (!(ch->flags & UPS__PUB)) {
+    if (!(ch->flags & UPS__PUB)) { /* free once its UNSUB is queued (no declaration: no PUB) */
         ch->flags = 0u;
         ch->etag = 0u;
         ch->state = UPS__FREE;
-#if UPS_DECLARATIONS
-        ups_declaration_t *decl = declaration_of(node, (unsigned)channel);
-        if (decl != NULL) {
-            decl->channel = 0xFFu;
-        }
-#endif
+        ch->owe = (uint8_t)(ch->owe & UPS__OWE_UNSUB);
     }
     return UPS_OK;
 }

@@ -197,6 +197,7 @@ typedef struct {
     uint8_t step;     /* request retry step (low nibble) | wanted size class << 4 */
     int8_t state;     /* 0 free, 1 waiting, 2 bound, or a UPS_ERR_ code */
     uint8_t priority; /* for this node's events on the channel */
+    uint8_t owe;      /* frames owed to the CAN-ECB: UPS__OWE_... (ups_internal.h) */
 } ups_channel_t;
 
 #if UPS_DECLARATIONS
@@ -229,16 +230,15 @@ typedef struct {
 /** The whole state of one node. Private: set up with ups_init(), then use the functions. */
 typedef struct {
     uint8_t node_id[8];
-    uint8_t txnode;       /* 0x7F while joining */
+    uint8_t txnode;       /* joined: its TxNode; joining: the one last offered to it */
     int8_t join;          /* 0 not started, 1 joining, 2 joined, or a UPS_ERR_ code */
     uint8_t notes;
-    uint8_t mode;         /* UPS__FD, UPS__ANNOUNCE_DUE, UPS__ANNOUNCING, UPS__RECENT, ... */
+    uint8_t mode;         /* UPS__FD, UPS__OWE_CLAIM, UPS__ANNOUNCE_DUE, UPS__RECENT */
     uint8_t knock_step;
-    uint16_t announce_at; /* the next item of the answer to Hello */
     uint32_t t_join;      /* join start (for the give-up) */
     uint16_t t_quiet;     /* joining: last Knock sent or Census/Query/Offer heard */
     uint16_t t_announce;  /* joined: when the last answer to Hello started */
-    uint16_t t_pace;      /* joined: when its last frame was queued */
+    uint16_t t_pace;      /* joined: when its last owed frame was queued */
     uint8_t burst[2][2];  /* Stage answers still to send: {epoch, next stage}; stage 16: none */
     uint8_t tx_count;
     ups_frame_t tx[UPS_TX_DEPTH];

@@ -27,9 +27,17 @@
 
 /* node mode bits */
 #define UPS__FD 0x01u
-#define UPS__ANNOUNCING 0x02u
-#define UPS__ANNOUNCE_DUE 0x04u
-#define UPS__RECENT 0x08u
+#define UPS__OWE_CLAIM 0x02u    /* a CLAIM is owed: to an Offer, or in the answer to Hello */
+#define UPS__ANNOUNCE_DUE 0x04u /* a Hello came within a second of the last answer */
+#define UPS__RECENT 0x08u       /* the last answer to Hello started less than a second ago */
+
+/* the frames a channel owes the CAN-ECB (ups_channel_t.owe), queued one at a time when there
+ * is room (a full queue never loses them) and no management frame waits before them (so the
+ * queue's order by identifier cannot put a DECLARE before the PUB_AT it depends on) */
+#define UPS__OWE_SUB_AT 0x01u
+#define UPS__OWE_PUB_AT 0x02u
+#define UPS__OWE_DECLARE 0x04u
+#define UPS__OWE_UNSUB 0x08u
 
 /* channel and join states (besides the UPS_ERR_ codes) */
 #define UPS__FREE 0

@@ -35,6 +35,20 @@ def test_another_joiners_knock_counts_as_its_own() -> None:
     assert w.mgmt().count(p.Knock()) == 2  # nobody knocked for 0.3 s: it does
 
 
+def test_claim_answering_an_offer_waits_for_room() -> None:
+    """A CLAIM that finds the TX queue full (the answers to a Census fill it) is sent as soon
+    as there is room, never dropped."""
+    w = Wire(variant="min")  # a TX queue of 4
+    w.node.start(w.now)
+    w.drain()
+    w.feed(p.Census(3))  # 16 Stage frames to send: the queue is full
+    w.feed(p.Offer(9, w.node_id))
+    for _ in range(10):
+        w.drain()
+    assert p.Request(p.CLAIM, 9, w.node_id) in w.mgmt()
+    assert w.node.counters()["tx_dropped"] == 0
+
+
 # --- management frames ----------------------------------------------------------------------
 
 
@@ -52,6 +66,27 @@ def test_every_row_of_the_table_is_well_formed() -> None:
 
 
 # --- binding --------------------------------------------------------------------------------
+
+
+def test_sub_at_pub_at_and_unsub_wait_for_room() -> None:
+    """SUB_AT, PUB_AT and UNSUB that find the TX queue full are sent once there is room:
+    otherwise the CAN-ECB never learns that the node publishes (its DECLARE would be ignored,
+    the gateway would not forward its events) or that it left."""
+    w = Wire(variant="min")
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.bind(a, 0x20, A)
+    b = w.node.advertise(B, 8, w.now)
+    w.bind(b, 0x21, B)
+    for i in range(4):  # the queue is full of events
+        assert w.node.publish(b, bytes([i])) == 0
+    assert w.node.advertise(A, 8, w.now) == a  # publishes on A too: PUB_AT(0x20, A)
+    w.node.unsubscribe(a)  # ... and no longer subscribes: UNSUB(A)
+    mark = len(w.sent)
+    w.tick(20)
+    assert p.Holds(True, 5, 0x20, A) in w.mgmt(mark)
+    assert p.Request(p.UNSUB, 5, A) in w.mgmt(mark)
+    assert w.node.counters()["tx_dropped"] == 0
 
 
 def test_no_event_goes_out_on_an_etag_after_its_binding_is_contradicted() -> None:
@@ -105,6 +140,34 @@ async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
         assert txnode in ecb.publishers.get(CMD, ())
         await c.until(lambda: txnode in ecb.publishers.get(speed_uid, ()), timeout=3)
         assert txnode not in ecb.subscribers.get(speed_uid, ())
+
+
+# --- the answer to Hello --------------------------------------------------------------------
+
+
+def test_the_answer_to_hello_keeps_its_order_when_the_queue_is_slow() -> None:
+    """CLAIM, then SUB_AT/PUB_AT, then DECLARE: a DECLARE sorted ahead of the PUB_AT (its
+    identifier is lower) would come before the CAN-ECB knows the node publishes, and be
+    ignored."""
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.bind(a, 0x20, A)
+    assert w.node.declare(a, 2, 100, 50, 0, w.now) == 0
+    w.drain()
+    w.feed(p.Grant(0x20, 5, 0x02))
+    assert w.node.declaration_state(a) == 2
+    mark = len(w.sent)
+    w.feed(p.Hello(1))
+    w.tick(10, drain=False)  # the controller is busy for 10 ms
+    for _ in range(20):
+        w.drain()
+        w.tick(1)
+    sent = w.mgmt(mark)
+    claim = sent.index(p.Request(p.CLAIM, 5, w.node_id))
+    pub_at = sent.index(p.Holds(True, 5, 0x20, A))
+    declare = sent.index(p.Declare(5, 0x20, 2, 100, 50, 0))
+    assert claim < pub_at < declare
 
 
 # --- transfers ------------------------------------------------------------------------------
