@@ -998,14 +998,13 @@ void ups_tx_pop(ups_node_t *node)
         return;
     }
     const ups_frame_t *sent = &node->tx[0];
-    unsigned etag = sent->id & UPS__ETAG_MASK;
-    if ((sent->id >> UPS__PRIO_SHIFT) == 0u && joined(node) &&
-        ((sent->id >> UPS__TXNODE_SHIFT) & UPS__MGMT) == node->txnode &&
-        (etag == RQ_SUB_BIND || etag == RQ_PUB_BIND || etag > RQ_PUB_BIND_CLASS) &&
-        etag < UPS__FIRST_ETAG) {
-        int i = find_uid(node, sent->data); /* a request: Binds from now on may answer it */
-        if (i >= 0 && (node->channels[i].flags & UPS__PEND)) {
-            node->channels[i].flags = (uint8_t)(node->channels[i].flags | UPS__ASKED);
+    if ((sent->id >> UPS__TXNODE_SHIFT) == node->txnode && joined(node)) { /* priority 0 */
+        int i = find_uid(node, sent->data);
+        if (i >= 0) { /* the request its roles ask now is sent: Binds from now on may answer */
+            ups_channel_t *ch = &node->channels[i];
+            if ((ch->flags & UPS__PEND) && (sent->id & UPS__ETAG_MASK) == request_kind(ch)) {
+                ch->flags = (uint8_t)(ch->flags | UPS__ASKED);
+            }
         }
     }
     node->tx_count = (uint8_t)(node->tx_count - 1u);

@@ -142,6 +142,25 @@ async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
         assert txnode not in ecb.subscribers.get(speed_uid, ())
 
 
+def test_only_an_answer_to_the_request_of_the_current_roles_counts() -> None:
+    """The same, when the PUB_BIND asked before the subscription came is sent (popped) only
+    after it: its answer would tell the CAN-ECB nothing of the subscription."""
+    w = Wire()
+    w.join()
+    cmd = w.node.advertise(CMD, 8, w.now)  # PUB_BIND queued
+    w.node.subscribe(CMD, w.now)
+    mark = len(w.sent)
+    w.drain()  # the PUB_BIND goes only now, before any tick
+    w.feed(p.Bind(0x20, CMD))  # its answer
+    for _ in range(3):
+        w.tick(60)
+        w.feed(p.Bind(0x20, CMD))
+    assert w.node.channel_etag(cmd) == 0x20
+    w.tick(5)
+    told = w.mgmt(mark)
+    assert p.Request(p.SUB_BIND, 5, CMD) in told or p.Holds(False, 5, 0x20, CMD) in told
+
+
 # --- the answer to Hello --------------------------------------------------------------------
 
 
