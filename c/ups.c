@@ -330,8 +330,11 @@ static void start_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
 {
     if (ch->flags & UPS__BOUND) {
         drop_etag(node, ch->etag);
+        note(node, (ch->flags & UPS__SUB) ? UPS_NOTE_FILTERS | UPS_NOTE_CHANNELS
+                                          : UPS_NOTE_CHANNELS); /* the old filter goes first */
     }
-    ch->flags = (uint8_t)((ch->flags | UPS__PEND) & ~(UPS__ASKED | UPS__CAND | UPS__BOUND));
+    ch->flags = (uint8_t)((ch->flags | UPS__PEND) &
+                          ~(UPS__ASKED | UPS__CAND | UPS__BOUND | UPS__WAIT));
     ch->etag = 0u;
     ch->step = (uint8_t)(ch->step & 0xF0u);
     ch->state = UPS__WAITING;
@@ -396,10 +399,6 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
 /** A Bind contradicted the channel's binding: stop relying on it and ask again. */
 static void contradicted(ups_node_t *node, ups_channel_t *ch, uint16_t now)
 {
-    if (ch->flags & UPS__SUB) {
-        note(node, UPS_NOTE_FILTERS); /* the old etag's filter goes first */
-    }
-    note(node, UPS_NOTE_CHANNELS);
     ch->flags = (uint8_t)(ch->flags | UPS__REBIND);
     start_request(node, ch, now);
 }
@@ -1064,14 +1063,10 @@ static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, 
         ch->step = (uint8_t)((ch->step & 0x0Fu) | (cls << 4));
     }
     reask(ch, asked);
-    if (ch->state < 0) {
-        start_request(node, ch, now); /* it failed before: ask again */
+    if (ch->state < 0 || ((had & UPS__BOUND) && ups__class(ch->etag) < wanted_class(ch))) {
+        start_request(node, ch, now); /* it failed before, or it moves to a larger size class */
     } else if ((had & UPS__BOUND) && !(had & role)) {
-        if (ups__class(ch->etag) < wanted_class(ch)) {
-            start_request(node, ch, now); /* move it to a larger size class (PUB_BIND(c)) */
-        } else {
-            ch->owe = (uint8_t)(ch->owe | (role == UPS__PUB ? UPS__OWE_PUB_AT : UPS__OWE_SUB_AT));
-        }
+        ch->owe = (uint8_t)(ch->owe | (role == UPS__PUB ? UPS__OWE_PUB_AT : UPS__OWE_SUB_AT));
         note(node, UPS_NOTE_FILTERS | UPS_NOTE_CHANNELS);
     }
     return i;

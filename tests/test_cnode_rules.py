@@ -11,6 +11,7 @@ from __future__ import annotations
 from ups import _canproto as p
 from ups import _cantransfer as t
 from ups import name_to_uid
+from ups._cnode import ERRORS
 
 from .cnode_helpers import CanEcb, Wire, c_nodes, now_ms
 
@@ -159,6 +160,22 @@ def test_only_an_answer_to_the_request_of_the_current_roles_counts() -> None:
     w.tick(5)
     told = w.mgmt(mark)
     assert p.Request(p.SUB_BIND, 5, CMD) in told or p.Holds(False, 5, 0x20, CMD) in told
+
+
+def test_a_channel_refused_during_the_publishers_pause_stays_refused() -> None:
+    """A publisher that advertises larger events asks for their size class (PUB_BIND(c)); one
+    refused (EtagsFull) during its 150 ms pause after a Bind of class 1-4 stays refused, not
+    "bound" once the pause is over."""
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 100, w.now)
+    w.bind(a, 0x3400, A)  # class 2: the pause begins
+    w.node.advertise(A, 2000, w.now)  # class 3
+    w.drain()
+    assert w.mgmt()[-1] == p.Request(p.PUB_BIND, 5, A, 3)
+    w.feed(p.EtagsFull(A))
+    w.tick(200)
+    assert ERRORS[w.node.channel_state(a)] == "ETAGS_FULL"
 
 
 # --- the answer to Hello --------------------------------------------------------------------
