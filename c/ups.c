@@ -115,7 +115,8 @@ static void move_frame(ups_node_t *node, unsigned to, unsigned from)
 
 int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len)
 {
-    if (node->tx_count >= UPS_TX_DEPTH || len > UPS_MTU) {
+    if (node->tx_count >= (id >= UPS__FIRST_EVENT_ID ? UPS__EVENT_ROOM : UPS_TX_DEPTH) ||
+        len > UPS_MTU) {
         ups__count(&node->counters.tx_dropped);
         return UPS_ERR_FULL;
     }
@@ -939,7 +940,7 @@ void ups_tick(ups_node_t *node, uint32_t now_ms)
         }
         /* one owed frame at a time, paced, once the management frames before it are sent */
         if (node->tx_count < UPS_TX_DEPTH &&
-            (node->tx_count == 0u || node->tx[0].id >= (2u << UPS__PRIO_SHIFT)) &&
+            (node->tx_count == 0u || node->tx[0].id >= UPS__FIRST_EVENT_ID) &&
             ups__since(now, node->t_pace) >= ANNOUNCE_PACE && queue_owed(node)) {
             node->t_pace = now;
         }

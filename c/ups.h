@@ -46,7 +46,8 @@ extern "C" {
 #endif
 
 /** Frames waiting to be sent, 2..255. Answers to Census and Hello and the frames of transfers
- *  are made as room appears, so a few suffice; a full queue turns events away (tx_dropped). */
+ *  are made as room appears, so a few suffice; a full queue turns events away (tx_dropped).
+ *  Events never take the last place: it stays for the node's requests and answers. */
 #ifndef UPS_TX_DEPTH
 #define UPS_TX_DEPTH 8
 #endif

@@ -14,6 +14,10 @@
 #define UPS__FIRST_ETAG 0x0010u
 #define UPS__LARGE_ETAG 0x3000u
 #define UPS__DEFAULT_PRIORITY 0x80u
+#define UPS__FIRST_EVENT_ID (2u << UPS__PRIO_SHIFT) /* lower identifiers are management */
+/* events may fill the TX queue but for its last place, which stays for management frames: a
+ * node that publishes as fast as its queue drains still asks, claims and answers Hello */
+#define UPS__EVENT_ROOM (UPS_TX_DEPTH - 1u)
 
 /* channel flags */
 #define UPS__SUB 0x01u    /* the application receives it */

@@ -116,7 +116,7 @@ void ups__transfer_refill(ups_node_t *node)
 {
     unsigned chunk = node_mtu(node) - 1u;
     unsigned total = node->tx_length + 4u;
-    while (node->tx_left > 0u && node->tx_count < UPS_TX_DEPTH) {
+    while (node->tx_left > 0u && node->tx_count < UPS__EVENT_ROOM) {
         uint8_t frame[UPS_MTU];
         unsigned at = total - node->tx_left;
         unsigned n = node->tx_left < chunk ? node->tx_left : chunk;

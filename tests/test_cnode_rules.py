@@ -79,15 +79,17 @@ def test_sub_at_pub_at_and_unsub_wait_for_room() -> None:
     w.bind(a, 0x20, A)
     b = w.node.advertise(B, 8, w.now)
     w.bind(b, 0x21, B)
-    for i in range(4):  # the queue is full of events
+    for i in range(3):  # events fill the queue but for its last place ...
         assert w.node.publish(b, bytes([i])) == 0
+    assert w.node.publish(b, b"no room") == -2
+    w.node.subscribe(0xC, w.now)  # ... which a SUB_BIND takes: the queue is full
     assert w.node.advertise(A, 8, w.now) == a  # publishes on A too: PUB_AT(0x20, A)
     w.node.unsubscribe(a)  # ... and no longer subscribes: UNSUB(A)
     mark = len(w.sent)
     w.tick(20)
     assert p.Holds(True, 5, 0x20, A) in w.mgmt(mark)
     assert p.Request(p.UNSUB, 5, A) in w.mgmt(mark)
-    assert w.node.counters()["tx_dropped"] == 0
+    assert w.node.counters()["tx_dropped"] == 1  # the event that found no room
 
 
 def test_no_event_goes_out_on_an_etag_after_its_binding_is_contradicted() -> None:
@@ -176,6 +178,25 @@ def test_a_channel_refused_during_the_publishers_pause_stays_refused() -> None:
     w.feed(p.EtagsFull(A))
     w.tick(200)
     assert ERRORS[w.node.channel_state(a)] == "ETAGS_FULL"
+
+
+def test_events_never_crowd_the_frames_owed_to_the_can_ecb_out() -> None:
+    """A node that publishes as fast as its queue drains still answers Hello (and sends its
+    requests): events leave the queue's last place to management frames."""
+    w = Wire(variant="min")
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.bind(a, 0x20, A)
+    w.feed(p.Hello(1))
+    mark = len(w.sent)
+    for _ in range(50):
+        while w.node.publish(a, b"x") == 0:
+            pass
+        w.tick(1, drain=False)
+        sending = w.node.tx()
+        w.sent.append(next(sending))  # the controller takes one frame a millisecond
+    assert p.Request(p.CLAIM, 5, w.node_id) in w.mgmt(mark)
+    assert p.Holds(True, 5, 0x20, A) in w.mgmt(mark)
 
 
 # --- the answer to Hello --------------------------------------------------------------------
