@@ -5,7 +5,7 @@ Each configuration is compiled with ``arm-none-eabi-gcc -Os`` (and -ffunction-se
 -fno-tree-loop-distribute-patterns: gcc then calls no memcpy/memset of the C library, so the
 figures are the whole cost; the undefined symbols are checked to be none).
 
-- flash: text + data of ups.o and ups_transfer.o (constant tables are in text);
+- flash: text + data of the library's objects (constant tables are in text);
 - RAM: data + bss of those (none: the library has no variable of its own) plus one ups_node_t,
   the whole state, which the application places (measured as the bss of a file that defines one);
 - stack: the worst case over every path of the call graph from each public function, from
@@ -45,6 +45,7 @@ ABOUT = {
     "full": "16 channels, TX queue 16, transfers and CAN FD, events <= 1024 B, 4 transfers "
     "reassembled at once, 2 declarations, 8 Binds remembered (doubt)",
 }
+SOURCES = ("ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c")
 TARGET = ("cortex-m0plus", "minimal", 4096, 256)  # the issue's: 4 KB flash, 256 B RAM
 FLAGS = ["-Os", "-std=c99", "-ffunction-sections", "-fdata-sections",
          "-fno-tree-loop-distribute-patterns", "-fstack-usage", "-fcallgraph-info=su"]  # fmt: skip
@@ -100,7 +101,7 @@ def measure(cpu: str, config: str) -> dict[str, object]:
     (out / "node.c").write_text('#include "ups.h"\nups_node_t node;\n')
     flags = [*CPUS[cpu], *FLAGS, *CONFIGS[config].split(), f"-I{HERE}"]
     objects = []
-    for src in ("ups.c", "ups_transfer.c"):
+    for src in SOURCES:
         obj = out / src.replace(".c", ".o")
         run(CC, *flags, "-c", str(HERE / src), "-o", str(obj), cwd=out)
         objects.append(obj)
@@ -124,7 +125,7 @@ def measure(cpu: str, config: str) -> dict[str, object]:
 
 def largest(cpu: str, config: str, count: int = 8) -> str:
     rows = []
-    for obj in ("ups.o", "ups_transfer.o"):
+    for obj in (src.replace(".c", ".o") for src in SOURCES):
         listing = run(
             "arm-none-eabi-nm", "--size-sort", "-S", "-t", "d", str(OUT / cpu / config / obj)
         )

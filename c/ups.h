@@ -27,6 +27,11 @@
  * Every call that can fail returns a negative UPS_ERR_... code; 0 or a positive value is
  * success. Nothing overflows: every table bound is checked, and what it turns away is counted
  * in ups_counters_t.
+ *
+ * The sources follow the protocol's seams: ups.c (the TX queue, receiving and its checks, the
+ * timers' entry, events), ups_join.c (the join, moves, the answer to Hello), ups_bind.c
+ * (binding, the contradiction rule, declarations), ups_transfer.c (events larger than one
+ * frame); ups_internal.h holds what they share. Compile all four.
  */
 #ifndef UPS_H
 #define UPS_H

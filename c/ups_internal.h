@@ -1,6 +1,7 @@
 /*
- * libups internals shared by ups.c and ups_transfer.c: the identifier layout, flags, and small
- * helpers. Not part of the API.
+ * libups internals shared by its sources (ups.c, ups_join.c, ups_bind.c, ups_transfer.c): the
+ * identifier layout, the frames' codes, flags, small helpers, and the calls between the
+ * sources. Not part of the API.
  */
 #ifndef UPS_INTERNAL_H
 #define UPS_INTERNAL_H
@@ -18,6 +19,32 @@
 /* events may fill the TX queue but for its last place, which stays for management frames: a
  * node that publishes as fast as its queue drains still asks, claims and answers Hello */
 #define UPS__EVENT_ROOM (UPS_TX_DEPTH - 1u)
+
+/* management frames (docs/protocol.md, "Management frames"): the two high bits of the etag
+ * field of TxNode 0x7F at priority 0 (op), and in status frames its bits 8-11 (status) */
+#define OP_STAGE 0u
+#define OP_QUERY 1u
+#define OP_ASSIGN 2u
+#define OP_STATUS 3u
+#define ST_CENSUS 0u
+#define ST_TXNODES_FULL 1u
+#define ST_ETAGS_FULL 2u
+#define ST_HELLO 3u
+#define ST_GRANT 4u
+#define ST_REFUSE 5u
+#define ST_SERVING 6u
+#define ST_FAILED 7u
+#define ST_LIMIT 8u
+#define ST_PROBE 9u
+#define ST_KNOCK 15u
+#define OFFER_BIT 0x80u
+/* node requests (the etag field, priority 0, the node's TxNode) */
+#define RQ_PUB_BIND 1u
+#define RQ_SUB_BIND 2u
+#define RQ_UNSUB 3u
+#define RQ_CLAIM 4u
+#define RQ_DECLARE 5u
+#define RQ_PUB_BIND_CLASS 8u
 
 /* channel flags */
 #define UPS__SUB 0x01u    /* the application receives it */
@@ -72,6 +99,37 @@ static inline uint32_t ups__class_max(unsigned cls)
     return largest[cls < 5u ? cls : 4u];
 }
 
+static inline uint16_t get16(const uint8_t *in)
+{
+    return (uint16_t)(((unsigned)in[0] << 8) | in[1]);
+}
+
+static inline uint16_t now16(uint32_t now_ms)
+{
+    return (uint16_t)now_ms;
+}
+
+static inline int joined(const ups_node_t *node)
+{
+    return node->join == UPS__READY;
+}
+
+static inline unsigned nibble(const uint8_t *id, unsigned stage)
+{
+    unsigned byte = id[stage >> 1];
+    return (stage & 1u) ? (byte & 0xFu) : (byte >> 4);
+}
+
+static inline void note(ups_node_t *node, unsigned bits)
+{
+    node->notes = (uint8_t)(node->notes | bits);
+}
+
+static inline int valid_channel(const ups_node_t *node, int channel)
+{
+    return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
+}
+
 static inline void ups__count(UPS_COUNTER_T *counter)
 {
     if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
@@ -95,11 +153,44 @@ static inline int ups__same8(const uint8_t *a, const uint8_t *b)
     return diff == 0u;
 }
 
+/* ups.c */
+/** Write @p value big-endian into @p out[0..7]. */
+void ups__put64(uint8_t *out, uint64_t value);
 /** Queue a frame (sorted by identifier, FIFO among equals). 0, or UPS_ERR_FULL (counted). */
 int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len);
-
+/** Queue a frame of 8 bytes from this node's TxNode: a request, SUB_AT (priority 0) or PUB_AT
+ *  (priority 1). */
+void ups__push_request(ups_node_t *node, unsigned priority, unsigned etag, const uint8_t *data);
+/** The node stops relying on @p etag: nothing queued on it goes out any more. */
+void ups__drop_etag(ups_node_t *node, uint16_t etag);
 /** The index of the received channel bound to @p etag, or -1. */
 int ups__rx_channel(const ups_node_t *node, uint16_t etag);
+
+/* ups_join.c */
+/** Census, Query, Offer, Assign, Knock, Hello, TxNodesFull or Failed, heard while joining. */
+void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
+                     uint16_t now);
+/** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
+void ups__join_refill(ups_node_t *node);
+void ups__tick_join(ups_node_t *node, uint32_t now_ms);
+/** Assign(t', this node's id) while joined: move to t' at once and announce. */
+void ups__move_to(ups_node_t *node, unsigned txnode, uint16_t now);
+void ups__on_hello(ups_node_t *node, uint16_t now);
+void ups__tick_hello(ups_node_t *node, uint16_t now);
+
+/* ups_bind.c */
+void ups__start_requests(ups_node_t *node, uint16_t now);
+void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
+void ups__refused(ups_node_t *node, const uint8_t *uid, int8_t why);
+/** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
+void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t now);
+int ups__etag_known(const ups_node_t *node, uint16_t etag);
+void ups__tick_bind(ups_node_t *node, uint16_t now);
+int ups__queue_declare(ups_node_t *node, unsigned i);
+#if UPS_DECLARATIONS
+/** Grant or Refuse for this node's stream on @p etag. */
+void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority);
+#endif
 
 #if UPS_WITH_TRANSFERS
 /* ups_transfer.c */

@@ -1,0 +1,278 @@
+/*
+ * libups: the join and the answer to Hello (docs/protocol.md, "Joining" and "Restarts, recovery
+ * and the answer to Hello").
+ *
+ * A joining node knocks, answers the CAN-ECB's Census and Query with Stage frames, claims the
+ * TxNode an Offer names and is joined by the Assign of its id; a joined node moves when an
+ * Assign gives its id another TxNode. A joined node answers Hello (at most once a second) with
+ * CLAIM, SUB_AT/PUB_AT of the bindings it relies on and DECLARE of its admitted streams. Those
+ * frames, UNSUB, and the SUB_AT/PUB_AT of a channel used both ways are *owed* (bits in the
+ * node and its channels) and queued one at a time: a full queue never loses them, and the
+ * queue's order by identifier never puts one before the frames it depends on.
+ */
+#include "ups_internal.h"
+
+/* timers, in milliseconds (docs/protocol.md, "Timers") */
+#define KNOCK_FIRST 300u
+#define KNOCK_MAX 2000u
+#define HELLO_GAP 1000u
+#define ANNOUNCE_PACE 1u
+
+/* ---- joining ------------------------------------------------------------------------------- */
+
+static void push_config(ups_node_t *node, uint32_t arg, const uint8_t *data, unsigned len)
+{
+    (void)ups__push(node, ups__make_id(0u, UPS__MGMT, arg), 0u, data, len);
+}
+
+static void knock(ups_node_t *node, uint16_t now)
+{
+    node->t_quiet = now;
+    push_config(node, (OP_STATUS << 12) | (ST_KNOCK << 8), NULL, 0u);
+}
+
+/** A Census, Query or Offer: the CAN-ECB is at work, no Knock needed for a while. */
+static void heard(ups_node_t *node, uint16_t now)
+{
+    node->t_quiet = now;
+    node->knock_step = 0u;
+}
+
+/** Queue Stage answers while there is room (a Census asks for 16 frames at once). */
+static void refill_stages(ups_node_t *node)
+{
+    for (unsigned b = 0; b < 2u; ++b) {
+        uint8_t *burst = node->burst[b];
+        while (burst[1] < 16u && node->tx_count < UPS_TX_DEPTH) {
+            unsigned stage = burst[1];
+            unsigned arg = ((unsigned)burst[0] << 8) | (stage << 4) | nibble(node->node_id, stage);
+            push_config(node, arg, NULL, 0u); /* Stage: op 0 */
+            burst[1] = (uint8_t)(stage + 1u);
+        }
+    }
+}
+
+/** The frames of the join as room appears: the CLAIM of an Offer first, then Stage answers. */
+void ups__join_refill(ups_node_t *node)
+{
+    if ((node->mode & UPS__OWE_CLAIM) && node->tx_count < UPS_TX_DEPTH) {
+        node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM); /* before the Stage answers */
+        ups__push_request(node, 0u, RQ_CLAIM, node->node_id); /* from the offered TxNode */
+    }
+    refill_stages(node);
+}
+
+static void answer_query(ups_node_t *node, unsigned epoch, unsigned from)
+{
+    unsigned slot = 0u;
+    if (node->burst[0][1] < 16u && node->burst[0][0] != epoch) {
+        slot = 1u;
+        if (node->burst[1][1] < 16u && node->burst[1][0] != epoch) {
+            ups__count(&node->counters.tx_dropped); /* a third query at once: replace one */
+        }
+    }
+    node->burst[slot][0] = (uint8_t)epoch;
+    node->burst[slot][1] = (uint8_t)from;
+    refill_stages(node);
+}
+
+static void end_join(ups_node_t *node, int8_t why)
+{
+    node->join = why;
+    node->burst[0][1] = node->burst[1][1] = 16u;
+    note(node, UPS_NOTE_JOIN_FAILED);
+}
+
+static void joined_as(ups_node_t *node, unsigned txnode, uint16_t now)
+{
+    node->txnode = (uint8_t)txnode;
+    node->join = UPS__READY;
+    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+    node->burst[0][1] = node->burst[1][1] = 16u;
+    node->tx_count = 0u; /* Knocks and Stages still queued are of no use now */
+    note(node, UPS_NOTE_JOINED);
+    ups__start_requests(node, now);
+}
+
+/** Census, Query, Offer, Assign and the rest, as a joining node hears them. */
+void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
+                     uint16_t now)
+{
+    unsigned epoch = arg >> 8;
+    unsigned len = (arg >> 4) & 0xFu; /* Query: prefix length - 1 */
+    if (op == OP_STATUS && (arg >> 8) == ST_CENSUS) {
+        heard(node, now);
+        answer_query(node, arg & 0xFu, 0u);
+    } else if (op == OP_QUERY) {
+        heard(node, now);
+        unsigned stage = 0u;
+        while (stage <= len && nibble(node->node_id, stage) == nibble(data, stage)) {
+            ++stage;
+        }
+        if (stage > len) {
+            answer_query(node, epoch, len + 1u);
+        }
+    } else if (op == OP_ASSIGN && ups__same8(data, node->node_id)) {
+        if (arg & OFFER_BIT) {
+            heard(node, now);
+            node->txnode = (uint8_t)(arg & 0x7Fu);
+            node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
+        } else {
+            joined_as(node, arg, now);
+        }
+    } else if (op == OP_STATUS && (arg >> 8) == ST_KNOCK) {
+        node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
+    } else if (op == OP_STATUS && (arg >> 8) == ST_HELLO) {
+        knock(node, now); /* a CAN-ECB has just started: it takes knocks at once */
+    } else if (op == OP_STATUS && (arg >> 8) == ST_TXNODES_FULL &&
+               ups__same8(data, node->node_id)) {
+        end_join(node, UPS_ERR_TXNODES_FULL);
+    } else if (op == OP_STATUS && (arg >> 8) == ST_FAILED && ups__same8(data, node->node_id)) {
+        end_join(node, UPS_ERR_FAILED);
+    }
+}
+
+void ups__tick_join(ups_node_t *node, uint32_t now_ms)
+{
+    uint16_t now = now16(now_ms);
+    if (UPS_JOIN_GIVE_UP_MS != 0u && now_ms - node->t_join >= UPS_JOIN_GIVE_UP_MS) {
+        end_join(node, UPS_ERR_TIMEOUT);
+        return;
+    }
+    unsigned delay = KNOCK_FIRST << node->knock_step;
+    if (ups__since(now, node->t_quiet) >= (delay < KNOCK_MAX ? delay : KNOCK_MAX)) {
+        knock(node, now);
+        if (node->knock_step < 3u) {
+            node->knock_step = (uint8_t)(node->knock_step + 1u);
+        }
+    }
+}
+
+void ups_start(ups_node_t *node, uint32_t now_ms)
+{
+    if (joined(node)) {
+        return;
+    }
+    node->join = UPS__WAITING;
+    node->txnode = UPS__MGMT;
+    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+    node->t_join = now_ms;
+    node->knock_step = 0u;
+    knock(node, now16(now_ms));
+}
+
+/* ---- the answer to Hello, and moves -------------------------------------------------------- */
+
+/** The answer to Hello: CLAIM, then SUB_AT/PUB_AT of every channel relied on when its frame
+ *  goes, then DECLARE of every admitted stream (queue_owed() keeps that order). */
+static void start_announcing(ups_node_t *node, uint16_t now)
+{
+    node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
+    node->t_announce = now;
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+        ups_channel_t *ch = &node->channels[i];
+        unsigned owe = UPS__OWE_DECLARE;
+        if (ch->flags & UPS__SUB) {
+            owe |= UPS__OWE_SUB_AT;
+        }
+        if (ch->flags & UPS__PUB) {
+            owe |= UPS__OWE_PUB_AT;
+        }
+        ch->owe = (uint8_t)(ch->owe | owe);
+    }
+}
+
+/** Assign(t', this node's id) with another TxNode: move at once and announce. */
+void ups__move_to(ups_node_t *node, unsigned txnode, uint16_t now)
+{
+    uint32_t old = (uint32_t)node->txnode << UPS__TXNODE_SHIFT;
+    uint32_t mask = UPS__MGMT << UPS__TXNODE_SHIFT;
+    for (unsigned i = 0; i < node->tx_count; ++i) { /* same TxNode for all: order is kept */
+        if ((node->tx[i].id & mask) == old) {
+            node->tx[i].id = (node->tx[i].id & ~mask) | ((uint32_t)txnode << UPS__TXNODE_SHIFT);
+        }
+    }
+#if UPS_WITH_TRANSFERS
+    if ((node->tx_id & mask) == old) {
+        node->tx_id = (node->tx_id & ~mask) | ((uint32_t)txnode << UPS__TXNODE_SHIFT);
+    }
+#endif
+    node->txnode = (uint8_t)txnode;
+    ups__count(&node->counters.moves);
+    note(node, UPS_NOTE_JOINED);
+    start_announcing(node, now);
+}
+
+void ups__on_hello(ups_node_t *node, uint16_t now)
+{
+    if (node->mode & UPS__RECENT) {
+        node->mode = (uint8_t)(node->mode | UPS__ANNOUNCE_DUE); /* when the second has passed */
+    } else {
+        start_announcing(node, now);
+    }
+}
+
+/** Queue owed frame @p bit of channel @p i; 0 when it is owed no more (a SUB_AT, PUB_AT or
+ *  DECLARE reports only a binding the node relies on at this moment, and an admitted stream). */
+static int queue_one(ups_node_t *node, unsigned i, unsigned bit)
+{
+    ups_channel_t *ch = &node->channels[i];
+    if (bit == UPS__OWE_UNSUB) {
+        ups__push_request(node, 0u, RQ_UNSUB, ch->uid);
+        return 1;
+    }
+    if (!(ch->flags & UPS__BOUND)) {
+        return 0;
+    }
+    if (bit == UPS__OWE_SUB_AT || bit == UPS__OWE_PUB_AT) {
+        int publish = bit == UPS__OWE_PUB_AT;
+        if (!(ch->flags & (publish ? UPS__PUB : UPS__SUB))) {
+            return 0;
+        }
+        ups__push_request(node, publish ? 1u : 0u, ch->etag, ch->uid); /* PUB_AT: priority 1 */
+        return 1;
+    }
+    return ups__queue_declare(node, i);
+}
+
+/** Queue the next owed frame, if any: the CLAIM, then every SUB_AT and PUB_AT, then DECLARE
+ *  and UNSUB. Returns 1 when it queued one. */
+static int queue_owed(ups_node_t *node)
+{
+    if (node->mode & UPS__OWE_CLAIM) {
+        node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+        ups__push_request(node, 0u, RQ_CLAIM, node->node_id);
+        return 1;
+    }
+    for (unsigned mask = UPS__OWE_SUB_AT | UPS__OWE_PUB_AT; mask < 0x10u; mask <<= 2) {
+        for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+            ups_channel_t *ch = &node->channels[i];
+            while (ch->owe & mask) {
+                unsigned owed = ch->owe & mask;
+                unsigned bit = owed & (0u - owed); /* the lowest */
+                ch->owe = (uint8_t)(ch->owe & ~bit);
+                if (queue_one(node, i, bit)) {
+                    return 1;
+                }
+            }
+        }
+    }
+    return 0;
+}
+
+/** The Hello answer gap, and one owed frame at a time: paced, and only once the management
+ *  frames before it are sent. */
+void ups__tick_hello(ups_node_t *node, uint16_t now)
+{
+    if ((node->mode & UPS__RECENT) && ups__since(now, node->t_announce) >= HELLO_GAP) {
+        node->mode = (uint8_t)(node->mode & ~UPS__RECENT);
+    }
+    if ((node->mode & (UPS__ANNOUNCE_DUE | UPS__RECENT)) == UPS__ANNOUNCE_DUE) {
+        start_announcing(node, now);
+    }
+    if (node->tx_count < UPS_TX_DEPTH &&
+        (node->tx_count == 0u || node->tx[0].id >= UPS__FIRST_EVENT_ID) &&
+        ups__since(now, node->t_pace) >= ANNOUNCE_PACE && queue_owed(node)) {
+        node->t_pace = now;
+    }
+}
