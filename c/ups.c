@@ -295,7 +295,7 @@ void ups_tick(ups_node_t *node, uint32_t now_ms)
 {
     uint16_t now = now16(now_ms);
     if (node->join == UPS__WAITING) {
-        ups__tick_join(node, now_ms);
+        ups__tick_join(node, now);
     } else if (joined(node)) {
         ups__tick_bind(node, now);
         ups__tick_hello(node, now);
@@ -369,7 +369,7 @@ int ups_txnode(const ups_node_t *node)
 
 int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t size)
 {
-    if (!valid_channel(node, channel) || (data == NULL && size > 0u)) {
+    if (!ups__valid_channel(node, channel) || (data == NULL && size > 0u)) {
         return UPS_ERR_ARGUMENT;
     }
     ups_channel_t *ch = &node->channels[channel];

@@ -96,7 +96,8 @@ extern "C" {
 #define UPS_HEARD_BINDS 0
 #endif
 
-/** Milliseconds a join may take before it is given up (UPS_ERR_TIMEOUT); 0: never. */
+/** Milliseconds a join may take before it is given up (UPS_ERR_TIMEOUT), at most 60000;
+ *  0: never. */
 #ifndef UPS_JOIN_GIVE_UP_MS
 #define UPS_JOIN_GIVE_UP_MS 30000u
 #endif
@@ -120,6 +121,9 @@ extern "C" {
 #endif
 #if UPS_MAX_EVENT > 65535 || UPS_RX_TRANSFERS < 1 || UPS_DECLARATIONS > UPS_CHANNELS
 #error "UPS_MAX_EVENT must be at most 65535, UPS_RX_TRANSFERS at least 1"
+#endif
+#if UPS_JOIN_GIVE_UP_MS > 60000
+#error "UPS_JOIN_GIVE_UP_MS must be at most 60000 (the timers count 16-bit milliseconds)"
 #endif
 
 /* ---- results ------------------------------------------------------------------------------- */
@@ -200,8 +204,7 @@ typedef struct {
     uint16_t etag;    /* bound, or the candidate while settling; 0: none */
     uint16_t t0;      /* request start / settle start / ready time (low 16 bits of ms) */
     uint8_t flags;    /* UPS__SUB, UPS__PUB, ... (ups.c) */
-    uint8_t step;     /* request retry step (low nibble) | wanted size class << 4 */
-    int8_t state;     /* 0 free, 1 waiting, 2 bound, or a UPS_ERR_ code */
+    uint8_t step;     /* wanted size class << 4 | request retry step, or -UPS_ERR_ once failed */
     uint8_t priority; /* for this node's events on the channel */
     uint8_t owe;      /* frames owed to the CAN-ECB: UPS__OWE_... (ups_internal.h) */
 } ups_channel_t;
@@ -241,12 +244,12 @@ typedef struct {
     uint8_t notes;
     uint8_t mode;         /* UPS__FD, UPS__OWE_CLAIM, UPS__ANNOUNCE_DUE, UPS__RECENT */
     uint8_t knock_step;
-    uint32_t t_join;      /* join start (for the give-up) */
-    uint16_t t_quiet;     /* joining: last Knock sent or Census/Query/Offer heard */
+    uint8_t tx_count;
+    uint16_t t_join;      /* joining: when it began (for the give-up) */
+    uint16_t t_quiet;     /* joining: last Knock sent or heard, or Census/Query/Offer heard */
     uint16_t t_announce;  /* joined: when the last answer to Hello started */
     uint16_t t_pace;      /* joined: when its last owed frame was queued */
     uint8_t burst[2][2];  /* Stage answers still to send: {epoch, next stage}; stage 16: none */
-    uint8_t tx_count;
     ups_frame_t tx[UPS_TX_DEPTH];
     ups_channel_t channels[UPS_CHANNELS];
 #if UPS_DECLARATIONS

@@ -93,7 +93,6 @@ static void start_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
                           ~(UPS__ASKED | UPS__CAND | UPS__BOUND | UPS__WAIT));
     ch->etag = 0u;
     ch->step = (uint8_t)(ch->step & 0xF0u);
-    ch->state = UPS__WAITING;
     if (joined(node)) {
         send_request(node, ch, now);
     }
@@ -122,18 +121,20 @@ void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid)
     }
 }
 
-static void fail(ups_node_t *node, ups_channel_t *ch, int8_t why)
+/** The channel's request ended with UPS_ERR_ code @p why, kept in the retry step's nibble (a
+ *  channel in use that neither waits nor is bound has failed: see ups_channel_state). */
+static void fail(ups_node_t *node, ups_channel_t *ch, int why)
 {
     if (ch->flags & UPS__REBIND) {
         return; /* maybe stray: a channel being bound again keeps asking (request retry) */
     }
-    ch->flags = (uint8_t)(ch->flags & ~(UPS__PEND | UPS__ASKED | UPS__CAND));
-    ch->state = why;
+    ch->flags = (uint8_t)(ch->flags & ~(UPS__PEND | UPS__ASKED | UPS__CAND | UPS__BOUND));
+    ch->step = (uint8_t)((ch->step & 0xF0u) | (unsigned)-why);
     note(node, UPS_NOTE_CHANNELS);
 }
 
 /** EtagsFull, Failed or Limit for @p uid: the request of its channel, if one waits, ends. */
-void ups__refused(ups_node_t *node, const uint8_t *uid, int8_t why)
+void ups__refused(ups_node_t *node, const uint8_t *uid, int why)
 {
     int i = find_uid(node, uid);
     if (i >= 0 && (node->channels[i].flags & UPS__PEND)) {
@@ -151,15 +152,13 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
                                                        UPS__REBIND | UPS__WAIT));
     ch->etag = etag;
     ch->step = (uint8_t)(ch->step & 0xF0u);
-    ch->state = UPS__READY;
     note(node, UPS_NOTE_CHANNELS);
     int asked_pub = asks_pub(ch);
     if ((ch->flags & UPS__SUB) && ups__class_max(cls) > UPS_MAX_EVENT) {
         ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB); /* it would not fit: do not subscribe */
         if (!(ch->flags & UPS__PUB)) { /* the entry stays, in error, until ups_unsubscribe */
-            ch->flags = (uint8_t)(ch->flags & ~UPS__BOUND);
             ch->etag = 0u;
-            ch->state = UPS_ERR_TOO_LARGE;
+            fail(node, ch, UPS_ERR_TOO_LARGE);
             return;
         }
         ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
@@ -176,7 +175,6 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     if ((ch->flags & UPS__PUB) && cls > 0u) {
         ch->flags = (uint8_t)(ch->flags | UPS__WAIT); /* subscribers re-bind after a move */
         ch->t0 = now;
-        ch->state = UPS__WAITING;
     }
 }
 
@@ -301,7 +299,6 @@ static void tick_channel(ups_node_t *node, ups_channel_t *ch, uint16_t now)
         send_request(node, ch, now);
     } else if ((ch->flags & UPS__WAIT) && waited >= GROW_PAUSE) {
         ch->flags = (uint8_t)(ch->flags & ~UPS__WAIT);
-        ch->state = UPS__READY;
         note(node, UPS_NOTE_CHANNELS);
     }
 }
@@ -435,7 +432,8 @@ static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, 
         ch->step = (uint8_t)((ch->step & 0x0Fu) | (cls << 4));
     }
     reask(ch, asked);
-    if (ch->state < 0 || ((had & UPS__BOUND) && ups__class(ch->etag) < wanted_class(ch))) {
+    if (!(had & (UPS__PEND | UPS__CAND | UPS__BOUND)) ||
+        ((had & UPS__BOUND) && ups__class(ch->etag) < wanted_class(ch))) {
         start_request(node, ch, now); /* it failed before, or it moves to a larger size class */
     } else if ((had & UPS__BOUND) && !(had & role)) {
         ch->owe = (uint8_t)(ch->owe | (role == UPS__PUB ? UPS__OWE_PUB_AT : UPS__OWE_SUB_AT));
@@ -463,7 +461,7 @@ int ups_advertise(ups_node_t *node, uint64_t uid, uint16_t max_size, uint32_t no
 
 int ups_unsubscribe(ups_node_t *node, int channel)
 {
-    if (!valid_channel(node, channel)) {
+    if (!ups__valid_channel(node, channel)) {
         return UPS_ERR_ARGUMENT;
     }
     ups_channel_t *ch = &node->channels[channel];
@@ -479,7 +477,6 @@ int ups_unsubscribe(ups_node_t *node, int channel)
     if (!(ch->flags & UPS__PUB)) { /* free once its UNSUB is queued (no declaration: no PUB) */
         ch->flags = 0u;
         ch->etag = 0u;
-        ch->state = UPS__FREE;
         ch->owe = (uint8_t)(ch->owe & UPS__OWE_UNSUB);
     }
     return UPS_OK;
@@ -487,7 +484,7 @@ int ups_unsubscribe(ups_node_t *node, int channel)
 
 int ups_set_priority(ups_node_t *node, int channel, uint8_t priority)
 {
-    if (!valid_channel(node, channel)) {
+    if (!ups__valid_channel(node, channel)) {
         return UPS_ERR_ARGUMENT;
     }
     node->channels[channel].priority = priority < 2u ? 2u : priority;
@@ -496,12 +493,22 @@ int ups_set_priority(ups_node_t *node, int channel, uint8_t priority)
 
 int ups_channel_state(const ups_node_t *node, int channel)
 {
-    return channel >= 0 && channel < UPS_CHANNELS ? node->channels[channel].state : UPS__FREE;
+    if (!ups__valid_channel(node, channel)) {
+        return UPS__FREE;
+    }
+    unsigned flags = node->channels[channel].flags;
+    if (flags & (UPS__PEND | UPS__CAND | UPS__WAIT)) {
+        return UPS__WAITING;
+    }
+    if (flags & UPS__BOUND) {
+        return UPS__READY;
+    }
+    return -(int)(node->channels[channel].step & 0xFu); /* it failed: fail() */
 }
 
 uint16_t ups_channel_etag(const ups_node_t *node, int channel)
 {
-    if (!valid_channel(node, channel) || !(node->channels[channel].flags & UPS__BOUND)) {
+    if (!ups__valid_channel(node, channel) || !(node->channels[channel].flags & UPS__BOUND)) {
         return 0u;
     }
     return node->channels[channel].etag;
@@ -511,7 +518,7 @@ int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, ui
                 uint8_t jitter, uint32_t now_ms)
 {
 #if UPS_DECLARATIONS
-    if (!valid_channel(node, channel) || !(node->channels[channel].flags & UPS__PUB) ||
+    if (!ups__valid_channel(node, channel) || !(node->channels[channel].flags & UPS__PUB) ||
         period == 0u || deadline == 0u) {
         return UPS_ERR_ARGUMENT;
     }

@@ -125,7 +125,7 @@ static inline void note(ups_node_t *node, unsigned bits)
     node->notes = (uint8_t)(node->notes | bits);
 }
 
-static inline int valid_channel(const ups_node_t *node, int channel)
+static inline int ups__valid_channel(const ups_node_t *node, int channel)
 {
     return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
 }
@@ -172,7 +172,7 @@ void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t 
                      uint16_t now);
 /** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
 void ups__join_refill(ups_node_t *node);
-void ups__tick_join(ups_node_t *node, uint32_t now_ms);
+void ups__tick_join(ups_node_t *node, uint16_t now);
 /** Assign(t', this node's id) while joined: move to t' at once and announce. */
 void ups__move_to(ups_node_t *node, unsigned txnode, uint16_t now);
 void ups__on_hello(ups_node_t *node, uint16_t now);
@@ -181,7 +181,7 @@ void ups__tick_hello(ups_node_t *node, uint16_t now);
 /* ups_bind.c */
 void ups__start_requests(ups_node_t *node, uint16_t now);
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
-void ups__refused(ups_node_t *node, const uint8_t *uid, int8_t why);
+void ups__refused(ups_node_t *node, const uint8_t *uid, int why);
 /** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
 void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t now);
 int ups__etag_known(const ups_node_t *node, uint16_t etag);

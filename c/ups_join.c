@@ -132,10 +132,9 @@ void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t 
     }
 }
 
-void ups__tick_join(ups_node_t *node, uint32_t now_ms)
+void ups__tick_join(ups_node_t *node, uint16_t now)
 {
-    uint16_t now = now16(now_ms);
-    if (UPS_JOIN_GIVE_UP_MS != 0u && now_ms - node->t_join >= UPS_JOIN_GIVE_UP_MS) {
+    if (UPS_JOIN_GIVE_UP_MS != 0u && ups__since(now, node->t_join) >= UPS_JOIN_GIVE_UP_MS) {
         end_join(node, UPS_ERR_TIMEOUT);
         return;
     }
@@ -156,7 +155,7 @@ void ups_start(ups_node_t *node, uint32_t now_ms)
     node->join = UPS__WAITING;
     node->txnode = UPS__MGMT;
     node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
-    node->t_join = now_ms;
+    node->t_join = now16(now_ms);
     node->knock_step = 0u;
     knock(node, now16(now_ms));
 }
