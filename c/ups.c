@@ -8,6 +8,39 @@
  */
 #include "ups_internal.h"
 
+unsigned ups__class(unsigned etag)
+{
+    return etag < UPS__LARGE_ETAG ? 0u : 1u + ((unsigned)(etag - UPS__LARGE_ETAG) >> 10);
+}
+
+uint32_t ups__class_max(unsigned cls)
+{
+    static const uint32_t largest[5] = {8u, 64u, 1024u, 4096u, 65535u};
+    return largest[cls < 5u ? cls : 4u];
+}
+
+void ups__count(UPS_COUNTER_T *counter)
+{
+    if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
+        ++*counter;
+    }
+}
+
+int ups__same8(const uint8_t *a, const uint8_t *b)
+{
+    unsigned diff = 0;
+    for (unsigned i = 0; i < 8u; ++i) {
+        diff |= (unsigned)(a[i] ^ b[i]);
+    }
+    return diff == 0u;
+}
+
+unsigned ups__nibble(const uint8_t *id, unsigned stage)
+{
+    unsigned byte = id[stage >> 1];
+    return (stage & 1u) ? (byte & 0xFu) : (byte >> 4);
+}
+
 void ups__put64(uint8_t *out, uint64_t value)
 {
     for (unsigned i = 8u; i-- > 0u;) {
@@ -97,133 +130,98 @@ int ups__rx_channel(const ups_node_t *node, uint16_t etag)
     return -1;
 }
 
-static int etag_ok(uint16_t etag)
+/** Whether @p etag (big-endian) is one the CAN-ECB binds, and @p txnode one it gives out. */
+static int stream_ok(const uint8_t *etag, unsigned txnode)
 {
-    return etag >= UPS__FIRST_ETAG && etag <= UPS__ETAG_MASK;
+    return (unsigned)(get16(etag) - UPS__FIRST_ETAG) <= UPS__ETAG_MASK - UPS__FIRST_ETAG &&
+           txnode < UPS__MGMT;
 }
 
-static int stream_ok(uint16_t etag, unsigned txnode)
-{
-    return etag_ok(etag) && txnode < UPS__MGMT;
-}
-
-/** Whether a node frame (another node's request, SUB_AT or PUB_AT) is well formed. */
-static int node_frame_ok(unsigned priority, uint16_t etag, const uint8_t *data, unsigned len)
+/** Whether another node's frame (a request, SUB_AT or PUB_AT) matches a row of the tables. */
+static int node_frame_ok(unsigned priority, unsigned etag, const uint8_t *data, unsigned len)
 {
     if (len != 8u) {
         return 0;
     }
     if (etag >= UPS__FIRST_ETAG) {
-        return 1; /* SUB_AT or PUB_AT */
+        return 1; /* SUB_AT (priority 0) or PUB_AT (1) */
     }
-    if (priority != 0u) {
+    if (priority != 0u || !((0x1E3Eu >> etag) & 1u)) { /* PUB_BIND ... DECLARE, PUB_BIND(1-4) */
         return 0;
     }
-    if (etag == RQ_DECLARE) {
-        uint16_t decl_etag = get16(data);
-        unsigned largest = decl_etag < UPS__LARGE_ETAG ? 8u : 255u;
-        return etag_ok(decl_etag) && data[2] <= largest &&
-               (data[2] != 0u || decl_etag < UPS__LARGE_ETAG) && get16(data + 3) != 0u &&
-               get16(data + 5) != 0u;
-    }
-    return (etag >= RQ_PUB_BIND && etag <= RQ_CLAIM) ||
-           (etag > RQ_PUB_BIND_CLASS && etag <= RQ_PUB_BIND_CLASS + 4u);
+    /* DECLARE: etag:u16 size:u8 period:u16 deadline:u16 jitter:u8; sizes in bytes (0-8) on
+     * etags of one frame, in frames (1-255) from 0x3000; period and deadline at least 1 */
+    return etag != RQ_DECLARE ||
+           (stream_ok(data, 0u) && (get16(data) < UPS__LARGE_ETAG ? data[2] <= 8u : data[2] != 0u) &&
+            (data[3] | data[4]) != 0u && (data[5] | data[6]) != 0u);
 }
 
-/** A status frame (op 3) of the CAN-ECB; returns 0 when it is malformed. */
-static int on_status(ups_node_t *node, unsigned arg, const uint8_t *data, unsigned len,
-                     uint16_t now)
+/* For each status frame (bits 8-11 of the etag field): the largest low byte plus one (0: no
+ * such frame; Census carries its epoch there, Limit a TxNode, the others nothing) ... */
+static const uint8_t status_low[16] = {16u, 1u, 1u, 1u, 1u, 1u, 1u, 1u, 127u, 1u, 0u, 0u, 0u, 0u, 0u, 1u};
+/* ... and the refusal it is for a request of this node (-UPS_ERR_; 0: none) */
+static const uint8_t status_refusal[16] = {0u, 0u, 9u, 0u, 0u, 0u, 0u, 11u, 10u};
+
+/** Whether a frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg) matches a row of
+ *  the tables, with the data length and field ranges they give. */
+static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned len)
 {
     unsigned status = arg >> 8;
-    unsigned low = arg & 0xFFu;
-    if (status == ST_CENSUS && low < 16u) {
-        return len == 0u;
-    }
-    if (status == ST_LIMIT && low < UPS__MGMT) {
-        if (len != 8u) {
+    if (op == OP_STATUS) {
+        if ((arg & 0xFFu) >= status_low[status] ||
+            len != (status == ST_CENSUS || status == ST_KNOCK ? 0u : 8u)) {
             return 0;
         }
-        if (joined(node) && low == node->txnode) {
-            ups__refused(node, data, UPS_ERR_LIMIT);
+        if (status == ST_GRANT) {
+            return stream_ok(data, data[2]) && (data[4] | data[5] | data[6] | data[7]) == 0u;
         }
-        return 1;
+        return status != ST_REFUSE || (stream_ok(data, data[2]) && stream_ok(data + 4, data[3]));
     }
-    if (low != 0u || status == ST_CENSUS || status == ST_LIMIT || status > ST_PROBE) {
-        return status == ST_KNOCK && low == 0u && len == 0u;
-    }
-    if (len != 8u) {
+    if (len != (op == OP_STAGE ? 0u : 8u)) {
         return 0;
     }
-    if (status == ST_GRANT || status == ST_REFUSE) {
-        uint16_t etag = get16(data);
-        if (!stream_ok(etag, data[2]) ||
-            (status == ST_GRANT && (data[4] | data[5] | data[6] | data[7]) != 0u) ||
-            (status == ST_REFUSE && !stream_ok(get16(data + 4), data[3]))) {
+    if (op != OP_QUERY) {
+        return op == OP_STAGE || (arg & ~OFFER_BIT) < UPS__MGMT; /* Offer, Assign: a TxNode */
+    }
+    /* Query: 1-15 nibbles of prefix, the last one repeated in the identifier, zeros after */
+    unsigned last = (arg >> 4) & 0xFu;
+    if (last == 15u || ups__nibble(data, last) != (arg & 0xFu)) {
+        return 0;
+    }
+    for (unsigned s = last + 1u; s < 16u; ++s) {
+        if (ups__nibble(data, s) != 0u) {
             return 0;
         }
-#if UPS_DECLARATIONS
-        if (joined(node) && data[2] == node->txnode) {
-            ups__on_verdict(node, etag, status == ST_GRANT, data[3]);
-        }
-#endif
-        return 1;
     }
-    if (!joined(node)) {
-        return 1; /* Hello, TxNodesFull, Failed while joining: ups__join_frame() */
+    return 1;
+}
+
+/** A well-formed frame of TxNode 0x7F at priority 0, as a joined node hears it. */
+static void joined_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
+                         uint16_t now)
+{
+    unsigned status = arg >> 8;
+    unsigned why = status_refusal[status];
+    if (op == OP_ASSIGN) {
+        if (arg < UPS__MGMT && arg != node->txnode && ups__same8(data, node->node_id)) {
+            ups__move_to(node, arg, now); /* Assign(t', its id): its old TxNode is another's */
+        }
+        return;
+    }
+    if (op != OP_STATUS) {
+        return; /* Stage, Query: for joiners */
     }
     if (status == ST_HELLO) {
         ups__on_hello(node, now);
-    } else if (status == ST_ETAGS_FULL || status == ST_FAILED) {
-        ups__refused(node, data, status == ST_FAILED ? UPS_ERR_FAILED : UPS_ERR_ETAGS_FULL);
     }
-    return 1;
-}
-
-/** A frame of the CAN-ECB or of a joiner (TxNode 0x7F); returns 0 when it is malformed. */
-static int on_config(ups_node_t *node, unsigned priority, uint16_t etag, const uint8_t *data,
-                     unsigned len, uint16_t now)
-{
-    if (priority == 1u) {
-        if (etag < UPS__FIRST_ETAG || len != 8u) {
-            return 0;
-        }
-        ups__on_bind(node, etag, data, now);
-        return 1;
+    if (why != 0u && (status != ST_LIMIT || (arg & 0xFFu) == node->txnode)) {
+        ups__refused(node, data, -(int)why); /* EtagsFull, Failed, Limit of this node */
     }
-    if (priority != 0u) {
-        return 0;
+#if UPS_DECLARATIONS
+    if ((status == ST_GRANT || status == ST_REFUSE) && data[2] == node->txnode) {
+        ups__on_verdict(node, get16(data), status == ST_GRANT, data[3]);
     }
-    unsigned op = (unsigned)etag >> 12;
-    unsigned arg = (unsigned)etag & 0xFFFu;
-    if (op == OP_STAGE) {
-        return len == 0u; /* another joiner's answer: nothing to do */
-    }
-    if (op == OP_STATUS) {
-        if (!on_status(node, arg, data, len, now)) {
-            return 0;
-        }
-    } else if (len != 8u) {
-        return 0;
-    } else if (op == OP_QUERY) {
-        unsigned last = (arg >> 4) & 0xFu;
-        if (last == 15u || nibble(data, last) != (arg & 0xFu)) {
-            return 0;
-        }
-        for (unsigned s = last + 1u; s < 16u; ++s) {
-            if (nibble(data, s) != 0u) {
-                return 0;
-            }
-        }
-    } else if ((arg & ~OFFER_BIT) >= UPS__MGMT) {
-        return 0; /* Offer or Assign of TxNode 0x7F or beyond */
-    } else if (joined(node) && !(arg & OFFER_BIT) && ups__same8(data, node->node_id) &&
-               arg != node->txnode) {
-        ups__move_to(node, arg, now);
-    }
-    if (node->join == UPS__WAITING) {
-        ups__join_frame(node, op, arg, data, now);
-    }
-    return 1;
+#endif
 }
 
 static int on_event(ups_node_t *node, const ups_frame_t *frame, uint16_t now, ups_event_t *event)
@@ -263,27 +261,41 @@ static int on_event(ups_node_t *node, const ups_frame_t *frame, uint16_t now, up
 int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_event_t *event)
 {
     uint16_t now = now16(now_ms);
+    uint32_t id = frame->id;
+    unsigned len = frame->len;
+    const uint8_t *data = frame->data;
+    unsigned priority = id >> UPS__PRIO_SHIFT;
+    unsigned txnode = (id >> UPS__TXNODE_SHIFT) & UPS__MGMT;
+    unsigned etag = id & UPS__ETAG_MASK;
+    UPS_COUNTER_T *counter = &node->counters.malformed;
     int got = 0;
-    if (!(frame->flags & UPS_FRAME_EXT) || (frame->flags & (UPS_FRAME_RTR | UPS_FRAME_ERR)) ||
-        frame->id > 0x1FFFFFFFu || frame->len > UPS_MTU) {
-        ups__count(&node->counters.foreign);
-        return 0;
-    }
-    unsigned priority = frame->id >> UPS__PRIO_SHIFT;
-    unsigned txnode = (frame->id >> UPS__TXNODE_SHIFT) & UPS__MGMT;
-    uint16_t etag = (uint16_t)(frame->id & UPS__ETAG_MASK);
-    if (priority >= 2u && txnode != UPS__MGMT && etag >= UPS__FIRST_ETAG) {
+    if ((frame->flags & (UPS_FRAME_EXT | UPS_FRAME_RTR | UPS_FRAME_ERR)) != UPS_FRAME_EXT ||
+        id > 0x1FFFFFFFu || len > UPS_MTU) {
+        counter = &node->counters.foreign;
+    } else if (priority >= 2u && txnode != UPS__MGMT && etag >= UPS__FIRST_ETAG) {
+        counter = NULL;
         got = on_event(node, frame, now, event);
     } else if (frame->flags & UPS_FRAME_FD) {
-        ups__count(&node->counters.foreign); /* management frames are classic frames */
-    } else if (txnode != UPS__MGMT) {
-        if (!node_frame_ok(priority, etag, frame->data, frame->len)) {
-            ups__count(&node->counters.malformed);
-        } else if (joined(node) && txnode == node->txnode) {
-            ups__count(&node->counters.own_echo);
-        } /* other nodes' requests need no action */
-    } else if (!on_config(node, priority, etag, frame->data, frame->len, now)) {
-        ups__count(&node->counters.malformed);
+        counter = &node->counters.foreign; /* management frames are classic frames */
+    } else if (txnode != UPS__MGMT) { /* another node's frames need no action */
+        if (node_frame_ok(priority, etag, data, len)) {
+            counter = joined(node) && txnode == node->txnode ? &node->counters.own_echo : NULL;
+        }
+    } else if (priority == 1u) {
+        if (etag >= UPS__FIRST_ETAG && len == 8u) {
+            counter = NULL;
+            ups__on_bind(node, (uint16_t)etag, data, now);
+        }
+    } else if (priority == 0u && config_ok(etag >> 12, etag & 0xFFFu, data, len)) {
+        counter = NULL;
+        if (node->join == UPS__WAITING) {
+            ups__join_frame(node, etag >> 12, etag & 0xFFFu, data, now);
+        } else if (joined(node)) {
+            joined_frame(node, etag >> 12, etag & 0xFFFu, data, now);
+        }
+    }
+    if (counter != NULL) {
+        ups__count(counter);
     }
     refill(node);
     return got;

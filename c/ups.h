@@ -213,13 +213,8 @@ typedef struct {
 typedef struct {
     uint8_t channel;  /* 0xFF: unused */
     int8_t state;     /* 1 waiting, 2 granted, or a UPS_ERR_ code */
-    uint8_t step;     /* retry step */
-    uint8_t size;
-    uint16_t t0;
-    uint16_t period;
-    uint16_t deadline;
-    uint8_t jitter;
-} ups_declaration_t;
+    uint8_t data[6];  /* DECLARE after its etag: size, period, deadline, jitter (big-endian) */
+} ups_declaration_t; /* its retry runs on its channel's timer, free while the channel is bound */
 #endif
 
 #if UPS_WITH_TRANSFERS

@@ -9,6 +9,11 @@
  * binding involved and ask again; such a re-binding relies on an answer only once it stood
  * 50 ms uncontradicted (settling), and, with UPS_HEARD_BINDS, an answer naming an etag last
  * heard bound to another UID is doubted until it comes again.
+ *
+ * Every frame a channel sends is *owed* first (a bit of ups_channel_t.owe) and queued by
+ * ups__queue_owed() one at a time, when there is room and no management frame waits before it:
+ * a full queue never loses a request, SUB_AT, PUB_AT, DECLARE or UNSUB, and the queue's order
+ * by identifier never puts a DECLARE before the PUB_AT the CAN-ECB needs first.
  */
 #include "ups_internal.h"
 
@@ -19,7 +24,7 @@
 #define SETTLE 50u
 #define GROW_PAUSE 150u
 
-static inline unsigned retry_delay(unsigned step)
+static unsigned retry_delay(unsigned step)
 {
     unsigned delay = RETRY_FIRST << (step < 5u ? step : 5u);
     return delay < RETRY_MAX ? delay : RETRY_MAX;
@@ -37,9 +42,21 @@ static int find_uid(const ups_node_t *node, const uint8_t *uid)
     return -1;
 }
 
+#if UPS_DECLARATIONS
+static ups_declaration_t *declaration_of(ups_node_t *node, unsigned channel)
+{
+    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) {
+        if (node->decl[i].channel == channel) {
+            return &node->decl[i];
+        }
+    }
+    return NULL;
+}
+#endif
+
 /* ---- requests ------------------------------------------------------------------------------ */
 
-static inline unsigned wanted_class(const ups_channel_t *ch)
+static unsigned wanted_class(const ups_channel_t *ch)
 {
     return (unsigned)ch->step >> 4;
 }
@@ -55,34 +72,9 @@ static unsigned request_kind(const ups_channel_t *ch)
     return cls > 0u ? RQ_PUB_BIND_CLASS + cls : RQ_PUB_BIND;
 }
 
-/** Whether the channel's request is a PUB_BIND (else SUB_BIND). */
-static inline int asks_pub(const ups_channel_t *ch)
-{
-    return request_kind(ch) != RQ_SUB_BIND;
-}
-
-static void send_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
-{
-    ch->t0 = now;
-    ups__push_request(node, 0u, request_kind(ch), ch->uid);
-}
-
-/** The roles of a channel waiting for its etag changed, and with them the request (it was
- *  @p asked): an answer to the old one would not tell the CAN-ECB the new role (a subscriber
- *  added to a PUB_BIND, a publisher left alone with a SUB_BIND), so only an answer to the new
- *  request counts, and the request retry sends it at the next tick. */
-static void reask(ups_channel_t *ch, unsigned asked)
-{
-    if ((ch->flags & UPS__PEND) && request_kind(ch) != asked) {
-        ch->flags = (uint8_t)(ch->flags & ~(UPS__ASKED | UPS__CAND));
-        ch->etag = 0u;
-        ch->step = (uint8_t)(ch->step & 0xF0u);
-        ch->t0 = (uint16_t)(ch->t0 - RETRY_MAX); /* due at once */
-    }
-}
-
-/** Ask for the channel's etag now, and from now on by the request retry. */
-static void start_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
+/** Ask for the channel's etag (once joined), and from then on by the request retry; a node
+ *  that relied on an etag for it stops, and nothing queued on that etag goes out. */
+static void start_request(ups_node_t *node, ups_channel_t *ch)
 {
     if (ch->flags & UPS__BOUND) {
         ups__drop_etag(node, ch->etag);
@@ -93,23 +85,20 @@ static void start_request(ups_node_t *node, ups_channel_t *ch, uint16_t now)
                           ~(UPS__ASKED | UPS__CAND | UPS__BOUND | UPS__WAIT));
     ch->etag = 0u;
     ch->step = (uint8_t)(ch->step & 0xF0u);
-    if (joined(node)) {
-        send_request(node, ch, now);
-    }
+    ch->owe = (uint8_t)(ch->owe | UPS__OWE_REQUEST);
 }
 
-/** The node is joined: ask for the etag of every channel added meanwhile. */
-void ups__start_requests(ups_node_t *node, uint16_t now)
+/** The roles of a channel waiting for its etag changed, and with them the request (it was
+ *  @p asked): an answer to the old one would not tell the CAN-ECB the new role (a subscriber
+ *  added to a PUB_BIND, a publisher left alone with a SUB_BIND), so it asks the new one, and
+ *  only an answer to that counts. */
+static void reask(ups_node_t *node, ups_channel_t *ch, unsigned asked)
 {
-    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
-        if (node->channels[i].flags & UPS__PEND) {
-            start_request(node, &node->channels[i], now);
-        }
+    if ((ch->flags & UPS__PEND) && request_kind(ch) != asked) {
+        start_request(node, ch);
     }
 }
 
-/** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
- *  may answer it (a Bind received before the request went does not count). */
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid)
 {
     int i = find_uid(node, uid);
@@ -133,7 +122,6 @@ static void fail(ups_node_t *node, ups_channel_t *ch, int why)
     note(node, UPS_NOTE_CHANNELS);
 }
 
-/** EtagsFull, Failed or Limit for @p uid: the request of its channel, if one waits, ends. */
 void ups__refused(ups_node_t *node, const uint8_t *uid, int why)
 {
     int i = find_uid(node, uid);
@@ -142,18 +130,78 @@ void ups__refused(ups_node_t *node, const uint8_t *uid, int why)
     }
 }
 
+/** Queue frame @p bit that channel @p i owes; 0 when it is owed no more: a SUB_AT, PUB_AT or
+ *  DECLARE reports only a binding the node relies on now, a request only one it still wants. */
+static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
+{
+    ups_channel_t *ch = &node->channels[i];
+    unsigned priority = 0u;
+    unsigned etag = ch->etag;
+    const uint8_t *data = ch->uid;
+#if UPS_DECLARATIONS
+    uint8_t declare[8];
+#endif
+    if (bit == UPS__OWE_REQUEST) {
+        if (!(ch->flags & UPS__PEND)) {
+            return 0;
+        }
+        etag = request_kind(ch);
+        ch->t0 = now; /* the request retry counts from here */
+    } else if (bit == UPS__OWE_UNSUB) {
+        etag = RQ_UNSUB;
+    } else if (!(ch->flags & UPS__BOUND)) {
+        return 0;
+    } else if (bit == UPS__OWE_DECLARE) {
+#if UPS_DECLARATIONS
+        const ups_declaration_t *decl = declaration_of(node, i);
+        if (decl == NULL || decl->state <= 0) {
+            return 0; /* none, or refused, or given up */
+        }
+        declare[0] = (uint8_t)(etag >> 8);
+        declare[1] = (uint8_t)etag;
+        ups__copy(declare + 2, decl->data, 6u);
+        etag = RQ_DECLARE;
+        data = declare;
+#else
+        return 0;
+#endif
+    } else {
+        priority = bit == UPS__OWE_PUB_AT; /* PUB_AT at priority 1, SUB_AT at 0 */
+        if (!(ch->flags & (priority ? UPS__PUB : UPS__SUB))) {
+            return 0;
+        }
+    }
+    ups__push_request(node, priority, etag, data);
+    return 1;
+}
+
+int ups__queue_owed(ups_node_t *node, uint16_t now)
+{
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+        ups_channel_t *ch = &node->channels[i];
+        while (ch->owe != 0u) {
+            unsigned bit = ch->owe & (0u - (unsigned)ch->owe); /* the lowest: its own order */
+            ch->owe = (uint8_t)(ch->owe & ~bit);
+            if (queue_one(node, i, bit, now)) {
+                return 1;
+            }
+        }
+    }
+    return 0;
+}
+
 /* ---- Binds --------------------------------------------------------------------------------- */
 
 /** Rely on @p etag for @p ch from now on. */
 static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t now)
 {
     unsigned cls = ups__class(etag);
+    int asked_pub = request_kind(ch) != RQ_SUB_BIND;
     ch->flags = (uint8_t)((ch->flags | UPS__BOUND) & ~(UPS__PEND | UPS__ASKED | UPS__CAND |
                                                        UPS__REBIND | UPS__WAIT));
     ch->etag = etag;
     ch->step = (uint8_t)(ch->step & 0xF0u);
     note(node, UPS_NOTE_CHANNELS);
-    int asked_pub = asks_pub(ch);
     if ((ch->flags & UPS__SUB) && ups__class_max(cls) > UPS_MAX_EVENT) {
         ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB); /* it would not fit: do not subscribe */
         if (!(ch->flags & UPS__PUB)) { /* the entry stays, in error, until ups_unsubscribe */
@@ -165,24 +213,13 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     }
     if (ch->flags & UPS__SUB) {
         note(node, UPS_NOTE_FILTERS);
-        if (asked_pub) {
-            ch->owe = (uint8_t)(ch->owe | UPS__OWE_SUB_AT);
-        }
     }
-    if ((ch->flags & UPS__PUB) && !asked_pub) {
-        ch->owe = (uint8_t)(ch->owe | UPS__OWE_PUB_AT);
-    }
+    /* the request told the CAN-ECB one role; SUB_AT or PUB_AT tells it the other */
+    ch->owe = (uint8_t)(ch->owe | (ch->flags & (asked_pub ? UPS__SUB : UPS__PUB)) << 1);
     if ((ch->flags & UPS__PUB) && cls > 0u) {
         ch->flags = (uint8_t)(ch->flags | UPS__WAIT); /* subscribers re-bind after a move */
         ch->t0 = now;
     }
-}
-
-/** A Bind contradicted the channel's binding: stop relying on it and ask again. */
-static void contradicted(ups_node_t *node, ups_channel_t *ch, uint16_t now)
-{
-    ch->flags = (uint8_t)(ch->flags | UPS__REBIND);
-    start_request(node, ch, now);
 }
 
 #if UPS_HEARD_BINDS
@@ -205,20 +242,8 @@ static int heard_other(ups_node_t *node, uint16_t etag, const uint8_t *uid)
     ups__copy(node->heard_uid[at], uid, 8u);
     return other;
 }
-
-static int heard_etag(const ups_node_t *node, uint16_t etag)
-{
-    for (unsigned i = 0; i < UPS_HEARD_BINDS; ++i) {
-        if (node->heard_etag[i] == etag) {
-            return 1;
-        }
-    }
-    return 0;
-}
 #endif
 
-/** Whether @p etag was ever heard bound (to a channel of this node, or, with UPS_HEARD_BINDS,
- *  to any): an event on it that the node does not receive is filtered, not unknown. */
 int ups__etag_known(const ups_node_t *node, uint16_t etag)
 {
     int known = 0;
@@ -226,12 +251,13 @@ int ups__etag_known(const ups_node_t *node, uint16_t etag)
         known |= node->channels[c].etag == etag;
     }
 #if UPS_HEARD_BINDS
-    known |= heard_etag(node, etag);
+    for (unsigned i = 0; i < UPS_HEARD_BINDS; ++i) {
+        known |= node->heard_etag[i] == etag;
+    }
 #endif
     return known;
 }
 
-/** Bind(etag, uid), from the CAN-ECB or anyone: the contradiction rule, then answers. */
 void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t now)
 {
 #if UPS_HEARD_BINDS
@@ -246,13 +272,14 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
         ups_channel_t *ch = &node->channels[i];
         int same_etag = ch->etag == etag;
         int same_uid = ups__same8(ch->uid, uid);
-        if ((ch->flags & UPS__CAND) && same_etag != same_uid) {
-            start_request(node, ch, now); /* the candidate is spoiled: ask for a fresh answer */
-        } else if ((ch->flags & UPS__BOUND) && same_etag != same_uid) {
-            grows |= same_uid && ups__class(etag) > ups__class(ch->etag);
-            etag_ours |= same_etag;
-            contradicted(node, ch, now);
-            contradiction = 1;
+        if ((ch->flags & (UPS__CAND | UPS__BOUND)) && same_etag != same_uid) {
+            if (ch->flags & UPS__BOUND) { /* it contradicts a binding relied on */
+                grows |= same_uid && ups__class(etag) > ups__class(ch->etag);
+                etag_ours |= same_etag;
+                contradiction = 1;
+                ch->flags = (uint8_t)(ch->flags | UPS__REBIND);
+            }
+            start_request(node, ch); /* (a spoiled candidate: ask for a fresh answer) */
         }
     }
     if (contradiction) {
@@ -279,128 +306,89 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
     }
 }
 
-static void tick_channel(ups_node_t *node, ups_channel_t *ch, uint16_t now)
+/** The request retry of frame @p owed (the channel's request, or its declaration's DECLARE) on
+ *  the channel's timer: owe it again when due; 1 when it is given up. */
+static int retry(ups_channel_t *ch, uint16_t now, unsigned owed)
 {
+    unsigned step = ch->step & 0xFu;
+    if ((ch->owe & owed) || ups__since(now, ch->t0) < retry_delay(step)) {
+        return 0; /* not sent yet, or not yet due again */
+    }
+    if (step >= RETRY_STEPS && !(ch->flags & UPS__REBIND)) {
+        return 1;
+    }
+    ch->step = (uint8_t)((ch->step & 0xF0u) | (step < RETRY_STEPS ? step + 1u : step));
+    ch->t0 = now;
+    ch->owe = (uint8_t)(ch->owe | owed);
+    return 0;
+}
+
+/** Settling, the publisher's pause, and the retry of the channel's request or, once it is
+ *  bound, of its declaration (the channel's timer is free then). */
+static void tick_channel(ups_node_t *node, unsigned i, uint16_t now)
+{
+    ups_channel_t *ch = &node->channels[i];
+    unsigned flags = ch->flags;
     uint16_t waited = ups__since(now, ch->t0);
-    if (ch->flags & UPS__CAND) {
+#if UPS_DECLARATIONS
+    ups_declaration_t *decl = declaration_of(node, i);
+#endif
+    if (flags & UPS__CAND) {
         if (waited >= SETTLE) {
             adopt(node, ch, ch->etag, now); /* it stood 50 ms with nothing contradicting it */
         }
-    } else if (ch->flags & UPS__PEND) {
-        unsigned step = ch->step & 0xFu;
-        if (waited < retry_delay(step)) {
-            return;
-        }
-        if (step >= RETRY_STEPS && !(ch->flags & UPS__REBIND)) {
+    } else if (flags & UPS__PEND) {
+        if (retry(ch, now, UPS__OWE_REQUEST)) {
             fail(node, ch, UPS_ERR_TIMEOUT);
-            return;
         }
-        ch->step = (uint8_t)((ch->step & 0xF0u) | (step < RETRY_STEPS ? step + 1u : step));
-        send_request(node, ch, now);
-    } else if ((ch->flags & UPS__WAIT) && waited >= GROW_PAUSE) {
-        ch->flags = (uint8_t)(ch->flags & ~UPS__WAIT);
-        note(node, UPS_NOTE_CHANNELS);
+    } else if (flags & UPS__WAIT) {
+        if (waited >= GROW_PAUSE) {
+            ch->flags = (uint8_t)(flags & ~UPS__WAIT);
+            note(node, UPS_NOTE_CHANNELS);
+        }
+#if UPS_DECLARATIONS
+    } else if ((flags & UPS__BOUND) && decl != NULL && decl->state == UPS__WAITING) {
+        if (retry(ch, now, UPS__OWE_DECLARE)) {
+            decl->state = UPS_ERR_TIMEOUT;
+            note(node, UPS_NOTE_DECLARATIONS);
+        }
+#endif
+    }
+}
+
+void ups__tick_bind(ups_node_t *node, uint16_t now)
+{
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+        tick_channel(node, i, now);
     }
 }
 
 /* ---- declarations -------------------------------------------------------------------------- */
 
 #if UPS_DECLARATIONS
-static ups_declaration_t *declaration_of(ups_node_t *node, unsigned channel)
-{
-    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) {
-        if (node->decl[i].channel == channel) {
-            return &node->decl[i];
-        }
-    }
-    return NULL;
-}
-
-static void send_declare(ups_node_t *node, const ups_declaration_t *decl, uint16_t etag)
-{
-    uint8_t data[8] = {(uint8_t)(etag >> 8), (uint8_t)etag, decl->size,
-                       (uint8_t)(decl->period >> 8), (uint8_t)decl->period,
-                       (uint8_t)(decl->deadline >> 8), (uint8_t)decl->deadline, decl->jitter};
-    ups__push_request(node, 0u, RQ_DECLARE, data);
-}
-
-/** Grant or Refuse for this node's stream on @p etag. */
 void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority)
 {
-    int i = -1;
-    for (unsigned c = 0; i < 0 && c < UPS_CHANNELS; ++c) {
-        if ((node->channels[c].flags & UPS__BOUND) && node->channels[c].etag == etag) {
-            i = (int)c;
-        }
-    }
-    if (i < 0) {
-        return;
-    }
-    ups_declaration_t *decl = declaration_of(node, (unsigned)i);
-    if (granted) {
-        node->channels[i].priority = priority; /* also unasked: another declaration moved it */
-        if (decl != NULL) {
-            decl->state = UPS__READY;
-            note(node, UPS_NOTE_DECLARATIONS);
-        }
-    } else if (decl != NULL && decl->state == UPS__WAITING) {
-        decl->state = UPS_ERR_REFUSED;
-        note(node, UPS_NOTE_DECLARATIONS);
-    }
-}
-
-static void tick_declaration(ups_node_t *node, ups_declaration_t *decl, uint16_t now)
-{
-    if (decl->channel >= UPS_CHANNELS || decl->state != UPS__WAITING ||
-        ups__since(now, decl->t0) < retry_delay(decl->step)) {
-        return;
-    }
-    const ups_channel_t *ch = &node->channels[decl->channel];
-    if (decl->step >= RETRY_STEPS) {
-        decl->state = UPS_ERR_TIMEOUT;
-        note(node, UPS_NOTE_DECLARATIONS);
-        return;
-    }
-    decl->step = (uint8_t)(decl->step + 1u);
-    decl->t0 = now;
-    if (ch->flags & UPS__BOUND) {
-        send_declare(node, decl, ch->etag);
-    }
-}
-#endif
-
-/** DECLARE of channel @p i's admitted stream, in the answer to Hello; 0 when it has none. */
-int ups__queue_declare(ups_node_t *node, unsigned i)
-{
-#if UPS_DECLARATIONS
-    const ups_declaration_t *decl = declaration_of(node, i);
-    if (decl != NULL && decl->state == UPS__READY) {
-        send_declare(node, decl, node->channels[i].etag);
-        return 1;
-    }
-#else
-    (void)node, (void)i;
-#endif
-    return 0;
-}
-
-/** The request retry, settling, the publisher's pause and the declarations' retry. */
-void ups__tick_bind(ups_node_t *node, uint16_t now)
-{
     for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
-        tick_channel(node, &node->channels[i], now);
+        ups_channel_t *ch = &node->channels[i];
+        if ((ch->flags & UPS__BOUND) && ch->etag == etag) {
+            ups_declaration_t *decl = declaration_of(node, i);
+            if (granted) {
+                ch->priority = priority; /* also unasked: another declaration moved it */
+            }
+            if (decl != NULL && (granted || decl->state == UPS__WAITING)) {
+                decl->state = granted ? UPS__READY : UPS_ERR_REFUSED;
+                note(node, UPS_NOTE_DECLARATIONS);
+            }
+            return;
+        }
     }
-#if UPS_DECLARATIONS
-    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) {
-        tick_declaration(node, &node->decl[i], now);
-    }
-#endif
 }
+#endif
 
 /* ---- the API ------------------------------------------------------------------------------- */
 
 /** The channel of @p uid with @p role added, or a new one; its index or UPS_ERR_FULL. */
-static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, uint16_t now)
+static int add_role(ups_node_t *node, uint64_t uid, unsigned role, unsigned cls)
 {
     uint8_t raw[8];
     ups__put64(raw, uid);
@@ -415,48 +403,48 @@ static int add_role(ups_node_t *node, uint64_t uid, uint8_t role, unsigned cls, 
         ups__copy(node->channels[i].uid, raw, 8u);
     }
     ups_channel_t *ch = &node->channels[i];
+    unsigned had = ch->flags;
+    unsigned asked = request_kind(ch);
     if (role == UPS__SUB) {
         ch->owe = (uint8_t)(ch->owe & ~UPS__OWE_UNSUB); /* back before its UNSUB went */
     }
-    if (ch->flags == 0u) { /* a new entry, or one whose UNSUB was still owed */
+    if (had == 0u) { /* a new entry, or one whose UNSUB was still owed */
         ch->priority = UPS__DEFAULT_PRIORITY;
-        ch->flags = role;
-        ch->step = (uint8_t)(cls << 4);
-        start_request(node, ch, now);
-        return i;
+        ch->step = 0u;
     }
-    uint8_t had = ch->flags;
-    unsigned asked = request_kind(ch);
-    ch->flags = (uint8_t)(ch->flags | role);
+    ch->flags = (uint8_t)(had | role);
     if (cls > wanted_class(ch)) {
         ch->step = (uint8_t)((ch->step & 0x0Fu) | (cls << 4));
     }
-    reask(ch, asked);
     if (!(had & (UPS__PEND | UPS__CAND | UPS__BOUND)) ||
         ((had & UPS__BOUND) && ups__class(ch->etag) < wanted_class(ch))) {
-        start_request(node, ch, now); /* it failed before, or it moves to a larger size class */
+        start_request(node, ch); /* new, failed before, or moving to a larger size class */
     } else if ((had & UPS__BOUND) && !(had & role)) {
-        ch->owe = (uint8_t)(ch->owe | (role == UPS__PUB ? UPS__OWE_PUB_AT : UPS__OWE_SUB_AT));
+        ch->owe = (uint8_t)(ch->owe | role << 1); /* SUB_AT or PUB_AT: the new role */
         note(node, UPS_NOTE_FILTERS | UPS_NOTE_CHANNELS);
+    } else {
+        reask(node, ch, asked);
     }
     return i;
 }
 
 int ups_subscribe(ups_node_t *node, uint64_t uid, uint32_t now_ms)
 {
-    return add_role(node, uid, UPS__SUB, 0u, now16(now_ms));
+    (void)now_ms;
+    return add_role(node, uid, UPS__SUB, 0u);
 }
 
 int ups_advertise(ups_node_t *node, uint64_t uid, uint16_t max_size, uint32_t now_ms)
 {
+    unsigned cls = 0u;
+    (void)now_ms;
     if (max_size > UPS_MAX_EVENT) {
         return UPS_ERR_TOO_LARGE;
     }
-    unsigned cls = 0u;
     while (ups__class_max(cls) < max_size) {
         ++cls;
     }
-    return add_role(node, uid, UPS__PUB, cls, now16(now_ms));
+    return add_role(node, uid, UPS__PUB, cls);
 }
 
 int ups_unsubscribe(ups_node_t *node, int channel)
@@ -468,7 +456,7 @@ int ups_unsubscribe(ups_node_t *node, int channel)
     if (ch->flags & UPS__SUB) {
         unsigned asked = request_kind(ch);
         ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
-        reask(ch, asked);
+        reask(node, ch, asked);
         note(node, UPS_NOTE_FILTERS);
         if (joined(node)) {
             ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB);
@@ -522,8 +510,8 @@ int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, ui
         period == 0u || deadline == 0u) {
         return UPS_ERR_ARGUMENT;
     }
-    const ups_channel_t *ch = &node->channels[channel];
-    if (!(ch->flags & UPS__BOUND) || !joined(node)) {
+    ups_channel_t *ch = &node->channels[channel];
+    if (ups_channel_state(node, channel) != UPS__READY) {
         return UPS_ERR_UNBOUND;
     }
     if (ch->etag < UPS__LARGE_ETAG ? size > 8u : size == 0u) {
@@ -538,13 +526,15 @@ int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, ui
     }
     decl->channel = (uint8_t)channel;
     decl->state = UPS__WAITING;
-    decl->step = 0u;
-    decl->size = size;
-    decl->period = period;
-    decl->deadline = deadline;
-    decl->jitter = jitter;
-    decl->t0 = now16(now_ms);
-    send_declare(node, decl, ch->etag);
+    decl->data[0] = size;
+    decl->data[1] = (uint8_t)(period >> 8);
+    decl->data[2] = (uint8_t)period;
+    decl->data[3] = (uint8_t)(deadline >> 8);
+    decl->data[4] = (uint8_t)deadline;
+    decl->data[5] = jitter;
+    ch->step = (uint8_t)(ch->step & 0xF0u); /* the channel's retry timer, free while bound */
+    ch->t0 = now16(now_ms);
+    ch->owe = (uint8_t)(ch->owe | UPS__OWE_DECLARE);
     return UPS_OK;
 #else
     (void)node, (void)channel, (void)size, (void)period, (void)deadline, (void)jitter;

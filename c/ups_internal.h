@@ -62,13 +62,13 @@
 #define UPS__ANNOUNCE_DUE 0x04u /* a Hello came within a second of the last answer */
 #define UPS__RECENT 0x08u       /* the last answer to Hello started less than a second ago */
 
-/* the frames a channel owes the CAN-ECB (ups_channel_t.owe), queued one at a time when there
- * is room (a full queue never loses them) and no management frame waits before them (so the
- * queue's order by identifier cannot put a DECLARE before the PUB_AT it depends on) */
-#define UPS__OWE_SUB_AT 0x01u
-#define UPS__OWE_PUB_AT 0x02u
-#define UPS__OWE_DECLARE 0x04u
-#define UPS__OWE_UNSUB 0x08u
+/* the frames a channel owes the CAN-ECB (ups_channel_t.owe), queued one at a time, lowest bit
+ * first, when there is room and no management frame waits before them (ups__queue_owed) */
+#define UPS__OWE_REQUEST 0x01u /* SUB_BIND, PUB_BIND or PUB_BIND(c) */
+#define UPS__OWE_SUB_AT 0x02u  /* = UPS__SUB << 1 */
+#define UPS__OWE_PUB_AT 0x04u  /* = UPS__PUB << 1 */
+#define UPS__OWE_DECLARE 0x08u
+#define UPS__OWE_UNSUB 0x10u
 
 /* channel and join states (besides the UPS_ERR_ codes) */
 #define UPS__FREE 0
@@ -86,19 +86,6 @@ static inline uint16_t ups__since(uint16_t now, uint16_t then)
     return (uint16_t)(now - then);
 }
 
-/** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
-static inline unsigned ups__class(uint16_t etag)
-{
-    return etag < UPS__LARGE_ETAG ? 0u : 1u + ((unsigned)(etag - UPS__LARGE_ETAG) >> 10);
-}
-
-/** The largest event of a size class. */
-static inline uint32_t ups__class_max(unsigned cls)
-{
-    static const uint32_t largest[5] = {8u, 64u, 1024u, 4096u, 65535u};
-    return largest[cls < 5u ? cls : 4u];
-}
-
 static inline uint16_t get16(const uint8_t *in)
 {
     return (uint16_t)(((unsigned)in[0] << 8) | in[1]);
@@ -114,12 +101,6 @@ static inline int joined(const ups_node_t *node)
     return node->join == UPS__READY;
 }
 
-static inline unsigned nibble(const uint8_t *id, unsigned stage)
-{
-    unsigned byte = id[stage >> 1];
-    return (stage & 1u) ? (byte & 0xFu) : (byte >> 4);
-}
-
 static inline void note(ups_node_t *node, unsigned bits)
 {
     node->notes = (uint8_t)(node->notes | bits);
@@ -130,13 +111,6 @@ static inline int ups__valid_channel(const ups_node_t *node, int channel)
     return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
 }
 
-static inline void ups__count(UPS_COUNTER_T *counter)
-{
-    if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
-        ++*counter;
-    }
-}
-
 static inline void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
 {
     for (unsigned i = 0; i < n; ++i) {
@@ -144,16 +118,17 @@ static inline void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
     }
 }
 
-static inline int ups__same8(const uint8_t *a, const uint8_t *b)
-{
-    unsigned diff = 0;
-    for (unsigned i = 0; i < 8u; ++i) {
-        diff |= (unsigned)(a[i] ^ b[i]);
-    }
-    return diff == 0u;
-}
-
 /* ups.c */
+/** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
+unsigned ups__class(unsigned etag);
+/** The largest event of a size class. */
+uint32_t ups__class_max(unsigned cls);
+/** Count one in a saturating counter. */
+void ups__count(UPS_COUNTER_T *counter);
+/** Whether two 8-byte values (node ids, UIDs) are equal. */
+int ups__same8(const uint8_t *a, const uint8_t *b);
+/** Nibble @p stage of a 64-bit big-endian id, most significant first. */
+unsigned ups__nibble(const uint8_t *id, unsigned stage);
 /** Write @p value big-endian into @p out[0..7]. */
 void ups__put64(uint8_t *out, uint64_t value);
 /** Queue a frame (sorted by identifier, FIFO among equals). 0, or UPS_ERR_FULL (counted). */
@@ -179,14 +154,20 @@ void ups__on_hello(ups_node_t *node, uint16_t now);
 void ups__tick_hello(ups_node_t *node, uint16_t now);
 
 /* ups_bind.c */
-void ups__start_requests(ups_node_t *node, uint16_t now);
+/** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
+ *  may answer it (a Bind received before the request went does not count). */
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
+/** EtagsFull, Failed or Limit for @p uid: the request of its channel, if one waits, ends. */
 void ups__refused(ups_node_t *node, const uint8_t *uid, int why);
+/** Queue the next frame a channel owes, if any; 1 when it queued one. */
+int ups__queue_owed(ups_node_t *node, uint16_t now);
 /** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
 void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t now);
+/** Whether @p etag was ever heard bound (to a channel of this node, or, with UPS_HEARD_BINDS,
+ *  to any): an event on it that the node does not receive is filtered, not unknown. */
 int ups__etag_known(const ups_node_t *node, uint16_t etag);
+/** The request and declaration retries, settling, the publisher's pause. */
 void ups__tick_bind(ups_node_t *node, uint16_t now);
-int ups__queue_declare(ups_node_t *node, unsigned i);
 #if UPS_DECLARATIONS
 /** Grant or Refuse for this node's stream on @p etag. */
 void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority);

@@ -45,7 +45,7 @@ static void refill_stages(ups_node_t *node)
         uint8_t *burst = node->burst[b];
         while (burst[1] < 16u && node->tx_count < UPS_TX_DEPTH) {
             unsigned stage = burst[1];
-            unsigned arg = ((unsigned)burst[0] << 8) | (stage << 4) | nibble(node->node_id, stage);
+            unsigned arg = ((unsigned)burst[0] << 8) | (stage << 4) | ups__nibble(node->node_id, stage);
             push_config(node, arg, NULL, 0u); /* Stage: op 0 */
             burst[1] = (uint8_t)(stage + 1u);
         }
@@ -83,15 +83,14 @@ static void end_join(ups_node_t *node, int8_t why)
     note(node, UPS_NOTE_JOIN_FAILED);
 }
 
-static void joined_as(ups_node_t *node, unsigned txnode, uint16_t now)
+static void joined_as(ups_node_t *node, unsigned txnode)
 {
     node->txnode = (uint8_t)txnode;
     node->join = UPS__READY;
     node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
     node->burst[0][1] = node->burst[1][1] = 16u;
     node->tx_count = 0u; /* Knocks and Stages still queued are of no use now */
-    note(node, UPS_NOTE_JOINED);
-    ups__start_requests(node, now);
+    note(node, UPS_NOTE_JOINED); /* the channels' requests, owed meanwhile, go now */
 }
 
 /** Census, Query, Offer, Assign and the rest, as a joining node hears them. */
@@ -106,7 +105,7 @@ void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t 
     } else if (op == OP_QUERY) {
         heard(node, now);
         unsigned stage = 0u;
-        while (stage <= len && nibble(node->node_id, stage) == nibble(data, stage)) {
+        while (stage <= len && ups__nibble(node->node_id, stage) == ups__nibble(data, stage)) {
             ++stage;
         }
         if (stage > len) {
@@ -118,7 +117,7 @@ void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t 
             node->txnode = (uint8_t)(arg & 0x7Fu);
             node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
         } else {
-            joined_as(node, arg, now);
+            joined_as(node, arg);
         }
     } else if (op == OP_STATUS && (arg >> 8) == ST_KNOCK) {
         node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
@@ -168,16 +167,9 @@ static void start_announcing(ups_node_t *node, uint16_t now)
 {
     node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
     node->t_announce = now;
-    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) { /* sent only if relied on then */
         ups_channel_t *ch = &node->channels[i];
-        unsigned owe = UPS__OWE_DECLARE;
-        if (ch->flags & UPS__SUB) {
-            owe |= UPS__OWE_SUB_AT;
-        }
-        if (ch->flags & UPS__PUB) {
-            owe |= UPS__OWE_PUB_AT;
-        }
-        ch->owe = (uint8_t)(ch->owe | owe);
+        ch->owe = (uint8_t)(ch->owe | UPS__OWE_DECLARE | (ch->flags & (UPS__SUB | UPS__PUB)) << 1);
     }
 }
 
@@ -211,54 +203,6 @@ void ups__on_hello(ups_node_t *node, uint16_t now)
     }
 }
 
-/** Queue owed frame @p bit of channel @p i; 0 when it is owed no more (a SUB_AT, PUB_AT or
- *  DECLARE reports only a binding the node relies on at this moment, and an admitted stream). */
-static int queue_one(ups_node_t *node, unsigned i, unsigned bit)
-{
-    ups_channel_t *ch = &node->channels[i];
-    if (bit == UPS__OWE_UNSUB) {
-        ups__push_request(node, 0u, RQ_UNSUB, ch->uid);
-        return 1;
-    }
-    if (!(ch->flags & UPS__BOUND)) {
-        return 0;
-    }
-    if (bit == UPS__OWE_SUB_AT || bit == UPS__OWE_PUB_AT) {
-        int publish = bit == UPS__OWE_PUB_AT;
-        if (!(ch->flags & (publish ? UPS__PUB : UPS__SUB))) {
-            return 0;
-        }
-        ups__push_request(node, publish ? 1u : 0u, ch->etag, ch->uid); /* PUB_AT: priority 1 */
-        return 1;
-    }
-    return ups__queue_declare(node, i);
-}
-
-/** Queue the next owed frame, if any: the CLAIM, then every SUB_AT and PUB_AT, then DECLARE
- *  and UNSUB. Returns 1 when it queued one. */
-static int queue_owed(ups_node_t *node)
-{
-    if (node->mode & UPS__OWE_CLAIM) {
-        node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
-        ups__push_request(node, 0u, RQ_CLAIM, node->node_id);
-        return 1;
-    }
-    for (unsigned mask = UPS__OWE_SUB_AT | UPS__OWE_PUB_AT; mask < 0x10u; mask <<= 2) {
-        for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
-            ups_channel_t *ch = &node->channels[i];
-            while (ch->owe & mask) {
-                unsigned owed = ch->owe & mask;
-                unsigned bit = owed & (0u - owed); /* the lowest */
-                ch->owe = (uint8_t)(ch->owe & ~bit);
-                if (queue_one(node, i, bit)) {
-                    return 1;
-                }
-            }
-        }
-    }
-    return 0;
-}
-
 /** The Hello answer gap, and one owed frame at a time: paced, and only once the management
  *  frames before it are sent. */
 void ups__tick_hello(ups_node_t *node, uint16_t now)
@@ -271,7 +215,13 @@ void ups__tick_hello(ups_node_t *node, uint16_t now)
     }
     if (node->tx_count < UPS_TX_DEPTH &&
         (node->tx_count == 0u || node->tx[0].id >= UPS__FIRST_EVENT_ID) &&
-        ups__since(now, node->t_pace) >= ANNOUNCE_PACE && queue_owed(node)) {
-        node->t_pace = now;
+        ups__since(now, node->t_pace) >= ANNOUNCE_PACE) {
+        if (node->mode & UPS__OWE_CLAIM) { /* the answer to Hello begins with it */
+            node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+            ups__push_request(node, 0u, RQ_CLAIM, node->node_id);
+            node->t_pace = now;
+        } else if (ups__queue_owed(node, now)) {
+            node->t_pace = now;
+        }
     }
 }

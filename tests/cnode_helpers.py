@@ -118,8 +118,9 @@ class Wire:
         self.drain()
 
     def bind(self, channel: int, etag: int, uid: int) -> None:
-        """Answer the channel's request with Bind(etag, uid); it is relied on at once."""
-        self.drain()
+        """Answer the channel's request (queued at the next tick) with Bind(etag, uid); it is
+        relied on at once."""
+        self.tick(1)
         self.feed(p.Bind(etag, uid))
         self.drain()
         assert self.node.channel_etag(channel) == etag

@@ -140,7 +140,7 @@ async def test_a_role_added_while_the_request_is_out_is_told_to_the_can_ecb(
         await c.bound(node, speed)
         txnode = node.txnode
         await c.until(lambda: txnode in ecb.subscribers.get(CMD, ()), timeout=3)
-        assert txnode in ecb.publishers.get(CMD, ())
+        await c.until(lambda: txnode in ecb.publishers.get(CMD, ()), timeout=3)
         await c.until(lambda: txnode in ecb.publishers.get(speed_uid, ()), timeout=3)
         assert txnode not in ecb.subscribers.get(speed_uid, ())
 
@@ -173,7 +173,7 @@ def test_a_channel_refused_during_the_publishers_pause_stays_refused() -> None:
     a = w.node.advertise(A, 100, w.now)
     w.bind(a, 0x3400, A)  # class 2: the pause begins
     w.node.advertise(A, 2000, w.now)  # class 3
-    w.drain()
+    w.tick(1)
     assert w.mgmt()[-1] == p.Request(p.PUB_BIND, 5, A, 3)
     w.feed(p.EtagsFull(A))
     w.tick(200)
