@@ -396,17 +396,19 @@ int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t siz
     }
     uint8_t priority = ch->priority < 2u ? 2u : ch->priority;
     uint32_t id = ups__make_id(priority, node->txnode, ch->etag);
+#if UPS_WITH_TRANSFERS
     if (size > ups__class_max(ups__class(ch->etag)) || size > UPS_MAX_EVENT) {
         return UPS_ERR_TOO_LARGE;
     }
     if (ch->etag >= UPS__LARGE_ETAG) {
-#if UPS_WITH_TRANSFERS
         return ups__transfer_tx(node, channel, id, data, size);
-#else
-        return UPS_ERR_TOO_LARGE; /* the channel moved to a larger class: no transfers here */
-#endif
     }
-    uint8_t flags = (node->mode & UPS__FD) ? (uint8_t)(UPS_FRAME_FD | UPS_FRAME_BRS) : 0u;
+#else
+    if (size > 8u || ch->etag >= UPS__LARGE_ETAG) {
+        return UPS_ERR_TOO_LARGE; /* (the channel moved to a larger class: no transfers here) */
+    }
+#endif
+    uint8_t flags = (UPS_WITH_FD && (node->mode & UPS__FD)) ? UPS_FRAME_FD | UPS_FRAME_BRS : 0u;
     return ups__push(node, id, flags, data, size);
 }
 

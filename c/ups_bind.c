@@ -56,9 +56,11 @@ static ups_declaration_t *declaration_of(ups_node_t *node, unsigned channel)
 
 /* ---- requests ------------------------------------------------------------------------------ */
 
+/** The size class the channel's events need (always 0 without transfers: size classes are
+ *  compiled in with them, and the compiler drops what depends on a larger one). */
 static unsigned wanted_class(const ups_channel_t *ch)
 {
-    return (unsigned)ch->step >> 4;
+    return UPS_WITH_TRANSFERS ? (unsigned)ch->step >> 4 : 0u;
 }
 
 /** The request the channel's roles ask: SUB_BIND for a subscriber of one-frame events, else
@@ -192,17 +194,23 @@ int ups__queue_owed(ups_node_t *node, uint16_t now)
 
 /* ---- Binds --------------------------------------------------------------------------------- */
 
+/** Whether the events of @p etag's size class fit the node's buffers (UPS_MAX_EVENT). */
+static int fits(unsigned etag)
+{
+    return UPS_WITH_TRANSFERS ? ups__class_max(ups__class(etag)) <= UPS_MAX_EVENT
+                              : etag < UPS__LARGE_ETAG;
+}
+
 /** Rely on @p etag for @p ch from now on. */
 static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t now)
 {
-    unsigned cls = ups__class(etag);
     int asked_pub = request_kind(ch) != RQ_SUB_BIND;
     ch->flags = (uint8_t)((ch->flags | UPS__BOUND) & ~(UPS__PEND | UPS__ASKED | UPS__CAND |
                                                        UPS__REBIND | UPS__WAIT));
     ch->etag = etag;
     ch->step = (uint8_t)(ch->step & 0xF0u);
     note(node, UPS_NOTE_CHANNELS);
-    if ((ch->flags & UPS__SUB) && ups__class_max(cls) > UPS_MAX_EVENT) {
+    if ((ch->flags & UPS__SUB) && !fits(etag)) {
         ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB); /* it would not fit: do not subscribe */
         if (!(ch->flags & UPS__PUB)) { /* the entry stays, in error, until ups_unsubscribe */
             ch->etag = 0u;
@@ -216,7 +224,7 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     }
     /* the request told the CAN-ECB one role; SUB_AT or PUB_AT tells it the other */
     ch->owe = (uint8_t)(ch->owe | (ch->flags & (asked_pub ? UPS__SUB : UPS__PUB)) << 1);
-    if ((ch->flags & UPS__PUB) && cls > 0u) {
+    if (UPS_WITH_TRANSFERS && (ch->flags & UPS__PUB) && etag >= UPS__LARGE_ETAG) {
         ch->flags = (uint8_t)(ch->flags | UPS__WAIT); /* subscribers re-bind after a move */
         ch->t0 = now;
     }
@@ -341,7 +349,7 @@ static void tick_channel(ups_node_t *node, unsigned i, uint16_t now)
         if (retry(ch, now, UPS__OWE_REQUEST)) {
             fail(node, ch, UPS_ERR_TIMEOUT);
         }
-    } else if (flags & UPS__WAIT) {
+    } else if (UPS_WITH_TRANSFERS && (flags & UPS__WAIT)) {
         if (waited >= GROW_PAUSE) {
             ch->flags = (uint8_t)(flags & ~UPS__WAIT);
             note(node, UPS_NOTE_CHANNELS);
@@ -441,7 +449,7 @@ int ups_advertise(ups_node_t *node, uint64_t uid, uint16_t max_size, uint32_t no
     if (max_size > UPS_MAX_EVENT) {
         return UPS_ERR_TOO_LARGE;
     }
-    while (ups__class_max(cls) < max_size) {
+    while (UPS_WITH_TRANSFERS && ups__class_max(cls) < max_size) {
         ++cls;
     }
     return add_role(node, uid, UPS__PUB, cls);

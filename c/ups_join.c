@@ -93,41 +93,46 @@ static void joined_as(ups_node_t *node, unsigned txnode)
     note(node, UPS_NOTE_JOINED); /* the channels' requests, owed meanwhile, go now */
 }
 
-/** Census, Query, Offer, Assign and the rest, as a joining node hears them. */
+/** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), as a joining
+ *  node hears it. */
 void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
                      uint16_t now)
 {
-    unsigned epoch = arg >> 8;
-    unsigned len = (arg >> 4) & 0xFu; /* Query: prefix length - 1 */
-    if (op == OP_STATUS && (arg >> 8) == ST_CENSUS) {
+    unsigned status = arg >> 8;
+    if (op == OP_QUERY || (op == OP_STATUS && status == ST_CENSUS)) {
+        unsigned epoch = status;                    /* Query(e, P): |P| = l + 1 nibbles ... */
+        unsigned from = ((arg >> 4) & 0xFu) + 1u;
+        if (op == OP_STATUS) {
+            epoch = arg & 0xFu; /* ... Census(e): the empty prefix */
+            from = 0u;
+        }
         heard(node, now);
-        answer_query(node, arg & 0xFu, 0u);
-    } else if (op == OP_QUERY) {
-        heard(node, now);
-        unsigned stage = 0u;
-        while (stage <= len && ups__nibble(node->node_id, stage) == ups__nibble(data, stage)) {
-            ++stage;
+        unsigned s = 0u;
+        while (s < from && ups__nibble(node->node_id, s) == ups__nibble(data, s)) {
+            ++s;
         }
-        if (stage > len) {
-            answer_query(node, epoch, len + 1u);
+        if (s == from) { /* its id begins with the prefix: the rest of it */
+            answer_query(node, epoch, from);
         }
-    } else if (op == OP_ASSIGN && ups__same8(data, node->node_id)) {
-        if (arg & OFFER_BIT) {
-            heard(node, now);
-            node->txnode = (uint8_t)(arg & 0x7Fu);
-            node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
-        } else {
-            joined_as(node, arg);
+    } else if (op == OP_ASSIGN) {
+        if (ups__same8(data, node->node_id)) {
+            if (arg & OFFER_BIT) {
+                heard(node, now);
+                node->txnode = (uint8_t)(arg & 0x7Fu);
+                node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
+            } else {
+                joined_as(node, arg);
+            }
         }
-    } else if (op == OP_STATUS && (arg >> 8) == ST_KNOCK) {
+    } else if (op != OP_STATUS) {
+        return; /* another joiner's Stage */
+    } else if (status == ST_KNOCK) {
         node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
-    } else if (op == OP_STATUS && (arg >> 8) == ST_HELLO) {
+    } else if (status == ST_HELLO) {
         knock(node, now); /* a CAN-ECB has just started: it takes knocks at once */
-    } else if (op == OP_STATUS && (arg >> 8) == ST_TXNODES_FULL &&
+    } else if ((status == ST_TXNODES_FULL || status == ST_FAILED) &&
                ups__same8(data, node->node_id)) {
-        end_join(node, UPS_ERR_TXNODES_FULL);
-    } else if (op == OP_STATUS && (arg >> 8) == ST_FAILED && ups__same8(data, node->node_id)) {
-        end_join(node, UPS_ERR_FAILED);
+        end_join(node, status == ST_FAILED ? UPS_ERR_FAILED : UPS_ERR_TXNODES_FULL);
     }
 }
 
