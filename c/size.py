@@ -5,9 +5,11 @@ Each configuration is compiled with ``arm-none-eabi-gcc -Os`` (and -ffunction-se
 -fno-tree-loop-distribute-patterns: gcc then calls no memcpy/memset of the C library, so the
 figures are the whole cost; the undefined symbols are checked to be none).
 
-- flash: text + data of the library's objects (constant tables are in text);
-- RAM: data + bss of those (none: the library has no variable of its own) plus one ups_node_t,
-  the whole state, which the application places (measured as the bss of a file that defines one);
+- flash: text + data of the library linked alone with -Wl,--gc-sections (as an application
+  links it), every public function (ups_...) kept: what an application that calls them all
+  pays; internal functions no public one reaches (in that configuration) are not counted;
+- RAM: data + bss of the objects (none: the library has no variable of its own) plus one
+  ups_node_t, the whole state, which the application places (the bss of a file defining one);
 - stack: the worst case over every path of the call graph from each public function, from
   gcc's -fcallgraph-info=su (each function's own frame, from -fstack-usage, and its calls; the
   library has no recursion and no calls through pointers, so the bound is exact for its code).
@@ -112,11 +114,18 @@ def measure(cpu: str, config: str) -> dict[str, object]:
     if needed:
         raise SystemExit(f"size.py: {cpu} {config} needs {sorted(needed)} from outside")
     run(CC, *flags, "-fno-common", "-c", "node.c", "-o", "node.o", cwd=out)
-    flash = ram = 0
-    for obj in objects:
-        text, data, bss = sizes(obj)
-        flash += text + data
-        ram += data + bss
+    public = sorted(
+        name for o in objects for line in
+        run("arm-none-eabi-nm", "--defined-only", "-g", str(o)).splitlines()
+        for kind, name in [line.split()[-2:]]
+        if kind == "T" and name.startswith("ups_") and not name.startswith("ups__")
+    )  # fmt: skip
+    run(CC, *CPUS[cpu], "-nostdlib", "-Wl,--gc-sections", "-Wl,--entry=0",
+        *(f"-Wl,--undefined={name}" for name in public), "-o", "libups.elf",
+        *(str(o) for o in objects), cwd=out)  # fmt: skip
+    text, data, _ = sizes(out / "libups.elf")
+    flash = text + data
+    ram = sum(d + b for _, d, b in (sizes(o) for o in objects))
     node = sizes(out / "node.o")[2]
     stack, deepest = worst_stack([o.with_suffix(".ci") for o in objects])
     return {"cpu": cpu, "config": config, "flash": flash, "ram": ram + node, "stack": stack,
@@ -124,14 +133,10 @@ def measure(cpu: str, config: str) -> dict[str, object]:
 
 
 def largest(cpu: str, config: str, count: int = 8) -> str:
-    rows = []
-    for obj in (src.replace(".c", ".o") for src in SOURCES):
-        listing = run(
-            "arm-none-eabi-nm", "--size-sort", "-S", "-t", "d", str(OUT / cpu / config / obj)
-        )
-        rows += [
-            (int(size), name) for _, size, _, name in (r.split() for r in listing.splitlines())
-        ]
+    listing = run(
+        "arm-none-eabi-nm", "--size-sort", "-S", "-t", "d", str(OUT / cpu / config / "libups.elf")
+    )
+    rows = [(int(size), name) for _, size, _, name in (r.split() for r in listing.splitlines())]
     rows.sort(reverse=True)
     return ", ".join(f"{name} {size}" for size, name in rows[:count])
 
