@@ -51,15 +51,10 @@ void ups__put64(uint8_t *out, uint64_t value)
 
 /* ---- the TX queue -------------------------------------------------------------------------- */
 
-/** tx[to] = tx[from], field by field (a struct copy of 68 bytes would call memcpy). */
+/** tx[to] = tx[from], byte by byte (a struct copy would call memcpy). */
 static void move_frame(ups_node_t *node, unsigned to, unsigned from)
 {
-    node->tx[to].id = node->tx[from].id;
-    node->tx[to].flags = node->tx[from].flags;
-    node->tx[to].len = node->tx[from].len;
-    for (unsigned i = 0; i < UPS_MTU; ++i) {
-        node->tx[to].data[i] = node->tx[from].data[i];
-    }
+    ups__copy((uint8_t *)&node->tx[to], (const uint8_t *)&node->tx[from], sizeof(ups_frame_t));
 }
 
 int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len)

@@ -213,7 +213,7 @@ typedef struct {
 typedef struct {
     uint8_t channel;  /* 0xFF: unused */
     int8_t state;     /* 1 waiting, 2 granted, or a UPS_ERR_ code */
-    uint8_t data[6];  /* DECLARE after its etag: size, period, deadline, jitter (big-endian) */
+    uint8_t data[8];  /* DECLARE: etag, size, period, deadline, jitter (big-endian) */
 } ups_declaration_t; /* its retry runs on its channel's timer, free while the channel is bound */
 #endif
 

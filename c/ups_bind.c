@@ -140,9 +140,6 @@ static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
     unsigned priority = 0u;
     unsigned etag = ch->etag;
     const uint8_t *data = ch->uid;
-#if UPS_DECLARATIONS
-    uint8_t declare[8];
-#endif
     if (bit == UPS__OWE_REQUEST) {
         if (!(ch->flags & UPS__PEND)) {
             return 0;
@@ -155,15 +152,14 @@ static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
         return 0;
     } else if (bit == UPS__OWE_DECLARE) {
 #if UPS_DECLARATIONS
-        const ups_declaration_t *decl = declaration_of(node, i);
+        ups_declaration_t *decl = declaration_of(node, i);
         if (decl == NULL || decl->state <= 0) {
             return 0; /* none, or refused, or given up */
         }
-        declare[0] = (uint8_t)(etag >> 8);
-        declare[1] = (uint8_t)etag;
-        ups__copy(declare + 2, decl->data, 6u);
+        decl->data[0] = (uint8_t)(etag >> 8); /* the etag it has now */
+        decl->data[1] = (uint8_t)etag;
         etag = RQ_DECLARE;
-        data = declare;
+        data = decl->data;
 #else
         return 0;
 #endif
@@ -514,32 +510,29 @@ int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, ui
                 uint8_t jitter, uint32_t now_ms)
 {
 #if UPS_DECLARATIONS
-    if (!ups__valid_channel(node, channel) || !(node->channels[channel].flags & UPS__PUB) ||
-        period == 0u || deadline == 0u) {
+    if (!ups__valid_channel(node, channel)) {
         return UPS_ERR_ARGUMENT;
     }
     ups_channel_t *ch = &node->channels[channel];
-    if (ups_channel_state(node, channel) != UPS__READY) {
-        return UPS_ERR_UNBOUND;
-    }
-    if (ch->etag < UPS__LARGE_ETAG ? size > 8u : size == 0u) {
+    if (!(ch->flags & UPS__PUB) || period == 0u || deadline == 0u ||
+        (ch->etag < UPS__LARGE_ETAG ? size > 8u : size == 0u)) {
         return UPS_ERR_ARGUMENT;
     }
-    ups_declaration_t *decl = declaration_of(node, (unsigned)channel);
-    if (decl == NULL) {
-        decl = declaration_of(node, 0xFFu);
+    if ((ch->flags & (UPS__BOUND | UPS__WAIT)) != UPS__BOUND) {
+        return UPS_ERR_UNBOUND; /* not in state 2 */
     }
-    if (decl == NULL) {
+    ups_declaration_t *decl = declaration_of(node, (unsigned)channel);
+    if (decl == NULL && (decl = declaration_of(node, 0xFFu)) == NULL) {
         return UPS_ERR_FULL;
     }
     decl->channel = (uint8_t)channel;
     decl->state = UPS__WAITING;
-    decl->data[0] = size;
-    decl->data[1] = (uint8_t)(period >> 8);
-    decl->data[2] = (uint8_t)period;
-    decl->data[3] = (uint8_t)(deadline >> 8);
-    decl->data[4] = (uint8_t)deadline;
-    decl->data[5] = jitter;
+    decl->data[2] = size;
+    decl->data[3] = (uint8_t)(period >> 8);
+    decl->data[4] = (uint8_t)period;
+    decl->data[5] = (uint8_t)(deadline >> 8);
+    decl->data[6] = (uint8_t)deadline;
+    decl->data[7] = jitter;
     ch->step = (uint8_t)(ch->step & 0xF0u); /* the channel's retry timer, free while bound */
     ch->t0 = now16(now_ms);
     ch->owe = (uint8_t)(ch->owe | UPS__OWE_DECLARE);

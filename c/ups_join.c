@@ -181,17 +181,13 @@ static void start_announcing(ups_node_t *node, uint16_t now)
 /** Assign(t', this node's id) with another TxNode: move at once and announce. */
 void ups__move_to(ups_node_t *node, unsigned txnode, uint16_t now)
 {
-    uint32_t old = (uint32_t)node->txnode << UPS__TXNODE_SHIFT;
     uint32_t mask = UPS__MGMT << UPS__TXNODE_SHIFT;
-    for (unsigned i = 0; i < node->tx_count; ++i) { /* same TxNode for all: order is kept */
-        if ((node->tx[i].id & mask) == old) {
-            node->tx[i].id = (node->tx[i].id & ~mask) | ((uint32_t)txnode << UPS__TXNODE_SHIFT);
-        }
+    uint32_t to = (uint32_t)txnode << UPS__TXNODE_SHIFT;
+    for (unsigned i = 0; i < node->tx_count; ++i) { /* all from its TxNode: order is kept */
+        node->tx[i].id = (node->tx[i].id & ~mask) | to;
     }
 #if UPS_WITH_TRANSFERS
-    if ((node->tx_id & mask) == old) {
-        node->tx_id = (node->tx_id & ~mask) | ((uint32_t)txnode << UPS__TXNODE_SHIFT);
-    }
+    node->tx_id = (node->tx_id & ~mask) | to;
 #endif
     node->txnode = (uint8_t)txnode;
     ups__count(&node->counters.moves);
