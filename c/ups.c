@@ -19,6 +19,13 @@ uint32_t ups__class_max(unsigned cls)
     return largest[cls < 5u ? cls : 4u];
 }
 
+void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
+{
+    for (unsigned i = 0; i < n; ++i) {
+        to[i] = from[i];
+    }
+}
+
 void ups__count(UPS_COUNTER_T *counter)
 {
     if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
@@ -59,23 +66,20 @@ static void move_frame(ups_node_t *node, unsigned to, unsigned from)
 
 int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len)
 {
-    if (node->tx_count >= (id >= UPS__FIRST_EVENT_ID ? UPS__EVENT_ROOM : UPS_TX_DEPTH) ||
-        len > UPS_MTU) {
+    unsigned at = node->tx_count;
+    if (at >= (id >= UPS__FIRST_EVENT_ID ? UPS__EVENT_ROOM : UPS_TX_DEPTH)) {
         ups__count(&node->counters.tx_dropped);
         return UPS_ERR_FULL;
     }
-    unsigned at = node->tx_count;
+    node->tx_count = (uint8_t)(at + 1u);
     while (at > 0u && node->tx[at - 1u].id > id) {
         move_frame(node, at, at - 1u);
         --at;
     }
     node->tx[at].id = id; /* indexed, not through a pointer: -fsanitize=bounds checks it */
     node->tx[at].flags = (uint8_t)(flags | UPS_FRAME_EXT);
-    node->tx[at].len = (uint8_t)len;
-    for (unsigned i = 0; i < UPS_MTU; ++i) {
-        node->tx[at].data[i] = i < len ? data[i] : 0u;
-    }
-    node->tx_count = (uint8_t)(node->tx_count + 1u);
+    node->tx[at].len = (uint8_t)len; /* at most UPS_MTU: every caller sees to it */
+    ups__copy(node->tx[at].data, data, len);
     return UPS_OK;
 }
 
@@ -151,11 +155,9 @@ static int node_frame_ok(unsigned priority, unsigned etag, const uint8_t *data, 
             (data[3] | data[4]) != 0u && (data[5] | data[6]) != 0u);
 }
 
-/* For each status frame (bits 8-11 of the etag field): the largest low byte plus one (0: no
- * such frame; Census carries its epoch there, Limit a TxNode, the others nothing) ... */
+/* For each status frame (bits 8-11 of the etag field), the largest low byte plus one (0: no
+ * such frame): Census carries its epoch there, Limit a TxNode, the others nothing. */
 static const uint8_t status_low[16] = {16u, 1u, 1u, 1u, 1u, 1u, 1u, 1u, 127u, 1u, 0u, 0u, 0u, 0u, 0u, 1u};
-/* ... and the refusal it is for a request of this node (-UPS_ERR_; 0: none) */
-static const uint8_t status_refusal[16] = {0u, 0u, 9u, 0u, 0u, 0u, 0u, 11u, 10u};
 
 /** Whether a frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg) matches a row of
  *  the tables, with the data length and field ranges they give. */
@@ -189,34 +191,6 @@ static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned le
         }
     }
     return 1;
-}
-
-/** A well-formed frame of TxNode 0x7F at priority 0, as a joined node hears it. */
-static void joined_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
-                         uint16_t now)
-{
-    unsigned status = arg >> 8;
-    unsigned why = status_refusal[status];
-    if (op == OP_ASSIGN) {
-        if (arg < UPS__MGMT && arg != node->txnode && ups__same8(data, node->node_id)) {
-            ups__move_to(node, arg, now); /* Assign(t', its id): its old TxNode is another's */
-        }
-        return;
-    }
-    if (op != OP_STATUS) {
-        return; /* Stage, Query: for joiners */
-    }
-    if (status == ST_HELLO) {
-        ups__on_hello(node, now);
-    }
-    if (why != 0u && (status != ST_LIMIT || (arg & 0xFFu) == node->txnode)) {
-        ups__refused(node, data, -(int)why); /* EtagsFull, Failed, Limit of this node */
-    }
-#if UPS_DECLARATIONS
-    if ((status == ST_GRANT || status == ST_REFUSE) && data[2] == node->txnode) {
-        ups__on_verdict(node, get16(data), status == ST_GRANT, data[3]);
-    }
-#endif
 }
 
 static int on_event(ups_node_t *node, const ups_frame_t *frame, uint16_t now, ups_event_t *event)
@@ -283,10 +257,8 @@ int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_even
         }
     } else if (priority == 0u && config_ok(etag >> 12, etag & 0xFFFu, data, len)) {
         counter = NULL;
-        if (node->join == UPS__WAITING) {
-            ups__join_frame(node, etag >> 12, etag & 0xFFFu, data, now);
-        } else if (joined(node)) {
-            joined_frame(node, etag >> 12, etag & 0xFFFu, data, now);
+        if (node->join == UPS__WAITING || joined(node)) {
+            ups__config_frame(node, etag >> 12, etag & 0xFFFu, data, now);
         }
     }
     if (counter != NULL) {

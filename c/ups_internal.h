@@ -111,18 +111,13 @@ static inline int ups__valid_channel(const ups_node_t *node, int channel)
     return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
 }
 
-static inline void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
-{
-    for (unsigned i = 0; i < n; ++i) {
-        to[i] = from[i];
-    }
-}
-
 /* ups.c */
 /** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
 unsigned ups__class(unsigned etag);
 /** The largest event of a size class. */
 uint32_t ups__class_max(unsigned cls);
+/** Copy @p n bytes (the library calls no memcpy). */
+void ups__copy(uint8_t *to, const uint8_t *from, unsigned n);
 /** Count one in a saturating counter. */
 void ups__count(UPS_COUNTER_T *counter);
 /** Whether two 8-byte values (node ids, UIDs) are equal. */
@@ -142,9 +137,10 @@ void ups__drop_etag(ups_node_t *node, uint16_t etag);
 int ups__rx_channel(const ups_node_t *node, uint16_t etag);
 
 /* ups_join.c */
-/** Census, Query, Offer, Assign, Knock, Hello, TxNodesFull or Failed, heard while joining. */
-void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
-                     uint16_t now);
+/** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), heard while
+ *  joining or joined: the join, moves, Hello, refusals and verdicts. */
+void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
+                       uint16_t now);
 /** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
 void ups__join_refill(ups_node_t *node);
 void ups__tick_join(ups_node_t *node, uint16_t now);

@@ -93,17 +93,51 @@ static void joined_as(ups_node_t *node, unsigned txnode)
     note(node, UPS_NOTE_JOINED); /* the channels' requests, owed meanwhile, go now */
 }
 
-/** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), as a joining
- *  node hears it. */
-void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
-                     uint16_t now)
+/* For each status frame (bits 8-11 of the etag field), the refusal it is when it names a
+ * request of this node (-UPS_ERR_; 0: none): EtagsFull, Failed, Limit. */
+static const uint8_t status_refusal[16] = {0u, 0u, 9u, 0u, 0u, 0u, 0u, 11u, 10u};
+
+void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
+                       uint16_t now)
 {
     unsigned status = arg >> 8;
-    if (op == OP_QUERY || (op == OP_STATUS && status == ST_CENSUS)) {
+    unsigned low = arg & 0xFFu;
+    int joining = node->join == UPS__WAITING; /* else joined */
+    if (op == OP_ASSIGN) { /* Offer or Assign */
+        if (!ups__same8(data, node->node_id)) {
+            return;
+        }
+        if (!joining) {
+            if (arg < UPS__MGMT && arg != node->txnode) {
+                ups__move_to(node, arg, now); /* Assign(t', its id): the old one is another's */
+            }
+        } else if (arg & OFFER_BIT) {
+            heard(node, now);
+            node->txnode = (uint8_t)(arg & 0x7Fu);
+            node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
+        } else {
+            joined_as(node, arg);
+        }
+    } else if (!joining) {
+        if (op != OP_STATUS) {
+            return; /* Stage, Query: for joiners */
+        }
+        if (status == ST_HELLO) {
+            ups__on_hello(node, now);
+        }
+        if (status_refusal[status] != 0u && (status != ST_LIMIT || low == node->txnode)) {
+            ups__refused(node, data, -(int)status_refusal[status]);
+        }
+#if UPS_DECLARATIONS
+        if ((status == ST_GRANT || status == ST_REFUSE) && data[2] == node->txnode) {
+            ups__on_verdict(node, get16(data), status == ST_GRANT, data[3]);
+        }
+#endif
+    } else if (op == OP_QUERY || (op == OP_STATUS && status == ST_CENSUS)) {
         unsigned epoch = status;                    /* Query(e, P): |P| = l + 1 nibbles ... */
         unsigned from = ((arg >> 4) & 0xFu) + 1u;
         if (op == OP_STATUS) {
-            epoch = arg & 0xFu; /* ... Census(e): the empty prefix */
+            epoch = low; /* ... Census(e): the empty prefix */
             from = 0u;
         }
         heard(node, now);
@@ -114,23 +148,13 @@ void ups__join_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t 
         if (s == from) { /* its id begins with the prefix: the rest of it */
             answer_query(node, epoch, from);
         }
-    } else if (op == OP_ASSIGN) {
-        if (ups__same8(data, node->node_id)) {
-            if (arg & OFFER_BIT) {
-                heard(node, now);
-                node->txnode = (uint8_t)(arg & 0x7Fu);
-                node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
-            } else {
-                joined_as(node, arg);
-            }
-        }
     } else if (op != OP_STATUS) {
         return; /* another joiner's Stage */
-    } else if (status == ST_KNOCK) {
-        node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
     } else if (status == ST_HELLO) {
         knock(node, now); /* a CAN-ECB has just started: it takes knocks at once */
-    } else if ((status == ST_TXNODES_FULL || status == ST_FAILED) &&
+    } else if (status == ST_KNOCK) {
+        node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
+    } else if (((1u << status) & ((1u << ST_TXNODES_FULL) | (1u << ST_FAILED))) &&
                ups__same8(data, node->node_id)) {
         end_join(node, status == ST_FAILED ? UPS_ERR_FAILED : UPS_ERR_TXNODES_FULL);
     }
