@@ -169,8 +169,9 @@ static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned le
             len != (status == ST_CENSUS || status == ST_KNOCK ? 0u : 8u)) {
             return 0;
         }
-        if (status == ST_GRANT) {
-            return stream_ok(data, data[2]) && (data[4] | data[5] | data[6] | data[7]) == 0u;
+        if (status == ST_GRANT) { /* a priority of 0x02-0x7F, then zeros */
+            return stream_ok(data, data[2]) && (unsigned)(data[3] - 2u) < 0x7Eu &&
+                   (data[4] | data[5] | data[6] | data[7]) == 0u;
         }
         return status != ST_REFUSE || (stream_ok(data, data[2]) && stream_ok(data + 4, data[3]));
     }
@@ -361,8 +362,7 @@ int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t siz
         }
         return UPS_ERR_UNBOUND;
     }
-    uint8_t priority = ch->priority < 2u ? 2u : ch->priority;
-    uint32_t id = ups__make_id(priority, node->txnode, ch->etag);
+    uint32_t id = ups__make_id(ch->priority, node->txnode, ch->etag); /* 0x02 or more */
 #if UPS_WITH_TRANSFERS
     if (size > ups__class_max(ups__class(ch->etag)) || size > UPS_MAX_EVENT) {
         return UPS_ERR_TOO_LARGE;

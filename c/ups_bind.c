@@ -90,17 +90,6 @@ static void start_request(ups_node_t *node, ups_channel_t *ch)
     ch->owe = (uint8_t)(ch->owe | UPS__OWE_REQUEST);
 }
 
-/** The roles of a channel waiting for its etag changed, and with them the request (it was
- *  @p asked): an answer to the old one would not tell the CAN-ECB the new role (a subscriber
- *  added to a PUB_BIND, a publisher left alone with a SUB_BIND), so it asks the new one, and
- *  only an answer to that counts. */
-static void reask(ups_node_t *node, ups_channel_t *ch, unsigned asked)
-{
-    if ((ch->flags & UPS__PEND) && request_kind(ch) != asked) {
-        start_request(node, ch);
-    }
-}
-
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid)
 {
     int i = find_uid(node, uid);
@@ -269,6 +258,7 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
 #else
     int doubt = 0;
 #endif
+    ups_channel_t *mine = NULL; /* the channel of the Bind's UID */
     int contradiction = 0;
     int grows = 0;     /* the Bind moves one of our channels to a larger size class ... */
     int etag_ours = 0; /* ... and names no etag of ours: a move, not a contradiction */
@@ -276,6 +266,9 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
         ups_channel_t *ch = &node->channels[i];
         int same_etag = ch->etag == etag;
         int same_uid = ups__same8(ch->uid, uid);
+        if (same_uid && (ch->flags | ch->owe) != 0u) {
+            mine = ch;
+        }
         if ((ch->flags & (UPS__CAND | UPS__BOUND)) && same_etag != same_uid) {
             if (ch->flags & UPS__BOUND) { /* it contradicts a binding relied on */
                 grows |= same_uid && ups__class(etag) > ups__class(ch->etag);
@@ -290,23 +283,19 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
         ups__count(grows && !etag_ours ? &node->counters.moves : &node->counters.rebinds);
         return; /* adopt nothing from it */
     }
-    int i = find_uid(node, uid);
-    if (i < 0) {
-        return;
-    }
-    ups_channel_t *ch = &node->channels[i];
     unsigned expected = UPS__PEND | UPS__ASKED;
-    if ((ch->flags & (expected | UPS__CAND)) != expected || ups__class(etag) < wanted_class(ch)) {
-        return; /* not asked (yet), settling already, or for a smaller class than ours */
+    if (mine == NULL || (mine->flags & (expected | UPS__CAND)) != expected ||
+        ups__class(etag) < wanted_class(mine)) {
+        return; /* not ours, not asked (yet), settling already, or for a smaller class */
     }
     if (doubt) {
         ups__count(&node->counters.rebinds); /* adopt it when it comes again */
-    } else if (ch->flags & UPS__REBIND) {
-        ch->flags = (uint8_t)(ch->flags | UPS__CAND);
-        ch->etag = etag;
-        ch->t0 = now;
+    } else if (mine->flags & UPS__REBIND) {
+        mine->flags = (uint8_t)(mine->flags | UPS__CAND);
+        mine->etag = etag;
+        mine->t0 = now;
     } else {
-        adopt(node, ch, etag, now);
+        adopt(node, mine, etag, now);
     }
 }
 
@@ -372,18 +361,20 @@ void ups__tick_bind(ups_node_t *node, uint16_t now)
 #if UPS_DECLARATIONS
 void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority)
 {
-    for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
-        ups_channel_t *ch = &node->channels[i];
+    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) { /* (streams are declared ones) */
+        ups_declaration_t *decl = &node->decl[i];
+        if (decl->channel >= UPS_CHANNELS) {
+            continue; /* unused */
+        }
+        ups_channel_t *ch = &node->channels[decl->channel];
         if ((ch->flags & UPS__BOUND) && ch->etag == etag) {
-            ups_declaration_t *decl = declaration_of(node, i);
-            if (granted) {
-                ch->priority = priority; /* also unasked: another declaration moved it */
+            if (granted) { /* also unasked: another declaration moved it */
+                ch->priority = priority;
+                decl->state = UPS__READY;
+            } else if (decl->state == UPS__WAITING) {
+                decl->state = UPS_ERR_REFUSED;
             }
-            if (decl != NULL && (granted || decl->state == UPS__WAITING)) {
-                decl->state = granted ? UPS__READY : UPS_ERR_REFUSED;
-                note(node, UPS_NOTE_DECLARATIONS);
-            }
-            return;
+            note(node, UPS_NOTE_DECLARATIONS);
         }
     }
 }
@@ -408,7 +399,6 @@ static int add_role(ups_node_t *node, uint64_t uid, unsigned role, unsigned cls)
     }
     ups_channel_t *ch = &node->channels[i];
     unsigned had = ch->flags;
-    unsigned asked = request_kind(ch);
     if (role == UPS__SUB) {
         ch->owe = (uint8_t)(ch->owe & ~UPS__OWE_UNSUB); /* back before its UNSUB went */
     }
@@ -419,15 +409,16 @@ static int add_role(ups_node_t *node, uint64_t uid, unsigned role, unsigned cls)
     ch->flags = (uint8_t)(had | role);
     if (cls > wanted_class(ch)) {
         ch->step = (uint8_t)((ch->step & 0x0Fu) | (cls << 4));
+        had &= ~role; /* a larger size class: as a role added */
     }
-    if (!(had & (UPS__PEND | UPS__CAND | UPS__BOUND)) ||
-        ((had & UPS__BOUND) && ups__class(ch->etag) < wanted_class(ch))) {
-        start_request(node, ch); /* new, failed before, or moving to a larger size class */
-    } else if ((had & UPS__BOUND) && !(had & role)) {
+    if (!(had & UPS__BOUND) ? !(had & role) || !(had & (UPS__PEND | UPS__CAND))
+                            : ups__class(ch->etag) < wanted_class(ch)) {
+        /* new, failed before, a role (or size class) added while it waits (an answer to the
+         * request out would not tell the CAN-ECB), or moving to a larger size class: ask */
+        start_request(node, ch);
+    } else if (!(had & role)) {
         ch->owe = (uint8_t)(ch->owe | role << 1); /* SUB_AT or PUB_AT: the new role */
         note(node, UPS_NOTE_FILTERS | UPS_NOTE_CHANNELS);
-    } else {
-        reask(node, ch, asked);
     }
     return i;
 }
@@ -458,9 +449,10 @@ int ups_unsubscribe(ups_node_t *node, int channel)
     }
     ups_channel_t *ch = &node->channels[channel];
     if (ch->flags & UPS__SUB) {
-        unsigned asked = request_kind(ch);
         ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
-        reask(node, ch, asked);
+        if (ch->flags & UPS__PEND) {
+            start_request(node, ch); /* the request out would not tell the publisher's role */
+        }
         note(node, UPS_NOTE_FILTERS);
         if (joined(node)) {
             ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB);

@@ -55,7 +55,8 @@ def test_claim_answering_an_offer_waits_for_room() -> None:
 
 def test_every_row_of_the_table_is_well_formed() -> None:
     """Probe and Serving are CAN-ECB frames a node ignores, not malformed ones; a Grant or a
-    DECLARE naming an etag beyond 0x3FFF is malformed."""
+    DECLARE naming an etag beyond 0x3FFF, or a Grant of a priority outside 0x02-0x7F, is
+    malformed."""
     w = Wire()
     w.join()
     for msg in (p.Probe(7), p.Serving(7), p.Hello(7), p.Knock(), p.Census(1)):
@@ -63,7 +64,8 @@ def test_every_row_of_the_table_is_well_formed() -> None:
     assert w.node.counters()["malformed"] == 0
     w.feed(p.Grant(0x4000, 5, 2))
     w.feed(p.Declare(3, 0x4010, 1, 10, 10, 0))
-    assert w.node.counters()["malformed"] == 2
+    w.feed(p.Grant(0x20, 5, 0x01))
+    assert w.node.counters()["malformed"] == 3
 
 
 # --- binding --------------------------------------------------------------------------------
