@@ -155,9 +155,11 @@ static int node_frame_ok(unsigned priority, unsigned etag, const uint8_t *data, 
             (data[3] | data[4]) != 0u && (data[5] | data[6]) != 0u);
 }
 
-/* For each status frame (bits 8-11 of the etag field), the largest low byte plus one (0: no
- * such frame): Census carries its epoch there, Limit a TxNode, the others nothing. */
-static const uint8_t status_low[16] = {16u, 1u, 1u, 1u, 1u, 1u, 1u, 1u, 127u, 1u, 0u, 0u, 0u, 0u, 0u, 1u};
+/* For each status frame (bits 8-11 of the etag field): 0x80 if it carries 8 data bytes, and
+ * its largest low byte plus one (0: no such frame): Census carries its epoch there, Limit a
+ * TxNode, the others nothing. */
+static const uint8_t status_rule[16] = {16u,    0x81u, 0x81u, 0x81u, 0x81u, 0x81u, 0x81u, 0x81u,
+                                        0xFFu, 0x81u, 0u,    0u,    0u,    0u,    0u,    1u};
 
 /** Whether a frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg) matches a row of
  *  the tables, with the data length and field ranges they give. */
@@ -165,15 +167,21 @@ static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned le
 {
     unsigned status = arg >> 8;
     if (op == OP_STATUS) {
-        if ((arg & 0xFFu) >= status_low[status] ||
-            len != (status == ST_CENSUS || status == ST_KNOCK ? 0u : 8u)) {
+        unsigned rule = status_rule[status];
+        if ((arg & 0xFFu) >= (rule & 0x7Fu) || len != ((rule >> 4) & 8u)) {
             return 0;
         }
-        if (status == ST_GRANT) { /* a priority of 0x02-0x7F, then zeros */
-            return stream_ok(data, data[2]) && (unsigned)(data[3] - 2u) < 0x7Eu &&
-                   (data[4] | data[5] | data[6] | data[7]) == 0u;
+        if (status != ST_GRANT && status != ST_REFUSE) {
+            return 1;
         }
-        return status != ST_REFUSE || (stream_ok(data, data[2]) && stream_ok(data + 4, data[3]));
+        if (!stream_ok(data, data[2])) {
+            return 0;
+        }
+        if (status == ST_REFUSE) {
+            return stream_ok(data + 4, data[3]); /* the stream that would miss */
+        }
+        return (unsigned)(data[3] - 2u) < 0x7Eu && /* a priority of 0x02-0x7F, then zeros */
+               (data[4] | data[5] | data[6] | data[7]) == 0u;
     }
     if (len != (op == OP_STAGE ? 0u : 8u)) {
         return 0;
@@ -183,15 +191,12 @@ static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned le
     }
     /* Query: 1-15 nibbles of prefix, the last one repeated in the identifier, zeros after */
     unsigned last = (arg >> 4) & 0xFu;
-    if (last == 15u || ups__nibble(data, last) != (arg & 0xFu)) {
-        return 0;
-    }
-    for (unsigned s = last + 1u; s < 16u; ++s) {
-        if (ups__nibble(data, s) != 0u) {
+    for (unsigned s = last; s < 16u; ++s) {
+        if (ups__nibble(data, s) != (s == last ? (arg & 0xFu) : 0u)) {
             return 0;
         }
     }
-    return 1;
+    return last != 15u;
 }
 
 static int on_event(ups_node_t *node, const ups_frame_t *frame, uint16_t now, ups_event_t *event)
