@@ -152,11 +152,10 @@ static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
 #else
         return 0;
 #endif
+    } else if (!(ch->flags & (bit >> 1))) { /* SUB_AT: subscribes, PUB_AT: publishes */
+        return 0;
     } else {
-        priority = bit == UPS__OWE_PUB_AT; /* PUB_AT at priority 1, SUB_AT at 0 */
-        if (!(ch->flags & (priority ? UPS__PUB : UPS__SUB))) {
-            return 0;
-        }
+        priority = bit >> 2; /* PUB_AT at priority 1, SUB_AT at 0 */
     }
     ups__push_request(node, priority, etag, data);
     return 1;

@@ -66,7 +66,7 @@
  * first, when there is room and no management frame waits before them (ups__queue_owed) */
 #define UPS__OWE_REQUEST 0x01u /* SUB_BIND, PUB_BIND or PUB_BIND(c) */
 #define UPS__OWE_SUB_AT 0x02u  /* = UPS__SUB << 1 */
-#define UPS__OWE_PUB_AT 0x04u  /* = UPS__PUB << 1 */
+#define UPS__OWE_PUB_AT 0x04u  /* = UPS__PUB << 1; >> 2: its priority (1) */
 #define UPS__OWE_DECLARE 0x08u
 #define UPS__OWE_UNSUB 0x10u
 
@@ -144,9 +144,6 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
 /** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
 void ups__join_refill(ups_node_t *node);
 void ups__tick_join(ups_node_t *node, uint16_t now);
-/** Assign(t', this node's id) while joined: move to t' at once and announce. */
-void ups__move_to(ups_node_t *node, unsigned txnode, uint16_t now);
-void ups__on_hello(ups_node_t *node, uint16_t now);
 void ups__tick_hello(ups_node_t *node, uint16_t now);
 
 /* ups_bind.c */

@@ -93,6 +93,61 @@ static void joined_as(ups_node_t *node, unsigned txnode)
     note(node, UPS_NOTE_JOINED); /* the channels' requests, owed meanwhile, go now */
 }
 
+void ups_start(ups_node_t *node, uint32_t now_ms)
+{
+    if (joined(node)) {
+        return;
+    }
+    node->join = UPS__WAITING;
+    node->txnode = UPS__MGMT;
+    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+    node->t_join = now16(now_ms);
+    node->knock_step = 0u;
+    knock(node, now16(now_ms));
+}
+
+/* ---- the answer to Hello, and moves -------------------------------------------------------- */
+
+/** The answer to Hello: CLAIM, then SUB_AT/PUB_AT of every channel relied on when its frame
+ *  goes, then DECLARE of every admitted stream (queue_owed() keeps that order). */
+static void start_announcing(ups_node_t *node, uint16_t now)
+{
+    node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
+    node->t_announce = now;
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) { /* sent only if relied on then */
+        ups_channel_t *ch = &node->channels[i];
+        ch->owe = (uint8_t)(ch->owe | UPS__OWE_DECLARE | (ch->flags & (UPS__SUB | UPS__PUB)) << 1);
+    }
+}
+
+/** Assign(t', this node's id) with another TxNode: move at once and announce. */
+static void move_to(ups_node_t *node, unsigned txnode, uint16_t now)
+{
+    uint32_t mask = UPS__MGMT << UPS__TXNODE_SHIFT;
+    uint32_t to = (uint32_t)txnode << UPS__TXNODE_SHIFT;
+    for (unsigned i = 0; i < node->tx_count; ++i) { /* all from its TxNode: order is kept */
+        node->tx[i].id = (node->tx[i].id & ~mask) | to;
+    }
+#if UPS_WITH_TRANSFERS
+    node->tx_id = (node->tx_id & ~mask) | to;
+#endif
+    node->txnode = (uint8_t)txnode;
+    ups__count(&node->counters.moves);
+    note(node, UPS_NOTE_JOINED);
+    start_announcing(node, now);
+}
+
+static void on_hello(ups_node_t *node, uint16_t now)
+{
+    if (node->mode & UPS__RECENT) {
+        node->mode = (uint8_t)(node->mode | UPS__ANNOUNCE_DUE); /* when the second has passed */
+    } else {
+        start_announcing(node, now);
+    }
+}
+
+/* ---- the CAN-ECB's frames ------------------------------------------------------------------ */
+
 /* For each status frame (bits 8-11 of the etag field), the refusal it is when it names a
  * request of this node (-UPS_ERR_; 0: none): EtagsFull, Failed, Limit. */
 static const uint8_t status_refusal[16] = {0u, 0u, 9u, 0u, 0u, 0u, 0u, 11u, 10u};
@@ -109,7 +164,7 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
         }
         if (!joining) {
             if (arg < UPS__MGMT && arg != node->txnode) {
-                ups__move_to(node, arg, now); /* Assign(t', its id): the old one is another's */
+                move_to(node, arg, now); /* Assign(t', its id): the old one is another's */
             }
         } else if (arg & OFFER_BIT) {
             heard(node, now);
@@ -123,7 +178,7 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
             return; /* Stage, Query: for joiners */
         }
         if (status == ST_HELLO) {
-            ups__on_hello(node, now);
+            on_hello(node, now);
         }
         if (status_refusal[status] != 0u && (status != ST_LIMIT || low == node->txnode)) {
             ups__refused(node, data, -(int)status_refusal[status]);
@@ -160,6 +215,9 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
     }
 }
 
+/* ---- the timers --------------------------------------------------------------------------- */
+
+/** The knock retry, and the give-up. */
 void ups__tick_join(ups_node_t *node, uint16_t now)
 {
     if (UPS_JOIN_GIVE_UP_MS != 0u && ups__since(now, node->t_join) >= UPS_JOIN_GIVE_UP_MS) {
@@ -172,59 +230,6 @@ void ups__tick_join(ups_node_t *node, uint16_t now)
         if (node->knock_step < 3u) {
             node->knock_step = (uint8_t)(node->knock_step + 1u);
         }
-    }
-}
-
-void ups_start(ups_node_t *node, uint32_t now_ms)
-{
-    if (joined(node)) {
-        return;
-    }
-    node->join = UPS__WAITING;
-    node->txnode = UPS__MGMT;
-    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
-    node->t_join = now16(now_ms);
-    node->knock_step = 0u;
-    knock(node, now16(now_ms));
-}
-
-/* ---- the answer to Hello, and moves -------------------------------------------------------- */
-
-/** The answer to Hello: CLAIM, then SUB_AT/PUB_AT of every channel relied on when its frame
- *  goes, then DECLARE of every admitted stream (queue_owed() keeps that order). */
-static void start_announcing(ups_node_t *node, uint16_t now)
-{
-    node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
-    node->t_announce = now;
-    for (unsigned i = 0; i < UPS_CHANNELS; ++i) { /* sent only if relied on then */
-        ups_channel_t *ch = &node->channels[i];
-        ch->owe = (uint8_t)(ch->owe | UPS__OWE_DECLARE | (ch->flags & (UPS__SUB | UPS__PUB)) << 1);
-    }
-}
-
-/** Assign(t', this node's id) with another TxNode: move at once and announce. */
-void ups__move_to(ups_node_t *node, unsigned txnode, uint16_t now)
-{
-    uint32_t mask = UPS__MGMT << UPS__TXNODE_SHIFT;
-    uint32_t to = (uint32_t)txnode << UPS__TXNODE_SHIFT;
-    for (unsigned i = 0; i < node->tx_count; ++i) { /* all from its TxNode: order is kept */
-        node->tx[i].id = (node->tx[i].id & ~mask) | to;
-    }
-#if UPS_WITH_TRANSFERS
-    node->tx_id = (node->tx_id & ~mask) | to;
-#endif
-    node->txnode = (uint8_t)txnode;
-    ups__count(&node->counters.moves);
-    note(node, UPS_NOTE_JOINED);
-    start_announcing(node, now);
-}
-
-void ups__on_hello(ups_node_t *node, uint16_t now)
-{
-    if (node->mode & UPS__RECENT) {
-        node->mode = (uint8_t)(node->mode | UPS__ANNOUNCE_DUE); /* when the second has passed */
-    } else {
-        start_announcing(node, now);
     }
 }
 
