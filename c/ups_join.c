@@ -52,12 +52,23 @@ static void refill_stages(ups_node_t *node)
     }
 }
 
+/** Queue the CLAIM owed (of an Offer: from the offered TxNode; in the answer to Hello: from
+ *  its own); 1 when it was owed. The queue has room. */
+static int claim(ups_node_t *node)
+{
+    if (!(node->mode & UPS__OWE_CLAIM)) {
+        return 0;
+    }
+    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+    ups__push_request(node, 0u, RQ_CLAIM, node->node_id);
+    return 1;
+}
+
 /** The frames of the join as room appears: the CLAIM of an Offer first, then Stage answers. */
 void ups__join_refill(ups_node_t *node)
 {
-    if ((node->mode & UPS__OWE_CLAIM) && node->tx_count < UPS_TX_DEPTH) {
-        node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM); /* before the Stage answers */
-        ups__push_request(node, 0u, RQ_CLAIM, node->node_id); /* from the offered TxNode */
+    if (node->tx_count < UPS_TX_DEPTH) {
+        (void)claim(node);
     }
     refill_stages(node);
 }
@@ -245,13 +256,8 @@ void ups__tick_hello(ups_node_t *node, uint16_t now)
     }
     if (node->tx_count < UPS_TX_DEPTH &&
         (node->tx_count == 0u || node->tx[0].id >= UPS__FIRST_EVENT_ID) &&
-        ups__since(now, node->t_pace) >= ANNOUNCE_PACE) {
-        if (node->mode & UPS__OWE_CLAIM) { /* the answer to Hello begins with it */
-            node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
-            ups__push_request(node, 0u, RQ_CLAIM, node->node_id);
-            node->t_pace = now;
-        } else if (ups__queue_owed(node, now)) {
-            node->t_pace = now;
-        }
+        ups__since(now, node->t_pace) >= ANNOUNCE_PACE &&
+        (claim(node) || ups__queue_owed(node, now))) { /* the answer to Hello begins with it */
+        node->t_pace = now;
     }
 }
