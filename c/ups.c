@@ -8,6 +8,8 @@
  */
 #include "ups_internal.h"
 
+/* ---- helpers of every source (ups_internal.h says what each does) ---------------------------- */
+
 unsigned ups__class(unsigned etag)
 {
     return etag < UPS__LARGE_ETAG ? 0u : 1u + ((unsigned)(etag - UPS__LARGE_ETAG) >> 10);

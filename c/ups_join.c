@@ -4,11 +4,15 @@
  *
  * A joining node knocks, answers the CAN-ECB's Census and Query with Stage frames, claims the
  * TxNode an Offer names and is joined by the Assign of its id; a joined node moves when an
- * Assign gives its id another TxNode. A joined node answers Hello (at most once a second) with
- * CLAIM, SUB_AT/PUB_AT of the bindings it relies on and DECLARE of its admitted streams. Those
- * frames, UNSUB, and the SUB_AT/PUB_AT of a channel used both ways are *owed* (bits in the
- * node and its channels) and queued one at a time: a full queue never loses them, and the
- * queue's order by identifier never puts one before the frames it depends on.
+ * Assign gives its id another TxNode. Every frame of TxNode 0x7F that ups.c found well formed
+ * comes here (ups__config_frame), for the joining and the joined node alike.
+ *
+ * A joined node answers Hello (at most once a second) with CLAIM, then SUB_AT/PUB_AT of the
+ * bindings it relies on and DECLARE of its admitted streams. Those are *owed* (a bit of the
+ * node for the CLAIM, bits of its channels for the rest) and queued one at a time, paced, once
+ * the management frames before them are sent (ups__tick_hello; the channels' own frames are
+ * queued by ups__queue_owed in ups_bind.c): a full queue never loses them, and the queue's order
+ * by identifier never puts one before a frame it depends on.
  */
 #include "ups_internal.h"
 
