@@ -8,7 +8,7 @@
  */
 #include "ups_internal.h"
 
-/* ---- helpers of every source (ups_internal.h says what each does) ---------------------------- */
+/* ---- helpers of every source (ups_internal.h says what each does) -------------------------- */
 
 unsigned ups__class(unsigned etag)
 {
@@ -153,7 +153,8 @@ static int node_frame_ok(unsigned priority, unsigned etag, const uint8_t *data, 
     /* DECLARE: etag:u16 size:u8 period:u16 deadline:u16 jitter:u8; sizes in bytes (0-8) on
      * etags of one frame, in frames (1-255) from 0x3000; period and deadline at least 1 */
     return etag != RQ_DECLARE ||
-           (stream_ok(data, 0u) && (get16(data) < UPS__LARGE_ETAG ? data[2] <= 8u : data[2] != 0u) &&
+           (stream_ok(data, 0u) &&
+            (get16(data) < UPS__LARGE_ETAG ? data[2] <= 8u : data[2] != 0u) &&
             (data[3] | data[4]) != 0u && (data[5] | data[6]) != 0u);
 }
 

@@ -49,7 +49,8 @@ static void refill_stages(ups_node_t *node)
         uint8_t *burst = node->burst[b];
         while (burst[1] < 16u && node->tx_count < UPS_TX_DEPTH) {
             unsigned stage = burst[1];
-            unsigned arg = ((unsigned)burst[0] << 8) | (stage << 4) | ups__nibble(node->node_id, stage);
+            unsigned arg = ((unsigned)burst[0] << 8) | (stage << 4) |
+                           ups__nibble(node->node_id, stage);
             push_config(node, arg, NULL, 0u); /* Stage: op 0 */
             burst[1] = (uint8_t)(stage + 1u);
         }
