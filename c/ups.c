@@ -202,7 +202,7 @@ static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned le
     return last != 15u;
 }
 
-static int on_event(ups_node_t *node, const ups_frame_t *frame, uint16_t now, ups_event_t *event)
+static int on_event(ups_node_t *node, const ups_frame_t *frame, uint32_t now, ups_event_t *event)
 {
     uint16_t etag = (uint16_t)(frame->id & UPS__ETAG_MASK);
     uint8_t txnode = (uint8_t)((frame->id >> UPS__TXNODE_SHIFT) & UPS__MGMT);
@@ -238,7 +238,7 @@ static int on_event(ups_node_t *node, const ups_frame_t *frame, uint16_t now, up
 
 int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_event_t *event)
 {
-    uint16_t now = now16(now_ms);
+    uint32_t now = now_ms;
     uint32_t id = frame->id;
     unsigned len = frame->len;
     const uint8_t *data = frame->data;
@@ -281,7 +281,7 @@ int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_even
 
 void ups_tick(ups_node_t *node, uint32_t now_ms)
 {
-    uint16_t now = now16(now_ms);
+    uint32_t now = now_ms;
     if (node->join == UPS__WAITING) {
         ups__tick_join(node, now);
     } else if (joined(node)) {

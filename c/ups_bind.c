@@ -123,7 +123,7 @@ void ups__refused(ups_node_t *node, const uint8_t *uid, int why)
 
 /** Queue frame @p bit that channel @p i owes; 0 when it is owed no more: a SUB_AT, PUB_AT or
  *  DECLARE reports only a binding the node relies on now, a request only one it still wants. */
-static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
+static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint32_t now)
 {
     ups_channel_t *ch = &node->channels[i];
     unsigned priority = 0u;
@@ -134,7 +134,7 @@ static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
             return 0;
         }
         etag = request_kind(ch);
-        ch->t0 = now; /* the request retry counts from here */
+        ch->t0 = now16(now); /* the request retry counts from here */
     } else if (bit == UPS__OWE_UNSUB) {
         etag = RQ_UNSUB;
     } else if (!(ch->flags & UPS__BOUND)) {
@@ -161,7 +161,7 @@ static int queue_one(ups_node_t *node, unsigned i, unsigned bit, uint16_t now)
     return 1;
 }
 
-int ups__queue_owed(ups_node_t *node, uint16_t now)
+int ups__queue_owed(ups_node_t *node, uint32_t now)
 {
     for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
         ups_channel_t *ch = &node->channels[i];
@@ -186,7 +186,7 @@ static int fits(unsigned etag)
 }
 
 /** Rely on @p etag for @p ch from now on. */
-static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t now)
+static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint32_t now)
 {
     int asked_pub = request_kind(ch) != RQ_SUB_BIND;
     ch->flags = (uint8_t)((ch->flags | UPS__BOUND) & ~(UPS__PEND | UPS__ASKED | UPS__CAND |
@@ -210,7 +210,7 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint16_t n
     ch->owe = (uint8_t)(ch->owe | (ch->flags & (asked_pub ? UPS__SUB : UPS__PUB)) << 1);
     if (UPS_WITH_TRANSFERS && (ch->flags & UPS__PUB) && etag >= UPS__LARGE_ETAG) {
         ch->flags = (uint8_t)(ch->flags | UPS__WAIT); /* subscribers re-bind after a move */
-        ch->t0 = now;
+        ch->t0 = now16(now);
     }
 }
 
@@ -250,7 +250,7 @@ int ups__etag_known(const ups_node_t *node, uint16_t etag)
     return known;
 }
 
-void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t now)
+void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint32_t now)
 {
 #if UPS_HEARD_BINDS
     int doubt = heard_other(node, etag, uid);
@@ -292,7 +292,7 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
     } else if (mine->flags & UPS__REBIND) {
         mine->flags = (uint8_t)(mine->flags | UPS__CAND);
         mine->etag = etag;
-        mine->t0 = now;
+        mine->t0 = now16(now);
     } else {
         adopt(node, mine, etag, now);
     }
@@ -300,7 +300,7 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t 
 
 /** The request retry of frame @p owed (the channel's request, or its declaration's DECLARE) on
  *  the channel's timer: owe it again when due; 1 when it is given up. */
-static int retry(ups_channel_t *ch, uint16_t now, unsigned owed)
+static int retry(ups_channel_t *ch, uint32_t now, unsigned owed)
 {
     unsigned step = ch->step & 0xFu;
     if ((ch->owe & owed) || ups__since(now, ch->t0) < retry_delay(step)) {
@@ -310,14 +310,14 @@ static int retry(ups_channel_t *ch, uint16_t now, unsigned owed)
         return 1;
     }
     ch->step = (uint8_t)((ch->step & 0xF0u) | (step < RETRY_STEPS ? step + 1u : step));
-    ch->t0 = now;
+    ch->t0 = now16(now);
     ch->owe = (uint8_t)(ch->owe | owed);
     return 0;
 }
 
 /** Settling, the publisher's pause, and the retry of the channel's request or, once it is
  *  bound, of its declaration (the channel's timer is free then). */
-static void tick_channel(ups_node_t *node, unsigned i, uint16_t now)
+static void tick_channel(ups_node_t *node, unsigned i, uint32_t now)
 {
     ups_channel_t *ch = &node->channels[i];
     unsigned flags = ch->flags;
@@ -348,7 +348,7 @@ static void tick_channel(ups_node_t *node, unsigned i, uint16_t now)
     }
 }
 
-void ups__tick_bind(ups_node_t *node, uint16_t now)
+void ups__tick_bind(ups_node_t *node, uint32_t now)
 {
     for (unsigned i = 0; i < UPS_CHANNELS; ++i) {
         tick_channel(node, i, now);

@@ -80,8 +80,9 @@ static inline uint32_t ups__make_id(uint32_t priority, uint32_t txnode, uint32_t
     return (priority << UPS__PRIO_SHIFT) | (txnode << UPS__TXNODE_SHIFT) | etag;
 }
 
-/** Milliseconds from @p then to @p now, both the low 16 bits of the clock. */
-static inline uint16_t ups__since(uint16_t now, uint16_t then)
+/** Milliseconds from @p then (the low 16 bits of the clock, as the node keeps its times) to
+ *  @p now (the clock): the difference of the low 16 bits, right across any wrap, up to 65 s. */
+static inline uint16_t ups__since(uint32_t now, uint16_t then)
 {
     return (uint16_t)(now - then);
 }
@@ -91,6 +92,7 @@ static inline uint16_t get16(const uint8_t *in)
     return (uint16_t)(((unsigned)in[0] << 8) | in[1]);
 }
 
+/** A time as the node keeps it: the low 16 bits of the millisecond clock. */
 static inline uint16_t now16(uint32_t now_ms)
 {
     return (uint16_t)now_ms;
@@ -140,11 +142,11 @@ int ups__rx_channel(const ups_node_t *node, uint16_t etag);
 /** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), heard while
  *  joining or joined: the join, moves, Hello, refusals and verdicts. */
 void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
-                       uint16_t now);
+                       uint32_t now);
 /** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
 void ups__join_refill(ups_node_t *node);
-void ups__tick_join(ups_node_t *node, uint16_t now);
-void ups__tick_hello(ups_node_t *node, uint16_t now);
+void ups__tick_join(ups_node_t *node, uint32_t now);
+void ups__tick_hello(ups_node_t *node, uint32_t now);
 
 /* ups_bind.c */
 /** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
@@ -153,14 +155,14 @@ void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
 /** EtagsFull, Failed or Limit for @p uid: the request of its channel, if one waits, ends. */
 void ups__refused(ups_node_t *node, const uint8_t *uid, int why);
 /** Queue the next frame a channel owes, if any; 1 when it queued one. */
-int ups__queue_owed(ups_node_t *node, uint16_t now);
+int ups__queue_owed(ups_node_t *node, uint32_t now);
 /** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
-void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint16_t now);
+void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint32_t now);
 /** Whether @p etag was ever heard bound (to a channel of this node, or, with UPS_HEARD_BINDS,
  *  to any): an event on it that the node does not receive is filtered, not unknown. */
 int ups__etag_known(const ups_node_t *node, uint16_t etag);
 /** The request and declaration retries, settling, the publisher's pause. */
-void ups__tick_bind(ups_node_t *node, uint16_t now);
+void ups__tick_bind(ups_node_t *node, uint32_t now);
 #if UPS_DECLARATIONS
 /** Grant or Refuse for this node's stream on @p etag. */
 void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority);
@@ -168,12 +170,12 @@ void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t prior
 
 #if UPS_WITH_TRANSFERS
 /* ups_transfer.c */
-int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, uint8_t txnode,
+int ups__transfer_rx(ups_node_t *node, uint32_t now, const ups_frame_t *frame, uint8_t txnode,
                      uint16_t etag, ups_event_t *event);
 int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
                      uint16_t size);
 void ups__transfer_refill(ups_node_t *node);
-void ups__transfer_tick(ups_node_t *node, uint16_t now);
+void ups__transfer_tick(ups_node_t *node, uint32_t now);
 /** The node stops relying on @p etag: the rest of a transfer being sent on it is not sent, and
  *  transfers being received on it are given up. */
 void ups__transfer_drop(ups_node_t *node, uint16_t etag);

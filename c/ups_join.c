@@ -29,16 +29,16 @@ static void push_config(ups_node_t *node, uint32_t arg, const uint8_t *data, uns
     (void)ups__push(node, ups__make_id(0u, UPS__MGMT, arg), 0u, data, len);
 }
 
-static void knock(ups_node_t *node, uint16_t now)
+static void knock(ups_node_t *node, uint32_t now)
 {
-    node->t_quiet = now;
+    node->t_quiet = now16(now);
     push_config(node, (OP_STATUS << 12) | (ST_KNOCK << 8), NULL, 0u);
 }
 
 /** A Census, Query or Offer: the CAN-ECB is at work, no Knock needed for a while. */
-static void heard(ups_node_t *node, uint16_t now)
+static void heard(ups_node_t *node, uint32_t now)
 {
-    node->t_quiet = now;
+    node->t_quiet = now16(now);
     node->knock_step = 0u;
 }
 
@@ -126,10 +126,10 @@ void ups_start(ups_node_t *node, uint32_t now_ms)
 
 /** The answer to Hello: CLAIM, then SUB_AT/PUB_AT of every channel relied on when its frame
  *  goes, then DECLARE of every admitted stream (queue_owed() keeps that order). */
-static void start_announcing(ups_node_t *node, uint16_t now)
+static void start_announcing(ups_node_t *node, uint32_t now)
 {
     node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM | UPS__RECENT) & ~UPS__ANNOUNCE_DUE);
-    node->t_announce = now;
+    node->t_announce = now16(now);
     for (unsigned i = 0; i < UPS_CHANNELS; ++i) { /* sent only if relied on then */
         ups_channel_t *ch = &node->channels[i];
         ch->owe = (uint8_t)(ch->owe | UPS__OWE_DECLARE | (ch->flags & (UPS__SUB | UPS__PUB)) << 1);
@@ -137,7 +137,7 @@ static void start_announcing(ups_node_t *node, uint16_t now)
 }
 
 /** Assign(t', this node's id) with another TxNode: move at once and announce. */
-static void move_to(ups_node_t *node, unsigned txnode, uint16_t now)
+static void move_to(ups_node_t *node, unsigned txnode, uint32_t now)
 {
     uint32_t mask = UPS__MGMT << UPS__TXNODE_SHIFT;
     uint32_t to = (uint32_t)txnode << UPS__TXNODE_SHIFT;
@@ -153,7 +153,7 @@ static void move_to(ups_node_t *node, unsigned txnode, uint16_t now)
     start_announcing(node, now);
 }
 
-static void on_hello(ups_node_t *node, uint16_t now)
+static void on_hello(ups_node_t *node, uint32_t now)
 {
     if (node->mode & UPS__RECENT) {
         node->mode = (uint8_t)(node->mode | UPS__ANNOUNCE_DUE); /* when the second has passed */
@@ -169,7 +169,7 @@ static void on_hello(ups_node_t *node, uint16_t now)
 static const uint8_t status_refusal[16] = {0u, 0u, 9u, 0u, 0u, 0u, 0u, 11u, 10u};
 
 void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
-                       uint16_t now)
+                       uint32_t now)
 {
     unsigned status = arg >> 8;
     unsigned low = arg & 0xFFu;
@@ -224,7 +224,7 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
     } else if (status == ST_HELLO) {
         knock(node, now); /* a CAN-ECB has just started: it takes knocks at once */
     } else if (status == ST_KNOCK) {
-        node->t_quiet = now; /* another joiner's Knock: on a real bus it is ours too */
+        node->t_quiet = now16(now); /* another joiner's Knock: on a real bus it is ours */
     } else if (((1u << status) & ((1u << ST_TXNODES_FULL) | (1u << ST_FAILED))) &&
                ups__same8(data, node->node_id)) {
         end_join(node, status == ST_FAILED ? UPS_ERR_FAILED : UPS_ERR_TXNODES_FULL);
@@ -234,7 +234,7 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
 /* ---- the timers --------------------------------------------------------------------------- */
 
 /** The knock retry, and the give-up. */
-void ups__tick_join(ups_node_t *node, uint16_t now)
+void ups__tick_join(ups_node_t *node, uint32_t now)
 {
     if (UPS_JOIN_GIVE_UP_MS != 0u && ups__since(now, node->t_join) >= UPS_JOIN_GIVE_UP_MS) {
         end_join(node, UPS_ERR_TIMEOUT);
@@ -251,7 +251,7 @@ void ups__tick_join(ups_node_t *node, uint16_t now)
 
 /** The Hello answer gap, and one owed frame at a time: paced, and only once the management
  *  frames before it are sent. */
-void ups__tick_hello(ups_node_t *node, uint16_t now)
+void ups__tick_hello(ups_node_t *node, uint32_t now)
 {
     if ((node->mode & UPS__RECENT) && ups__since(now, node->t_announce) >= HELLO_GAP) {
         node->mode = (uint8_t)(node->mode & ~UPS__RECENT);
@@ -263,6 +263,6 @@ void ups__tick_hello(ups_node_t *node, uint16_t now)
         (node->tx_count == 0u || node->tx[0].id >= UPS__FIRST_EVENT_ID) &&
         ups__since(now, node->t_pace) >= ANNOUNCE_PACE &&
         (claim(node) || ups__queue_owed(node, now))) { /* the answer to Hello begins with it */
-        node->t_pace = now;
+        node->t_pace = now16(now);
     }
 }

@@ -179,7 +179,7 @@ static ups_rx_transfer_t *slot_of(ups_node_t *node, uint8_t txnode, uint16_t eta
 }
 
 /** A free slot, or one only marking an orphan run; with @p evict, else the oldest (lost). */
-static ups_rx_transfer_t *new_slot(ups_node_t *node, uint16_t now, int evict)
+static ups_rx_transfer_t *new_slot(ups_node_t *node, uint32_t now, int evict)
 {
     ups_rx_transfer_t *oldest = NULL;
     for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
@@ -199,10 +199,10 @@ static ups_rx_transfer_t *new_slot(ups_node_t *node, uint16_t now, int evict)
 
 /** A frame without S that belongs to no transfer: dropped; each run (one tid) is one loss. */
 static void orphan(ups_node_t *node, ups_rx_transfer_t *slot, uint8_t txnode, uint16_t etag,
-                   unsigned tid, uint16_t now)
+                   unsigned tid, uint32_t now)
 {
     if (slot != NULL && slot->header == (ORPHAN | tid)) {
-        slot->t_last = now;
+        slot->t_last = now16(now);
         return;
     }
     ups__count(&node->counters.large_lost);
@@ -213,12 +213,12 @@ static void orphan(ups_node_t *node, ups_rx_transfer_t *slot, uint8_t txnode, ui
         slot->etag = etag;
         slot->txnode = txnode;
         slot->header = (uint8_t)(ORPHAN | tid);
-        slot->t_last = now;
+        slot->t_last = now16(now);
     }
 }
 
 static int start(ups_node_t *node, const ups_frame_t *frame, uint8_t txnode, uint16_t etag,
-                 uint16_t now, ups_event_t *event)
+                 uint32_t now, ups_event_t *event)
 {
     unsigned mtu = (frame->flags & UPS_FRAME_FD) ? 64u : 8u;
     unsigned len = frame->len;
@@ -250,12 +250,12 @@ static int start(ups_node_t *node, const ups_frame_t *frame, uint8_t txnode, uin
     slot->got = (uint16_t)(len - 1u);
     slot->header = (uint8_t)(data[0] & T_TID); /* the next frame has no toggle */
     slot->mtu = (uint8_t)mtu;
-    slot->t_last = now;
+    slot->t_last = now16(now);
     ups__copy(slot->buf, data + 3, len - 3u);
     return 0;
 }
 
-int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, uint8_t txnode,
+int ups__transfer_rx(ups_node_t *node, uint32_t now, const ups_frame_t *frame, uint8_t txnode,
                      uint16_t etag, ups_event_t *event)
 {
     ups_rx_transfer_t *slot = slot_of(node, txnode, etag);
@@ -292,14 +292,14 @@ int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, u
             ups__count(&node->counters.large_lost); /* and a run without its start begins */
         }
         slot->header = (uint8_t)(ORPHAN | tid);
-        slot->t_last = now;
+        slot->t_last = now16(now);
         return 0;
     }
     unsigned n = last ? need : len - 1u;
     ups__copy(slot->buf + (slot->got - 2u), data + 1, n);
     slot->got = (uint16_t)(slot->got + n);
     slot->header = (uint8_t)(slot->header ^ T_TOGGLE);
-    slot->t_last = now;
+    slot->t_last = now16(now);
     if (!last) {
         return 0;
     }
@@ -314,7 +314,7 @@ int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, u
     return 1;
 }
 
-void ups__transfer_tick(ups_node_t *node, uint16_t now)
+void ups__transfer_tick(ups_node_t *node, uint32_t now)
 {
     for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
         ups_rx_transfer_t *slot = &node->rx[i];
