@@ -27,6 +27,11 @@
  * Every call that can fail returns a negative UPS_ERR_... code; 0 or a positive value is
  * success. Nothing overflows: every table bound is checked, and what it turns away is counted
  * in ups_counters_t.
+ *
+ * The sources follow the protocol's seams: ups.c (the TX queue, receiving and its checks, the
+ * timers' entry, events), ups_join.c (the join, moves, the answer to Hello), ups_bind.c
+ * (binding, the contradiction rule, declarations), ups_transfer.c (events larger than one
+ * frame); ups_internal.h holds what they share. Compile all four.
  */
 #ifndef UPS_H
 #define UPS_H
@@ -46,7 +51,8 @@ extern "C" {
 #endif
 
 /** Frames waiting to be sent, 2..255. Answers to Census and Hello and the frames of transfers
- *  are made as room appears, so a few suffice; a full queue turns events away (tx_dropped). */
+ *  are made as room appears, so a few suffice; a full queue turns events away (tx_dropped).
+ *  Events never take the last place: it stays for the node's requests and answers. */
 #ifndef UPS_TX_DEPTH
 #define UPS_TX_DEPTH 8
 #endif
@@ -90,7 +96,8 @@ extern "C" {
 #define UPS_HEARD_BINDS 0
 #endif
 
-/** Milliseconds a join may take before it is given up (UPS_ERR_TIMEOUT); 0: never. */
+/** Milliseconds a join may take before it is given up (UPS_ERR_TIMEOUT), at most 60000;
+ *  0: never. */
 #ifndef UPS_JOIN_GIVE_UP_MS
 #define UPS_JOIN_GIVE_UP_MS 30000u
 #endif
@@ -114,6 +121,9 @@ extern "C" {
 #endif
 #if UPS_MAX_EVENT > 65535 || UPS_RX_TRANSFERS < 1 || UPS_DECLARATIONS > UPS_CHANNELS
 #error "UPS_MAX_EVENT must be at most 65535, UPS_RX_TRANSFERS at least 1"
+#endif
+#if UPS_JOIN_GIVE_UP_MS > 60000
+#error "UPS_JOIN_GIVE_UP_MS must be at most 60000 (the timers count 16-bit milliseconds)"
 #endif
 
 /* ---- results ------------------------------------------------------------------------------- */
@@ -182,7 +192,9 @@ typedef struct {
 
 #define UPS_NOTE_JOINED 0x01u   /**< the node holds a TxNode now (or again, after a move) */
 #define UPS_NOTE_JOIN_FAILED 0x02u /**< the join ended: see ups_join_state() */
-#define UPS_NOTE_FILTERS 0x04u  /**< the acceptance filters changed: reprogram with ups_filters() */
+#define UPS_NOTE_FILTERS 0x04u  /**< the acceptance filters changed: reprogram them with
+                                     ups_filters() before feeding the next frame (an etag relied
+                                     on is received from the Bind on) */
 #define UPS_NOTE_CHANNELS 0x08u /**< a channel's state changed: see ups_channel_state() */
 #define UPS_NOTE_DECLARATIONS 0x10u /**< a declaration was granted, refused or given up */
 
@@ -194,22 +206,17 @@ typedef struct {
     uint16_t etag;    /* bound, or the candidate while settling; 0: none */
     uint16_t t0;      /* request start / settle start / ready time (low 16 bits of ms) */
     uint8_t flags;    /* UPS__SUB, UPS__PUB, ... (ups.c) */
-    uint8_t step;     /* request retry step (low nibble) | wanted size class << 4 */
-    int8_t state;     /* 0 free, 1 waiting, 2 bound, or a UPS_ERR_ code */
+    uint8_t step;     /* wanted size class << 4 | request retry step, or -UPS_ERR_ once failed */
     uint8_t priority; /* for this node's events on the channel */
+    uint8_t owe;      /* frames owed to the CAN-ECB: UPS__OWE_... (ups_internal.h) */
 } ups_channel_t;
 
 #if UPS_DECLARATIONS
 typedef struct {
     uint8_t channel;  /* 0xFF: unused */
     int8_t state;     /* 1 waiting, 2 granted, or a UPS_ERR_ code */
-    uint8_t step;     /* retry step */
-    uint8_t size;
-    uint16_t t0;
-    uint16_t period;
-    uint16_t deadline;
-    uint8_t jitter;
-} ups_declaration_t;
+    uint8_t data[8];  /* DECLARE: etag, size, period, deadline, jitter (big-endian) */
+} ups_declaration_t; /* its retry runs on its channel's timer, free while the channel is bound */
 #endif
 
 #if UPS_WITH_TRANSFERS
@@ -229,18 +236,17 @@ typedef struct {
 /** The whole state of one node. Private: set up with ups_init(), then use the functions. */
 typedef struct {
     uint8_t node_id[8];
-    uint8_t txnode;       /* 0x7F while joining */
+    uint8_t txnode;       /* joined: its TxNode; joining: the one last offered to it */
     int8_t join;          /* 0 not started, 1 joining, 2 joined, or a UPS_ERR_ code */
     uint8_t notes;
-    uint8_t mode;         /* UPS__FD, UPS__ANNOUNCE_DUE, UPS__ANNOUNCING, UPS__RECENT, ... */
+    uint8_t mode;         /* UPS__FD, UPS__OWE_CLAIM, UPS__ANNOUNCE_DUE, UPS__RECENT */
     uint8_t knock_step;
-    uint16_t announce_at; /* the next item of the answer to Hello */
-    uint32_t t_join;      /* join start (for the give-up) */
-    uint16_t t_quiet;     /* joining: last Knock sent or Census/Query/Offer heard */
-    uint16_t t_announce;  /* joined: when the last answer to Hello started */
-    uint16_t t_pace;      /* joined: when its last frame was queued */
-    uint8_t burst[2][2];  /* Stage answers still to send: {epoch, next stage}; stage 16: none */
     uint8_t tx_count;
+    uint16_t t_join;      /* joining: when it began (for the give-up) */
+    uint16_t t_quiet;     /* joining: last Knock sent or heard, or Census/Query/Offer heard */
+    uint16_t t_announce;  /* joined: when the last answer to Hello started */
+    uint16_t t_pace;      /* joined: when its last owed frame was queued */
+    uint8_t burst[2][2];  /* Stage answers still to send: {epoch, next stage}; stage 16: none */
     ups_frame_t tx[UPS_TX_DEPTH];
     ups_channel_t channels[UPS_CHANNELS];
 #if UPS_DECLARATIONS
@@ -282,15 +288,21 @@ void ups_start(ups_node_t *node, uint32_t now_ms);
  *  are not UPS, malformed or not for this node are ignored and counted. */
 int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_event_t *event);
 
-/** Run the timers (knock retry, request retry, settling, Hello answers, transfer timeouts).
- *  Call it at least every few milliseconds, and ideally every millisecond. */
+/** Run the timers (knock retry, request retry, settling, Hello answers, transfer timeouts) and
+ *  queue the frames the node owes the CAN-ECB (requests, SUB_AT/PUB_AT, DECLARE, UNSUB: one at
+ *  a time, so that none is lost to a full queue or sent before one it depends on). Call it at
+ *  least every few milliseconds, ideally every millisecond (the 1 ms pacing of answers to
+ *  Hello), and never less often than every 30 s (the timers count 16-bit milliseconds). */
 void ups_tick(ups_node_t *node, uint32_t now_ms);
 
-/** The frame to send next (the lowest identifier queued), or NULL. It stays queued until
- *  ups_tx_pop(): send it, then pop it (or pop it to drop it). */
+/** The frame to send next (the lowest identifier queued, the first queued among equals), or
+ *  NULL. It stays queued until ups_tx_pop(): send it, then pop it (or pop it to drop it), and
+ *  call nothing else of the library in between (a call may queue a frame before it, or drop
+ *  it: a contradicted binding drops what was queued on its etag). */
 const ups_frame_t *ups_tx_peek(const ups_node_t *node);
 
-/** Remove the frame ups_tx_peek() returned (it was sent). */
+/** Remove the frame ups_tx_peek() returned (it was sent). A request counts as sent from here:
+ *  only Binds fed after this call may answer it (docs/protocol.md, "Binding"). */
 void ups_tx_pop(ups_node_t *node);
 
 /** What happened since the last call (UPS_NOTE_... bits), cleared by the call. */
@@ -304,24 +316,32 @@ int ups_join_state(const ups_node_t *node);
 int ups_txnode(const ups_node_t *node);
 
 /** Subscribe to channel @p uid. Returns the channel's index (the same for every role of one
- *  UID), or UPS_ERR_FULL. The node asks for the etag (SUB_BIND) once joined. */
+ *  UID), or UPS_ERR_FULL. The node asks for the etag (SUB_BIND) at the next ups_tick() once
+ *  joined (again, if the channel was waiting for an answer to another request: that answer
+ *  would not tell the CAN-ECB of the subscription). @p now_ms is unused (kept for the API). */
 int ups_subscribe(ups_node_t *node, uint64_t uid, uint32_t now_ms);
 
 /** Publish on channel @p uid events of up to @p max_size bytes (its size class follows: PUB_BIND
- *  for 8 bytes or fewer, PUB_BIND(c) above). Returns the channel's index, UPS_ERR_FULL, or
- *  UPS_ERR_TOO_LARGE (above UPS_MAX_EVENT). */
+ *  for 8 bytes or fewer, PUB_BIND(c) above; calling it again with larger events moves the
+ *  channel to their class). Returns the channel's index, UPS_ERR_FULL, or UPS_ERR_TOO_LARGE
+ *  (above UPS_MAX_EVENT). Asked, like ups_subscribe(), at the next ups_tick(). */
 int ups_advertise(ups_node_t *node, uint64_t uid, uint16_t max_size, uint32_t now_ms);
 
-/** Stop receiving channel @p channel (sends UNSUB). A channel nobody publishes is freed. */
+/** Stop receiving channel @p channel: UNSUB goes at a next ups_tick(). A channel nobody
+ *  publishes on is freed once its UNSUB is queued (ups_subscribe() to it meanwhile takes it
+ *  back, and no UNSUB goes). UPS_OK, or UPS_ERR_ARGUMENT (no such channel). */
 int ups_unsubscribe(ups_node_t *node, int channel);
 
 /** Queue one event of @p size bytes on @p channel (copied: the buffer is free on return).
  *  UPS_OK, or UPS_ERR_UNBOUND (no etag relied on yet, or being bound again), UPS_ERR_TOO_LARGE,
- *  UPS_ERR_FULL (queue full: counted in tx_dropped), UPS_ERR_BUSY (a transfer is being sent). */
+ *  UPS_ERR_FULL (queue full: counted in tx_dropped), UPS_ERR_BUSY (a transfer of several
+ *  frames is being queued, or, for a transfer, frames of this channel queued at another
+ *  priority still wait: the frames of one etag go in order). */
 int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t size);
 
 /** Set the priority of this node's events on @p channel: 0x02..0xFF (default 0x80; 0x00 and
- *  0x01 are management: given 0 or 1, the node uses 0x02). A Grant sets it too. */
+ *  0x01 are management: given 0 or 1, the node uses 0x02). A Grant sets it too. UPS_OK, or
+ *  UPS_ERR_ARGUMENT (no such channel). */
 int ups_set_priority(ups_node_t *node, int channel, uint8_t priority);
 
 /** A channel's state: 0 free, 1 waiting for its etag (or being bound again, or a publisher's
@@ -329,7 +349,7 @@ int ups_set_priority(ups_node_t *node, int channel, uint8_t priority);
  *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE). */
 int ups_channel_state(const ups_node_t *node, int channel);
 
-/** The etag @p channel is bound to and relied on, or 0. */
+/** The etag @p channel is bound to and relied on, or 0 (also during its re-binding). */
 uint16_t ups_channel_etag(const ups_node_t *node, int channel);
 
 /** Write the acceptance filters the node needs into @p out (at most @p max) and return how
@@ -337,10 +357,13 @@ uint16_t ups_channel_etag(const ups_node_t *node, int channel);
  *  @p max, accept every extended frame instead: the library filters in software. */
 int ups_filters(const ups_node_t *node, ups_filter_t *out, int max);
 
-/** Declare @p channel (published and bound) a real-time stream: at most one event of @p size
- *  bytes (frames per event on a larger size class) every @p period, released up to @p jitter
- *  late, due within @p deadline; times in units of 100 us. Sends DECLARE until Grant or Refuse.
- *  Returns UPS_OK, UPS_ERR_UNBOUND, UPS_ERR_ARGUMENT or UPS_ERR_FULL. */
+/** Declare @p channel (published on, in state 2) a real-time stream: at most one event of
+ *  @p size bytes (frames per event on a larger size class) every @p period, released up to
+ *  @p jitter late, due within @p deadline; times in units of 100 us. Sends DECLARE (request
+ *  retry, 5 s) until Grant or Refuse, and again in every answer to Hello once granted.
+ *  Returns UPS_OK, UPS_ERR_ARGUMENT (no such published channel, a period or deadline of 0, a
+ *  size out of range), UPS_ERR_UNBOUND (not in state 2) or UPS_ERR_FULL (UPS_DECLARATIONS
+ *  streams declared already, or none compiled in). */
 int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, uint16_t deadline,
                 uint8_t jitter, uint32_t now_ms);
 

@@ -1,6 +1,7 @@
 /*
- * libups internals shared by ups.c and ups_transfer.c: the identifier layout, flags, and small
- * helpers. Not part of the API.
+ * libups internals shared by its sources (ups.c, ups_join.c, ups_bind.c, ups_transfer.c): the
+ * identifier layout, the frames' codes, flags, small helpers, and the calls between the
+ * sources. Not part of the API.
  */
 #ifndef UPS_INTERNAL_H
 #define UPS_INTERNAL_H
@@ -14,6 +15,36 @@
 #define UPS__FIRST_ETAG 0x0010u
 #define UPS__LARGE_ETAG 0x3000u
 #define UPS__DEFAULT_PRIORITY 0x80u
+#define UPS__FIRST_EVENT_ID (2u << UPS__PRIO_SHIFT) /* lower identifiers are management */
+/* events may fill the TX queue but for its last place, which stays for management frames: a
+ * node that publishes as fast as its queue drains still asks, claims and answers Hello */
+#define UPS__EVENT_ROOM (UPS_TX_DEPTH - 1u)
+
+/* management frames (docs/protocol.md, "Management frames"): the two high bits of the etag
+ * field of TxNode 0x7F at priority 0 (op), and in status frames its bits 8-11 (status) */
+#define OP_STAGE 0u
+#define OP_QUERY 1u
+#define OP_ASSIGN 2u
+#define OP_STATUS 3u
+#define ST_CENSUS 0u
+#define ST_TXNODES_FULL 1u
+#define ST_ETAGS_FULL 2u
+#define ST_HELLO 3u
+#define ST_GRANT 4u
+#define ST_REFUSE 5u
+#define ST_SERVING 6u
+#define ST_FAILED 7u
+#define ST_LIMIT 8u
+#define ST_PROBE 9u
+#define ST_KNOCK 15u
+#define OFFER_BIT 0x80u
+/* node requests (the etag field, priority 0, the node's TxNode) */
+#define RQ_PUB_BIND 1u
+#define RQ_SUB_BIND 2u
+#define RQ_UNSUB 3u
+#define RQ_CLAIM 4u
+#define RQ_DECLARE 5u
+#define RQ_PUB_BIND_CLASS 8u
 
 /* channel flags */
 #define UPS__SUB 0x01u    /* the application receives it */
@@ -27,9 +58,17 @@
 
 /* node mode bits */
 #define UPS__FD 0x01u
-#define UPS__ANNOUNCING 0x02u
-#define UPS__ANNOUNCE_DUE 0x04u
-#define UPS__RECENT 0x08u
+#define UPS__OWE_CLAIM 0x02u    /* a CLAIM is owed: to an Offer, or in the answer to Hello */
+#define UPS__ANNOUNCE_DUE 0x04u /* a Hello came within a second of the last answer */
+#define UPS__RECENT 0x08u       /* the last answer to Hello started less than a second ago */
+
+/* the frames a channel owes the CAN-ECB (ups_channel_t.owe), queued one at a time, lowest bit
+ * first, when there is room and no management frame waits before them (ups__queue_owed) */
+#define UPS__OWE_REQUEST 0x01u /* SUB_BIND, PUB_BIND or PUB_BIND(c) */
+#define UPS__OWE_SUB_AT 0x02u  /* = UPS__SUB << 1 */
+#define UPS__OWE_PUB_AT 0x04u  /* = UPS__PUB << 1; >> 2: its priority (1) */
+#define UPS__OWE_DECLARE 0x08u
+#define UPS__OWE_UNSUB 0x10u
 
 /* channel and join states (besides the UPS_ERR_ codes) */
 #define UPS__FREE 0
@@ -41,62 +80,105 @@ static inline uint32_t ups__make_id(uint32_t priority, uint32_t txnode, uint32_t
     return (priority << UPS__PRIO_SHIFT) | (txnode << UPS__TXNODE_SHIFT) | etag;
 }
 
-/** Milliseconds from @p then to @p now, both the low 16 bits of the clock. */
-static inline uint16_t ups__since(uint16_t now, uint16_t then)
+/** Milliseconds from @p then (the low 16 bits of the clock, as the node keeps its times) to
+ *  @p now (the clock): the difference of the low 16 bits, right across any wrap, up to 65 s. */
+static inline uint16_t ups__since(uint32_t now, uint16_t then)
 {
     return (uint16_t)(now - then);
 }
 
+static inline uint16_t get16(const uint8_t *in)
+{
+    return (uint16_t)(((unsigned)in[0] << 8) | in[1]);
+}
+
+/** A time as the node keeps it: the low 16 bits of the millisecond clock. */
+static inline uint16_t now16(uint32_t now_ms)
+{
+    return (uint16_t)now_ms;
+}
+
+static inline int joined(const ups_node_t *node)
+{
+    return node->join == UPS__READY;
+}
+
+static inline void note(ups_node_t *node, unsigned bits)
+{
+    node->notes = (uint8_t)(node->notes | bits);
+}
+
+static inline int ups__valid_channel(const ups_node_t *node, int channel)
+{
+    return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
+}
+
+/* ups.c */
 /** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
-static inline unsigned ups__class(uint16_t etag)
-{
-    return etag < UPS__LARGE_ETAG ? 0u : 1u + ((unsigned)(etag - UPS__LARGE_ETAG) >> 10);
-}
-
+unsigned ups__class(unsigned etag);
 /** The largest event of a size class. */
-static inline uint32_t ups__class_max(unsigned cls)
-{
-    static const uint32_t largest[5] = {8u, 64u, 1024u, 4096u, 65535u};
-    return largest[cls < 5u ? cls : 4u];
-}
-
-static inline void ups__count(UPS_COUNTER_T *counter)
-{
-    if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
-        ++*counter;
-    }
-}
-
-static inline void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
-{
-    for (unsigned i = 0; i < n; ++i) {
-        to[i] = from[i];
-    }
-}
-
-static inline int ups__same8(const uint8_t *a, const uint8_t *b)
-{
-    unsigned diff = 0;
-    for (unsigned i = 0; i < 8u; ++i) {
-        diff |= (unsigned)(a[i] ^ b[i]);
-    }
-    return diff == 0u;
-}
-
+uint32_t ups__class_max(unsigned cls);
+/** Copy @p n bytes (the library calls no memcpy). */
+void ups__copy(uint8_t *to, const uint8_t *from, unsigned n);
+/** Count one in a saturating counter. */
+void ups__count(UPS_COUNTER_T *counter);
+/** Whether two 8-byte values (node ids, UIDs) are equal. */
+int ups__same8(const uint8_t *a, const uint8_t *b);
+/** Nibble @p stage of a 64-bit big-endian id, most significant first. */
+unsigned ups__nibble(const uint8_t *id, unsigned stage);
+/** Write @p value big-endian into @p out[0..7]. */
+void ups__put64(uint8_t *out, uint64_t value);
 /** Queue a frame (sorted by identifier, FIFO among equals). 0, or UPS_ERR_FULL (counted). */
 int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len);
-
+/** Queue a frame of 8 bytes from this node's TxNode: a request, SUB_AT (priority 0) or PUB_AT
+ *  (priority 1). */
+void ups__push_request(ups_node_t *node, unsigned priority, unsigned etag, const uint8_t *data);
+/** The node stops relying on @p etag: nothing queued on it goes out any more. */
+void ups__drop_etag(ups_node_t *node, uint16_t etag);
 /** The index of the received channel bound to @p etag, or -1. */
 int ups__rx_channel(const ups_node_t *node, uint16_t etag);
 
+/* ups_join.c */
+/** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), heard while
+ *  joining or joined: the join, moves, Hello, refusals and verdicts. */
+void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
+                       uint32_t now);
+/** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
+void ups__join_refill(ups_node_t *node);
+void ups__tick_join(ups_node_t *node, uint32_t now);
+void ups__tick_hello(ups_node_t *node, uint32_t now);
+
+/* ups_bind.c */
+/** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
+ *  may answer it (a Bind received before the request went does not count). */
+void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
+/** EtagsFull, Failed or Limit for @p uid: the request of its channel, if one waits, ends. */
+void ups__refused(ups_node_t *node, const uint8_t *uid, int why);
+/** Queue the next frame a channel owes, if any; 1 when it queued one. */
+int ups__queue_owed(ups_node_t *node, uint32_t now);
+/** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
+void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint32_t now);
+/** Whether @p etag was ever heard bound (to a channel of this node, or, with UPS_HEARD_BINDS,
+ *  to any): an event on it that the node does not receive is filtered, not unknown. */
+int ups__etag_known(const ups_node_t *node, uint16_t etag);
+/** The request and declaration retries, settling, the publisher's pause. */
+void ups__tick_bind(ups_node_t *node, uint32_t now);
+#if UPS_DECLARATIONS
+/** Grant or Refuse for this node's stream on @p etag. */
+void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority);
+#endif
+
 #if UPS_WITH_TRANSFERS
 /* ups_transfer.c */
-int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, uint8_t txnode,
+int ups__transfer_rx(ups_node_t *node, uint32_t now, const ups_frame_t *frame, uint8_t txnode,
                      uint16_t etag, ups_event_t *event);
 int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
                      uint16_t size);
 void ups__transfer_refill(ups_node_t *node);
-void ups__transfer_tick(ups_node_t *node, uint16_t now);
+void ups__transfer_tick(ups_node_t *node, uint32_t now);
+/** The node stops relying on @p etag: the rest of a transfer being sent on it is not sent, and
+ *  transfers being received on it are given up. */
+void ups__transfer_drop(ups_node_t *node, uint16_t etag);
 #endif
 
 #endif /* UPS_INTERNAL_H */

@@ -59,11 +59,30 @@ static inline uint8_t event_flags(const ups_node_t *node)
 
 /* ---- sending ------------------------------------------------------------------------------- */
 
+/** Whether a transfer with identifier @p id must wait: the frames of one etag go in order, so
+ *  it may start neither while the transfer being queued is on its etag (or is any other
+ *  transfer of several frames: there is one transmit buffer), nor while frames of its etag
+ *  with another identifier wait in the queue (the channel's priority changed: they would be
+ *  overtaken, and the receiver would take the new first frame as the end of the old
+ *  transfer). */
+static int must_wait(const ups_node_t *node, uint32_t id, int several)
+{
+    if (node->tx_left > 0u && (several || ((node->tx_id ^ id) & UPS__ETAG_MASK) == 0u)) {
+        return 1;
+    }
+    for (unsigned i = 0; i < node->tx_count; ++i) {
+        if (((node->tx[i].id ^ id) & UPS__ETAG_MASK) == 0u && node->tx[i].id != id) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
 int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
                      uint16_t size)
 {
     unsigned chunk = node_mtu(node) - 1u;
-    if (2u + size > chunk && node->tx_left > 0u) {
+    if (must_wait(node, id, 2u + size > chunk)) {
         return UPS_ERR_BUSY;
     }
     unsigned tid = node->tids[channel] & T_TID;
@@ -97,7 +116,7 @@ void ups__transfer_refill(ups_node_t *node)
 {
     unsigned chunk = node_mtu(node) - 1u;
     unsigned total = node->tx_length + 4u;
-    while (node->tx_left > 0u && node->tx_count < UPS_TX_DEPTH) {
+    while (node->tx_left > 0u && node->tx_count < UPS__EVENT_ROOM) {
         uint8_t frame[UPS_MTU];
         unsigned at = total - node->tx_left;
         unsigned n = node->tx_left < chunk ? node->tx_left : chunk;
@@ -160,7 +179,7 @@ static ups_rx_transfer_t *slot_of(ups_node_t *node, uint8_t txnode, uint16_t eta
 }
 
 /** A free slot, or one only marking an orphan run; with @p evict, else the oldest (lost). */
-static ups_rx_transfer_t *new_slot(ups_node_t *node, uint16_t now, int evict)
+static ups_rx_transfer_t *new_slot(ups_node_t *node, uint32_t now, int evict)
 {
     ups_rx_transfer_t *oldest = NULL;
     for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
@@ -180,10 +199,10 @@ static ups_rx_transfer_t *new_slot(ups_node_t *node, uint16_t now, int evict)
 
 /** A frame without S that belongs to no transfer: dropped; each run (one tid) is one loss. */
 static void orphan(ups_node_t *node, ups_rx_transfer_t *slot, uint8_t txnode, uint16_t etag,
-                   unsigned tid, uint16_t now)
+                   unsigned tid, uint32_t now)
 {
     if (slot != NULL && slot->header == (ORPHAN | tid)) {
-        slot->t_last = now;
+        slot->t_last = now16(now);
         return;
     }
     ups__count(&node->counters.large_lost);
@@ -194,12 +213,12 @@ static void orphan(ups_node_t *node, ups_rx_transfer_t *slot, uint8_t txnode, ui
         slot->etag = etag;
         slot->txnode = txnode;
         slot->header = (uint8_t)(ORPHAN | tid);
-        slot->t_last = now;
+        slot->t_last = now16(now);
     }
 }
 
 static int start(ups_node_t *node, const ups_frame_t *frame, uint8_t txnode, uint16_t etag,
-                 uint16_t now, ups_event_t *event)
+                 uint32_t now, ups_event_t *event)
 {
     unsigned mtu = (frame->flags & UPS_FRAME_FD) ? 64u : 8u;
     unsigned len = frame->len;
@@ -231,12 +250,12 @@ static int start(ups_node_t *node, const ups_frame_t *frame, uint8_t txnode, uin
     slot->got = (uint16_t)(len - 1u);
     slot->header = (uint8_t)(data[0] & T_TID); /* the next frame has no toggle */
     slot->mtu = (uint8_t)mtu;
-    slot->t_last = now;
+    slot->t_last = now16(now);
     ups__copy(slot->buf, data + 3, len - 3u);
     return 0;
 }
 
-int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, uint8_t txnode,
+int ups__transfer_rx(ups_node_t *node, uint32_t now, const ups_frame_t *frame, uint8_t txnode,
                      uint16_t etag, ups_event_t *event)
 {
     ups_rx_transfer_t *slot = slot_of(node, txnode, etag);
@@ -273,14 +292,14 @@ int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, u
             ups__count(&node->counters.large_lost); /* and a run without its start begins */
         }
         slot->header = (uint8_t)(ORPHAN | tid);
-        slot->t_last = now;
+        slot->t_last = now16(now);
         return 0;
     }
     unsigned n = last ? need : len - 1u;
     ups__copy(slot->buf + (slot->got - 2u), data + 1, n);
     slot->got = (uint16_t)(slot->got + n);
     slot->header = (uint8_t)(slot->header ^ T_TOGGLE);
-    slot->t_last = now;
+    slot->t_last = now16(now);
     if (!last) {
         return 0;
     }
@@ -295,13 +314,29 @@ int ups__transfer_rx(ups_node_t *node, uint16_t now, const ups_frame_t *frame, u
     return 1;
 }
 
-void ups__transfer_tick(ups_node_t *node, uint16_t now)
+void ups__transfer_tick(ups_node_t *node, uint32_t now)
 {
     for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
         ups_rx_transfer_t *slot = &node->rx[i];
         if (slot->etag != 0u && ups__since(now, slot->t_last) > TRANSFER_TIMEOUT) {
             if (!(slot->header & ORPHAN)) {
                 ups__count(&node->counters.large_lost); /* its next frame did not come */
+            }
+            slot->etag = 0u;
+        }
+    }
+}
+
+void ups__transfer_drop(ups_node_t *node, uint16_t etag)
+{
+    if ((node->tx_id & UPS__ETAG_MASK) == etag) {
+        node->tx_left = 0u;
+    }
+    for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
+        ups_rx_transfer_t *slot = &node->rx[i];
+        if (slot->etag == etag) {
+            if (!(slot->header & ORPHAN)) {
+                ups__count(&node->counters.large_lost);
             }
             slot->etag = 0u;
         }

@@ -28,7 +28,8 @@ from ._errors import ConfigError
 
 C_DIR = Path(__file__).resolve().parent.parent / "c"
 VARIANTS = {"full": "libups.so", "min": "libups-min.so", "asan": "libups-asan.so"}
-SOURCES = ("ups.h", "ups_internal.h", "ups.c", "ups_transfer.c", "host/ups_host.c", "Makefile")
+SOURCES = ("ups.h", "ups_internal.h", "ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c",
+           "host/ups_host.c", "Makefile")  # fmt: skip
 
 # ups.h's constants (the header is the reference; tests check these against it)
 FRAME_EXT, FRAME_FD, FRAME_BRS, FRAME_RTR, FRAME_ERR = 0x01, 0x02, 0x04, 0x08, 0x10
