@@ -1,5 +1,5 @@
-"""Security on the Zenoh face is Zenoh's own: the recipe of docs/zenoh.md (mutual TLS with the fleet's
-certificates from ``ups certs``, and an access control list by certificate name), run as
+"""Security on the Zenoh face is Zenoh's own: the recipe of docs/zenoh.md (mutual TLS with the
+fleet's certificates from ``ups certs``, and an access control list by certificate name), run as
 processes exactly as written, and user/password authentication."""
 
 from __future__ import annotations
