@@ -28,9 +28,11 @@ TCP_ECB = table(
         "status_builds": "status answers built",
         "status_answers": "status requests answered",
         "status_paced": "status requests that waited for the next build",
+        "watch_limited": "Watches refused: the node watches 64 patterns already",
     },
     {
         "nodes": "nodes registered",
+        "watches": "patterns nodes watch for channel names",
         "channels": "channels that have a subscriber or a publisher",
         "links": "TCP connections open",
     },

@@ -8,6 +8,7 @@ carry the latest fix, a second OCU refused, commands refused after release."""
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import socket
@@ -53,6 +54,9 @@ ignore = ["altitude", "position_rms", "roll", "pitch", "attitude_rms", "timestam
 """
 
 
+_namespaces = itertools.count()
+
+
 @contextlib.contextmanager
 def robot_namespace() -> Iterator[tuple[str, ...]]:
     """A network namespace for the robot, joined to ours by a veth pair (10.79.0.0/24), with
@@ -61,8 +65,8 @@ def robot_namespace() -> Iterator[tuple[str, ...]]:
     private_multicast_bus()  # refuses (skips or fails) outside a private namespace
     if os.geteuid() != 0:
         pytest.skip("needs root: ip netns add and a veth pair")
-    tag = str(os.getpid() % 100000)
-    ns, here, there = f"ups-jaus-{tag}", f"jo{tag}", f"jr{tag}"
+    tag = f"{os.getpid() % 100000}x{next(_namespaces)}"  # a namespace lives on while its last
+    ns, here, there = f"ups-jaus-{tag}", f"jo{tag}", f"jr{tag}"  # process ends: names anew
     subprocess.run(["ip", "netns", "add", ns], check=True)
     try:
         for cmd in (
@@ -79,7 +83,8 @@ def robot_namespace() -> Iterator[tuple[str, ...]]:
             subprocess.run(cmd, check=True)
         yield ("ip", "netns", "exec", ns)
     finally:
-        subprocess.run(["ip", "netns", "del", ns], check=False)  # takes both veth ends
+        subprocess.run(["ip", "link", "del", here], check=False, capture_output=True)  # both ends
+        subprocess.run(["ip", "netns", "del", ns], check=False)
 
 
 # --- the OCU, from the public definitions ---------------------------------------------------

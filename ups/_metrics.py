@@ -134,6 +134,9 @@ NODE = table(
         "forgotten": "publishers no longer followed, to make room for others (zenoh)",
         "restarts": "publishers seen restarting their numbers (zenoh)",
         "sync_timeouts": "waits for the router's subscriber list that timed out (zenoh)",
+        "pattern_refused": "channels a pattern subscription matched but could not join (an ACL, "
+        "a bound)",
+        "pattern_limited": "channels a pattern matched past the 4096 it may join",
     },
     {
         "bindings": "channels bound to an etag on the bus (can)",
@@ -188,6 +191,18 @@ def parse_metrics_address(text: str) -> tuple[str, int]:
     raise ConfigError(f"--metrics expects HOST:PORT (e.g. 127.0.0.1:9464), got {text!r}")
 
 
+def check_metrics(address: str | None) -> None:
+    """Refuse ``--metrics ADDRESS`` before a daemon starts anything: a bad address, or no
+    prometheus-client (ConfigError, in one line)."""
+    if address is None:
+        return
+    parse_metrics_address(address)
+    try:
+        import prometheus_client  # noqa: F401
+    except ImportError:
+        raise ConfigError(INSTALL) from None
+
+
 @asynccontextmanager
 async def serving_metrics(
     address: str | None, daemon: str, read: Callable[[], Reading]
@@ -209,11 +224,8 @@ class MetricsServer:
     ``daemon`` names the command in ``ups_build_info``."""
 
     def __init__(self, address: str, daemon: str, read: Callable[[], Reading]) -> None:
+        check_metrics(address)
         self.host, self.port = parse_metrics_address(address)
-        try:
-            import prometheus_client  # noqa: F401
-        except ImportError:
-            raise ConfigError(INSTALL) from None
         self.daemon = daemon
         self._read = read
         self._httpd: wsgiref.simple_server.WSGIServer | None = None

@@ -32,7 +32,7 @@ from ups._cliargs import (
     warn_if_virtual,
 )
 from ups._errors import ConfigError, UpsError
-from ups._metrics import add_metrics
+from ups._metrics import add_metrics, check_metrics
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
@@ -340,6 +340,7 @@ def _run_can_broker(args: argparse.Namespace) -> int:
     from ups.broker.can_ecb import serve
 
     db = args.db if args.db is not None else default_db(args.can)
+    check_metrics(args.metrics)  # before anything starts, or says anything
     warn_if_virtual(args.can)
 
     async def run() -> int:
@@ -377,6 +378,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
                               "(or set UPS_BROKER or UPS_ZENOH)")  # fmt: skip
     if args.listen is not None and broker is None:
         raise ConfigError("--listen is for a gateway to TCP/IP (with --broker)")
+    check_metrics(args.metrics)
     gateway = Gateway(
         args.can,
         broker,
