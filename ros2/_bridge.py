@@ -149,7 +149,6 @@ class RosBridge:
             if t.from_ros:
                 size = t.channel.size
                 await self.node.advertise(t.channel.channel, max_size=size or 0)
-            self._dirty.add(live.entity)
         face: Any = self.node.face
         if hasattr(face, "subscribed_elsewhere"):  # TCP/IP and Zenoh say who subscribes
             face.on_targets = self._targets
@@ -159,7 +158,11 @@ class RosBridge:
             self._status_queryable = self._session.declare_queryable(
                 f"{STATUS_PREFIX}/{self.node.node_id:016x}", self._on_status_query
             )
+        for live in self.topics:  # in the graph, as it should be now, before saying so
+            self._dirty.discard(live.entity)
+            await self._reconcile(live)
         self._task = asyncio.get_running_loop().create_task(self._reconcile_loop())
+        self._wake.set()  # what changed meanwhile
         log.info("ROS 2 node %s%s on %s (Zenoh id %s, domain %d): %d topics",
                  b.namespace.rstrip("/") + "/", b.node, self.ros, self.zid, b.domain,
                  len(self.topics))  # fmt: skip
