@@ -29,7 +29,9 @@ import pytest
 import xxhash
 
 from ups import name_to_uid
+from ups.ros2._serve import ROS2
 
+from .metrics_scrape import metrics_url, scrape, uncovered
 from .procs import ROOT, Proc, private_multicast_bus
 from .test_tcp_processes import wait_until
 from .test_zenoh_processes import start_router, zenoh_status
@@ -226,7 +228,7 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str,
     ):
         ecb.wait_for_line("CAN-ECB on")
         with Proc("ros2", "--map", str(tmp / "map.toml"), "--ros", endpoint, "--can", bus,
-                  "--node-id", "0x5052") as bridge:  # fmt: skip
+                  "--node-id", "0x5052", "--metrics", "127.0.0.1:0") as bridge:  # fmt: skip
             bridge.wait_for_line(r"ups ros2: ROS 2 node /ups_test_bridge on .*: 3 topics", 60)
             yield bus, endpoint, bridge
 
@@ -290,7 +292,7 @@ def test_can_events_reach_a_ros_listener_only_while_it_listens(
 def test_ros_publications_reach_a_can_subscriber_as_the_catalogs_bytes(
     system: tuple[str, str, Proc],
 ) -> None:
-    bus, endpoint, _ = system
+    bus, endpoint, bridge = system
     f64 = struct.Struct("<d")
     payloads = [
         (CDR + f64.pack(1.5)).hex(),  # 150 (scale 0.01)
@@ -312,6 +314,13 @@ def test_ros_publications_reach_a_can_subscriber_as_the_catalogs_bytes(
     assert after["out_of_range"] - before["out_of_range"] == 2
     assert after["no_attachment"] - before["no_attachment"] == 1
     assert after["from_ros"] - before["from_ros"] == 3
+    # the same counters for Prometheus, each documented in docs/metrics.md
+    metrics = scrape(metrics_url(bridge))
+    assert metrics.value("ups_ros2_out_of_range_total") >= 2
+    assert metrics.value("ups_ros2_from_ros_total") == after["from_ros"]
+    assert metrics.value("ups_node_published_total", network="can") >= 3
+    assert metrics.undocumented() == []
+    assert uncovered(after, [ROS2]) == set()
 
 
 def test_a_twist_crosses_classic_can_both_ways_never_reflected(
