@@ -83,6 +83,16 @@ class _Live:
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
         ("sent", "received", "out_of_range", "malformed"), 0))  # fmt: skip
 
+    @property
+    def publisher_id(self) -> int:
+        """Its publisher's entity id in the node (topic n: 2n - 1)."""
+        return 2 * self.entity - 1
+
+    @property
+    def subscription_id(self) -> int:
+        """Its subscription's entity id in the node (topic n: 2n)."""
+        return 2 * self.entity
+
 
 class RosBridge:
     """The map's topics between ``node`` (any UPS network) and the ROS 2 system whose Zenoh
@@ -131,8 +141,9 @@ class RosBridge:
         for live in self.topics:
             t = live.map
             if t.to_ros:
-                token = entity_token(b.domain, self.zid, 0, live.entity, PUBLISHER, b.namespace,
-                                     b.node, t.topic, t.type, t.type_hash, t.qos)  # fmt: skip
+                token = entity_token(b.domain, self.zid, 0, live.publisher_id, PUBLISHER,
+                                     b.namespace, b.node, t.topic, t.type, t.type_hash,
+                                     t.qos)  # fmt: skip
                 live.gid = gid(token)
                 live.publisher = self._session.declare_publisher(
                     t.key,
@@ -250,7 +261,7 @@ class RosBridge:
                     allowed_origin=zenoh.Locality.REMOTE,  # never our own samples
                 )  # fmt: skip
                 live.ros_token = session.liveliness().declare_token(entity_token(
-                    b.domain, self.zid, 0, live.entity, SUBSCRIPTION, b.namespace, b.node,
+                    b.domain, self.zid, 0, live.subscription_id, SUBSCRIPTION, b.namespace, b.node,
                     t.topic, t.type, t.type_hash, t.qos))  # fmt: skip
                 log.info("forwarding %s from ROS to %s", t.topic, t.channel.channel)
             elif not wanted and live.ros_sub is not None:

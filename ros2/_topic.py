@@ -132,9 +132,10 @@ class TopicMap:
         values = list(self._template)
         for slot, index, convert in self._to_ros:
             values[slot] = convert(raw[index])
-        if self._stamp is not None:
-            ns = int(when * 1e9)
-            values[self._stamp[0]], values[self._stamp[1]] = divmod(ns, 1_000_000_000)
+        if self._stamp is not None:  # (when * 1e9 would lose the last bits of a float)
+            sec = math.floor(when)
+            nanosec = min(round((when - sec) * 1e9), 999_999_999)
+            values[self._stamp[0]], values[self._stamp[1]] = sec, nanosec
         try:
             return self.codec.encode(values)
         except (struct.error, OverflowError) as exc:  # a constant's own range was checked
