@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ups import DecodeError
+from ups import Channel, ConfigError, DecodeError, UpsError
 from ups._message import Message
 from ups._zenohface import STATUS_PREFIX, zenoh_config
 
@@ -118,6 +118,7 @@ class RosBridge:
         self._publishing: int | None = None  # the UID being published from ROS, this instant
         self._expected: dict[bytes, int] = {}  # a ROS publisher's GID -> its next number
         self._status_queryable: Any = None
+        self._tasks: set[asyncio.Task[None]] = set()
         self.zid = ""
 
     # --- life cycle ------------------------------------------------------------------------
@@ -330,8 +331,23 @@ class RosBridge:
         self._publishing = channel.uid
         try:
             self.node.publish_nowait(channel, data)
-        except Exception:  # larger than the channel's binding: bind it larger first
-            asyncio.get_running_loop().create_task(self.node.publish(channel, data))
+        except ConfigError:  # larger than the channel's binding: bind it larger first
+            task = asyncio.get_running_loop().create_task(self._publish(channel, data))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+        finally:
+            self._publishing = None
+
+    async def _publish(self, channel: Channel, data: bytes) -> None:
+        """Bind ``channel`` for events of ``data``'s size, then publish it (on CAN, a larger
+        size class; see ``Node.advertise``)."""
+        try:
+            await self.node.advertise(channel, max_size=len(data))
+            self._publishing = channel.uid
+            self.node.publish_nowait(channel, data)
+        except UpsError as exc:  # more than the network carries, the node closing ...
+            self.counters["malformed"] += 1
+            log.warning("could not publish a message of %s on UPS: %s", channel, exc)
         finally:
             self._publishing = None
 

@@ -176,3 +176,9 @@ def test_integers_stay_exact_and_out_of_range_is_refused(tmp_path: Path) -> None
     assert s.ros_payload(struct.pack("<Qi", 0, -32768), 0.0)[4:6] == struct.pack("<h", -32768)
     with pytest.raises(Unrepresentable, match=r"out of range -32768\.\.32767"):
         s.ros_payload(struct.pack("<Qi", 0, 40000), 0.0)
+
+
+def test_humble_has_no_type_hashes(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace('node = "bridge"', 'node = "bridge"\ndistro = "humble"'))
+    speed = load_map(path, domain=5).topics[0]
+    assert speed.key == "5/robot/speed/std_msgs::msg::dds_::Float64_/TypeHashNotSupported"

@@ -23,6 +23,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -41,6 +42,7 @@ pytestmark = [pytest.mark.netns, pytest.mark.timeout(300)]
 # the type hashes ROS 2 generates (tests/test_ros2_reference.py checks them against rclpy's)
 INT16 = "RIHS01_1dcc3464e47c288a55f943a389d337cdb06804de3f5cd7a266b0de718eee17e5"
 FLOAT64 = "RIHS01_705ba9c3d1a09df43737eb67095534de36fd426c0587779bda2bc51fe790182a"
+STRING = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 TWIST = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
 NODE = "ups_test_bridge"
 
@@ -52,6 +54,9 @@ fields = [{ name = "speed", type = "i16", unit = "cm/s" }]
 [channel."robot/limit"]
 byte_order = "big"
 fields = [{ name = "limit", type = "i16", scale = 0.01, unit = "m/s" }]
+
+[channel."robot/label"]
+fields = [{ name = "level", type = "u8" }, { name = "text", type = "str" }]
 
 [channel."robot/cmd"]
 fields = [{ name = "vx", type = "f32" }, { name = "vy", type = "f32" },
@@ -72,6 +77,13 @@ channel = "robot/limit"
 type = "std_msgs/msg/Float64"
 direction = "from_ros"
 fields.data = "limit"
+
+[topic."/robot/label"]
+channel = "robot/label"
+type = "std_msgs/msg/String"
+direction = "from_ros"
+fields.data = "text"
+ups_constants = {{ level = 3 }}
 
 [topic."/robot/cmd_vel"]
 channel = "robot/cmd"
@@ -229,7 +241,7 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str,
         ecb.wait_for_line("CAN-ECB on")
         with Proc("ros2", "--map", str(tmp / "map.toml"), "--ros", endpoint, "--can", bus,
                   "--node-id", "0x5052", "--metrics", "127.0.0.1:0") as bridge:  # fmt: skip
-            bridge.wait_for_line(r"ups ros2: ROS 2 node /ups_test_bridge on .*: 3 topics", 60)
+            bridge.wait_for_line(r"ups ros2: ROS 2 node /ups_test_bridge on .*: 4 topics", 60)
             yield bus, endpoint, bridge
 
 
@@ -314,10 +326,20 @@ def test_ros_publications_reach_a_can_subscriber_as_the_catalogs_bytes(
     assert after["out_of_range"] - before["out_of_range"] == 2
     assert after["no_attachment"] - before["no_attachment"] == 1
     assert after["from_ros"] - before["from_ros"] == 3
+    # a message larger than the channel's binding on CAN (one frame): bound larger, then sent
+    text = "a label longer than one CAN frame"
+    string = CDR + struct.pack("<I", len(text) + 1) + text.encode() + b"\x00"
+    with Proc("sub", "robot/label", "--can", bus, "--json", "--count", "1", "--timeout", "120",
+              "--node-id", "0x5057") as can_sub:  # fmt: skip
+        can_sub.wait_for_line("subscribed to")
+        with ros_side(endpoint, "publish", "/robot/label", "std_msgs/msg/String", STRING,
+                      payloads=[string.hex()]):  # fmt: skip
+            code, out = can_sub.finish(timeout=120)
+    assert code == 0 and json.loads(out)["data"] == (b"\x03" + text.encode()).hex()
     # the same counters for Prometheus, each documented in docs/metrics.md
     metrics = scrape(metrics_url(bridge))
     assert metrics.value("ups_ros2_out_of_range_total") >= 2
-    assert metrics.value("ups_ros2_from_ros_total") == after["from_ros"]
+    assert metrics.value("ups_ros2_from_ros_total") == after["from_ros"] + 1
     assert metrics.value("ups_node_published_total", network="can") >= 3
     assert metrics.undocumented() == []
     assert uncovered(after, [ROS2]) == set()
@@ -365,3 +387,39 @@ def test_a_twist_crosses_classic_can_both_ways_never_reflected(
     info = topic_info(endpoint, cmd)
     assert info["received"] == 1 and info["sent"] == 1
     assert bridge_info(endpoint)["ros2"]["stats"]["reflected"] >= 1
+
+
+def test_on_zenoh_ros_is_heard_only_while_a_ups_node_subscribes(tmp_path: Path) -> None:
+    """The UPS side on Zenoh (a router of its own): the bridge's ROS subscription (its ``MS``
+    token) exists only while a UPS node subscribes to the channel, and the bridge answers
+    ``ups status`` there."""
+    (tmp_path / "catalog.toml").write_text(CATALOG)
+    (tmp_path / "map.toml").write_text(MAP)
+    ros, ups = "tcp/127.0.0.1:17449", "tcp/127.0.0.1:17450"
+
+    def subscribed() -> bool:
+        with ros_side(ros, "graph") as graph:
+            tokens = graph.lines()[0]["tokens"]
+        return any(f"/MS/%/%/{NODE}/%robot%limit/" in t for t in tokens)
+
+    with (
+        start_router(ros),
+        start_router(ups),
+        Proc("ros2", "--map", str(tmp_path / "map.toml"), "--ros", ros, "--zenoh", ups,
+             "--node-id", "0x5056") as bridge,
+    ):  # fmt: skip
+        bridge.wait_for_line(r"ups ros2: ROS 2 node /ups_test_bridge on .*: 4 topics", 60)
+        assert not subscribed()
+        with Proc("sub", "robot/limit", "--zenoh", ups, "--json", "--count", "1", "--timeout",
+                  "120") as sub:  # fmt: skip
+            sub.wait_for_line("subscribed to")
+            wait_until(subscribed, timeout=30)
+            payload = (CDR + struct.pack("<d", 0.75)).hex()
+            with ros_side(ros, "publish", "/robot/limit", "std_msgs/msg/Float64", FLOAT64,
+                          payloads=[payload]):  # fmt: skip
+                code, out = sub.finish(timeout=120)
+        assert code == 0 and json.loads(out)["data"] == "004b"  # 75 (scale 0.01), big-endian
+        wait_until(lambda: not subscribed(), timeout=30)
+        entries = [e for e in zenoh_status(ups) if "ros2" in e]
+        assert len(entries) == 1 and entries[0]["node_id"] == f"0x{0x5056:016x}"
+        assert entries[0]["ros2"]["stats"]["from_ros"] == 1
