@@ -74,6 +74,7 @@ class _Live:
     entity: int
     publisher: Any = None
     token: Any = None  #: MP, declared for as long as the bridge runs
+    listener: Any = None  #: the publisher's matching listener (kept: dropping it ends it)
     gid: bytes = b""
     matching: bool = False  #: a ROS subscriber matches the key (UPS -> ROS)
     subscription: Subscription | None = None  #: on the UPS side, while matching
@@ -154,7 +155,7 @@ class RosBridge:
                     else zenoh.Reliability.BEST_EFFORT,
                     allowed_destination=zenoh.Locality.REMOTE,  # never our own subscriber
                 )
-                live.publisher.declare_matching_listener(
+                live.listener = live.publisher.declare_matching_listener(
                     lambda status, i=live.entity: self._threadsafe(self._matched, i,
                                                                   status.matching))  # fmt: skip
                 live.token = self._session.liveliness().declare_token(token)
@@ -185,6 +186,8 @@ class RosBridge:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
             self._task = None
+        for task in list(self._tasks):
+            task.cancel()
         session, self._session = self._session, None
         for live in self.topics:
             if live.subscription is not None:
