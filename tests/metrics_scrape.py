@@ -15,6 +15,7 @@ from ups._metrics import BUILD_INFO, CAN_LINK, NODE, Metric
 from ups.broker._metrics import CAN_ECB, STATUS_PORT, TCP_ECB
 from ups.gateway._metrics import gateway_table
 from ups.jaus._metrics import JAUS
+from ups.ros2._serve import ROS2
 from ups.tools.console import CONSOLE
 
 from .procs import ROOT, Proc
@@ -31,6 +32,7 @@ TABLES: list[tuple[list[Metric], tuple[str, ...]]] = [
     (STATUS_PORT, ()),
     (gateway_table("SIDE"), ()),
     (JAUS, ()),
+    (ROS2, ()),
     (CONSOLE, ()),
 ]
 

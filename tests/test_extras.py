@@ -95,6 +95,8 @@ ZENOH = "tcp/127.0.0.1:1"
         (["monitor", "--zenoh", ZENOH, "--plain"], "zenoh"),
         (["console", "--broker", "127.0.0.1:1"], "tools"),
         (["dbc", "-o", "robot.dbc", "--recording", "no.blf"], "tools"),
+        (["ros2", "check", "examples/robot.ros2.toml"], "ros2"),
+        (["ros2", "--map", "examples/robot.ros2.toml", "--can", "virtual:x"], "ros2"),
     ],
 )
 def test_a_missing_extra_is_one_line_naming_what_to_install(

@@ -5,9 +5,9 @@ JAUS host stand on the library; the demo and the benchmarks on all of those; the
 (``upscli``) on everything. Read from the sources (every import, lazy ones included), so a
 layer broken in a function that no test runs is caught too.
 
-The folders ``broker/``, ``gateway/``, ``jaus/``, ``examples/`` and ``benchmarks/`` install as
-``ups.broker``, ``ups.gateway``, ... (links in ``ups/``), never under a name of their own: every
-import names them so.
+The folders ``broker/``, ``gateway/``, ``jaus/``, ``ros2/``, ``examples/`` and ``benchmarks/``
+install as ``ups.broker``, ``ups.gateway``, ... (links in ``ups/``), never under a name of their
+own: every import names them so.
 """
 
 from __future__ import annotations
@@ -22,13 +22,14 @@ BELOW: dict[str, set[str]] = {
     "broker": {"ups"},
     "gateway": {"ups", "broker"},
     "jaus": {"ups"},
-    "examples": {"ups", "broker", "gateway", "jaus"},
-    "benchmarks": {"ups", "broker", "gateway", "jaus"},
-    "upscli": {"ups", "broker", "gateway", "jaus", "examples", "benchmarks"},
+    "ros2": {"ups"},
+    "examples": {"ups", "broker", "gateway", "jaus", "ros2"},
+    "benchmarks": {"ups", "broker", "gateway", "jaus", "ros2"},
+    "upscli": {"ups", "broker", "gateway", "jaus", "ros2", "examples", "benchmarks"},
 }
 
 
-LINKED = ("broker", "gateway", "jaus", "examples", "benchmarks")  #: installed as ups.<name>
+LINKED = ("broker", "gateway", "jaus", "ros2", "examples", "benchmarks")  #: installed as ups.<name>
 SOURCES = (*BELOW, "tests")
 
 

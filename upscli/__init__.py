@@ -36,7 +36,7 @@ from ups._metrics import add_metrics, check_metrics
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
-DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus")
+DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus", "ros2")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -243,9 +243,10 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         module.add_arguments(cmd)
         cmd.set_defaults(run=module.run)
 
-    from . import _jaus
+    from . import _jaus, _ros2
 
     _jaus.add_commands(command)
+    _ros2.add_commands(command)
 
     from . import _cnode
 
