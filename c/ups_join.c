@@ -181,6 +181,8 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
         if (!joining) {
             if (arg < UPS__MGMT && arg != node->txnode) {
                 move_to(node, arg, now); /* Assign(t', its id): the old one is another's */
+            } else if (arg == node->txnode) {
+                on_hello(node, now); /* its own again: the CAN-ECB forgot its channels */
             }
         } else if (arg & OFFER_BIT) {
             heard(node, now);

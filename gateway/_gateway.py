@@ -51,6 +51,9 @@ log = logging.getLogger("ups.gateway")
 
 _BURST = 4  # frames the pacer may send back to back after an idle spell
 CLOSE_TRIES = 5  # times close() cancels a task (a second apart) before it gives up on it
+#: channels whose forwarding is brought in line at once (each waits for the CAN-ECB and the IP
+#: side); a flood of forged channels then delays a real one by its share of the backlog only
+RECONCILERS = 8
 
 
 class _Forward:
@@ -136,10 +139,10 @@ class Gateway:
         self.ip: Node | None = None  #: the IP side's node (TCP/IP or Zenoh)
         self._to_ip_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the CAN side
         self._to_can_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the IP side
-        self._dirty: set[int] = set()
+        self._dirty: dict[int, None] = {}  # channels to reconcile, first changed first
         self._unwanted_since: dict[int, float] = {}  # uid -> when its IP subscribers went
         self._settled: dict[int, list[asyncio.Future[None]]] = {}  # uid -> awaiting its reconcile
-        self._current: int | None = None  # the channel being reconciled
+        self._running: set[int] = set()  # the channels being reconciled
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._pacer_wake = asyncio.Event()
@@ -216,10 +219,11 @@ class Gateway:
         self._tables.on_change = self._changed
         if self._ecb is not None:
             self._ecb.bind_gate = self._until_settled
-        self._dirty.update(self._tables.subscribers)
-        self._dirty.update(self._tables.publishers)
+        self._dirty.update(dict.fromkeys(self._tables.subscribers))
+        self._dirty.update(dict.fromkeys(self._tables.publishers))
         loop = asyncio.get_running_loop()
-        self._tasks = [loop.create_task(self._reconcile_loop()), loop.create_task(self._pace())]
+        self._tasks = [loop.create_task(self._reconciler()) for _ in range(RECONCILERS)]
+        self._tasks.append(loop.create_task(self._pace()))
         self._wake.set()
         address = getattr(ip_face, "address", None)  # where TCP publishers reach us
         log.info(
@@ -306,37 +310,53 @@ class Gateway:
     # --- deciding what to forward ----------------------------------------------------------
 
     def _changed(self, uid: int) -> None:
-        self._dirty.add(uid)
+        self._dirty[uid] = None
         self._wake.set()
 
-    async def _reconcile_loop(self) -> None:
-        """Bring every changed channel's forwarding in line with the tables, one at a time."""
+    def _next_dirty(self) -> int | None:
+        """The channel changed first that nobody reconciles now (None: none)."""
+        uid = next((u for u in self._dirty if u not in self._running), None)
+        if uid is not None:
+            del self._dirty[uid]
+            self._running.add(uid)
+        return uid
+
+    async def _reconciler(self) -> None:
+        """Bring changed channels' forwarding in line with the tables, first changed first.
+        ``RECONCILERS`` of these run at once, each on another channel: a channel's reconcile
+        waits for the CAN-ECB and the IP side, and hundreds of channels changed at once (a
+        flood of forged requests) must not hold a real one back for long."""
         while True:
-            await self._wake.wait()
-            self._wake.clear()
-            while self._dirty:
-                uid = self._current = self._dirty.pop()
-                try:
-                    await self._reconcile(uid)
-                except Exception as exc:  # e.g. the CAN-ECB did not answer: try again later
-                    self.counters["reconcile_errors"] += 1
-                    if isinstance(exc, UpsError):
-                        log.warning("could not update forwarding of %016x: %s", uid, exc)
-                    else:
-                        log.exception("could not update forwarding of %016x", uid)
-                    asyncio.get_running_loop().call_later(1.0, self._changed, uid)
-                self._current = None
-                if uid not in self._dirty:
-                    for fut in self._settled.pop(uid, ()):
-                        if not fut.done():
-                            fut.set_result(None)
+            uid = self._next_dirty()
+            if uid is None:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            try:
+                await self._reconcile(uid)
+            except Exception as exc:  # e.g. the CAN-ECB did not answer: try again later
+                self.counters["reconcile_errors"] += 1
+                if isinstance(exc, UpsError):
+                    log.warning("could not update forwarding of %016x: %s", uid, exc)
+                else:
+                    log.exception("could not update forwarding of %016x", uid)
+                asyncio.get_running_loop().call_later(1.0, self._changed, uid)
+            finally:
+                self._running.discard(uid)
+            if uid in self._dirty:  # changed again meanwhile: another reconciler may take it
+                self._wake.set()
+            else:
+                for fut in self._settled.pop(uid, ()):
+                    if not fut.done():
+                        fut.set_result(None)
 
     async def _until_settled(self, uid: int, txnode: int) -> None:
         """Wait until the forwarding of ``uid`` follows the tables (the CAN-ECB's bind gate: a
         new publisher's first events are then forwarded to subscribers already on TCP). Not
         for the gateway's own binding: its reconcile waits for that one (it used to wait out
         the gate's timeout, a second per channel forwarded to CAN)."""
-        if (uid not in self._dirty and uid != self._current) or txnode == self._can_face_txnode():
+        busy = uid in self._dirty or uid in self._running
+        if not busy or txnode == self._can_face_txnode():
             return
         fut = asyncio.get_running_loop().create_future()
         self._settled.setdefault(uid, []).append(fut)

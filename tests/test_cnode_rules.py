@@ -229,6 +229,23 @@ def test_the_answer_to_hello_keeps_its_order_when_the_queue_is_slow() -> None:
     assert claim < pub_at < declare
 
 
+def test_an_assign_of_its_own_txnode_makes_it_announce() -> None:
+    """Assign(t, its id) with its own TxNode t: a join under its id was assigned t, and the
+    CAN-ECB forgot t's channels; the node reports them again (CLAIM, SUB_AT/PUB_AT), as after
+    a Hello. It stays at t."""
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.bind(a, 0x20, A)
+    w.tick(1100)  # past the announcement gap
+    mark = len(w.sent)
+    w.feed(p.Assign(5, w.node_id))
+    w.tick(10)
+    assert p.Request(p.CLAIM, 5, w.node_id) in w.mgmt(mark)
+    assert p.Holds(True, 5, 0x20, A) in w.mgmt(mark)
+    assert w.node.counters()["moves"] == 0
+
+
 # --- transfers ------------------------------------------------------------------------------
 
 

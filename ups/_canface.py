@@ -131,7 +131,8 @@ class CanFace:
         self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
-             "rebinds", "moves", "unbound_dropped", "task_errors", "too_large", "refused_large"),
+             "rebinds", "moves", "reassigned", "unbound_dropped", "task_errors", "too_large",
+             "refused_large"),
             0,
         )  # fmt: skip
         self.bindings = Bindings(
@@ -414,12 +415,18 @@ class CanFace:
             self._moved(msg.txnode)
 
     def _moved(self, txnode: int) -> None:
-        """The CAN-ECB gave this node another TxNode (its CLAIM clashed with another node's)."""
+        """An Assign names this node: the CAN-ECB gave it another TxNode (its CLAIM clashed with
+        another node's), or its own again (a join under its id, forged or a copy of the node).
+        Either way the CAN-ECB has forgotten the TxNode's channels: report them again."""
         if txnode != self.txnode:
             log.warning("CAN-ECB moved this node from TxNode %s to %d", self.txnode, txnode)
             self.txnode = txnode
             self._last_announce = -_HELLO_GAP
-            self._announce_all()  # our channels, under the new TxNode
+        else:
+            self.counters["reassigned"] += 1
+            self._warn("reassigned", "the CAN-ECB assigned this node its TxNode %d again (a "
+                       "join under its id): reporting its channels again", txnode)  # fmt: skip
+        self._announce_all()  # our channels, under the TxNode
 
     def _adopted(self, etag: int, uid: int) -> None:
         """``uid`` is bound to ``etag`` now: receive it, if a subscription waits for that."""

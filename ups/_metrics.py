@@ -115,6 +115,7 @@ NODE = table(
         "own_echo": "this node's own CAN frames heard back (can)",
         "rebinds": "bindings asked again after a contradiction (can)",
         "moves": "channels moved to a larger size class (can)",
+        "reassigned": "Assigns of the TxNode this node held (a join under its id; can)",
         "unbound_dropped": "events dropped while their channel was being bound again (can)",
         "task_errors": "background tasks of the CAN face that failed (can)",
         "refused_large": "subscriptions refused: the channel's events exceed max_event (can)",
