@@ -13,7 +13,7 @@ import pytest
 from broker.tcp_ecb import TcpEcb
 from ups import BrokerUnavailable, Closed, ConfigError, Node, PayloadTooLarge, name_to_uid
 from ups import _tcpwire as w
-from ups._tcpface import parse_address, query_status
+from ups._tcpface import HEARTBEAT, parse_address, query_status
 
 from .conftest import eventually
 
@@ -47,6 +47,39 @@ def stalled_subscriber() -> socket.socket:
     stalled.bind(("127.0.0.1", 0))
     stalled.listen()
     return stalled
+
+
+@contextlib.asynccontextmanager
+async def registered_at(
+    ecb: TcpEcb, node_id: int, address: tuple[str, int], *subscribed: int
+) -> AsyncIterator[None]:
+    """Register a node at ``address`` (say a :func:`stalled_subscriber`) with the TCP-ECB, as
+    subscribing to the ``subscribed`` UIDs, and keep it alive as a node does: a Ping every
+    HEARTBEAT, what the ECB sends read and dropped. However long the test runs, the ECB never
+    takes it for dead (it would after ``liveness`` s of silence, then tell its publishers)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", ecb.port)
+    hello = w.Hello(node_id, "registered", *address)
+    writer.write(b"".join(w.encode(f) for f in (hello, *(w.Subscribe(u) for u in subscribed))))
+
+    async def ping() -> None:
+        while True:
+            writer.write(w.encode(w.Ping()))
+            await asyncio.sleep(HEARTBEAT)  # a node's pace of Pings, not a wait for anything
+
+    async def drain() -> None:
+        while await reader.read(1 << 16):
+            pass
+
+    tasks = [asyncio.create_task(ping()), asyncio.create_task(drain())]
+    try:
+        yield
+    finally:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        writer.close()
+        with contextlib.suppress(OSError):
+            await writer.wait_closed()
 
 
 def tcp_node(ecb: TcpEcb, name: str, **options: Any) -> Node:
@@ -256,11 +289,7 @@ async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -
             tcp_node(tcp_ecb, "fast") as fast,
         ):
             sub = await fast.subscribe("x", maxlen=100_000)
-            with socket.create_connection(("127.0.0.1", tcp_ecb.port)) as reg:
-                reg.sendall(
-                    w.encode(w.Hello(0x51, "stalled", host, port))
-                    + w.encode(w.Subscribe(sub.channels[0].uid))
-                )
+            async with registered_at(tcp_ecb, 0x51, (host, port), sub.channels[0].uid):
                 await pub.publish("x", b"")  # advertise
                 targets = pub.face._outbox._targets  # type: ignore[attr-defined]
                 await eventually(lambda: len(targets.get(sub.channels[0].uid, ())) == 2)
