@@ -117,11 +117,16 @@ def test_ecb_killed_mid_stream_then_restarted() -> None:
         during = len(old_sub.stdout_lines)
         wait_until(lambda: len(old_sub.stdout_lines) >= during + 30)  # still flowing
         second, address = start_tcp_broker("--recovery", "1.5", port=port)
-        with second, sub_proc(address, "flow", node_id=SUB_ID + 1, count=5) as new_sub:
-            code, out = new_sub.finish(timeout=30)
+        # A subscriber that comes after the restart gets the events from then on. It stays to
+        # the end: one that left mid-stream could miss an event sent before its publisher
+        # heard that it left, which the publisher counts as dropped (the wider that moment,
+        # the busier the machine).
+        with second, sub_proc(address, "flow", node_id=SUB_ID + 1, count=count) as new_sub:
+            wait_until(lambda: len(new_sub.stdout_lines) >= 5)
+            assert pub.finish(timeout=30)[0] == 0, "".join(pub.stderr_lines)  # nothing dropped
+            code = new_sub.stop()  # SIGTERM: it says what it lost (nothing), exit 0
             assert code == 0, f"the subscriber that came after the restart: {new_sub.stderr_lines}"
-            assert len(out.splitlines()) == 5
-            assert pub.finish(timeout=30)[0] == 0  # nothing dropped on the way
+            assert 5 <= len(new_sub.stdout_lines) < count
             code, out = old_sub.finish(timeout=30)
             assert code == 0
             assert len(out.splitlines()) == count  # not one event lost
