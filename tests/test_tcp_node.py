@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
@@ -52,11 +52,12 @@ def stalled_subscriber() -> socket.socket:
 @contextlib.asynccontextmanager
 async def registered_at(
     ecb: TcpEcb, node_id: int, address: tuple[str, int], *subscribed: int
-) -> AsyncIterator[None]:
+) -> AsyncIterator[Callable[[w.Frame], None]]:
     """Register a node at ``address`` (say a :func:`stalled_subscriber`) with the TCP-ECB, as
     subscribing to the ``subscribed`` UIDs, and keep it alive as a node does: a Ping every
     HEARTBEAT, what the ECB sends read and dropped. However long the test runs, the ECB never
-    takes it for dead (it would after ``liveness`` s of silence, then tell its publishers)."""
+    takes it for dead (it would after ``liveness`` s of silence, then tell its publishers).
+    Yields a function that sends the ECB more frames from it."""
     reader, writer = await asyncio.open_connection("127.0.0.1", ecb.port)
     hello = w.Hello(node_id, "registered", *address)
     writer.write(b"".join(w.encode(f) for f in (hello, *(w.Subscribe(u) for u in subscribed))))
@@ -72,7 +73,7 @@ async def registered_at(
 
     tasks = [asyncio.create_task(ping()), asyncio.create_task(drain())]
     try:
-        yield
+        yield lambda frame: writer.write(w.encode(frame))
     finally:
         for task in tasks:
             task.cancel()
@@ -308,6 +309,31 @@ async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -
                 by_id = {p["node_id"]: p for p in peers}
                 assert by_id["0x0000000000000051"]["dropped"] == stats["peer_dropped"]
                 assert by_id[f"0x{fast.node_id:016x}"]["dropped"] == 0
+
+
+async def test_a_stalled_subscriber_that_leaves_keeps_its_drops_counted(tcp_ecb: TcpEcb) -> None:
+    """Its publisher lets it go and gives what is queued for it a moment to go out (it does
+    not: 2 s); all that while, what was dropped for it is counted, and then what was left."""
+    uid = name_to_uid("x")
+    with stalled_subscriber() as stalled:
+        async with tcp_node(tcp_ecb, "pub", peer_queue=100) as pub:
+            outbox = pub.face._outbox  # type: ignore[attr-defined]
+            async with registered_at(tcp_ecb, 0x53, stalled.getsockname(), uid) as send:
+                await pub.advertise("x")
+                await eventually(lambda: pub.stats()["peers"] == 1)  # its link is up
+                for _ in range(50):  # until the kernel's buffers and the queue are full
+                    for _ in range(1000):
+                        await pub.publish("x", bytes(1000))
+                    if pub.stats()["peer_dropped"]:
+                        break
+                dropped = pub.stats()["peer_dropped"]
+                assert dropped > 0
+                send(w.Unsubscribe(uid))
+                await eventually(lambda: 0x53 not in outbox._peers)  # let go: its link closes
+                assert outbox._closing  # (still closing, and its count...)
+                assert pub.stats()["peer_dropped"] >= dropped  # ...is there all the same
+                await eventually(lambda: not outbox._closing)
+                assert pub.stats()["peer_dropped"] > dropped  # and what was queued: dropped
 
 
 async def test_a_peer_link_that_breaks_is_dialled_again(
