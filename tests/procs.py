@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import re
@@ -27,26 +28,31 @@ class Proc:
         prefix: tuple[str, ...] = (),
         env: dict[str, str] | None = None,
         cwd: Path = ROOT,
+        stdout: Path | None = None,
     ) -> None:
         """``ups ARGS...``; ``prefix`` runs it under another command (say ``unshare``), ``env``
-        adds to the environment."""
+        adds to the environment. ``stdout``: a file that takes its output instead of a pipe
+        that this process reads (a command that prints a lot then never waits for this process
+        to read it; ``stdout_lines`` has its lines once it has finished)."""
         self.args = args
-        self.popen = subprocess.Popen(
-            [*prefix, sys.executable, "-m", "upscli", *args],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=cwd,
-            env=None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env},
-        )
+        self._stdout_file = stdout
+        with contextlib.ExitStack() as files:
+            out = files.enter_context(stdout.open("w")) if stdout else subprocess.PIPE
+            self.popen = subprocess.Popen(
+                [*prefix, sys.executable, "-m", "upscli", *args],
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=cwd,
+                env=None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env},
+            )
         self.stderr_lines: list[str] = []
         self.stdout_lines: list[str] = []
         self._lines: queue.Queue[str | None] = queue.Queue()
-        self._readers = [
-            threading.Thread(target=self._read, daemon=True),
-            threading.Thread(target=self._read_stdout, daemon=True),
-        ]
+        self._readers = [threading.Thread(target=self._read, daemon=True)]
+        if stdout is None:
+            self._readers.append(threading.Thread(target=self._read_stdout, daemon=True))
         for reader in self._readers:
             reader.start()
 
@@ -86,6 +92,8 @@ class Proc:
             raise AssertionError(f"{self.args[0]} did not exit within {timeout} s") from None
         for reader in self._readers:
             reader.join(timeout=5)
+        if self._stdout_file is not None:
+            self.stdout_lines = self._stdout_file.read_text().splitlines(keepends=True)
         return self.popen.returncode, "".join(self.stdout_lines)
 
     def kill(self) -> None:

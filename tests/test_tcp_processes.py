@@ -11,6 +11,7 @@ import json
 import re
 import socket
 import time
+from pathlib import Path
 
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -46,10 +47,17 @@ def subscribers_of(address: str, channel: str) -> list[str]:
     return []
 
 
-def sub_proc(address: str, *channels: str, node_id: int, count: int, json_out: bool = True) -> Proc:
+def sub_proc(
+    address: str,
+    *channels: str,
+    node_id: int,
+    count: int,
+    json_out: bool = True,
+    stdout: Path | None = None,
+) -> Proc:
     args = ["sub", *channels, "--broker", address, "--node-id", hex(node_id)]
     args += ["--count", str(count), "--timeout", "60"] + (["--json"] if json_out else [])
-    proc = Proc(*args)
+    proc = Proc(*args, stdout=stdout)
     proc.wait_for_line("subscribed to")
     return proc
 
@@ -151,14 +159,18 @@ def test_a_killed_subscriber_leaves_the_lists() -> None:
         pub.stop()
 
 
-def test_a_stalled_subscriber_does_not_slow_the_others() -> None:
+def test_a_stalled_subscriber_does_not_slow_the_others(tmp_path: Path) -> None:
     """A frozen subscriber fills the kernel's buffers, then its queue; its drops are counted."""
     broker, address = start_tcp_broker("--recovery", "0")
     count = 20_000  # 1000 bytes each: far more than the kernel buffers of the frozen link
     data = "ab" * 1000
+    # The live subscriber prints 40 MB: into a file, so that it never waits for this process
+    # to read a pipe (ups sub waits on its output with its event loop; after the TCP-ECB's
+    # liveness, 3 s, the ECB takes it for dead).
     with (
         broker,
-        sub_proc(address, "bulk", node_id=SUB_ID, count=count, json_out=False) as fast,
+        sub_proc(address, "bulk", node_id=SUB_ID, count=count, json_out=False,
+                 stdout=tmp_path / "fast.out") as fast,  # fmt: skip
         sub_proc(address, "bulk", node_id=SUB_ID + 1, count=count, json_out=False) as stalled,
     ):
         stalled.pause()
