@@ -123,10 +123,24 @@ def wire(mbus: str) -> Iterator[can.BusABC]:
     listener.shutdown()
 
 
+#: Zenoh's waits (microseconds) for room in a link's queue before it drops an event put with
+#: congestion control "drop", made long enough that only a link that is really full drops.
+#: Zenoh's defaults (1 ms; 50 ms for a fragmented event) are shorter than its sending thread may
+#: wait for a core on a busy machine. For the test's router, and a node's ``zenoh_config``:
+#: ``{"transport": {"link": {"tx": {"queue": {"congestion_control": {"drop": PATIENT_DROP}}}}}}``.
+PATIENT_DROP = {"wait_before_drop": 5_000_000, "max_wait_before_drop_fragments": 5_000_000}
+
+
 @pytest.fixture(scope="module")
 def zenoh_router() -> Iterator[str]:
     """A Zenoh router (Zenoh's own, as ``ups zenoh-router`` runs it) on loopback; its
-    endpoint. Multicast scouting off: nothing leaves loopback."""
+    endpoint. Multicast scouting off: nothing leaves loopback.
+
+    One setting differs: it waits up to :data:`PATIENT_DROP` for room in its queue to a
+    subscriber before it drops an event (Zenoh's defaults: 1 ms, 50 ms for the fragments of a
+    large one). Nodes put with congestion control "drop"; on a busy machine Zenoh's sending
+    thread can wait longer than that for a core, and an event on an idle link was lost.
+    """
     import json
     import socket
 
@@ -139,6 +153,8 @@ def zenoh_router() -> Iterator[str]:
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    for key, value in PATIENT_DROP.items():
+        conf.insert_json5(f"transport/link/tx/queue/congestion_control/drop/{key}", str(value))
     session = zenoh.open(conf)
     yield endpoint
     session.close()  # type: ignore[no-untyped-call]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import re
@@ -29,35 +30,41 @@ class Proc:
         cwd: Path = ROOT,
         shell: str | None = None,
         exact_env: bool = False,
+        stdout: Path | None = None,
     ) -> None:
         """``ups ARGS...``; ``prefix`` runs it under another command (say ``unshare``), ``env``
         adds to the environment. ``shell``: a command line that bash runs instead, as a person
-        types it; ``exact_env``: ``env`` is the whole environment."""
+        types it; ``exact_env``: ``env`` is the whole environment. ``stdout``: a file that takes
+        its output instead of a pipe that this process reads (a command that prints a lot then
+        never waits for this process to read it; ``stdout_lines`` has its lines once it has
+        finished)."""
         self.args = args or (shell or "",)
+        self._stdout_file = stdout
         command = ["bash", "-c", shell] if shell is not None else [sys.executable, "-m", "upscli"]
         if exact_env:
             environment = env
         else:
             environment = None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env}
-        self.popen = subprocess.Popen(
-            [*prefix, *command, *args],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=cwd,
-            env=environment,
-        )
+        with contextlib.ExitStack() as files:
+            out = files.enter_context(stdout.open("w")) if stdout else subprocess.PIPE
+            self.popen = subprocess.Popen(
+                [*prefix, *command, *args],
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=cwd,
+                env=environment,
+            )
         self.stderr_lines: list[str] = []
         self.stdout_lines: list[str] = []
         self._stdout_grew = threading.Condition()
         self._stdout_ended = False
         self._lines: queue.Queue[str | None] = queue.Queue()
         self._out: queue.Queue[str | None] = queue.Queue()
-        self._readers = [
-            threading.Thread(target=self._read, daemon=True),
-            threading.Thread(target=self._read_stdout, daemon=True),
-        ]
+        self._readers = [threading.Thread(target=self._read, daemon=True)]
+        if stdout is None:
+            self._readers.append(threading.Thread(target=self._read_stdout, daemon=True))
         for reader in self._readers:
             reader.start()
 
@@ -121,6 +128,8 @@ class Proc:
             raise AssertionError(f"{self.args[0]} did not exit within {timeout} s") from None
         for reader in self._readers:
             reader.join(timeout=5)
+        if self._stdout_file is not None:
+            self.stdout_lines = self._stdout_file.read_text().splitlines(keepends=True)
         return self.popen.returncode, "".join(self.stdout_lines)
 
     def kill(self) -> None:

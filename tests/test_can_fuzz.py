@@ -556,7 +556,8 @@ async def test_a_node_assigned_its_own_txnode_again_tells_its_channels_again(
             assert copy.stats()["txnode"] == txnode
         assert ecb.counters["joined"] == joined + 1
         await eventually(
-            lambda: txnode in ecb.publishers.get(out, ())
-            and txnode in ecb.subscribers.get(into, ()),
+            lambda: (
+                txnode in ecb.publishers.get(out, ()) and txnode in ecb.subscribers.get(into, ())
+            ),
             timeout=5,
         )

@@ -6,7 +6,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import socket
 
 import pytest
 
@@ -17,7 +16,12 @@ from ups.broker.can_ecb import CanEcb
 from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
-from .test_tcp_node import stalled_subscriber, tcp_ecb, tcp_node  # noqa: F401  (the fixture)
+from .test_tcp_node import (  # noqa: F401  (tcp_ecb: the fixture)
+    registered_at,
+    stalled_subscriber,
+    tcp_ecb,
+    tcp_node,
+)
 
 
 async def test_a_callback_gets_every_event_in_order_and_survives_its_own_errors(
@@ -88,10 +92,7 @@ async def test_mebibyte_events_arrive_whole_while_a_stalled_peer_holds_a_bounded
         async with tcp_node(tcp_ecb, "pub") as pub, tcp_node(tcp_ecb, "fast") as fast:
             sub = await fast.subscribe("big", maxlen=4)
             uid = sub.channels[0].uid
-            with socket.create_connection(("127.0.0.1", tcp_ecb.port)) as reg:
-                reg.sendall(
-                    w.encode(w.Hello(0x52, "stalled", host, port)) + w.encode(w.Subscribe(uid))
-                )
+            async with registered_at(tcp_ecb, 0x52, (host, port), uid):
                 await pub.advertise("big")
                 targets = pub.face._outbox._targets  # type: ignore[attr-defined]
                 await eventually(lambda: len(targets.get(uid, ())) == 2)

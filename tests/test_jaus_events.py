@@ -27,14 +27,16 @@ def test_every_change_events_keep_their_cap_and_end_with_the_latest(
 
 
 async def _stream(cap: float, gaps_ms: list[float]) -> None:
-    loop = asyncio.get_running_loop()
     latest = [0]
+    # Each Event with the time it went out on the clock that Events keeps its cap with (the
+    # loop's, read once before the answer is asked for): a clock read here, in send, is later
+    # than that by however long the answer took, which differs from one Event to the next.
     sent: list[tuple[float, int]] = []
     counters: dict[str, int] = {}
     events = Events(
         report_of=lambda query: "ReportX",
         answer=lambda query: latest[0],
-        send=lambda sub, report: sent.append((loop.time(), report)),
+        send=lambda sub, report: sent.append((sub.last_sent, report)),
         cap=lambda report: cap,
         counters=counters,
     )

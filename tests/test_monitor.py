@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -45,22 +46,43 @@ def test_monitor_shows_channels_values_and_nodes_coming_and_going() -> None:
             "--interval",
             "0.5",
             "--duration",
-            "30",
+            "60",
         ) as monitor,  # fmt: skip
     ):
-        short = Proc("pub", "robot/distance", "distance=7", "--broker", address, "--catalog",
-                     CATALOG, "--node-id", "0xb2", "--count", "60", "--rate", "20")  # fmt: skip
-        assert short.finish()[0] == 0, short.stderr_lines
         gone = "0x00000000000000b2"
 
         def seen() -> list[dict]:
             return snapshots("".join(monitor.stdout_lines[:-1]))  # whole lines only
 
-        deadline = time.monotonic() + 25
-        while not any(any(n["key"] == gone and not n["alive"] for n in s["nodes"])
-                      for s in seen()):  # fmt: skip
-            assert time.monotonic() < deadline, seen()[-1:]
-            time.sleep(0.1)
+        def until(done: Callable[[list[dict]], bool]) -> None:
+            deadline = time.monotonic() + 25
+            while not done(seen()):
+                assert monitor.popen.poll() is None, monitor.stderr_lines
+                assert time.monotonic() < deadline, seen()[-1:]
+                time.sleep(0.1)
+
+        # A second publisher comes, stays until the monitor has shown its value (it finds the
+        # channel in the TCP-ECB's status, polled every second), then goes.
+        with Proc(
+            "pub",
+            "robot/distance",
+            "distance=7",
+            "--broker",
+            address,
+            "--catalog",
+            CATALOG,
+            "--node-id",
+            "0xb2",
+            "--count",
+            "100000",
+            "--rate",
+            "20",
+        ) as short:
+            until(lambda snaps: any(c["name"] == "robot/distance" and c["last"] == "distance=7 cm"
+                                    for s in snaps for c in s["channels"]))  # fmt: skip
+            assert short.stop() == 0, short.stderr_lines
+        until(lambda snaps: any(any(n["key"] == gone and not n["alive"] for n in s["nodes"])
+                                for s in snaps))  # fmt: skip
     snaps = seen()
     last = snaps[-1]
     speed = next(c for c in last["channels"] if c["name"] == "robot/speed")
@@ -91,6 +113,7 @@ def test_monitor_plain_text_is_a_table() -> None:
             "50",
         ),  # fmt: skip
     ):
+        broker.wait_for_line(r"\(ups-pub\) joined")  # publishing: its events are there to see
         monitor = Proc("monitor", "--broker", address, "--catalog", CATALOG, "--plain",
                        "--interval", "1", "--duration", "3.5")  # fmt: skip
         code, out = monitor.finish()
@@ -104,18 +127,35 @@ def test_monitor_plain_text_is_a_table() -> None:
 def test_monitor_of_a_can_bus_only_listens(tmp_path: object) -> None:
     bus = private_multicast_bus()
     db = str(tmp_path) + "/ecb.db"  # type: ignore[operator]
+
+    def speed_of(snap: dict) -> dict | None:
+        return next((c for c in snap["channels"] if c["name"] == "robot/speed"), None)
+
     with Proc("can-broker", "--can", bus, "--db", db, "--recovery", "0.2") as ecb:
         ecb.wait_for_line("CAN-ECB on")
         with Proc("pub", "robot/speed", "speed=9", "--can", bus, "--catalog", CATALOG,
                   "--count", "100000", "--rate", "100"):  # fmt: skip
-            monitor = Proc("monitor", "--can", bus, "--db", db, "--catalog", CATALOG,
-                           "--json", "--interval", "1", "--duration", "3.5")  # fmt: skip
-            code, out = monitor.finish()
+            ecb.wait_for_line(r"has TxNode 0x00")  # joined: its events follow
+            with Proc("monitor", "--can", bus, "--db", db, "--catalog", CATALOG,
+                      "--json", "--interval", "1", "--duration", "60") as monitor:  # fmt: skip
+                # a snapshot of at least a second of the publisher's events, whenever it comes
+                deadline = time.monotonic() + 30
+                while True:
+                    snaps = snapshots("".join(monitor.stdout_lines[:-1]))  # whole lines only
+                    seen = speed_of(snaps[-1]) if snaps else None
+                    if seen and seen["count"] >= 100:
+                        break
+                    assert monitor.popen.poll() is None, monitor.stderr_lines
+                    assert time.monotonic() < deadline, snaps[-1:]
+                    time.sleep(0.1)
+                code = monitor.stop()  # SIGTERM: a normal way to stop it
         assert code == 0, monitor.stderr_lines
         # the CAN-ECB gave out one TxNode: the publisher's; the monitor never joined
         assert ecb.stop() == 0
-    last = snapshots(out)[-1]
-    speed = next(c for c in last["channels"] if c["name"] == "robot/speed")
+        assert not any("has TxNode 0x01" in line for line in ecb.stderr_lines), ecb.stderr_lines
+    last = snaps[-1]
+    speed = speed_of(last)
+    assert speed is not None
     assert speed["etag"] == "0x0010" and speed["last"] == "speed=9 cm/s" and speed["rate"] > 20
     assert last["bus_load"] > 0
     assert [n["txnode"] for n in last["nodes"]] == ["0x00"]

@@ -5,14 +5,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
 
 from ups import BrokerUnavailable, Closed, ConfigError, Node, PayloadTooLarge, name_to_uid
 from ups import _tcpwire as w
-from ups._tcpface import parse_address, query_status
+from ups._tcpface import HEARTBEAT, parse_address, query_status
 from ups.broker.tcp_ecb import TcpEcb
 
 from .conftest import eventually
@@ -47,6 +47,40 @@ def stalled_subscriber() -> socket.socket:
     stalled.bind(("127.0.0.1", 0))
     stalled.listen()
     return stalled
+
+
+@contextlib.asynccontextmanager
+async def registered_at(
+    ecb: TcpEcb, node_id: int, address: tuple[str, int], *subscribed: int
+) -> AsyncIterator[Callable[[w.Frame], None]]:
+    """Register a node at ``address`` (say a :func:`stalled_subscriber`) with the TCP-ECB, as
+    subscribing to the ``subscribed`` UIDs, and keep it alive as a node does: a Ping every
+    HEARTBEAT, what the ECB sends read and dropped. However long the test runs, the ECB never
+    takes it for dead (it would after ``liveness`` s of silence, then tell its publishers).
+    Yields a function that sends the ECB more frames from it."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", ecb.port)
+    hello = w.Hello(node_id, "registered", *address)
+    writer.write(b"".join(w.encode(f) for f in (hello, *(w.Subscribe(u) for u in subscribed))))
+
+    async def ping() -> None:
+        while True:
+            writer.write(w.encode(w.Ping()))
+            await asyncio.sleep(HEARTBEAT)  # a node's pace of Pings, not a wait for anything
+
+    async def drain() -> None:
+        while await reader.read(1 << 16):
+            pass
+
+    tasks = [asyncio.create_task(ping()), asyncio.create_task(drain())]
+    try:
+        yield lambda frame: writer.write(w.encode(frame))
+    finally:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        writer.close()
+        with contextlib.suppress(OSError):
+            await writer.wait_closed()
 
 
 def tcp_node(ecb: TcpEcb, name: str, **options: Any) -> Node:
@@ -256,11 +290,7 @@ async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -
             tcp_node(tcp_ecb, "fast") as fast,
         ):
             sub = await fast.subscribe("x", maxlen=100_000)
-            with socket.create_connection(("127.0.0.1", tcp_ecb.port)) as reg:
-                reg.sendall(
-                    w.encode(w.Hello(0x51, "stalled", host, port))
-                    + w.encode(w.Subscribe(sub.channels[0].uid))
-                )
+            async with registered_at(tcp_ecb, 0x51, (host, port), sub.channels[0].uid):
                 await pub.publish("x", b"")  # advertise
                 targets = pub.face._outbox._targets  # type: ignore[attr-defined]
                 await eventually(lambda: len(targets.get(sub.channels[0].uid, ())) == 2)
@@ -279,6 +309,31 @@ async def test_a_stalled_subscriber_costs_only_its_own_events(tcp_ecb: TcpEcb) -
                 by_id = {p["node_id"]: p for p in peers}
                 assert by_id["0x0000000000000051"]["dropped"] == stats["peer_dropped"]
                 assert by_id[f"0x{fast.node_id:016x}"]["dropped"] == 0
+
+
+async def test_a_stalled_subscriber_that_leaves_keeps_its_drops_counted(tcp_ecb: TcpEcb) -> None:
+    """Its publisher lets it go and gives what is queued for it a moment to go out (it does
+    not: 2 s); all that while, what was dropped for it is counted, and then what was left."""
+    uid = name_to_uid("x")
+    with stalled_subscriber() as stalled:
+        async with tcp_node(tcp_ecb, "pub", peer_queue=100) as pub:
+            outbox = pub.face._outbox  # type: ignore[attr-defined]
+            async with registered_at(tcp_ecb, 0x53, stalled.getsockname(), uid) as send:
+                await pub.advertise("x")
+                await eventually(lambda: pub.stats()["peers"] == 1)  # its link is up
+                for _ in range(50):  # until the kernel's buffers and the queue are full
+                    for _ in range(1000):
+                        await pub.publish("x", bytes(1000))
+                    if pub.stats()["peer_dropped"]:
+                        break
+                dropped = pub.stats()["peer_dropped"]
+                assert dropped > 0
+                send(w.Unsubscribe(uid))
+                await eventually(lambda: 0x53 not in outbox._peers)  # let go: its link closes
+                assert outbox._closing  # (still closing, and its count...)
+                assert pub.stats()["peer_dropped"] >= dropped  # ...is there all the same
+                await eventually(lambda: not outbox._closing)
+                assert pub.stats()["peer_dropped"] > dropped  # and what was queued: dropped
 
 
 async def test_a_peer_link_that_breaks_is_dialled_again(

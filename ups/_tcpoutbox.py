@@ -88,6 +88,7 @@ class Outbox:
         self._targets: dict[int, list[_Peer]] = {}  # uid -> peers subscribed to it
         self._seq: dict[int, int] = {}  # uid -> number of the last event published
         self._gone_dropped = 0  # events dropped for peers that are no longer subscribers
+        self._leaving: list[_Peer] = []  # former subscribers whose links are closing
         self._closing: set[asyncio.Task[None]] = set()  # links to former subscribers
         self._closed = False
 
@@ -128,7 +129,9 @@ class Outbox:
     def stats(self) -> dict[str, int]:
         peers = self._peers.values()
         return {
-            "peer_dropped": self._gone_dropped + sum(peer.total_dropped() for peer in peers),
+            "peer_dropped": self._gone_dropped
+            + sum(peer.total_dropped() for peer in peers)
+            + sum(peer.total_dropped() for peer in self._leaving),
             "peers": sum(1 for peer in peers if peer.link and peer.link.transport),
             "queued": sum(peer.link.queued for peer in peers if peer.link),
         }
@@ -255,6 +258,9 @@ class Outbox:
         still queued after that is dropped, and counted."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + _CLOSE_TIMEOUT
+        # Former subscribers (no longer in _peers) are counted from _leaving while their links
+        # close, which takes up to _CLOSE_TIMEOUT; then from _gone_dropped.
+        self._leaving += [p for p in peers if p.link and self._peers.get(p.node_id) is not p]
         for peer in peers:
             link, task = peer.link, peer.task
             if link is None:
@@ -274,7 +280,8 @@ class Outbox:
             peer.link = None
             if peer.dropped > peer.reported:
                 self._report(peer)
-            if self._peers.get(peer.node_id) is not peer:  # gone: keep its count
+            if peer in self._leaving:  # gone: keep its count
+                self._leaving.remove(peer)
                 self._gone_dropped += peer.dropped
 
     def report(self) -> None:
