@@ -18,7 +18,8 @@ from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
-from ._tcplink import Doorman, Link
+from ._tcpbounds import Doorman
+from ._tcplink import Link
 from ._tls import identity
 
 if TYPE_CHECKING:
