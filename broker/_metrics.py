@@ -40,8 +40,12 @@ TCP_ECB = table(
         "refused": "connections refused: too many links and none waiting for Hello",
         "evicted": "connections without Hello closed to make room for new ones",
         "timed_out": "connections closed for sending no Hello in time",
+        "receive_refused": "frames refused before their body was read: no room left in the "
+        "receive buffers",
+        "receive_stalled": "links closed for holding a grown receive buffer without completing "
+        "a frame in time",
     },
-    {},
+    {"receive_held": "bytes by which links grew their receive buffers"},
 )
 
 #: ``CanEcb.stats()``, of ``ups can-broker`` or hosted by ``ups gateway``

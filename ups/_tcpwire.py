@@ -10,6 +10,7 @@ link closes that link and goes on.
 
 from __future__ import annotations
 
+import mmap
 import reprlib
 import struct
 from collections.abc import Callable
@@ -263,7 +264,7 @@ def _append_event(frames: list[Frame], uid: int, data: bytes, priority: int, seq
 
 
 def parse(
-    buf: bytearray,
+    buf: bytearray | mmap.mmap,
     pos: int,
     end: int,
     max_frame: int,
