@@ -20,7 +20,7 @@ first ``recovery`` seconds it collects registrations and answers none, so no pub
 a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
 
 Its own work never makes it drop a node: a Status costs what it lists, at most once per
-``STATUS_GAP`` (``ups._statuspacer``); silence counts only while it reads (``_sweep``).
+``STATUS_GAP`` (``ups._statuspacer``); silence counts only while it reads (``_liveness``).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 
 from ._acl import Acl
+from ._liveness import sweep
 from ._tcpstatus import registry_status
 
 log = logging.getLogger("ups.tcp_ecb")
@@ -49,7 +50,6 @@ DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
-HELD_UP = 0.25  #: seconds a liveness sweep may come late before the loop counts as held up
 MAX_OWNERS = 1 << 16  #: node ids remembered with their identity (TLS), departed ones included
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
@@ -127,7 +127,6 @@ class TcpEcb:
              "held_up"), 0,
         )  # fmt: skip
         self._pacer = StatusPacer(self.status, self.counters, who="the TCP-ECB")
-        self._held_up_logged = float("-inf")  # time.monotonic() of the last log of it
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -142,7 +141,9 @@ class TcpEcb:
         self._recovering = self.recovery > 0
         if self._recovering:
             self._tasks.append(loop.create_task(self._end_recovery()))
-        self._tasks.append(loop.create_task(self._sweep()))
+        self._tasks.append(
+            loop.create_task(sweep(self._members, self.liveness, self._leave, self.counters))
+        )
         log.info(
             "TCP-ECB on %s:%d (liveness %g s, recovery %g s%s%s)",
             self.host,
@@ -467,39 +468,6 @@ class TcpEcb:
                 if member is not None:
                     self._answer(member, uid, subscribe)
         log.info("TCP-ECB recovered: %d nodes registered", len(self._members))
-
-    async def _sweep(self) -> None:
-        """Remove nodes that have been silent for ``liveness`` seconds in which the ECB could
-        read. While the event loop is held up (a long piece of work, the process not
-        scheduled), live nodes' frames wait unread in their sockets: a sweep that comes late
-        by more than ``HELD_UP`` credits every node with the time the loop lost, so that none
-        is judged silent for it (counted in ``held_up``)."""
-        period = self.liveness / 4
-        due = time.monotonic() + period
-        while True:
-            await asyncio.sleep(max(0.0, due - time.monotonic()))
-            now = time.monotonic()
-            late, due = now - due, now + period
-            if late > HELD_UP:
-                self._held_up(now, late)
-            for member in list(self._members.values()):
-                if now - member.heard > self.liveness:
-                    try:
-                        self._leave(member, f"silent for {self.liveness:g} s")
-                    except Exception:  # one broken entry must not stop every later sweep
-                        self.counters["errors"] += 1
-                        log.exception("could not remove node %016x", member.node_id)
-
-    def _held_up(self, now: float, late: float) -> None:
-        self.counters["held_up"] += 1
-        for member in self._members.values():  # never past now: heard since, heard now
-            member.heard = min(now, member.heard + late)
-        if now - self._held_up_logged >= 1.0:
-            self._held_up_logged = now
-            log.warning(
-                "the TCP-ECB could not run for at least %.1f s; that time does not count as "
-                "nodes' silence (%d times so far)", late, self.counters["held_up"],
-            )  # fmt: skip
 
 
 def _hex(value: int) -> str:
