@@ -28,9 +28,11 @@ TCP_ECB = table(
         "status_builds": "status answers built",
         "status_answers": "status requests answered",
         "status_paced": "status requests that waited for the next build",
+        "identity_write_errors": "writes of the node id bindings file that failed (TLS)",
     },
     {
         "nodes": "nodes registered",
+        "identity_bindings": "node ids bound to the identity that first registered them (TLS)",
         "channels": "channels that have a subscriber or a publisher",
         "links": "TCP connections open",
     },

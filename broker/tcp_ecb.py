@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 from ups import _tcpwire as w
@@ -41,6 +42,7 @@ from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 
 from ._acl import Acl
+from ._identities import Identities
 from ._liveness import sweep
 from ._tcpstatus import registry_status
 
@@ -50,7 +52,6 @@ DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
-MAX_OWNERS = 1 << 16  #: node ids remembered with their identity (TLS), departed ones included
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
 
@@ -90,7 +91,10 @@ class TcpEcb:
         hello_timeout: float = 5.0,
         tls: Tls | None = None,
         acl: Acl | None = None,
+        identities: Path | None = None,
     ) -> None:
+        """``identities``: the file that keeps the node id <-> identity bindings (with TLS) across
+        restarts (``broker/_identities.py``; None: they last as long as the ECB runs)."""
         if acl is not None and tls is None:
             raise ConfigError(
                 "an ACL needs TLS (identities are certificate names): give --tls-ca, --tls-cert "
@@ -118,7 +122,6 @@ class TcpEcb:
         self._acl = acl
         self._names: dict[int, str] = {}  # uid -> its name, checked against the UID
         self._refusals_logged: set[tuple[str | None, str, int]] = set()
-        self._owners: dict[int, str] = {}  # node id -> the identity that registered it
         self._doorman = Doorman(
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
         )
@@ -127,6 +130,9 @@ class TcpEcb:
              "held_up"), 0,
         )  # fmt: skip
         self._pacer = StatusPacer(self.status, self.counters, who="the TCP-ECB")
+        #: node id -> identity (TLS): the ACL's pins, the bindings made (kept in a file)
+        self._owners = Identities(acl.pins() if acl else {}, identities if tls else None,
+                                  self.counters)  # fmt: skip
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -168,6 +174,7 @@ class TcpEcb:
             link.close()
         self._doorman.close()
         self._pacer.close()
+        await self._owners.close()
 
     def stats(self) -> dict[str, int]:
         return {
@@ -241,18 +248,15 @@ class TcpEcb:
             link.abort("unexpected frame")
 
     def _owned_by(self, link: Link, node_id: int) -> bool:
-        """With TLS, a node id belongs to the identity that first registered it, also after the
-        node left (no takeover, no squatting while it restarts): another identity saying
-        Hello with it is refused."""
+        """With TLS, a node id belongs to the identity the ACL pins it to, or else to the one
+        that first registered it, also after the node left and across restarts (no takeover,
+        no squatting while it restarts: ``_identities``): another identity saying Hello with
+        it is refused."""
         name = identity(link.transport)
         if name is None:
             return True
-        owner = self._owners.setdefault(node_id, name)
-        if len(self._owners) > MAX_OWNERS:  # forget the oldest id of a departed node
-            oldest = next((n for n in self._owners if n not in self._members), None)
-            if oldest is not None:
-                del self._owners[oldest]
-        if owner == name:
+        owner = self._owners.claim(node_id, name, self._members)
+        if owner is None:
             return True
         self.counters["impostors"] += 1
         log.warning("refused %s: node id %016x belongs to %s", name, node_id, owner)
@@ -483,16 +487,17 @@ def _uid_of(name: str) -> int | None:
 
 async def serve(
     listen: str, liveness: float, recovery: float, tls: Tls | None = None, acl: Acl | None = None,
-    metrics: str | None = None,
+    metrics: str | None = None, identities: Path | None = None,
 ) -> None:  # fmt: skip
     """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled; with ``metrics`` (HOST:PORT),
-    its counters are served there to Prometheus."""
+    its counters are served there to Prometheus; ``identities``: see ``TcpEcb``."""
     from ups._metrics import serving_metrics
 
     from ._metrics import tcp_ecb_reading
 
     host, port = parse_address(listen)
-    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl)
+    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl,
+                 identities=identities)  # fmt: skip
     async with serving_metrics(metrics, "broker", lambda: tcp_ecb_reading(ecb)):
         await ecb.start()
         try:
