@@ -72,7 +72,7 @@ class Identities:
         self._by_identity: dict[str, dict[int, None]] = {}  # identity -> its ids, oldest first
         self._lock = -1
         self._writer: asyncio.Task[None] | None = None
-        self._dirty = False  # bindings made since the write in flight started
+        self._dirty = False  # bindings made since the last write started
         self._unsaved = False  # the last write failed: the next one (or close) tries again
         self._closed = False
         self._forgotten = 0
@@ -104,11 +104,10 @@ class Identities:
     async def close(self) -> None:
         """Write what is not written yet, and let go of the file."""
         self._closed = True
-        while self._writer is not None:  # (its callback may start the next one)
+        if self._writer is not None:  # it ends when every binding made is written
             with contextlib.suppress(Exception):
                 await self._writer
-        if (self._dirty or self._unsaved) and self.path is not None:
-            self._dirty = False
+        if self._unsaved and self.path is not None:
             await self._write(self._snapshot())
         if self._lock >= 0:
             os.close(self._lock)
@@ -165,7 +164,7 @@ class Identities:
                 if pinned != identity:
                     log.warning("node id %016x is pinned to %s by the ACL: its binding to %s "
                                 "in %s is dropped", node_id, pinned, identity, path)  # fmt: skip
-                    self._dirty = True
+                    self._unsaved = True  # written again without it
                 continue
             self._bind(node_id, identity)
         log.info("node id bindings: %d kept in %s, %d pinned by the ACL", len(self._owners),
@@ -178,17 +177,17 @@ class Identities:
         """Write the bindings soon (one write at a time; what comes meanwhile, with the next)."""
         if self.path is None or self._closed:
             return
-        if self._writer is not None:
-            self._dirty = True
-            return
-        self._writer = asyncio.get_running_loop().create_task(self._write(self._snapshot()))
-        self._writer.add_done_callback(self._written)
+        self._dirty = True
+        if self._writer is None:
+            self._writer = asyncio.get_running_loop().create_task(self._write_all())
 
-    def _written(self, task: asyncio.Task[None]) -> None:
-        self._writer = None
-        if self._dirty and not task.cancelled():
-            self._dirty = False
-            self._save()
+    async def _write_all(self) -> None:
+        try:
+            while self._dirty:
+                self._dirty = False
+                await self._write(self._snapshot())
+        finally:
+            self._writer = None
 
     async def _write(self, bindings: list[list[str]]) -> None:
         assert self.path is not None
