@@ -133,6 +133,9 @@ class TcpEcb:
         #: node id -> identity (TLS): the ACL's pins, the bindings made (kept in a file)
         self._owners = Identities(acl.pins() if acl else {}, identities if tls else None,
                                   self.counters)  # fmt: skip
+        #: told each node after its Hello (TLS): who may read its Status (the ACL's right)
+        readers = w.StatusReaders(acl.status_readers() if acl else None)
+        self._readers = w.encode(readers) if tls else None
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -329,6 +332,8 @@ class TcpEcb:
             )
         link.peer = member
         link.send_control(w.encode(w.Hello(0, "ups-broker", self.host, self.port)))
+        if self._readers is not None:
+            link.send_control(self._readers)
 
     def _register(
         self, member: _Member, frame: w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise

@@ -5,6 +5,10 @@ tests (each failed before the change that made it pass).
   and so locked them out for the whole run: now the ACL may pin node ids to identities (refused
   to every other identity from the ECB's first moment), and the ECB keeps the bindings it made
   in a file across restarts (``broker/_identities.py``).
+- A node's own listening port answered its Status to any fleet identity (the ACL's ``status``
+  right was checked at the ECB only): now the ECB names, to every node after its Hello, the
+  identities that may read it (``StatusReaders``), and the node answers no other, on its
+  listening port or on its links to subscribers.
 - A link the ECB vouched for on no channel sent a 1 MiB event: it is not read until the link
   is admitted (``ups/_tcpbounds.py``).
 
@@ -170,6 +174,68 @@ async def test_an_identity_that_makes_up_node_ids_forgets_its_own_not_others(
         assert ecb.stats()["identity_bindings"] == 4
         with pytest.raises(AccessDenied, match="node id 00000000000000a1 is taken"):
             await _squat(fleet, address, 0xA1)
+
+
+# --- a node's status ---------------------------------------------------------------------
+
+
+async def test_a_nodes_port_answers_status_only_to_identities_with_the_right(
+    fleet: Path,
+) -> None:
+    async with acl_ecb(fleet) as ecb, node(fleet, ecb, "alice", 0xA1) as alice:
+        await alice.subscribe("robot/speed")
+        host, port = alice.face.address  # type: ignore[attr-defined]
+        for who in ("mallory", "alice"):  # a fleet identity, alice herself: not in the ACL's
+            with pytest.raises(AccessDenied, match=f"identity '{who}' may not read this node"):
+                await query_status(f"{host}:{port}", tls=tls(fleet, who))
+        mine = await query_status(f"{host}:{port}", tls=tls(fleet, "bob"))  # status = true
+        assert mine["node_id"] == "0x00000000000000a1" and mine["stats"]["status_denied"] == 2
+
+
+async def test_a_subscriber_cannot_ask_its_publisher_for_its_status(fleet: Path) -> None:
+    """mallory may subscribe robot/speed: alice, publishing it, dials her. On that link mallory
+    asks alice for her Status, and is refused."""
+    speed = name_to_uid("robot/speed")
+    answers: asyncio.Queue[w.Frame] = asyncio.Queue()
+
+    async def subscriber(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(w.encode(w.StatusRequest()))
+        decoder = w.Decoder(max_frame=w.MAX_BODY)
+        while data := await reader.read(1 << 16):
+            for frame in decoder.feed(data):
+                if isinstance(frame, w.Status | w.Refused):
+                    await answers.put(frame)
+        writer.close()
+
+    context = tls(fleet, "mallory").server()
+    server = await asyncio.start_server(subscriber, "127.0.0.1", 0, ssl=context)
+    mallory_port = server.sockets[0].getsockname()[1]
+    async with server, acl_ecb(fleet) as ecb, node(fleet, ecb, "alice", 0xA1) as alice:
+        reader, writer = await asyncio.open_connection(
+            "127.0.0.1", ecb.port, ssl=tls(fleet, "mallory").client()
+        )
+        writer.write(w.encode(w.Hello(0x3A, "mallory", "127.0.0.1", mallory_port)))
+        writer.write(w.encode(w.Subscribe(speed, "robot/speed")))
+        await eventually(lambda: len(ecb._subscribers.get(speed, ())) == 1)
+        await alice.publish("robot/speed", b"\x01")  # alice learns of mallory, and dials her
+        answer = await asyncio.wait_for(answers.get(), 10)
+        assert isinstance(answer, w.Refused) and answer.right == "status", answer
+        assert alice.stats()["status_denied"] == 1
+        writer.close()
+        del reader
+
+
+async def test_without_an_acl_every_fleet_identity_may_read_a_nodes_status(fleet: Path) -> None:
+    ecb = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls(fleet, "broker"))
+    await ecb.start()
+    try:
+        async with Node(broker=f"127.0.0.1:{ecb.port}", node_id=0xA1,
+                        tls=tls(fleet, "alice")) as alice:  # fmt: skip
+            host, port = alice.face.address  # type: ignore[attr-defined]
+            mine = await query_status(f"{host}:{port}", tls=tls(fleet, "mallory"))
+            assert mine["stats"]["status_denied"] == 0
+    finally:
+        await ecb.close()
 
 
 # --- receive buffers ------------------------------------------------------------------------

@@ -129,6 +129,8 @@ NODE = table(
         "status_builds": "status answers built (tcp)",
         "status_answers": "status requests answered (tcp)",
         "status_paced": "status requests that waited for the next build (tcp)",
+        "status_denied": "status requests on the node's own links refused: the identity may "
+        "not read it (tcp, TLS)",
         "receive_refused": "frames refused before their body was read: no room left in the "
         "receive buffers of the node's listening port (tcp)",
         "receive_stalled": "links from publishers closed for holding a grown receive buffer "

@@ -38,6 +38,7 @@ _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, s
 _WHOLE = tuple(struct.Struct(f">IBBQQ{size}s") for size in range(257))
 _pack_event = _EVENT_HEAD.pack
 _T = TypeVar("_T")
+_STATUS_READERS: Final = 17  # (14, 15 and 16 are taken: Watch, Unwatch, Names)
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,6 +119,15 @@ class Publishers:
 
 
 @dataclass(frozen=True, slots=True)
+class StatusReaders:
+    """ECB -> node (with TLS), after its Hello: the identities whose StatusRequests the node
+    answers on its own links (the ACL's ``status`` right); None: every identity of the fleet
+    (an ECB without an ACL). Until told, a node with TLS answers no one there."""
+
+    identities: tuple[str, ...] | None
+
+
+@dataclass(frozen=True, slots=True)
 class Refused:
     """ECB -> node: ``right`` ("publish", "subscribe", "status" or "connect") on ``uid`` (0 for
     "status" and "connect") is not granted; ``reason`` says why, for people."""
@@ -171,6 +181,7 @@ Frame = (
     | Pong
     | StatusRequest
     | Status
+    | StatusReaders
     | Start
     | Publishers
     | Refused
@@ -210,6 +221,9 @@ def _fields(frame: Frame) -> tuple[Any, ...]:
         return (_START, frame.uid, frame.seq)
     if isinstance(frame, Hello):
         return (_HELLO, frame.node_id, frame.name, frame.host, frame.port)
+    if isinstance(frame, StatusReaders):
+        readers = None if frame.identities is None else list(frame.identities)
+        return (_STATUS_READERS, readers)
     if isinstance(frame, Subscribe):
         return (_SUB, frame.uid) if frame.name is None else (_SUB, frame.uid, frame.name)
     if isinstance(frame, Unsubscribe):
@@ -363,6 +377,9 @@ def _frame(f: tuple[Any, ...]) -> Frame:
     if kind == _HELLO:
         _, node_id, name, host, port = f
         return Hello(_uid(node_id), _str(name), _str(host), _int(port, 0xFFFF))
+    if kind == _STATUS_READERS:
+        _, readers = f
+        return StatusReaders(None if readers is None else tuple(map(_str, _array(readers))))
     if kind in (_SUB, _ADVERTISE):
         _, uid, *name = f  # the name is optional
         if len(name) > 1:
