@@ -137,8 +137,10 @@ class StatusGate:
     any; without TLS, everyone (plain TCP names no one). Others get Refused(0, "status"),
     counted (``status_denied``) and logged at most once a second."""
 
-    def __init__(self, pacer: StatusPacer, counters: dict[str, int], *, checking: bool) -> None:
-        self._pacer = pacer
+    def __init__(
+        self, answer: Callable[[Link], None], counters: dict[str, int], *, checking: bool
+    ) -> None:
+        self._answer = answer  # the pacer's ask: answers with the next Status
         self._counters = counters
         counters.setdefault("status_denied", 0)
         self._checking = checking
@@ -164,4 +166,4 @@ class StatusGate:
                 reason = f"identity {who!r:.80} may not read this node's status"
                 link.send_control(w.encode(w.Refused(0, "status", reason)))
                 return
-        self._pacer.ask(link)
+        self._answer(link)

@@ -18,7 +18,7 @@ from . import _tcpwire as w
 from ._address import parse_address
 from ._errors import AccessDenied, BrokerUnavailable, ConfigError, PayloadTooLarge, UpsError
 from ._face import OVERFLOWS, Overflow
-from ._statuspacer import StatusGate, StatusPacer
+from ._statuspacer import StatusPacer
 from ._subscription import DEFAULT_QUEUE
 from ._tcpinbox import Inbox
 from ._tcplink import Link
@@ -123,14 +123,12 @@ class TcpFace:
         )  # fmt: skip
         #: answers every StatusRequest (listening port, links to subscribers, the ECB link)
         self._pacer = StatusPacer(self.status, self.counters, who=f"node {node_id:016x}")
-        #: ... on our own links, to the identities the TCP-ECB names (TLS: the status right)
-        self._gate = StatusGate(self._pacer, self.counters, checking=tls is not None)
         self._inbox = Inbox(
             deliver=deliver,
             channels=channels,
             subscribed=self._subscribed,
             counters=self.counters,
-            status=self._gate.ask,
+            status=self._pacer.ask,
             checking=tls is not None,
         )
         self._outbox = Outbox(
@@ -142,7 +140,7 @@ class TcpFace:
             peer_overflow=peer_overflow,
             counters=self.counters,
             on_targets=self._targets_changed,
-            status=self._gate.ask,
+            status=self._inbox.gate.ask,  # the status right, as on our listening port
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -398,7 +396,7 @@ class TcpFace:
         elif isinstance(frame, w.StatusRequest):
             self._pacer.ask(link)
         elif isinstance(frame, w.StatusReaders):  # who may read our Status on our own links
-            self._gate.told(frame.identities)
+            self._inbox.gate.told(frame.identities)
 
     def _on_refused(self, frame: w.Refused) -> None:
         self.counters["denied"] += 1

@@ -19,6 +19,7 @@ from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
+from ._statuspacer import StatusGate
 from ._tcpbounds import Doorman
 from ._tcplink import HELD, Link
 from ._tls import identity
@@ -67,7 +68,9 @@ class Inbox:
         self._subscribed = subscribed
         self._counters = counters
         self.received = 0  #: events delivered (an attribute: counted per event, stats() adds it)
-        self._status = status  # answers a StatusRequest on a link (``_tcpstatus.StatusPacer``)
+        #: answers a StatusRequest on a link (``status``: ``StatusPacer.ask``) if the identity
+        #: may read it (with TLS: those the TCP-ECB names, see ``StatusGate.told``)
+        self.gate = StatusGate(status, counters, checking=checking)
         self._checking = checking  # with TLS: events only from vouched-for identities
         self._vouched: dict[int, frozenset[tuple[int, str]]] = {}  # uid -> (node id, identity)
         self._known: set[tuple[int, str]] = set()  # every pair vouched for, on any channel
@@ -184,7 +187,7 @@ class Inbox:
             else:
                 self._start(link, pub, frame)
         elif isinstance(frame, w.StatusRequest):
-            self._status(link)
+            self.gate.ask(link)
         elif isinstance(frame, w.Ping):
             link.send_control(w.encode(w.Pong()))
 
