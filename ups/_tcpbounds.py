@@ -5,7 +5,7 @@ to be admitted, how large their frames may be until then). ``ReceiveBudget`` bou
 their receive buffers hold together: each link reads into a base buffer of its own
 (``BASE_BUFFER``); a frame larger than that is read into a buffer grown for it, and that growth
 is taken from the budget (``RECEIVE_BUDGET`` by default), only for links that were admitted.
-docs/protocol.md (*Bounds on every listening socket*) says it for people.
+docs/protocol.md (*Bounds on every listening socket*, *Receive buffers*) says it for people.
 """
 
 from __future__ import annotations
@@ -70,8 +70,7 @@ class ReceiveBudget:
                 self._log(
                     "refused a frame from %s: it needs %d bytes of receive buffer more, and the "
                     "links of its socket hold %d of their %d (%d frames refused so far)",
-                    link.name, more,
-                    self.held, self.total, self.counters["receive_refused"],
+                    link.name, more, self.held, self.total, self.counters["receive_refused"],
                 )  # fmt: skip
                 return False
         self._set(self.held + more)
