@@ -8,7 +8,8 @@ An ACL is a TOML file with one table per identity (a certificate's common name):
 
     [identity.operator]
     subscribe = ["*"]
-    status = true          # may ask the broker for its tables (ups status)
+    status = true          # may ask the broker for its tables (ups status), and every node
+    node_ids = ["0x5b"]    # node ids only this identity may register
 
 Each entry is a channel name (``robot1/speed``), a glob over names (``robot1/*``; ``*``, ``?``
 and ``[...]`` as in shell patterns, ``*`` crossing ``/`` too), or a UID (``0x`` and hex digits).
@@ -16,6 +17,9 @@ A name or UID matches its channel whether the node gave the name or only the UID
 name's hash). A glob matches only channels whose name the broker knows; the lone ``*`` matches
 every channel. An identity that is not listed may do nothing: the ECB refuses even its Hello,
 and since the ECB vouches for no node of it, subscribers admit none of its links for long.
+``node_ids`` pins node ids (``0x`` and hex digits, or integers) to the identity: any other
+identity saying Hello with one is refused from the ECB's first moment (``broker/_identities.py``
+keeps the other bindings); a node id is pinned to one identity at most.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from ups._channel import name_to_uid, parse_channel
 from ups._errors import ConfigError
 
 _GLOB = frozenset("*?[")
-_KEYS = frozenset({"publish", "subscribe", "status"})
+_KEYS = frozenset({"publish", "subscribe", "status", "node_ids"})
+_TOP_ID = (1 << 64) - 1
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,7 @@ class _Rights:
     publish: _Patterns
     subscribe: _Patterns
     status: bool
+    node_ids: frozenset[int]
 
 
 class Acl:
@@ -84,6 +90,13 @@ class Acl:
         if not isinstance(identities, dict):
             raise ConfigError(f"{source}: 'identity' must be tables, [identity.NAME]")
         rights = {name: _rights(source, name, table) for name, table in identities.items()}
+        pinned: dict[int, str] = {}
+        for name, entry in rights.items():
+            for node_id in sorted(entry.node_ids):
+                other = pinned.setdefault(node_id, name)
+                if other != name:
+                    raise ConfigError(f"{source}: node id 0x{node_id:016x} is pinned to both "
+                                      f"[identity.{other}] and [identity.{name}]")  # fmt: skip
         return cls(rights, source)
 
     def __contains__(self, identity: str | None) -> bool:
@@ -101,6 +114,14 @@ class Acl:
     def may_status(self, identity: str | None) -> bool:
         rights = self._rights.get(identity) if identity is not None else None
         return rights is not None and rights.status
+
+    def status_readers(self) -> tuple[str, ...]:
+        """The identities that may read Status (the broker's, and every node's), sorted."""
+        return tuple(sorted(name for name, rights in self._rights.items() if rights.status))
+
+    def pins(self) -> dict[int, str]:
+        """Node id -> the identity it is pinned to (``node_ids``)."""
+        return {n: name for name, rights in self._rights.items() for n in rights.node_ids}
 
     def __len__(self) -> int:
         return len(self._rights)
@@ -121,7 +142,25 @@ def _rights(source: str, identity: str, table: Any) -> _Rights:
         _patterns(where, "publish", table.get("publish", [])),
         _patterns(where, "subscribe", table.get("subscribe", [])),
         status,
+        _node_ids(where, table.get("node_ids", [])),
     )
+
+
+def _node_ids(where: str, entries: Any) -> frozenset[int]:
+    """``node_ids``: each a string (``0x`` and hex digits, or decimal) or an integer."""
+    if not isinstance(entries, list):
+        raise ConfigError(f'{where}: node_ids must be a list of node ids ("0x5b", ...)')
+    ids: set[int] = set()
+    for entry in entries:
+        try:
+            value = int(entry, 0) if isinstance(entry, str) else entry
+        except ValueError:
+            value = None
+        if type(value) is not int or not 0 <= value <= _TOP_ID:
+            raise ConfigError(f"{where}: node_ids entry {entry!r} is not a 64-bit node id "
+                              "(0x and hex digits)")  # fmt: skip
+        ids.add(value)
+    return frozenset(ids)
 
 
 def _patterns(where: str, key: str, entries: Any) -> _Patterns:

@@ -23,6 +23,7 @@ TCP_ECB = table(
         "denied": "registrations and requests refused (ACL, a wrong name, the channel limit)",
         "limited": "registrations refused because the node has MAX_CHANNELS channels",
         "impostors": "nodes refused because another identity holds their node id (TLS)",
+        "identity_write_errors": "writes of the node id bindings file that failed (TLS)",
         "errors": "failures while removing a node (a bug: see the log)",
         "held_up": "liveness sweeps that came late because the event loop was held up",
         "status_builds": "status answers built",
@@ -34,6 +35,7 @@ TCP_ECB = table(
         "nodes": "nodes registered",
         "watches": "patterns nodes watch for channel names",
         "channels": "channels that have a subscriber or a publisher",
+        "identity_bindings": "node ids bound to the identity that first registered them (TLS)",
         "links": "TCP connections open",
     },
 ) + table(
@@ -42,8 +44,12 @@ TCP_ECB = table(
         "refused": "connections refused: too many links and none waiting for Hello",
         "evicted": "connections without Hello closed to make room for new ones",
         "timed_out": "connections closed for sending no Hello in time",
+        "receive_refused": "frames refused before their body was read: no room left in the "
+        "receive buffers",
+        "receive_stalled": "links closed for holding a grown receive buffer without completing "
+        "a frame in time",
     },
-    {},
+    {"receive_held": "bytes by which links grew their receive buffers"},
 )
 
 #: ``CanEcb.stats()``, of ``ups can-broker`` or hosted by ``ups gateway``

@@ -20,7 +20,7 @@ first ``recovery`` seconds it collects registrations and answers none, so no pub
 a half-rebuilt list (which would cut events to subscribers that have not re-registered yet).
 
 Its own work never makes it drop a node: a Status costs what it lists, at most once per
-``STATUS_GAP`` (``ups._statuspacer``); silence counts only while it reads (``_sweep``).
+``STATUS_GAP`` (``ups._statuspacer``); silence counts only while it reads (``_liveness``).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 from ups import _tcpwire as w
@@ -41,6 +42,8 @@ from ups._tcplink import Doorman, Link, link_budget
 from ups._tls import Tls, identity
 
 from ._acl import Acl
+from ._identities import Identities
+from ._liveness import sweep
 from ._tcpstatus import registry_status
 from ._watches import Watches
 
@@ -50,8 +53,6 @@ DEFAULT_LIVENESS = 3.0
 DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
-HELD_UP = 0.25  #: seconds a liveness sweep may come late before the loop counts as held up
-MAX_OWNERS = 1 << 16  #: node ids remembered with their identity (TLS), departed ones included
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
 
 
@@ -91,7 +92,10 @@ class TcpEcb:
         hello_timeout: float = 5.0,
         tls: Tls | None = None,
         acl: Acl | None = None,
+        identities: Path | None = None,
     ) -> None:
+        """``identities``: the file that keeps the node id <-> identity bindings (with TLS) across
+        restarts (``broker/_identities.py``; None: they last as long as the ECB runs)."""
         if acl is not None and tls is None:
             raise ConfigError(
                 "an ACL needs TLS (identities are certificate names): give --tls-ca, --tls-cert "
@@ -120,7 +124,6 @@ class TcpEcb:
         self._names: dict[int, str] = {}  # uid -> its name, checked against the UID
         self._watches = Watches(self._names, self._members, acl)
         self._refusals_logged: set[tuple[str | None, str, int]] = set()
-        self._owners: dict[int, str] = {}  # node id -> the identity that registered it
         self._doorman = Doorman(
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
         )
@@ -129,7 +132,12 @@ class TcpEcb:
              "held_up"), 0,
         )  # fmt: skip
         self._pacer = StatusPacer(self.status, self.counters, who="the TCP-ECB")
-        self._held_up_logged = float("-inf")  # time.monotonic() of the last log of it
+        #: node id -> identity (TLS): the ACL's pins, the bindings made (kept in a file)
+        self._owners = Identities(acl.pins() if acl else {}, identities if tls else None,
+                                  self.counters)  # fmt: skip
+        #: told each node after its Hello (TLS): who may read its Status (the ACL's right)
+        readers = w.StatusReaders(acl.status_readers() if acl else None)
+        self._readers = w.encode(readers) if tls else None
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -144,7 +152,9 @@ class TcpEcb:
         self._recovering = self.recovery > 0
         if self._recovering:
             self._tasks.append(loop.create_task(self._end_recovery()))
-        self._tasks.append(loop.create_task(self._sweep()))
+        self._tasks.append(
+            loop.create_task(sweep(self._members, self.liveness, self._leave, self.counters))
+        )
         log.info(
             "TCP-ECB on %s:%d (liveness %g s, recovery %g s%s%s)",
             self.host,
@@ -169,6 +179,7 @@ class TcpEcb:
             link.close()
         self._doorman.close()
         self._pacer.close()
+        await self._owners.close()
 
     def stats(self) -> dict[str, int]:
         return {
@@ -247,18 +258,15 @@ class TcpEcb:
             link.abort("unexpected frame")
 
     def _owned_by(self, link: Link, node_id: int) -> bool:
-        """With TLS, a node id belongs to the identity that first registered it, also after the
-        node left (no takeover, no squatting while it restarts): another identity saying
-        Hello with it is refused."""
+        """With TLS, a node id belongs to the identity the ACL pins it to, or else to the one
+        that first registered it, also after the node left and across restarts (no takeover,
+        no squatting while it restarts: ``_identities``): another identity saying Hello with
+        it is refused."""
         name = identity(link.transport)
         if name is None:
             return True
-        owner = self._owners.setdefault(node_id, name)
-        if len(self._owners) > MAX_OWNERS:  # forget the oldest id of a departed node
-            oldest = next((n for n in self._owners if n not in self._members), None)
-            if oldest is not None:
-                del self._owners[oldest]
-        if owner == name:
+        owner = self._owners.claim(node_id, name, self._members)
+        if owner is None:
             return True
         self.counters["impostors"] += 1
         log.warning("refused %s: node id %016x belongs to %s", name, node_id, owner)
@@ -332,6 +340,8 @@ class TcpEcb:
             )
         link.peer = member
         link.send_control(w.encode(w.Hello(0, "ups-broker", self.host, self.port)))
+        if self._readers is not None:
+            link.send_control(self._readers)
 
     def _register(
         self, member: _Member, frame: w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise
@@ -478,39 +488,6 @@ class TcpEcb:
                     self._answer(member, uid, subscribe)
         log.info("TCP-ECB recovered: %d nodes registered", len(self._members))
 
-    async def _sweep(self) -> None:
-        """Remove nodes that have been silent for ``liveness`` seconds in which the ECB could
-        read. While the event loop is held up (a long piece of work, the process not
-        scheduled), live nodes' frames wait unread in their sockets: a sweep that comes late
-        by more than ``HELD_UP`` credits every node with the time the loop lost, so that none
-        is judged silent for it (counted in ``held_up``)."""
-        period = self.liveness / 4
-        due = time.monotonic() + period
-        while True:
-            await asyncio.sleep(max(0.0, due - time.monotonic()))
-            now = time.monotonic()
-            late, due = now - due, now + period
-            if late > HELD_UP:
-                self._held_up(now, late)
-            for member in list(self._members.values()):
-                if now - member.heard > self.liveness:
-                    try:
-                        self._leave(member, f"silent for {self.liveness:g} s")
-                    except Exception:  # one broken entry must not stop every later sweep
-                        self.counters["errors"] += 1
-                        log.exception("could not remove node %016x", member.node_id)
-
-    def _held_up(self, now: float, late: float) -> None:
-        self.counters["held_up"] += 1
-        for member in self._members.values():  # never past now: heard since, heard now
-            member.heard = min(now, member.heard + late)
-        if now - self._held_up_logged >= 1.0:
-            self._held_up_logged = now
-            log.warning(
-                "the TCP-ECB could not run for at least %.1f s; that time does not count as "
-                "nodes' silence (%d times so far)", late, self.counters["held_up"],
-            )  # fmt: skip
-
 
 def _hex(value: int) -> str:
     return f"0x{value:016x}"
@@ -525,16 +502,17 @@ def _uid_of(name: str) -> int | None:
 
 async def serve(
     listen: str, liveness: float, recovery: float, tls: Tls | None = None, acl: Acl | None = None,
-    metrics: str | None = None,
+    metrics: str | None = None, identities: Path | None = None,
 ) -> None:  # fmt: skip
     """Run a TCP-ECB on ``listen`` (HOST:PORT) until cancelled; with ``metrics`` (HOST:PORT),
-    its counters are served there to Prometheus."""
+    its counters are served there to Prometheus; ``identities``: see ``TcpEcb``."""
     from ups._metrics import serving_metrics
 
     from ._metrics import tcp_ecb_reading
 
     host, port = parse_address(listen)
-    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl)
+    ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl,
+                 identities=identities)  # fmt: skip
     async with serving_metrics(metrics, "broker", lambda: tcp_ecb_reading(ecb)):
         await ecb.start()
         try:

@@ -37,6 +37,7 @@ subscribe = ["robot/*", "fleet/go"]
 publish = ["fleet/*", "robot/speed"]
 subscribe = ["*"]
 status = true
+node_ids = ["0xb0"]                   # its node id: no other identity may say Hello with it
 
 [identity.mallory]                    # a valid certificate with almost no rights
 subscribe = ["robot/speed"]
@@ -58,9 +59,9 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @contextlib.asynccontextmanager
-async def acl_ecb(fleet: Path) -> AsyncIterator[TcpEcb]:
+async def acl_ecb(fleet: Path, identities: Path | None = None) -> AsyncIterator[TcpEcb]:
     ecb = TcpEcb("127.0.0.1", 0, recovery=0, tls=tls(fleet, "broker"),
-                 acl=Acl.load(fleet / "acl.toml"))  # fmt: skip
+                 acl=Acl.load(fleet / "acl.toml"), identities=identities)  # fmt: skip
     await ecb.start()
     try:
         yield ecb

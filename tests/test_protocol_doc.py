@@ -59,7 +59,7 @@ def test_tcp_example_frame(raw: str, frame: str) -> None:
 
 
 def test_tcp_examples_are_found() -> None:
-    assert len(TCP_EXAMPLES) == 10
+    assert len(TCP_EXAMPLES) == 11
 
 
 TRANSFER_ROW = re.compile(r"^\| `([0-9a-f ]+)` \| (\d+) \| ((?:`[0-9a-f ]+`(?:, )?)+) \|$", re.M)

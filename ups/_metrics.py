@@ -130,6 +130,12 @@ NODE = table(
         "status_builds": "status answers built (tcp)",
         "status_answers": "status requests answered (tcp)",
         "status_paced": "status requests that waited for the next build (tcp)",
+        "status_denied": "status requests on the node's own links refused: the identity may "
+        "not read it (tcp, TLS)",
+        "receive_refused": "frames refused before their body was read: no room left in the "
+        "receive buffers of the node's listening port (tcp)",
+        "receive_stalled": "links from publishers closed for holding a grown receive buffer "
+        "without completing a frame in time (tcp)",
         "unmatched": "events published while no subscriber was reached (zenoh)",
         "rx_overflow": "events dropped because the receive queue was full (zenoh)",
         "forgotten": "publishers no longer followed, to make room for others (zenoh)",
@@ -145,6 +151,7 @@ NODE = table(
         "peers": "subscribers this node has a connection to (tcp)",
         "queued": "event frames queued to subscribers (tcp)",
         "broker_connected": "1 while connected to the TCP-ECB (tcp)",
+        "receive_held": "bytes by which links from publishers grew their receive buffers (tcp)",
         "router_connected": "1 while connected to a Zenoh router (zenoh)",
         "rx_queued": "events received and not yet handed to subscriptions (zenoh)",
     },

@@ -3,6 +3,8 @@
 ``StatusPacer`` answers the StatusRequests of every link of a daemon (a node's listening port,
 the TCP-ECB, the CAN-ECB's status port): a Status is built at most once per ``STATUS_GAP``
 seconds, whoever asks and however often (docs/protocol.md, *Bounds on every listening socket*).
+``StatusGate`` stands before a node's pacer with TLS: it answers only the identities the TCP-ECB
+names (the ACL's ``status`` right; docs/protocol.md, *Access control*).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
+from ._tls import identity
 
 if TYPE_CHECKING:
     from ._tcplink import Link
@@ -125,3 +128,42 @@ class StatusPacer:
                 self._counters["status_answers"] += 1
         if frame is not None and fut is not None and not fut.done():
             fut.set_result(frame)
+
+
+class StatusGate:
+    """Who may read a node's Status on its own links (its listening port, its links to
+    subscribers): with TLS, the identities the TCP-ECB named last (``told``, from its
+    ``StatusReaders``; None there: every identity of the fleet), and no one before it named
+    any; without TLS, everyone (plain TCP names no one). Others get Refused(0, "status"),
+    counted (``status_denied``) and logged at most once a second."""
+
+    def __init__(
+        self, answer: Callable[[Link], None], counters: dict[str, int], *, checking: bool
+    ) -> None:
+        self._answer = answer  # the pacer's ask: answers with the next Status
+        self._counters = counters
+        counters.setdefault("status_denied", 0)
+        self._checking = checking
+        self.readers: frozenset[str] | None = frozenset()  # None: every identity
+        self._logged_at = -math.inf
+
+    def told(self, readers: tuple[str, ...] | None) -> None:
+        """The TCP-ECB names the identities that may read Status (None: all of the fleet)."""
+        self.readers = None if readers is None else frozenset(readers)
+
+    def ask(self, link: Link) -> None:
+        """``link`` sent a StatusRequest: the next Status, if its identity may read it."""
+        if self._checking and self.readers is not None:
+            who = identity(link.transport)
+            if who not in self.readers:
+                self._counters["status_denied"] += 1
+                now = time.monotonic()
+                if now - self._logged_at >= _LOG_GAP:
+                    self._logged_at = now
+                    log.warning("refused its status to %s (%s): the TCP-ECB does not name it "
+                                "among those that may read it (%d refused so far)", who,
+                                link.name, self._counters["status_denied"])  # fmt: skip
+                reason = f"identity {who!r:.80} may not read this node's status"
+                link.send_control(w.encode(w.Refused(0, "status", reason)))
+                return
+        self._answer(link)

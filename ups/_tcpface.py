@@ -151,7 +151,7 @@ class TcpFace:
             peer_overflow=peer_overflow,
             counters=self.counters,
             on_targets=self._targets_changed,
-            status=self._pacer.ask,
+            status=self._inbox.gate.ask,  # the status right, as on our listening port
         )
 
     # --- life cycle ------------------------------------------------------------------------
@@ -436,6 +436,8 @@ class TcpFace:
                 self._welcome.set_result(None)
         elif isinstance(frame, w.StatusRequest):
             self._pacer.ask(link)
+        elif isinstance(frame, w.StatusReaders):  # who may read our Status on our own links
+            self._inbox.gate.told(frame.identities)
 
     def _on_refused(self, frame: w.Refused) -> None:
         self.counters["denied"] += 1

@@ -6,7 +6,8 @@ it, each with its identity (``vouch``, from its ``Publishers`` frames). A link w
 Start) is not vouched for yet is held, unread, until the ECB's word comes; after
 ``VOUCH_WAIT`` seconds without it the link is cut off and what it held is counted
 (``unvouched``). A link whose node the ECB vouched for on no channel counts as waiting at the
-doorman: it is closed after 5 s, and evicted first when too many wait.
+doorman: it is closed after 5 s, evicted first when too many wait, and reads no frame larger
+than its own 16 KiB buffer. The links' receive buffers grow from one budget (``_tcpbounds``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,9 @@ from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
 from . import _tcpwire as w
-from ._tcplink import Doorman, Link
+from ._statuspacer import StatusGate
+from ._tcpbounds import Doorman
+from ._tcplink import HELD, Link
 from ._tls import identity
 
 if TYPE_CHECKING:
@@ -48,7 +51,7 @@ class _Publisher:
 
 class Inbox:
     """Links from publishers. ``counters`` is the face's: received, lost, unsubscribed,
-    malformed and unvouched are counted there."""
+    malformed, unvouched and the receive budget's (receive_*) are counted there."""
 
     def __init__(
         self,
@@ -65,14 +68,16 @@ class Inbox:
         self._subscribed = subscribed
         self._counters = counters
         self.received = 0  #: events delivered (an attribute: counted per event, stats() adds it)
-        self._status = status  # answers a StatusRequest on a link (``_tcpstatus.StatusPacer``)
+        #: answers a StatusRequest on a link (``status``: ``StatusPacer.ask``) if the identity
+        #: may read it (with TLS: those the TCP-ECB names, see ``StatusGate.told``)
+        self.gate = StatusGate(status, counters, checking=checking)
         self._checking = checking  # with TLS: events only from vouched-for identities
         self._vouched: dict[int, frozenset[tuple[int, str]]] = {}  # uid -> (node id, identity)
         self._known: set[tuple[int, str]] = set()  # every pair vouched for, on any channel
         self._waiting: set[Link] = set()  # said Hello, not vouched for on any channel yet
         self._links: set[Link] = set()
         self._holding: set[Link] = set()
-        self._doorman = Doorman(MAX_PUBLISHERS)
+        self._doorman = Doorman(MAX_PUBLISHERS, counters=counters)  # receive_* counted there
         self._server: asyncio.AbstractServer | None = None
         self._expected: dict[int, dict[int, int]] = {}  # publisher -> uid -> next number
         self._unreported: dict[int, int] = {}  # publisher -> events lost, not logged yet
@@ -182,7 +187,7 @@ class Inbox:
             else:
                 self._start(link, pub, frame)
         elif isinstance(frame, w.StatusRequest):
-            self._status(link)
+            self.gate.ask(link)
         elif isinstance(frame, w.Ping):
             link.send_control(w.encode(w.Pong()))
 
@@ -243,8 +248,7 @@ class Inbox:
         if pub.timer is None:
             loop = asyncio.get_running_loop()
             pub.timer = loop.call_later(VOUCH_WAIT, self._give_up, link)
-            if link.transport is not None:
-                link.transport.pause_reading()
+            link.pause_reading(HELD)
             self._holding.add(link)
 
     def _release(self, link: Link) -> None:
@@ -263,8 +267,7 @@ class Inbox:
         if pub.timer is not None:
             pub.timer.cancel()
             pub.timer = None
-        if link.transport is not None and not link.lost.done():
-            link.transport.resume_reading()
+        link.resume_reading(HELD)
 
     def _give_up(self, link: Link) -> None:
         pub: _Publisher = link.peer

@@ -1,28 +1,30 @@
 """One TCP connection carrying UPS frames, for nodes, the TCP-ECB and the gateway alike.
 
-Receiving (asyncio calls the link's ``protocol``, a ``BufferedProtocol``): one buffer is reused
-for every read; whole frames are decoded in place (``_tcpwire.parse``), events without building
-a frame object. Bad bytes close this connection only. Sending: the first frame after a read
-(on any link: an answer, a forwarded event) is written at once, with nothing scheduled; the
-frames that follow it are queued and written at the end of the loop iteration (or as soon as
-the queue is full), joined into writes of about 64 KiB, so a burst costs a few system calls,
-not one each. A large event is queued as its header and its data, and the data is handed to
-the transport as it is (never joined, never copied here). Writing stops while the transport is
-paused (its buffer is full) and goes on when it resumes. The event queue is bounded: while the
-peer does not read it fills up to ``limit`` frames or ``limit_bytes`` bytes, then ``overflow``
-decides which event is lost, and ``dropped`` counts it.
-Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of
-their own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them,
-or ``CONTROL_BYTES`` of them, unread is cut off.
+Receiving (asyncio calls the link's ``protocol``, a ``BufferedProtocol``): one buffer is reused for
+every read; whole frames are decoded in place (``_tcpwire.parse``), events without building a frame
+object. Bad bytes close this connection only. A frame larger than the buffer is read into a buffer
+grown for it once its header has come: an anonymous memory mapping, which goes back to the system
+whole when it is dropped (never kept in the allocator's pools); on a listening socket's links the
+growth is taken from the socket's ``ReceiveBudget`` first, or the frame is refused before its body
+is read (``ups/_tcpbounds.py``). Sending: the first frame after a read (on any link: an answer, a
+forwarded event) is written at once, with nothing scheduled; the frames that follow it are queued
+and written at the end of the loop iteration (or as soon as the queue is full), joined into writes
+of about 64 KiB, so a burst costs a few system calls, not one each. A large event is queued as its
+header and its data, and the data is handed to the transport as it is (never joined, never copied
+here). Writing stops while the transport is paused (its buffer is full) and goes on when it
+resumes. The event queue is bounded: while the peer does not read it fills up to ``limit`` frames
+or ``limit_bytes`` bytes, then ``overflow`` decides which event is lost, and ``dropped`` counts it.
+Control frames (everything but events: Hello, Start, registrations, ...) wait in a queue of their
+own and are never dropped to make room; a peer that leaves ``CONTROL_LIMIT`` of them, or
+``CONTROL_BYTES`` of them, unread is cut off.
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
 import logging
-import resource
+import mmap
 import struct
 import time
 from collections.abc import Callable
@@ -31,11 +33,16 @@ from typing import Any, cast
 from . import _tcpwire as w
 from ._errors import DecodeError
 from ._face import Overflow
+from ._tcpbounds import BASE_BUFFER, ReceiveBudget
+from ._tcpbounds import Doorman as Doorman  # (re-exported: it lived here)
+from ._tcpbounds import link_budget as link_budget
 
 log = logging.getLogger("ups.tcp")
 
-_BUFFER = 1 << 14  # receive buffer to begin with; grown to hold a bigger frame whole ...
+_BUFFER = BASE_BUFFER  # receive buffer to begin with; grown to hold a bigger frame whole ...
 _BUFFER_KEEP = 1 << 18  # ... and given back once empty, when it grew past this (see trim)
+HELD = 1  #: a reason to stop reading a link: its owner holds what it read (``pause_reading``)
+_GROWING = 2  # ... the link waits to be admitted before it grows its buffer for a frame
 _WRITE_HIGH = 1 << 16  # transport buffer above which it pauses us
 QUEUE_BYTES = 64 << 20  #: events queued for a peer that does not read, in bytes (with ``limit``)
 _BATCH = 1 << 16  # small frames joined into one write of about this many bytes
@@ -71,9 +78,16 @@ class Link:
         self._on_frame = on_frame
         self._on_lost = on_lost
         self.max_frame = max_frame  #: the longest frame accepted (an owner may change it)
-        self._buf = bytearray(_BUFFER)
+        #: the receive buffer: ``_BUFFER`` bytes of the heap, or a mapping grown for a frame
+        self._buf: bytearray | mmap.mmap = bytearray(_BUFFER)
         self._start = 0
         self._end = 0
+        #: where a grown buffer comes from (None: no bound but ``max_frame``; see Doorman)
+        self.budget: ReceiveBudget | None = None
+        self.may_grow = True  #: False while a Doorman has not admitted the link
+        self._wants = 0  # the buffer a frame waits for, while it may not grow
+        self._reading_paused = 0  # why reading is paused: HELD, _GROWING
+        self.progress = 0  #: reads that completed a frame (a link that holds memory must)
         #: events: encoded frames, or (header, data) for a large one, its data written as it is
         self._out: collections.deque[bytes | tuple[bytes, bytes]] = collections.deque()
         self._out_bytes = 0  # what _out holds, in bytes
@@ -290,25 +304,27 @@ class Link:
 
     def get_buffer(self, sizehint: int) -> memoryview:
         buf = self._buf
-        if self._end == len(buf):  # full: move the partial frame to the front, or grow
-            if self._start:
-                rest = self._end - self._start
-                buf[:rest] = buf[self._start : self._end]
-                self._start, self._end = 0, rest
-            if self._end == len(buf):  # one frame fills it: room for all of it, at once
-                need = len(buf) * 2
-                if self._end >= w.HEADER:
-                    (head,) = _HEAD.unpack_from(buf, 0)
-                    need = max(need, w.HEADER + (head & w.MAX_BODY))
-                buf.extend(bytes(need - len(buf)))
+        if self._end == len(buf) and self._start:  # full: the partial frame to the front
+            rest = self._end - self._start
+            with memoryview(buf) as view:  # (overlapping: moved, no copy made on the way)
+                view[:rest] = view[self._start : self._end]
+            self._start, self._end = 0, rest
+        if self._end == len(buf):  # never so: a frame that does not fit was grown for, or
+            # waits unread, or was refused. Whatever comes now is not read, and the link ends.
+            if not self._closing:
+                self.abort("receive buffer full")
+            return memoryview(bytearray(_BUFFER))
         return memoryview(buf)[self._end :]
 
     def buffer_updated(self, nbytes: int) -> None:
         _reads[0] += 1
+        if self._end == len(self._buf):  # read into the scratch of get_buffer: dropped
+            return
         self._end += nbytes
         self.read_at = time.time()  # once per read, for every event in it
+        first = self._start
         try:
-            pos = self._start
+            pos = first
             while True:  # frame by frame while a Doorman limits it: a Hello lifts the limit
                 limited = self.max_frame != self.full_frame
                 start = pos
@@ -328,28 +344,94 @@ class Link:
             log.warning("closed the link from %s: %s", self.name, exc)
             self.abort(f"bad frame: {exc}")
             return
+        if pos != first:
+            self.progress += 1
         if pos == self._end:
             if len(self._buf) > _BUFFER_KEEP:  # a big frame is through: give the memory back
                 if not self.keep_big:
-                    self._buf = bytearray(_BUFFER)
+                    self._shrink()
                 elif self._end > _BUFFER_KEEP:
                     self._big_since_trim = True
             self._start = self._end = 0
         else:
             self._start = pos
+            if self._end - pos >= w.HEADER and not self._closing:  # (parse checked the header)
+                (head,) = _HEAD.unpack_from(self._buf, pos)
+                if w.HEADER + (head & w.MAX_BODY) > len(self._buf):
+                    self._grow(w.HEADER + (head & w.MAX_BODY))
+
+    def _grow(self, need: int) -> None:
+        """Room for a frame of ``need`` bytes (header included), before its body is read: from
+        the budget, if the link has one (else it is refused, and the link closed); not before
+        the link is admitted (till then it is not read)."""
+        if not self.may_grow:
+            self._wants = need
+            self.pause_reading(_GROWING)
+            return
+        self._wants = 0
+        size = -(-need // mmap.PAGESIZE) * mmap.PAGESIZE
+        if self.budget is not None and not self.budget.take(self, size - _BUFFER):
+            self.abort(f"no room in the receive buffers for a frame of {need} bytes")
+            return
+        rest = self._end - self._start
+        grown = mmap.mmap(-1, size)  # given back to the system as soon as it is dropped
+        with memoryview(grown) as view, memoryview(self._buf) as old:
+            view[:rest] = old[self._start : self._end]
+        self._buf = grown
+        self._start, self._end = 0, rest
+        self.resume_reading(_GROWING)
+
+    def admitted(self) -> None:
+        """The link may grow its buffer (a Doorman admitted it): a frame that waited for that
+        is read now."""
+        self.may_grow = True
+        if self._wants and not self._closing:
+            self._grow(self._wants)
+
+    def partial(self) -> bool:
+        """Whether part of a frame waits in the receive buffer for the rest of it."""
+        return self._start != self._end
+
+    def shrink(self) -> None:
+        """Give a grown receive buffer back, if it holds no partial frame (the budget's call)."""
+        if len(self._buf) > _BUFFER and self._start == self._end and not self._closing:
+            self._shrink()
+            self._start = self._end = 0
+
+    def _shrink(self) -> None:
+        self._buf = bytearray(_BUFFER)
+        if self.budget is not None:
+            self.budget.release(self)
 
     def trim(self) -> None:
         """With ``keep_big``: give a grown receive buffer back if no big frame came since the
         last call (call it now and then, e.g. once a second)."""
         if not self._big_since_trim and len(self._buf) > _BUFFER_KEEP and self._start == self._end:
-            self._buf = bytearray(_BUFFER)
+            self._shrink()
             self._start = self._end = 0
         self._big_since_trim = False
+
+    def pause_reading(self, why: int) -> None:
+        """Stop reading the link for ``why`` (HELD: its owner's reason), until every reason to
+        is gone (``resume_reading``)."""
+        if not self._reading_paused and self.transport is not None:
+            self.transport.pause_reading()
+        self._reading_paused |= why
+
+    def resume_reading(self, why: int) -> None:
+        was = self._reading_paused
+        self._reading_paused &= ~why
+        if was and not self._reading_paused and self.transport and not self.lost.done():
+            self.transport.resume_reading()
 
     def eof_received(self) -> bool:
         return False  # close our side too
 
     def connection_lost(self, exc: Exception | None) -> None:
+        self._buf = bytearray()  # nothing is read any more: a grown buffer goes back at once
+        self._start = self._end = 0
+        if self.budget is not None:
+            self.budget.release(self)
         if not self.lost.done():
             reason = None if self._closing else (str(exc) if exc else "closed by peer")
             self._lost(reason)
@@ -406,96 +488,3 @@ def _write(transport: asyncio.Transport, frame: bytes | tuple[bytes, bytes]) -> 
     else:  # a large event: its header, then its data as it is
         transport.write(frame[0])
         transport.write(frame[1])
-
-
-class Doorman:
-    """Bounds the connections one listening socket accepts, and counts what it turns away.
-
-    At most ``max_links`` connections in all. A new one beyond closes the oldest connection
-    still waiting to be admitted (``evicted``), or, if none waits, is closed itself
-    (``refused``). At most ``max_waiting`` may wait to be admitted: when another comes, the
-    oldest waiting one is closed (``evicted``). A connection not admitted (``greeted``) within
-    ``hello_timeout`` seconds is closed (``timed_out``). Until ``lift`` or ``greeted``, a
-    connection may send frames of at most ``first_frame`` bytes.
-    """
-
-    def __init__(
-        self,
-        max_links: int,
-        *,
-        max_waiting: int = 256,
-        hello_timeout: float = 5.0,
-        first_frame: int = 4096,
-    ) -> None:
-        self.max_links = max_links
-        self.max_waiting = max_waiting
-        self.hello_timeout = hello_timeout
-        self.first_frame = first_frame
-        self.links = 0
-        self._waiting: dict[Link, asyncio.TimerHandle] = {}  # oldest first
-        self.counters = dict.fromkeys(("refused", "evicted", "timed_out"), 0)
-
-    def admit(self, link: Link) -> None:
-        """A new connection (call from the protocol factory)."""
-        self.links += 1
-        if self.links > self.max_links:
-            if not self._waiting:
-                self.counters["refused"] += 1
-                link.abort(f"more than {self.max_links} connections")
-                return
-            oldest = next(iter(self._waiting))  # one not admitted yet makes room for the new one
-            self.counters["evicted"] += 1
-            oldest.abort(f"more than {self.max_links} connections, and not admitted")
-        if len(self._waiting) >= self.max_waiting:
-            oldest = next(iter(self._waiting))
-            self.counters["evicted"] += 1
-            oldest.abort(f"more than {self.max_waiting} connections without Hello")
-        link.max_frame, link.full_frame = self.first_frame, link.max_frame
-        loop = asyncio.get_running_loop()
-        self._waiting[link] = loop.call_later(self.hello_timeout, self._time_out, link)
-
-    def greeted(self, link: Link) -> None:
-        """``link`` said Hello (and is admitted): it may stay, and send full-sized frames."""
-        self.lift(link)
-        timer = self._waiting.pop(link, None)
-        if timer is not None:
-            timer.cancel()
-
-    def lift(self, link: Link) -> None:
-        """``link`` may send full-sized frames, but still counts as waiting to be admitted
-        (``greeted``): it is still timed out, and evicted first."""
-        link.max_frame = link.full_frame
-
-    def gone(self, link: Link) -> None:
-        """``link`` ended (call from its on_lost)."""
-        self.links -= 1
-        timer = self._waiting.pop(link, None)
-        if timer is not None:
-            timer.cancel()
-
-    def _time_out(self, link: Link) -> None:
-        if link in self._waiting:
-            self.counters["timed_out"] += 1
-            link.abort(f"not admitted (no Hello, or none vouched for) within "
-                       f"{self.hello_timeout:g} s")  # fmt: skip
-
-    def close(self) -> None:
-        for timer in self._waiting.values():
-            timer.cancel()
-        self._waiting.clear()
-
-
-def link_budget(ceiling: int = 4096, reserve: int = 64) -> int:
-    """How many connections a daemon may hold: ``ceiling``, or fewer if the process's limit on
-    open files (raised to its hard limit first) leaves less, ``reserve`` kept for the rest."""
-    try:
-        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-        if soft != hard:
-            with contextlib.suppress(ValueError, OSError):
-                resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
-                soft = hard
-    except (ValueError, OSError):
-        return ceiling
-    if soft == resource.RLIM_INFINITY:
-        return ceiling
-    return max(16, min(ceiling, soft - reserve))

@@ -25,6 +25,8 @@ from ._tls import identity
 log = logging.getLogger("ups.tcp")
 
 SPLIT = 1 << 14  #: an event with more data than this is queued as (header, data), not joined
+#: the longest frame a subscriber may send its publisher (it sends none: a StatusRequest at most)
+PEER_FRAME = 4096
 _RETRY_FIRST = 0.05
 _RETRY_MAX = 1.0
 _DIAL_TIMEOUT = 5.0
@@ -193,6 +195,7 @@ class Outbox:
             self._peer_lost,
             limit=self._peer_queue,
             overflow=self._peer_overflow,
+            max_frame=PEER_FRAME,  # so its receive buffer never grows
         )
         link.peer = peer
         link.verify = functools.partial(self._verify, peer)

@@ -10,6 +10,7 @@ link closes that link and goes on.
 
 from __future__ import annotations
 
+import mmap
 import reprlib
 import struct
 from collections.abc import Callable
@@ -38,6 +39,7 @@ _EVENT_HEAD = struct.Struct(">IBBQQ")  # header, kind (_EVENT), priority, uid, s
 _WHOLE = tuple(struct.Struct(f">IBBQQ{size}s") for size in range(257))
 _pack_event = _EVENT_HEAD.pack
 _T = TypeVar("_T")
+_STATUS_READERS: Final = 17  # (14, 15 and 16 are taken: Watch, Unwatch, Names)
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,6 +120,15 @@ class Publishers:
 
 
 @dataclass(frozen=True, slots=True)
+class StatusReaders:
+    """ECB -> node (with TLS), after its Hello: the identities whose StatusRequests the node
+    answers on its own links (the ACL's ``status`` right); None: every identity of the fleet
+    (an ECB without an ACL). Until told, a node with TLS answers no one there."""
+
+    identities: tuple[str, ...] | None
+
+
+@dataclass(frozen=True, slots=True)
 class Refused:
     """ECB -> node: ``right`` ("publish", "subscribe", "status" or "connect") on ``uid`` (0 for
     "status" and "connect") is not granted; ``reason`` says why, for people."""
@@ -194,6 +205,7 @@ Frame = (
     | Pong
     | StatusRequest
     | Status
+    | StatusReaders
     | Start
     | Publishers
     | Refused
@@ -236,6 +248,9 @@ def _fields(frame: Frame) -> tuple[Any, ...]:
         return (_START, frame.uid, frame.seq)
     if isinstance(frame, Hello):
         return (_HELLO, frame.node_id, frame.name, frame.host, frame.port)
+    if isinstance(frame, StatusReaders):
+        readers = None if frame.identities is None else list(frame.identities)
+        return (_STATUS_READERS, readers)
     if isinstance(frame, Subscribe):
         return (_SUB, frame.uid) if frame.name is None else (_SUB, frame.uid, frame.name)
     if isinstance(frame, Unsubscribe):
@@ -294,7 +309,7 @@ def _append_event(frames: list[Frame], uid: int, data: bytes, priority: int, seq
 
 
 def parse(
-    buf: bytearray,
+    buf: bytearray | mmap.mmap,
     pos: int,
     end: int,
     max_frame: int,
@@ -393,6 +408,9 @@ def _frame(f: tuple[Any, ...]) -> Frame:
     if kind == _HELLO:
         _, node_id, name, host, port = f
         return Hello(_uid(node_id), _str(name), _str(host), _int(port, 0xFFFF))
+    if kind == _STATUS_READERS:
+        _, readers = f
+        return StatusReaders(None if readers is None else tuple(map(_str, _array(readers))))
     if kind in (_SUB, _ADVERTISE):
         _, uid, *name = f  # the name is optional
         if len(name) > 1:

@@ -163,7 +163,14 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     cmd.add_argument(
         "--acl", metavar="FILE", default=None,
         help="TOML access control list: [identity.NAME] publish/subscribe = [channels, globs, "
-        "0xUIDs], status = true; needs TLS; an identity not listed may do nothing",
+        "0xUIDs], status = true, node_ids = [0xIDs]; needs TLS; an identity not listed may do "
+        "nothing",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--identities", metavar="FILE", default=None,
+        help="with TLS: the file that keeps which identity each node id belongs to, across "
+        "restarts (default: tcp-ecb-HOST_PORT-identities.json under $UPS_STATE_DIR, "
+        "$XDG_STATE_HOME/ups or ~/.local/state/ups; none on port 0)",
     )  # fmt: skip
     add_tls(cmd)
     add_metrics(cmd)
@@ -354,14 +361,18 @@ def _run_can_broker(args: argparse.Namespace) -> int:
 
 
 def _run_broker(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from ups.broker._acl import Acl
+    from ups.broker._identities import default_file
     from ups.broker.tcp_ecb import serve
 
     tls = tls_of(args)
     acl = Acl.load(args.acl) if args.acl is not None else None
+    ids = Path(args.identities) if args.identities else default_file(args.listen)
 
     async def run() -> int:
-        await serve(args.listen, args.liveness, args.recovery, tls, acl, args.metrics)
+        await serve(args.listen, args.liveness, args.recovery, tls, acl, args.metrics, ids)
         return 0
 
     return run_until_signal(run())
