@@ -20,14 +20,16 @@ live stream's reader may fall. Each refusal is counted and logged (``Notes``).
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import ipaddress
 import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # asyncio is not loaded for ``ups --help``
+    import asyncio
 
 log = logging.getLogger("ups.console")
 
@@ -128,6 +130,8 @@ class RequestClock:
                 self._arm(handler, conn)
 
     def _arm(self, handler: Any, conn: _Connection) -> None:
+        import asyncio
+
         if conn.timer is not None:
             conn.timer.cancel()
         loop = asyncio.get_running_loop()
