@@ -322,7 +322,7 @@ class JausHost(asyncio.DatagramProtocol):
         self.component.notes(
             "refused_other_address",
             "%s from %s:%d refused: %s controls the component from another address, %s:%d",
-            type(payload).__name__ if payload is not None else "a part of a message",
+            type(payload).__name__ if payload is not None else "a message",
             addr[0], addr[1], source, holder[0], holder[1],
         )  # fmt: skip
         if isinstance(payload, RequestControl) and to is not None:
