@@ -11,23 +11,88 @@ names them (``ReportStatus``'s values):
 - SHUTDOWN after Shutdown from the controlling client: control is released and never granted
   again (the component is done; ``ups jaus`` exits).
 
-Control is exclusive. Request Control is granted when nobody holds it, when the holder asks
-again, or when the asker's authority is above the holder's (who then loses it); never below
-the component's ``minimum_authority``. The holder loses it by Release Control, by Reset, by
-Shutdown, or when it has sent nothing for ``timeout`` seconds. Commands of the mobility
-services are accepted only from the holder and only when READY (:meth:`Access.refusal`).
+Control is exclusive, and it belongs to a JAUS id *at the transport address* it was asked
+from. Request Control is granted when nobody holds it, when the holder asks again, or when the
+asker's authority is above the holder's (who then loses it: AS5710A lets a higher authority
+take control); never below the component's ``minimum_authority``. The authority asked may be
+capped per source address range (:class:`AuthorityCaps`, the mapping's ``[authority]``) before
+it gets here. The holder loses control by Release Control, by Reset, by Shutdown, or when it
+has sent nothing for ``timeout`` seconds. Commands of the mobility services are accepted only
+from the holder and only when READY (:meth:`Access.refusal`).
+
+While an id holds control it is bound to the address it asked from: :meth:`Access.admits`
+refuses that id from any other address (the host drops such messages whole and counts them;
+only Set Emergency, which anyone may send, is taken), so another client using the same id can
+neither command, nor keep control alive, nor have the holder's answers sent to it. An
+emergency is cleared only by the id *and* address that set it.
 """
 
 from __future__ import annotations
 
+import ipaddress
+import logging
+import math
+import time
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Any
 
 from ._codec import JausId
 from ._payloads import ControlResponse
 
 CONTROL_TIMEOUT = 5.0  #: seconds of silence after which the controlling client loses control
 MAX_EMERGENCIES = 16  #: clients whose Set Emergency is remembered at once; more are refused
+NOTE_EVERY = 10.0  #: seconds between two log lines of one kind of refusal (all are counted)
+
+Address = tuple[Any, ...]  #: a transport address: (host, port) for UDP
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+@dataclass(frozen=True, slots=True)
+class AuthorityCaps:
+    """The most authority Request Control is granted from each source address range (the
+    mapping's ``[authority]`` table). The longest prefix holding the address decides; an
+    address in no range is granted no control at all."""
+
+    ranges: tuple[tuple[Network, int], ...]
+
+    def cap(self, host: str) -> tuple[Network, int] | None:
+        """The range that holds ``host`` and its cap, or None."""
+        ip = _ip(host)
+        if ip is None:
+            return None
+        held = [(net, cap) for net, cap in self.ranges if ip.version == net.version and ip in net]
+        return max(held, key=lambda r: r[0].prefixlen, default=None)
+
+
+def _ip(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    """The address of a datagram's sender: an IPv4-mapped IPv6 address as IPv4, the scope of a
+    link-local one left out."""
+    try:
+        ip = ipaddress.ip_address(host.partition("%")[0])
+    except ValueError:
+        return None
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        return ip.ipv4_mapped
+    return ip
+
+
+class Notes:
+    """Counts a refusal and logs it, at most once per ``every`` seconds for each counter (a
+    flood of them must not flood the log); the line says how many there were so far."""
+
+    def __init__(
+        self, counters: dict[str, int], log: logging.Logger, every: float = NOTE_EVERY
+    ) -> None:
+        self.counters, self.log, self.every = counters, log, every
+        self._said: dict[str, float] = {}
+
+    def __call__(self, counter: str, text: str, *args: object) -> None:
+        self.counters[counter] = self.counters.get(counter, 0) + 1
+        now = time.monotonic()
+        if now - self._said.get(counter, -math.inf) >= self.every:
+            self._said[counter] = now
+            self.log.warning(f"{text} ({counter}: %d so far)", *args, self.counters[counter])
 
 
 class State(IntEnum):
@@ -46,20 +111,29 @@ class Access:
     minimum_authority: int = 0
     timeout: float = CONTROL_TIMEOUT
     holder: JausId | None = None
+    holder_address: Address | None = None  #: where the holder asked for control from
     authority: int = 0
     heard: float = 0.0
     state: State = State.STANDBY
     _before_emergency: State = State.STANDBY
-    _emergencies: set[JausId] = field(default_factory=set)
+    _emergencies: set[tuple[JausId, Address]] = field(default_factory=set)  #: who set one, where
 
     # --- AccessControl --------------------------------------------------------------------
 
+    def admits(self, who: JausId, address: Address) -> bool:
+        """Whether a message from ``who`` at ``address`` may be handled at all: False for the
+        holder's id from another address."""
+        return who != self.holder or address == self.holder_address
+
     def request(
-        self, who: JausId, authority: int, now: float
+        self, who: JausId, authority: int, now: float, address: Address
     ) -> tuple[ControlResponse, JausId | None]:
-        """The answer to Request Control, and the client that lost control to ``who``."""
+        """The answer to Request Control from ``who`` at ``address``, and the client that lost
+        control to it."""
         self.expire(now)
-        if self.state in (State.EMERGENCY, State.SHUTDOWN, State.FAILURE):
+        if not self.admits(who, address) or self.state in (
+            State.EMERGENCY, State.SHUTDOWN, State.FAILURE
+        ):  # fmt: skip
             return ControlResponse.NOT_AVAILABLE, None
         if authority < self.minimum_authority:
             return ControlResponse.INSUFFICIENT_AUTHORITY, None
@@ -67,7 +141,8 @@ class Access:
             displaced = self.holder if self.holder not in (None, who) else None
             if self.holder != who:
                 self.state = State.STANDBY  # a new client starts from Standby
-            self.holder, self.authority, self.heard = who, authority, now
+            self.holder, self.holder_address = who, address
+            self.authority, self.heard = authority, now
             return ControlResponse.CONTROL_ACCEPTED, displaced
         return ControlResponse.NOT_AVAILABLE, None
 
@@ -94,7 +169,7 @@ class Access:
         return self.holder == who
 
     def _lose(self) -> None:
-        self.holder, self.authority = None, 0
+        self.holder, self.holder_address, self.authority = None, None, 0
         if self.state == State.READY:
             self.state = State.STANDBY
 
@@ -127,21 +202,24 @@ class Access:
         self.state = State.SHUTDOWN
         return True
 
-    def set_emergency(self, who: JausId) -> bool:
-        """Set Emergency from anyone; False when too many clients hold one already."""
-        if who not in self._emergencies and len(self._emergencies) >= MAX_EMERGENCIES:
+    def set_emergency(self, who: JausId, address: Address) -> bool:
+        """Set Emergency from anyone, anywhere; False when too many clients (an id at an
+        address) hold one already."""
+        setter = (who, address)
+        if setter not in self._emergencies and len(self._emergencies) >= MAX_EMERGENCIES:
             return False
         if self.state != State.EMERGENCY:
             self._before_emergency = self.state
             self.state = State.EMERGENCY
-        self._emergencies.add(who)
+        self._emergencies.add(setter)
         return True
 
-    def clear_emergency(self, who: JausId) -> bool:
-        """Clear Emergency; only the client that set one clears it. True when it did."""
-        if who not in self._emergencies:
+    def clear_emergency(self, who: JausId, address: Address) -> bool:
+        """Clear Emergency; only the client that set one clears it, from the address it set
+        it from. True when it did."""
+        if (who, address) not in self._emergencies:
             return False
-        self._emergencies.discard(who)
+        self._emergencies.discard((who, address))
         if not self._emergencies:
             back = self._before_emergency
             self.state = State.STANDBY if back == State.READY and self.holder is None else back
@@ -158,4 +236,13 @@ class Access:
         return None
 
 
-__all__ = ["CONTROL_TIMEOUT", "MAX_EMERGENCIES", "Access", "State"]
+__all__ = [
+    "CONTROL_TIMEOUT",
+    "MAX_EMERGENCIES",
+    "NOTE_EVERY",
+    "Access",
+    "Address",
+    "AuthorityCaps",
+    "Notes",
+    "State",
+]

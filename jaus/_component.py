@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from ._access import CONTROL_TIMEOUT, Access, State
+from ._access import CONTROL_TIMEOUT, Access, Address, Notes, State
 from ._codec import JausDecodeError, JausId
 from ._events import EVENT_TIMEOUT, MAX_RATE, EventRefused, Events, Subscription
 from ._mapping import Bridge
@@ -89,6 +89,8 @@ class Component:
             "refused_in_emergency",
             "control_granted",
             "control_refused",
+            "authority_capped",
+            "refused_other_address",
             "control_lapsed",
             "unserved",
             "not_yet",
@@ -105,6 +107,7 @@ class Component:
             timeout=event_timeout,
         )
         self.routes: dict[JausId, Any] = {}  # the latest route of each client heard
+        self.notes = Notes(counters, log)  # refusals: counted, and logged now and then
         self.on_shutdown: Callable[[], None] | None = None
         self._handlers: dict[str, Callable[[Any, Any], None]] = {
             "RequestControl": self._request_control,
@@ -266,12 +269,34 @@ class Component:
     # --- AccessControl and Management ------------------------------------------------------
 
     def _request_control(self, source: JausId, msg: Any) -> None:
-        response, displaced = self.access.request(source, msg.authority, time.monotonic())
+        address = self.routes[source].addr
+        authority = self._capped(source, address, msg.authority)
+        if authority is None:  # its address is in no range of the mapping's [authority]
+            response, displaced = p.ControlResponse.INSUFFICIENT_AUTHORITY, None
+        else:
+            response, displaced = self.access.request(source, authority, time.monotonic(), address)
         granted = response == p.ControlResponse.CONTROL_ACCEPTED
         self.counters["control_granted" if granted else "control_refused"] += 1
         if displaced is not None:
             self.reply(displaced, p.RejectControl(p.RejectResponse.CONTROL_RELEASED))
         self.reply(source, p.ConfirmControl(response))
+
+    def _capped(self, source: JausId, address: Address, asked: int) -> int | None:
+        """The authority granted to ``source`` at ``address`` asking for ``asked``: at most
+        its address range's cap in the mapping (None: no control at all)."""
+        caps = self.bridge.authority
+        if caps is None:
+            return asked
+        found = caps.cap(str(address[0]))
+        if found is not None and found[1] >= asked:
+            return asked
+        if found is None:
+            granted, why = None, "in no [authority] range: no control"
+        else:
+            granted, why = found[1], f"capped to {found[1]} ({found[0]})"
+        self.notes("authority_capped", "Request Control from %s at %s: authority %d %s",
+                   source, _shown(address), asked, why)  # fmt: skip
+        return granted
 
     def _release_control(self, source: JausId, msg: Any) -> None:
         released = self.access.release(source)
@@ -306,11 +331,17 @@ class Component:
             self.on_shutdown()
 
     def _emergency(self, source: JausId, msg: Any) -> None:
+        self.emergency(source, self.routes[source].addr, msg)
+
+    def emergency(self, source: JausId, address: Address, msg: Any) -> None:
+        """Set or Clear Emergency from ``source`` at ``address``. The host calls it for a Set
+        Emergency it refuses otherwise (the holder's id from elsewhere): a stop is taken from
+        anyone."""
         name = type(msg).__name__
         done = (
-            self.access.set_emergency(source)
+            self.access.set_emergency(source, address)
             if name == "SetEmergency"
-            else self.access.clear_emergency(source)
+            else self.access.clear_emergency(source, address)
         )
         if not done:
             self.counters["refused_emergency"] = self.counters.get("refused_emergency", 0) + 1
@@ -430,6 +461,11 @@ class Component:
                 for s in self.events.table.values()
             ],
         }
+
+
+def _shown(address: Address) -> str:
+    """``HOST:PORT`` of a UDP address."""
+    return f"{address[0]}:{address[1]}" if len(address) >= 2 else str(address)
 
 
 def _decode_message(message: bytes) -> Any:

@@ -23,6 +23,10 @@ Bounds, each counted when it bites:
 - datagrams that do not decode (``malformed``) and messages no service here answers
   (``unserved``) are counted and dropped; an exception inside a service is logged and counted
   (``handler_errors``) and the component keeps serving.
+- while a client holds control, its JAUS id is bound to its UDP address: a message (or a part
+  of one) with that id from another address is dropped before anything else, counted
+  (``refused_other_address``) and logged (``_access.Notes``); a Request Control among them is
+  answered Not Available, a Set Emergency is still taken (anyone may stop the robot).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 from ._codec import AckNak, JausDecodeError, JausId
 from ._component import Component
+from ._core_payloads import SetEmergency
 from ._events import EVENT_TIMEOUT
 from ._judp import (
     Broadcast,
@@ -47,6 +52,7 @@ from ._judp import (
 )
 from ._mapping import Bridge
 from ._messages import decode_payload, encode_payload
+from ._payloads import ConfirmControl, ControlResponse, RequestControl
 from ._ra33 import (
     RA33_PREFIX,
     Ra33Address,
@@ -212,15 +218,24 @@ class JausHost(asyncio.DatagramProtocol):
     def _judp(self, data: bytes, addr: tuple[str, int]) -> None:
         for part in decode_judp(data):
             h = part.header
-            mine = _for(self.me, h.destination, 0xFFFF)
-            message = self._reassembler.feed(part, time.monotonic()) if mine else None
-            if not mine:
+            if not _for(self.me, h.destination, 0xFFFF):
                 self.counters["not_for_me"] += 1
-            elif message is not None and message.code is not None:  # else held, or an ACK
-                self._serve(
-                    h.source, addr, False, 1, lambda m=message: decode_payload(m.code, m.payload)
-                )
-            if mine and h.ack_nak == AckNak.REQUEST:
+                continue
+            if h.data_flags != DataFlags.SINGLE and not self.component.access.admits(
+                h.source, addr
+            ):  # a part with the controller's id from elsewhere: never mixed with its parts
+                self._refuse(h.source, addr)
+            else:
+                message = self._reassembler.feed(part, time.monotonic())
+                if message is not None and message.code is not None:  # else held, or an ACK
+                    self._serve(
+                        h.source,
+                        addr,
+                        False,
+                        1,
+                        lambda m=message: decode_payload(m.code, m.payload),
+                    )
+            if h.ack_nak == AckNak.REQUEST:
                 ack = replace(
                     h,
                     destination=h.source,
@@ -280,6 +295,10 @@ class JausHost(asyncio.DatagramProtocol):
             log.debug("malformed message from %s: %s", addr, exc)
             return
         self.counters["received"] += 1
+        if not self.component.access.admits(source, addr):
+            to = Client(source, addr, ra33, instance, 0.0, ra33_as=ra33_as or self.me.component)
+            self._refuse(source, addr, payload, to)
+            return
         client = self._client(source, addr, ra33, instance)
         client.ra33_as = ra33_as or self.me.component
         if payload is None:
@@ -290,6 +309,24 @@ class JausHost(asyncio.DatagramProtocol):
         except Exception:  # one bad message must not stop the component
             self.counters["handler_errors"] += 1
             log.exception("could not handle %s from %s", type(payload).__name__, source)
+
+    def _refuse(
+        self, source: JausId, addr: tuple[str, int], payload: Any = None, to: Client | None = None
+    ) -> None:
+        """A message with the controller's id from another address: dropped, counted, logged;
+        a Request Control is told Not Available, a Set Emergency is taken."""
+        if isinstance(payload, SetEmergency):
+            self.component.emergency(source, addr, payload)
+            return
+        holder = self.component.access.holder_address or ("?", 0)
+        self.component.notes(
+            "refused_other_address",
+            "%s from %s:%d refused: %s controls the component from another address, %s:%d",
+            type(payload).__name__ if payload is not None else "a message",
+            addr[0], addr[1], source, holder[0], holder[1],
+        )  # fmt: skip
+        if isinstance(payload, RequestControl) and to is not None:
+            self._send(to, ConfirmControl(ControlResponse.NOT_AVAILABLE))
 
     def _client(self, source: JausId, addr: tuple[str, int], ra33: bool, instance: int) -> Client:
         now = time.monotonic()

@@ -17,11 +17,16 @@
     fields.latitude = { field = "lat" }
     timestamp = "event"                  # the time stamp: when the channel's event arrived
 
+    [authority]                          # the most authority granted per source address range
+    "127.0.0.0/8" = 255                  # (the longest prefix holding the address decides;
+    "192.168.1.0/24" = 100               # an address in no range takes no control)
+
 A command (``Set…``, ``Request…``) is published on its channel from the JAUS fields; every
 field of the channel must then be mapped or constant. A report (``Report…``) is made from the
 channel's latest event; every field of the JAUS message must then be mapped, constant or
 ignored, or for a time stamp filled (``timestamp = "event"``: when the channel's event arrived,
-UTC). :func:`load_mapping` checks all of it once, at start, and raises
+UTC). Without ``[authority]`` any address may ask for any authority. :func:`load_mapping`
+checks all of it once, at start, and raises
 :class:`MappingError` naming the file and line of the first problem; the result converts
 with plain arithmetic, nothing read from the file on the way.
 """
@@ -29,6 +34,7 @@ with plain arithmetic, nothing read from the file on the way.
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import re
 import tomllib
 import typing
@@ -40,6 +46,7 @@ from typing import Any
 from ups import ConfigError, parse_channel
 from ups._catalog import Catalog, ChannelSpec
 
+from ._access import AuthorityCaps
 from ._messages import TYPES
 from ._payloads import TimeStamp
 
@@ -102,7 +109,11 @@ class MessageMap:
         return MESSAGES[self.message](**out)
 
 
-Bridge = dict[str, MessageMap]  #: JAUS message name -> its mapping
+class Bridge(dict[str, MessageMap]):
+    """JAUS message name -> its mapping; ``authority``: the caps of the ``[authority]`` table
+    (None without one: any address, any authority)."""
+
+    authority: AuthorityCaps | None = None
 
 
 def load_mapping(path: str | Path, catalog: Catalog | None = None) -> Bridge:
@@ -117,10 +128,10 @@ def load_mapping(path: str | Path, catalog: Catalog | None = None) -> Bridge:
     except tomllib.TOMLDecodeError as exc:
         raise MappingError(f"{path}: {exc}") from None
     where = _Where(path, text)
-    unknown = set(doc) - {"catalog", "message"}
+    unknown = set(doc) - {"catalog", "message", "authority"}
     if unknown:
         key = sorted(unknown)[0]
-        raise where.error(f"unknown key {key!r} (catalog, message)", key)
+        raise where.error(f"unknown key {key!r} (catalog, message, authority)", key)
     if catalog is None:
         if "catalog" not in doc:
             raise where.error('no catalog: give catalog = "FILE" or --catalog', None)
@@ -131,7 +142,33 @@ def load_mapping(path: str | Path, catalog: Catalog | None = None) -> Bridge:
     messages = doc.get("message", {})
     if not isinstance(messages, dict) or not messages:
         raise where.error("no [message.NAME] table", None)
-    return {name: _message(name, entry, catalog, where) for name, entry in messages.items()}
+    bridge = Bridge(
+        (name, _message(name, entry, catalog, where)) for name, entry in messages.items()
+    )
+    if "authority" in doc:
+        bridge.authority = _authority(doc["authority"], where)
+    return bridge
+
+
+def _authority(table: Any, where: _Where) -> AuthorityCaps:
+    """``[authority]``: address ranges (CIDR) and the most authority (0-255) each is granted."""
+
+    def fail(text: str, key: str | None = None) -> MappingError:
+        return where.error(f"[authority]: {text}", key, header="authority")
+
+    if not isinstance(table, dict) or not table:
+        raise fail('give address ranges and their most authority, e.g. "10.0.0.0/8" = 100',
+                   "authority")  # fmt: skip
+    ranges = []
+    for key, cap in table.items():
+        try:
+            network = ipaddress.ip_network(key)
+        except ValueError as exc:
+            raise fail(f"{key!r} is not an address range: {exc}", key) from None
+        if not isinstance(cap, int) or isinstance(cap, bool) or not 0 <= cap <= 255:
+            raise fail(f"{key}: an authority is 0-255, not {cap!r}", key)
+        ranges.append((network, cap))
+    return AuthorityCaps(tuple(ranges))
 
 
 class _Where:
@@ -141,23 +178,27 @@ class _Where:
         self.path = path
         self.lines = text.splitlines()
 
-    def line(self, section: str | None, key: str | None) -> int:
+    def line(self, section: str | None, key: str | None, header: str | None = None) -> int:
+        """The line of ``key`` in ``[message.SECTION]`` (or in the table ``[HEADER]``)."""
         start = 0
-        if section is not None:
-            header = re.compile(rf"^\s*\[\s*message\.\"?{re.escape(section)}\"?\s*\]")
-            start = next((i for i, ln in enumerate(self.lines) if header.match(ln)), 0)
+        table = header or (section and rf"message\.\"?{re.escape(section)}\"?")
+        if table:
+            found = re.compile(rf"^\s*\[\s*{table}\s*\]")
+            start = next((i for i, ln in enumerate(self.lines) if found.match(ln)), 0)
         if key is None:
             return start + 1
         pattern = re.compile(rf"(^|[\s.{{,\[\"]){re.escape(key)}\"?\s*[=,\]\}}]")
         for i in range(start, len(self.lines)):
-            if i > start and section is not None and self.lines[i].lstrip().startswith("["):
+            if i > start and table and self.lines[i].lstrip().startswith("["):
                 break
             if pattern.search(self.lines[i]):
                 return i + 1
         return start + 1
 
-    def error(self, text: str, key: str | None, section: str | None = None) -> MappingError:
-        return MappingError(f"{self.path}:{self.line(section, key)}: {text}")
+    def error(
+        self, text: str, key: str | None, section: str | None = None, header: str | None = None
+    ) -> MappingError:
+        return MappingError(f"{self.path}:{self.line(section, key, header)}: {text}")
 
 
 def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageMap:

@@ -34,6 +34,9 @@ JAUS = table(
         "control_granted": "Request Control granted",
         "control_refused": "Request Control refused",
         "control_lapsed": "controls that lapsed for want of the client's messages",
+        "authority_capped": "Request Control asking more authority than its address range may "
+        "have (the mapping's [authority])",
+        "refused_other_address": "messages refused: the controller's JAUS id from another address",
         "unserved": "messages no service of this component answers",
         "not_yet": "queries and events for reports that have no data yet",
         "replies": "replies sent",

@@ -165,7 +165,7 @@ def test_documented_constants() -> None:
 
 
 def test_the_hosts_documented_bounds_are_the_codes() -> None:
-    from ups.jaus._access import CONTROL_TIMEOUT, MAX_EMERGENCIES
+    from ups.jaus._access import CONTROL_TIMEOUT, MAX_EMERGENCIES, NOTE_EVERY
     from ups.jaus._events import EVENT_TIMEOUT, MAX_EVENTS, MAX_RATE
     from ups.jaus._host import CLIENT_TIMEOUT, MAX_CLIENTS
     from ups.jaus._waypoint_list import DEFAULT_TOLERANCE, MAX_ELEMENTS
@@ -183,6 +183,13 @@ def test_the_hosts_documented_bounds_are_the_codes() -> None:
         ("tolerance (else 1 m)", DEFAULT_TOLERANCE == 1.0),
     ):
         assert row in bounds and value, row
+    rules = " ".join(section("### Control, authority and addresses").split())
+    for text, value in (
+        ("at most one line per 10 s, `NOTE_EVERY`", NOTE_EVERY == 10.0),
+        ("falls silent for 5 s (`CONTROL_TIMEOUT`)", CONTROL_TIMEOUT == 5.0),
+        ("at most 16 clients at once, `MAX_EMERGENCIES`", MAX_EMERGENCIES == 16),
+    ):
+        assert text in rules and value, text
 
 
 def test_the_mapping_shown_is_the_demo_robots() -> None:
@@ -193,8 +200,10 @@ def test_the_mapping_shown_is_the_demo_robots() -> None:
     path = Path(__file__).resolve().parent.parent / "examples" / "robot.jaus.toml"
     text = section("## The mapping file: JAUS messages onto UPS channels")
     blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
-    assert len(blocks) == 2
+    assert len(blocks) == 3  # Global Pose, Set Travel Speed, [authority]
     mapping = path.read_text()
     for paragraph in "\n\n".join(blocks).split("\n\n"):
         assert paragraph.strip() and paragraph.strip() + "\n" in mapping, paragraph
-    assert {"ReportGlobalPose", "SetTravelSpeed"} <= set(load_mapping(path))
+    bridge = load_mapping(path)
+    assert {"ReportGlobalPose", "SetTravelSpeed"} <= set(bridge)
+    assert bridge.authority is not None and bridge.authority.cap("127.0.0.1") is not None

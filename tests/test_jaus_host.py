@@ -274,3 +274,59 @@ async def test_the_demo_robot_offers_the_igvc_profile_and_answers_ra33_at_its_se
         assert struct.unpack_from("<H", data, 10)[0] == 0x4202  # Report Heartbeat Pulse
         assert tuple(data[16:20]) == (1, 33, 1, 1)
     assert host.stats()["not_for_me"] == before + 1
+
+
+def judp_part(source: tuple[int, int, int], flags: int, data: bytes, seq: int) -> bytes:
+    """One part of a large JUDP message: data flags (1 first, 3 last) in bits 6-7 of the
+    properties; ``data`` is the part's share of the code and payload."""
+    body = jaus_id(*ROBOT) + jaus_id(*source) + data
+    size = 1 + 2 + 1 + len(body) + 2
+    return (
+        bytes((2, 0)) + struct.pack("<HB", size, 0x01 | flags << 6) + body + struct.pack("<H", seq)
+    )
+
+
+async def test_the_controllers_id_from_another_address_is_refused_in_every_framing(
+    robot: tuple[JausHost, tuple[str, int], Node],
+) -> None:
+    """An RA 3.3 OCU (42.1.1) controls the component. The same id from other sockets: an RA 3.3
+    Request Control is told Not Available (from the service it asked); the parts of a JUDP
+    Set Wrench Effort are dropped before reassembly; a Set Emergency is taken (anyone may stop
+    the robot) but the Clear Emergency is not; every refusal is counted."""
+    host, address, _ = robot
+    loop = asyncio.get_running_loop()
+
+    async def ask(sock: socket.socket, datagram: bytes) -> bytes:
+        await loop.sock_sendto(sock, datagram, address)
+        async with asyncio.timeout(5):
+            return await loop.sock_recv(sock, 65536)
+
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as impostor,
+    ):
+        for sock in (holder, impostor):
+            sock.bind(("127.0.0.1", 0))
+            sock.setblocking(False)
+        answer = await ask(holder, ra33(REQUEST_CONTROL, 33, bytes([10])))
+        assert struct.unpack_from("<H", answer, 10)[0] == CONFIRM_CONTROL and answer[24] == 0
+        where = holder.getsockname()
+        assert host.component.access.holder_address == where
+        answer = await ask(impostor, ra33(REQUEST_CONTROL, 33, bytes([200])))
+        assert struct.unpack_from("<H", answer, 10)[0] == CONFIRM_CONTROL
+        assert answer[24] == 1 and tuple(answer[16:20]) == (1, 33, 1, 1)  # Not Available
+        message = struct.pack("<H", SET_WRENCH_EFFORT) + effort(90)
+        for flags, data, seq in ((1, message[:3], 20), (3, message[3:], 21)):
+            await loop.sock_sendto(impostor, judp_part((42, 1, 1), flags, data, seq), address)
+        await loop.sock_sendto(
+            impostor, judp((42, 1, 1), 0x0006, b"\x01\x00"), address
+        )  # Set Emergency: stop
+        await loop.sock_sendto(
+            impostor, judp((42, 1, 1), 0x0007, b"\x01\x00"), address
+        )  # Clear Emergency
+        assert (await ask(impostor, judp((3, 1, 1), QUERY_HEARTBEAT)))[13] == 0x02  # all handled
+    stats = host.stats()
+    assert stats["refused_other_address"] == 4  # Request Control, two parts, Clear Emergency
+    assert host._reassembler.counts.parts_in == 0  # the parts were never held
+    assert host.component.access.state.name == "EMERGENCY"  # the stop was taken
+    assert host.component.access.holder_address == where  # still the holder's

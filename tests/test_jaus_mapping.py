@@ -171,6 +171,30 @@ BAD = [
     ),
 ]
 
+COMMAND = (
+    "\n[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n"
+    "fields.propulsive_linear_x = 'limit'\n"
+)
+BAD += [
+    ('[authority]\n"10.0.0.0/8" = 5\n"10.0.0.1/8" = 5\n' + COMMAND, 5, "not an address range"),
+    ('[authority]\n"10.0.0.0/8" = 5\n"::/0" = 300\n' + COMMAND, 5, "an authority is 0-255"),
+    ('[authority]\n"fd00::/8" = true\n' + COMMAND, 4, "an authority is 0-255, not True"),
+    ("authority = 5\n" + COMMAND, 3, "give address ranges"),
+    ("[authority]\n" + COMMAND, 3, "give address ranges"),
+]
+
+
+def test_the_authority_table_caps_per_address_range(tmp_path: Path) -> None:
+    import ipaddress
+
+    body = GOOD + '\n[authority]\n"127.0.0.0/8" = 255\n"192.168.1.0/24" = 100\n'
+    caps = load_mapping(write(tmp_path, body)).authority
+    assert caps is not None and caps.cap("192.168.1.7") == (
+        ipaddress.ip_network("192.168.1.0/24"),
+        100,
+    )
+    assert load_mapping(write(tmp_path, GOOD)).authority is None  # no table: no caps
+
 
 def test_a_report_can_be_stamped_with_its_events_arrival(tmp_path: Path) -> None:
     body = GOOD.replace('"attitude_rms", "timestamp"]', '"attitude_rms"]\ntimestamp = "event"')

@@ -63,7 +63,7 @@ class ListMachine(RuleBasedStateMachine):
     def __init__(self) -> None:
         super().__init__()
         self.access = Access(minimum_authority=0, timeout=1e9)
-        self.access.request(OCU, 10, 0.0)
+        self.access.request(OCU, 10, 0.0, ("127.0.0.1", 3794))
         self.access.resume(OCU)
         self.replies: list[tuple[JausId, Any]] = []
         self.published: list[tuple[str, Any]] = []

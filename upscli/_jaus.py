@@ -140,6 +140,9 @@ def _run_jaus(args: argparse.Namespace) -> int:
         fields = ", ".join(f"{f.jaus}->{f.ups}" for f in entry.fields)
         stamp = ", time stamp: the event's" if entry.stamped else ""
         print(f"{name}: {way} on {entry.channel.channel} ({fields}{stamp})")
+    if bridge.authority is not None:
+        ranges = ", ".join(f"{net} at most {cap}" for net, cap in bridge.authority.ranges)
+        print(f"authority: {ranges}; any other address: no control")
     return 0
 
 

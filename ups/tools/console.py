@@ -5,8 +5,9 @@ channels and nodes as ``ups monitor`` does, updated by server-sent events, a plo
 chosen channel's decoded fields, and a form that publishes on a channel (hex, or
 ``field=value,...`` that the catalog encodes). Routes:
 
-- ``GET /``: the page; ``GET /events``: one ``snapshot`` (see ``_live``) per
-  ``SNAPSHOT_EVERY`` s, as server-sent events; ``GET /snapshot``: one, as JSON;
+- ``GET /``: the page, which asks for ``GET /snapshot`` (one ``snapshot``, see ``_live``, as
+  JSON) every ``SNAPSHOT_EVERY`` s; ``GET /events``: one per ``SNAPSHOT_EVERY`` s as
+  server-sent events, for scripts;
 - ``GET /history?key=0x...``: the channel's recent (time, values) points;
 - ``POST /publish`` (JSON ``{"channel", "data"}``): ``{"ok": true}`` or ``{"error": "..."}``
   (400 for bad input, 403 when the TCP-ECB's ACL refuses), never a traceback.
@@ -15,11 +16,20 @@ With the TLS options the console is one more participant of the fleet: its node 
 that identity (so the TCP-ECB's ACL decides what it may see and publish), and the page is
 served over HTTPS to browsers that show a certificate of the same fleet CA. On CAN the
 console listens only, and joins the bus the first time someone publishes from the page.
+
+Bounds, each counted and logged when it bites (``_webguard``): requests whose Host is not
+this console's (DNS rebinding: ``wrong_host``, 421) or posts from another site's page
+(``cross_site``, 403); a connection that does not deliver a whole request within
+``HEADER_TIMEOUT`` s (``slow_requests``); live streams beyond ``MAX_PAGES_PER_CLIENT`` per
+client address or ``MAX_PAGES`` in all (``pages_refused``, 429 or 503), and streams whose
+reader fell ``PAGE_BACKLOG`` snapshots behind or let a write wait ``WRITE_TIMEOUT`` s
+(``pages_dropped``). The page itself holds no stream: nothing a client holds shuts it out.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 from typing import Any
 
 from .._cliargs import (
@@ -35,6 +45,15 @@ from .._cliargs import (
 from .._errors import ConfigError
 from .._metrics import NODE, Metric, Reading, add_metrics, serving_metrics, table
 from ._net import IpNetwork, network_of
+from ._webguard import (
+    HEADER_TIMEOUT,
+    Notes,
+    RequestClock,
+    abort,
+    allowed_names,
+    backlog,
+    host_allowed,
+)
 
 
 def _middleware(function: Any) -> Any:
@@ -43,11 +62,22 @@ def _middleware(function: Any) -> Any:
     return function
 
 
+log = logging.getLogger("ups.console")
+
 HELP = "a web page of the live network: channels, nodes, a plot, a form to publish"
 DEFAULT_LISTEN = "127.0.0.1:8470"
 SNAPSHOT_EVERY = 0.5  #: seconds between snapshots sent to each page
-MAX_PAGES = 32  #: pages followed at once; more are answered 503
-WRITE_TIMEOUT = 5.0  #: seconds a page may take to read a snapshot before it is let go
+MAX_PAGES = 32  #: live streams (GET /events) at once; more are answered 503
+MAX_PAGES_PER_CLIENT = 4  #: live streams of one client address at once; more are answered 429
+PAGE_BACKLOG = 10  #: snapshots a stream's reader may leave unread (5 s) before it is let go
+WRITE_TIMEOUT = 5.0  #: seconds a stream's write may wait for its reader before it is let go
+GUARD_COUNTERS = {
+    "wrong_host": "requests refused: a Host that is not this console's (DNS rebinding)",
+    "cross_site": "posts refused: from another site's page (Origin)",
+    "slow_requests": "connections closed: no whole request within the header timeout",
+    "pages_refused": "live streams refused: too many of the client's, or in all",
+    "pages_dropped": "live streams dropped: their reader stopped reading",
+}
 
 #: ``Live.stats()``, with the pages open (``--metrics``; docs/metrics.md)
 CONSOLE = table(
@@ -60,12 +90,13 @@ CONSOLE = table(
         "dropped and lost events",
         "untracked": "channels, nodes and JAUS components beyond the bounds, not tracked",
         "status_failures": "status requests that failed (TCP-ECB, Zenoh, JAUS components)",
+        **GUARD_COUNTERS,
     },
     {
         "channels": "channels tracked",
         "nodes": "nodes tracked and alive",
         "jaus": "JAUS components shown",
-        "pages": "pages following the live view",
+        "pages": "live streams open (GET /events)",
         "bus_load": "share of the bus's bit rate its frames took in the last 5 s (CAN)",
     },
 )
@@ -75,6 +106,12 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
     cmd.add_argument(
         "--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
         help=f"where the page is served (default {DEFAULT_LISTEN})",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--allow-host", action="append", default=None, metavar="NAME",
+        help="a host name the page may be asked for (repeatable); besides it: localhost, the "
+        "--listen host when a name, and any IP address; other names are refused (421), as a "
+        "DNS-rebinding page would be",
     )  # fmt: skip
     add_network(cmd, "a CAN bus (listening; joins to publish)", "an IP network")
     cmd.add_argument("--db", default=None, help="CAN: the CAN-ECB's database (default: the bus's)")
@@ -133,7 +170,11 @@ async def _serve(
     app = web.Application(client_max_size=64 * 1024, middlewares=[_guard])
     app["live"], app["publisher"], app["pages"] = live, publisher, 0
     app["streams"] = set()  # the tasks serving /events: ended at once on shutdown
-    app["hosts"] = None  # the Host headers accepted (None: any), set once bound
+    app["per_client"] = {}  # client address -> its live streams open
+    app["names"] = allowed_names(host, args.allow_host)  # Host names served (and addresses)
+    app["counters"] = dict.fromkeys(GUARD_COUNTERS, 0)
+    app["notes"] = notes = Notes(app["counters"])
+    app["clock"] = clock = RequestClock(HEADER_TIMEOUT, notes)
     app.add_routes([
         web.get("/", _page), web.get("/events", _events), web.get("/snapshot", _snapshot),
         web.get("/history", _history), web.post("/publish", _publish),
@@ -141,7 +182,7 @@ async def _serve(
 
     def reading() -> Reading:
         readings: list[tuple[list[Metric], dict[str, Any], dict[str, str]]] = [
-            (CONSOLE, {**live.stats(), "pages": app["pages"]}, {})
+            (CONSOLE, {**live.stats(), **app["counters"], "pages": app["pages"]}, {})
         ]
         if node is not None:  # on IP at once; on CAN once the page published
             network = "can" if net is None else net.label
@@ -150,15 +191,17 @@ async def _serve(
 
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
+    server: asyncio.Server | None = None
     try:
         async with serving_metrics(args.metrics, "console", reading) as metrics:
             if metrics is not None:
                 say(args, f"metrics on {metrics.url}")
-            site = web.TCPSite(runner, host, port, ssl_context=_https(tls))
-            await site.start()
+            server = await asyncio.get_running_loop().create_server(  # each connection timed
+                clock.protocol_factory(runner.server), host or None, port, ssl=_https(tls),
+                reuse_address=True,
+            )  # fmt: skip
             scheme = "https" if tls is not None else "http"
-            bound = runner.addresses[0][1]  # the port, when --listen asked for any (0)
-            app["hosts"] = _hosts(host, bound)
+            bound = server.sockets[0].getsockname()[1]  # the port, when --listen asked for any
             if net is not None:  # the page is served first: a port in use is said at once
                 node = net.node("ups-console")
                 await node.start()
@@ -171,39 +214,43 @@ async def _serve(
     except asyncio.CancelledError:
         pass  # Ctrl-C, SIGTERM: the way to stop it
     finally:
+        if server is not None:
+            server.close()
         for stream in list(app["streams"]):  # open pages would hold shutdown for minutes
             stream.cancel()
         await runner.cleanup()
+        clock.close()
+        log.info("console stopping: %s", app["counters"])
         if node is not None:
             with contextlib.suppress(Exception):
                 await node.close()
     return 0
 
 
-def _hosts(host: str, port: int) -> set[str] | None:
-    """The Host headers a page may come with: this address (and ``localhost`` for loopback),
-    so a web site renamed to 127.0.0.1 (DNS rebinding) cannot read or post. Any, when the
-    console listens on every address (0.0.0.0, ::)."""
-    if host in ("0.0.0.0", "::", ""):
-        return None
-    names = {host, f"[{host}]"} | ({"localhost"} if host in ("127.0.0.1", "::1") else set())
-    return {f"{name}:{port}" for name in names}
-
-
 @_middleware
 async def _guard(request: Any, handler: Any) -> Any:
-    """Refuse requests for another host name (DNS rebinding), and cross-site posts: a POST
-    must come from this console's own page (Origin, when a browser sends one)."""
+    """Refuse requests for a host name not this console's (DNS rebinding: a page of
+    another site whose name now resolves here), and cross-site posts: a POST must come from
+    this console's own page (Origin, when a browser sends one). Times each connection's
+    requests (``RequestClock``)."""
     from aiohttp import web
 
-    hosts = request.app["hosts"]
-    if hosts is not None and request.host not in hosts:
-        return web.json_response({"error": f"not this console: {request.host}"}, status=421)
-    origin = request.headers.get("Origin")
-    if request.method == "POST" and origin and origin.split("://", 1)[-1] != request.host:
-        return web.json_response({"error": f"not from this console's page: {origin}"},
-                                 status=403)  # fmt: skip
-    return await handler(request)
+    app, clock = request.app, request.app["clock"]
+    clock.begin(request.protocol)
+    try:
+        if not host_allowed(request.host, app["names"]):
+            app["notes"]("wrong_host", "request from %s for %r refused: not this console's "
+                         "name (--allow-host)", request.remote, request.host)  # fmt: skip
+            return web.json_response({"error": f"not this console: {request.host}"}, status=421)
+        origin = request.headers.get("Origin")
+        if request.method == "POST" and origin and origin.split("://", 1)[-1] != request.host:
+            app["notes"]("cross_site", "post from %s refused: from the page of %s",
+                         request.remote, origin)  # fmt: skip
+            return web.json_response({"error": f"not from this console's page: {origin}"},
+                                     status=403)  # fmt: skip
+        return await handler(request)
+    finally:
+        clock.end(request.protocol)
 
 
 def _https(tls: Any) -> Any:
@@ -234,28 +281,53 @@ async def _snapshot(request: Any) -> Any:
 
 async def _events(request: Any) -> Any:
     import asyncio
+    import collections
     import json
 
     from aiohttp import web
 
-    app = request.app
-    if app["pages"] >= MAX_PAGES:
-        return web.Response(status=503, text=f"at most {MAX_PAGES} pages at once")
+    app, client = request.app, request.remote or "?"
+    per_client = app["per_client"]
+    mine = per_client.get(client, 0)
+    if mine >= MAX_PAGES_PER_CLIENT or app["pages"] >= MAX_PAGES:
+        app["notes"]("pages_refused", "live stream of %s refused: %d of its own open, %d in all",
+                     client, mine, app["pages"])  # fmt: skip
+        if mine >= MAX_PAGES_PER_CLIENT:
+            text = f"at most {MAX_PAGES_PER_CLIENT} live streams per client"
+            return web.Response(status=429, text=text)
+        return web.Response(status=503, text=f"at most {MAX_PAGES} live streams at once")
     app["pages"] += 1
+    per_client[client] = mine + 1
     app["streams"].add(asyncio.current_task())
+    sent: collections.deque[int] = collections.deque(maxlen=PAGE_BACKLOG)
     try:
         response = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                                "Cache-Control": "no-cache"})  # fmt: skip
         await response.prepare(request)
         while True:
-            data = json.dumps(app["live"].snapshot())
-            async with asyncio.timeout(WRITE_TIMEOUT):  # a page that does not read is let go
-                await response.write(f"data: {data}\n\n".encode())
+            data = f"data: {json.dumps(app['live'].snapshot())}\n\n".encode()
+            async with asyncio.timeout(WRITE_TIMEOUT):  # a write its reader holds up: let go
+                await response.write(data)
+            sent.append(len(data))
+            behind = backlog(request.transport) if request.transport is not None else None
+            if behind is not None and len(sent) == PAGE_BACKLOG and behind > sum(sent):
+                app["notes"]("pages_dropped", "live stream of %s dropped: %d bytes unread, "
+                             "over %d snapshots", client, behind, PAGE_BACKLOG)  # fmt: skip
+                abort(request.transport)
+                return response
             await asyncio.sleep(SNAPSHOT_EVERY)
-    except (ConnectionError, TimeoutError):
-        return response  # the page went away, or stopped reading
+    except TimeoutError:
+        app["notes"]("pages_dropped", "live stream of %s dropped: a write waited %g s",
+                     client, WRITE_TIMEOUT)  # fmt: skip
+        abort(request.transport)
+        return response
+    except ConnectionError:
+        return response  # the reader went away
     finally:
         app["pages"] -= 1
+        per_client[client] -= 1
+        if not per_client[client]:
+            del per_client[client]
         app["streams"].discard(asyncio.current_task())
 
 
@@ -267,6 +339,8 @@ async def _history(request: Any) -> Any:
 
 
 async def _publish(request: Any) -> Any:
+    import asyncio
+
     from aiohttp import web
 
     from .._channel import parse_channel
@@ -277,13 +351,18 @@ async def _publish(request: Any) -> Any:
             {"error": "send JSON (Content-Type: application/json)"}, status=415
         )
     try:
-        body = await request.json()
+        async with asyncio.timeout(HEADER_TIMEOUT):  # a body trickled in holds nothing long
+            body = await request.json()
         if not isinstance(body, dict):
             raise ConfigError("the body must be a JSON object with channel and data")
         channel = parse_channel(str(body["channel"]).strip())
         data = request.app["live"].catalog.payload(channel, str(body.get("data", "")))
         node = await request.app["publisher"]()
         await node.publish(channel, data)
+    except TimeoutError:
+        request.app["notes"]("slow_requests", "post from %s: its body did not arrive within %g s",
+                             request.remote, HEADER_TIMEOUT)  # fmt: skip
+        return web.json_response({"error": "the body came too slowly"}, status=408)
     except AccessDenied as exc:
         return web.json_response({"error": str(exc)}, status=403)
     except (UpsError, ValueError, KeyError) as exc:
