@@ -91,12 +91,19 @@ class Etags:
         for kind, txnode, uid, size_class in deferred:
             self.on_request(p.Request(kind, txnode, uid, size_class))
 
+    def truth(self, etag: int, uid: int) -> list[p.Bind]:
+        """The tables' Binds of ``etag`` and of ``uid`` where they differ from (etag, uid)."""
+        binds = []
+        if etag in self.uid_at:
+            binds.append(p.Bind(etag, self.uid_at[etag]))
+        if uid in self._store.etags and self._store.etags[uid] != etag:
+            binds.append(p.Bind(self._store.etags[uid], uid))
+        return binds
+
     def correct(self, etag: int, uid: int) -> None:
         """Repeat the tables' truth about ``etag`` and ``uid``."""
-        if etag in self.uid_at:
-            self._send(p.Bind(etag, self.uid_at[etag]))
-        if uid in self._store.etags and self._store.etags[uid] != etag:
-            self._send(p.Bind(self._store.etags[uid], uid))
+        for bind in self.truth(etag, uid):
+            self._send(bind)
 
     def on_request(self, msg: p.Request) -> None:
         """Bind ``uid`` to an etag of at least the asked size class: the one it has, or a new

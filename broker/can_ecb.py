@@ -39,6 +39,7 @@ from ._census import Census
 from ._channels import Channels
 from ._election import Election, Role
 from ._etags import Etags
+from ._forged import Corrections
 from ._store import Store
 from ._txnodes import TxNodes
 
@@ -117,6 +118,10 @@ class CanEcb:
             self._store, phase=self, channels=self._channels, admission=self._admission,
             assigned=self._txnodes.node_at, send=self._send, counters=self.counters,
             warn=self._warn, stored=self._stored, log_failure=self._log_failure, lease=lease,
+        )  # fmt: skip
+        self._corrections = Corrections(
+            etags=self._etags, txnodes=self._txnodes, admission=self._admission,
+            send=self._send, counters=self.counters, warn=self._warn,
         )  # fmt: skip
 
     # --- tables and statistics -------------------------------------------------------------
@@ -316,21 +321,8 @@ class CanEcb:
             if msg.instance != self.instance:
                 self._warn("ecb", "another CAN-ECB (%016x) on this bus: %s", msg.instance,
                            type(msg).__name__)  # fmt: skip
-        elif isinstance(msg, p.Bind) and self._etags.uid_at.get(msg.etag) != msg.uid:
-            self.counters["conflicts"] += 1
-            self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
-                       msg.etag, msg.uid)  # fmt: skip
-            self._etags.correct(msg.etag, msg.uid)
-        elif isinstance(msg, p.Assign) and self._store.txnodes.get(msg.node_id) not in (
-            None, msg.txnode,
-        ):  # fmt: skip
-            self.counters["conflicts"] += 1  # a node told to move where its table does not say
-            self._warn("assign", "an Assign(%d, %016x) that this CAN-ECB did not send: "
-                       "correcting", msg.txnode, msg.node_id)  # fmt: skip
-            self._send(p.Assign(self._store.txnodes[msg.node_id], msg.node_id))
         else:
-            self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a "
-                       "forger", type(msg).__name__)  # fmt: skip
+            self._corrections.correct(msg)
 
     def _elect(self, frames: list[p.Hello | p.Serving | p.Probe]) -> None:
         """Carry out what the election decided: a change of role, its frames, its next timer."""

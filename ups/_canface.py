@@ -22,7 +22,7 @@ from . import _cantransfer as t
 from ._canbinding import RETRY_FIRST, SETTLE, Bindings
 from ._canjoin import Joiner
 from ._canlink import CanLink
-from ._canstreams import declaration, refusal
+from ._canstreams import Streams, declaration
 from ._errors import (
     BrokerUnavailable,
     ConfigError,
@@ -120,17 +120,21 @@ class CanFace:
         self._announcer: asyncio.Task[None] | None = None
         self._last_announce = -_HELLO_GAP
         self._logged: dict[str, float] = {}
-        self._declared: dict[int, tuple[int, int, int, int]] = {}  # uid -> size, T, D, J
-        self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
-             "rebinds", "moves", "unbound_dropped", "task_errors", "too_large", "refused_large"),
+             "rebinds", "moves", "unbound_dropped", "task_errors", "too_large", "refused_large",
+             "stray_verdicts"),
             0,
         )  # fmt: skip
         self.bindings = Bindings(
             send=self._send, txnode=self._my_txnode, bus=str(self.link.channel_info),
             counters=self.counters, warn=self._warn, on_adopted=self._adopted,
             on_contradicted=self._suspend, rebinding=self._rebinding,
+        )  # fmt: skip
+        self.streams = Streams(
+            send=self._send, txnode=self._my_txnode, uid_at=self.bindings.uid_at,
+            heard=self.bindings.heard, counters=self.counters, warn=self._warn,
+            bus=str(self.link.channel_info),
         )  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
@@ -149,8 +153,7 @@ class CanFace:
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        for fut in self._verdicts.values():
-            fut.cancel()
+        self.streams.close()
         self.bindings.close()
         if self._expiry is not None:
             self._expiry.cancel()
@@ -384,8 +387,7 @@ class CanFace:
                 ),
             )
         elif isinstance(msg, p.Grant | p.Refuse):
-            if msg.txnode == self.txnode:
-                self._on_verdict(msg)
+            self.streams.on_verdict(msg)
         elif isinstance(msg, p.Hello):
             self._announce_all()
         elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
@@ -478,28 +480,7 @@ class CanFace:
             await self.grow(state, size)
         etag = self.bindings.bound[uid]
         fields = declaration(size, period_ms, deadline_ms, jitter_ms, etag=etag, mtu=self.link.mtu)
-        self._declared[uid] = fields
-        fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
-        msg = p.Declare(self._my_txnode(), etag, *fields)
-        try:
-            priority = await self.bindings.ask(msg, fut, f"admit {state.channel}")
-        except BaseException:  # refused, unanswered or cancelled: nothing to re-announce
-            self._declared.pop(uid, None)
-            raise
-        state.priority = priority
-        return priority
-
-    def _on_verdict(self, msg: p.Grant | p.Refuse) -> None:
-        uid = self.bindings.uid_at.get(msg.etag)
-        fut = self._verdicts.pop(msg.etag, None)
-        if isinstance(msg, p.Grant):
-            state = self._channels.get(uid) if uid is not None else None
-            if state is not None:  # also when another node's declaration moved ours
-                state.priority = msg.priority
-            if fut is not None and not fut.done():
-                fut.set_result(msg.priority)
-        elif fut is not None and not fut.done():
-            fut.set_exception(refusal(msg, uid, self.bindings.heard))
+        return await self.streams.declare(state, etag, fields)
 
     # --- announcing ------------------------------------------------------------------------
 
@@ -527,12 +508,12 @@ class CanFace:
                 etag = self.bindings.bound.get(uid)  # now: a contradiction may have come meanwhile
                 if etag is not None and txnode == self.txnode:
                     self._send(p.Holds(publish, txnode, etag, uid))
-            if uid in self._declared and state.published:
+            declared = self.streams.declared.get(uid)
+            if declared is not None and state.published:
                 await asyncio.sleep(_ANNOUNCE_GAP)
                 etag = self.bindings.bound.get(uid)
                 if etag is not None and txnode == self.txnode:
-                    size, period, deadline, jitter = self._declared[uid]
-                    self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
+                    self._send(p.Declare(txnode, etag, *declared.fields))
 
     def _task_done(self, task: asyncio.Task[None]) -> None:
         if not task.cancelled() and task.exception() is not None:
