@@ -22,7 +22,7 @@ from pathlib import Path
 import can
 import pytest
 
-from ups import Node, Unschedulable, name_to_uid
+from ups import BrokerUnavailable, Exhausted, Node, Unschedulable, name_to_uid
 from ups import _canproto as p
 from ups._canface import CanFace
 from ups._canlink import CanLink
@@ -197,3 +197,66 @@ async def test_a_verdict_forged_before_the_can_ecbs_answer_is_not_the_answer(
                 with pytest.raises(Unschedulable):
                     await declaring
                 assert await priority_on_the_wire(pub, pub, "rt") == p.DEFAULT_PRIORITY
+
+
+# --- TxNodesFull and Failed during a join ---------------------------------------------------------
+
+
+JOINERS = [0x0A11_0001, 0x0A11_0002, 0x0A11_0003]
+
+
+def refusals(kind: str, when: str) -> Callable[[p.Management], list[p.Management]]:
+    """A forger that says TxNodesFull(id) or Failed(id) to each joiner: when the CAN-ECB offers
+    it a TxNode (the joiner claims, and the CAN-ECB stores the assignment), or as soon as a
+    census starts (it knows the ids: they are stable)."""
+    make: Callable[[int], p.Management] = p.TxNodesFull if kind == "TxNodesFull" else p.Failed
+
+    def react(msg: p.Management) -> list[p.Management]:
+        if when == "offer" and isinstance(msg, p.Offer) and msg.node_id in JOINERS:
+            return [make(msg.node_id)]
+        if when == "census" and isinstance(msg, p.Census):
+            return [make(i) for i in JOINERS]
+        return []
+
+    return react
+
+
+@pytest.mark.parametrize(
+    ("kind", "when"), [("TxNodesFull", "offer"), ("TxNodesFull", "census"), ("Failed", "offer")]
+)
+async def test_a_refusal_forged_during_a_join_ends_no_join(
+    bus: str, ecb: CanEcb, kind: str, when: str
+) -> None:
+    """The attack: three joiners, each told "all 127 TxNodes are taken" while the CAN-ECB
+    assigned them: 3 of 3 failed."""
+    await eventually(lambda: not ecb.recovering)
+    async with forging(bus, refusals(kind, when)) as forger:
+        joiners = [Node(can=bus, node_id=i, join_timeout=15) for i in JOINERS]
+        try:
+            results = await asyncio.gather(*(n.start() for n in joiners), return_exceptions=True)
+            failed = [r for r in results if isinstance(r, Exhausted | BrokerUnavailable)]
+            assert not failed, f"{len(failed)} of 3 joins failed: {failed}"
+            assert {n.node_id: n.stats()["txnode"] for n in joiners} == ecb.txnodes
+        finally:
+            for node in joiners:
+                await node.close()
+        assert forger.sent, "the forger never struck"
+
+
+@pytest.mark.parametrize("kind", ["EtagsFull", "Failed", "Limit"])
+async def test_a_refusal_forged_while_a_node_binds_ends_no_request(
+    bus: str, ecb: CanEcb, kind: str
+) -> None:
+    """The same for a binding: each SUB_BIND answered at once by a forged refusal."""
+
+    def react(msg: p.Management) -> list[p.Management]:
+        if not isinstance(msg, p.Request) or msg.kind != p.SUB_BIND:
+            return []
+        if kind == "Limit":
+            return [p.Limit(msg.txnode, msg.value)]
+        return [p.EtagsFull(msg.value) if kind == "EtagsFull" else p.Failed(msg.value)]
+
+    async with nodes(bus, [1]) as (node,), forging(bus, react) as forger:
+        await node.subscribe(*[f"bound/{i}" for i in range(20)])
+        assert node.stats()["bindings"] == 20 and len(forger.sent) >= 20
+        assert node.stats()["refusals"] >= 20

@@ -123,7 +123,7 @@ class CanFace:
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
              "rebinds", "moves", "unbound_dropped", "task_errors", "too_large", "refused_large",
-             "stray_verdicts"),
+             "stray_verdicts", "refusals"),
             0,
         )  # fmt: skip
         self.bindings = Bindings(
@@ -165,6 +165,7 @@ class CanFace:
     def stats(self) -> dict[str, int]:
         return {
             **self.counters,
+            "refusals": self.counters["refusals"] + self._joiner.refusals,
             "tx_failed": self.link.tx_failed,
             "large_lost": self._reassembly.lost,
             "large_frames_dropped": self._reassembly.frames_dropped,
