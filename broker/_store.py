@@ -32,16 +32,23 @@ log = logging.getLogger("ups.can_ecb")
 BUSY_TIMEOUT = 5.0  #: seconds a write waits for a lock that another program holds on the file
 MAX_BATCH = 4096  #: writes committed in one transaction, at most
 
-#: One write: (table, key, value). table is "txnodes" (node id -> TxNode) or "etags" (UID ->
-#: etag); value None deletes the row.
+#: One write: (table, key, value). table is "txnodes" (node id -> TxNode), "etags" (UID ->
+#: etag) or "creators" (UID -> the node id that created its binding, for the quota); value None
+#: deletes the row.
 Write = tuple[str, int, int | None]
 Done = Callable[[BaseException | None], None]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS txnodes (node_id TEXT PRIMARY KEY, txnode INTEGER UNIQUE NOT NULL);
 CREATE TABLE IF NOT EXISTS etags (uid TEXT PRIMARY KEY, etag INTEGER UNIQUE NOT NULL);
+CREATE TABLE IF NOT EXISTS creators (uid TEXT PRIMARY KEY, node_id TEXT NOT NULL);
 """
-_COLUMNS = {"txnodes": ("node_id", "txnode"), "etags": ("uid", "etag")}
+_COLUMNS = {
+    "txnodes": ("node_id", "txnode"),
+    "etags": ("uid", "etag"),
+    "creators": ("uid", "node_id"),
+}
+_UNIQUE = {"txnodes", "etags"}  # tables whose values are unique too (a TxNode, an etag)
 __all__ = ["Store", "default_db", "state_dir"]  # the state files' paths live in ups._bindings
 
 
@@ -56,6 +63,7 @@ class Store:
             try:
                 self.txnodes: dict[int, int] = _load(db, "txnodes")
                 self.etags: dict[int, int] = _load(db, "etags")
+                self.creators: dict[int, int] = _load(db, "creators")
             finally:
                 db.close()
         except sqlite3.Error as exc:
@@ -64,7 +72,10 @@ class Store:
         self._inode = _inode(self.path)
         self._db: sqlite3.Connection | None = None  # open while writes are queued
         #: what the file holds, as the writer thread knows it (to rewrite a deleted file)
-        self._durable = {"txnodes": dict(self.txnodes), "etags": dict(self.etags)}
+        self._durable = {
+            "txnodes": dict(self.txnodes), "etags": dict(self.etags),
+            "creators": dict(self.creators),
+        }  # fmt: skip
         self._queue: queue.SimpleQueue[tuple[list[Write], Done] | None] = queue.SimpleQueue()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -141,8 +152,10 @@ class Store:
                     key_col, value_col = _COLUMNS[table]
                     db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
                     if value is not None:
-                        db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
-                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
+                        if table in _UNIQUE:
+                            db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
+                        row = (f"{key:016x}", _column(table, value))
+                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", row)
             self._inode = _inode(self.path)
         except (sqlite3.Error, OSError) as exc:
             self.errors += 1
@@ -169,7 +182,7 @@ class Store:
             db.execute(f"DELETE FROM {table}")
             db.executemany(
                 f"INSERT INTO {table} VALUES (?, ?)",
-                [(f"{k:016x}", v) for k, v in self._durable[table].items()],
+                [(f"{k:016x}", _column(table, v)) for k, v in self._durable[table].items()],
             )
 
     def _call_back(self, done: Done, error: BaseException | None) -> None:
@@ -180,7 +193,13 @@ class Store:
 
 
 def _load(db: sqlite3.Connection, table: str) -> dict[int, int]:
-    return {int(k, 16): v for k, v in db.execute(f"SELECT * FROM {table}")}
+    rows = db.execute(f"SELECT * FROM {table}")
+    return {int(k, 16): int(v, 16) if isinstance(v, str) else v for k, v in rows}
+
+
+def _column(table: str, value: int) -> int | str:
+    """A value as its column holds it: node ids (64 bits, beyond SQLite's integers) in hex."""
+    return f"{value:016x}" if table == "creators" else value
 
 
 def _inode(path: Path) -> tuple[int, int] | None:

@@ -40,6 +40,7 @@ from ._channels import Channels
 from ._election import Election, Role
 from ._etags import Etags
 from ._forged import Corrections
+from ._quota import QUOTA, Quota
 from ._store import Store
 from ._txnodes import TxNodes
 
@@ -73,6 +74,7 @@ class CanEcb:
         recovery: float = RECOVERY,
         lease: float = LEASE,
         max_channels: int = MAX_CHANNELS,
+        quota: tuple[int, int, int, int, int] = QUOTA,
     ) -> None:
         self.link = link
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
@@ -98,7 +100,7 @@ class CanEcb:
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
                 "adopted", "conflicts", "foreign_ecb_frames", "unassigned", "deferred",
                 "limited", "reclaimed", "storage_errors", "handler_errors", "offers_withdrawn",
-                "moved", "late_claims",
+                "moved", "late_claims", "quota_hit",
             ),
             0,
         )  # fmt: skip
@@ -117,6 +119,7 @@ class CanEcb:
         self._etags = Etags(
             self._store, phase=self, channels=self._channels, admission=self._admission,
             assigned=self._txnodes.node_at, send=self._send, counters=self.counters,
+            quota=Quota(quota, self._store.creators, self._store.etags),
             warn=self._warn, stored=self._stored, log_failure=self._log_failure, lease=lease,
         )  # fmt: skip
         self._corrections = Corrections(
@@ -143,6 +146,11 @@ class CanEcb:
     def etags(self) -> dict[int, int]:
         """channel UID -> etag, every durable binding on this bus."""
         return dict(self._store.etags)
+
+    @property
+    def creators(self) -> dict[int, int]:
+        """channel UID -> the node id that created its binding (its quota's count)."""
+        return dict(self._store.creators)
 
     @property
     def declared(self) -> dict[tuple[int, int], object]:

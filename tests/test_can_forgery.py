@@ -29,7 +29,10 @@ from ups._canlink import CanLink
 from ups._errors import DecodeError
 from ups.broker.can_ecb import CanEcb
 
-from .conftest import HeldBus, eventually
+from .conftest import HeldBus, eventually, running_ecb
+
+#: bindings one node id may create in size class 0 (docs/protocol.md, Bounds)
+QUOTA = 1024
 
 
 def send(raw: can.BusABC, msg: p.Management) -> None:
@@ -260,3 +263,32 @@ async def test_a_refusal_forged_while_a_node_binds_ends_no_request(
         await node.subscribe(*[f"bound/{i}" for i in range(20)])
         assert node.stats()["bindings"] == 20 and len(forger.sent) >= 20
         assert node.stats()["refusals"] >= 20
+
+
+# --- the binding quota --------------------------------------------------------------------------
+
+
+async def test_a_rogue_pair_of_ids_cannot_take_the_buss_etags(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    """The attack: two node ids sent 16,400 PUB_BINDs of made-up channels and took all 12,272
+    etags of size class 0. Now each may create ``QUOTA``; a node that uses 300 new channels
+    afterwards gets them all."""
+    async with (
+        running_ecb(bus, tmp_path / "ecb.db", recovery=0.1) as ecb,
+        nodes(bus, [0xBAD1, 0xBAD2]) as rogues,
+    ):
+        await eventually(lambda: not ecb.recovering)
+        before = ecb.counters["requests"]
+        for rogue in rogues:
+            txnode = rogue.stats()["txnode"]
+            for i in range(8200):
+                send(raw_bus, p.Request(p.PUB_BIND, txnode, (0xBAD0 + txnode) << 32 | i))
+        await eventually(lambda: ecb.counters["requests"] >= before + 16_400, timeout=60)
+        await eventually(lambda: not ecb._etags._pending, timeout=60)  # the writes are done
+        taken = len(ecb.etags)
+        assert taken <= 2 * QUOTA, f"the rogue pair took {taken} etags"
+        assert ecb.counters["quota_hit"] >= 16_400 - 2 * QUOTA
+        async with Node(can=bus, node_id=0x600D, join_timeout=15) as good:
+            await good.subscribe(*[f"robot/{i}" for i in range(300)])
+            assert good.stats()["bindings"] == 300
