@@ -7,8 +7,9 @@ only after its callback said it is durable.
 
 A file is used by one CAN-ECB at a time: ``Store`` holds an exclusive lock on ``FILE.lock``
 and refuses to open a file another process holds. The file is open only while writes are
-queued; if it was deleted or replaced, the writer writes the whole table into a new file at
-the same path.
+queued. If it was deleted or replaced, the writer writes the whole table into a new file at the
+same path: at the next write, at the latest ``CHECK_EVERY`` seconds later (it looks while idle),
+and before it stops; so a file lost while the CAN-ECB runs loses nothing it knew.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ log = logging.getLogger("ups.can_ecb")
 
 BUSY_TIMEOUT = 5.0  #: seconds a write waits for a lock that another program holds on the file
 MAX_BATCH = 4096  #: writes committed in one transaction, at most
+CHECK_EVERY = 1.0  #: seconds between two looks, while idle, whether the file is still there
 
 #: One write: (table, key, value). table is "txnodes" (node id -> TxNode), "etags" (UID ->
 #: etag) or "creators" (UID -> the node id that created its binding, for the quota); value None
@@ -82,6 +84,7 @@ class Store:
         self.batches = 0
         self.errors = 0
         self.last_error: str | None = None
+        self._check_error: str | None = None  # the last error of a look at the file (logged)
 
     def start(self) -> None:
         """Start the writer; callbacks run on the calling (running) event loop."""
@@ -107,14 +110,20 @@ class Store:
     # --- the writer thread -----------------------------------------------------------------
 
     def _connect(self) -> sqlite3.Connection:
+        self.path.parent.mkdir(parents=True, exist_ok=True)  # deleted with the file, maybe
         db = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT, check_same_thread=False)
         db.executescript(_SCHEMA)
         return db
 
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
+            try:
+                item = self._queue.get(timeout=CHECK_EVERY)
+            except queue.Empty:
+                self._check()
+                continue
             if item is None:
+                self._check()
                 return
             batch = [item]
             while len(batch) < MAX_BATCH:
@@ -142,11 +151,9 @@ class Store:
                 self._close_db()
                 self._db = self._connect()
             db = self._db
+            lost = inode != self._inode  # deleted or replaced: write it all anew
             with db:
-                if inode != self._inode:  # deleted or replaced: write it all anew
-                    log.error(
-                        "CAN-ECB database %s was deleted or replaced: writing it anew", self.path
-                    )
+                if lost:
                     self._write_all(db)
                 for table, key, value in writes:
                     key_col, value_col = _COLUMNS[table]
@@ -169,7 +176,22 @@ class Store:
                 self._durable[table].pop(key, None)
             else:
                 self._durable[table][key] = value
+        if lost:
+            log.error("CAN-ECB database %s was deleted or replaced: written anew, with the "
+                      "%d TxNodes and %d etags this CAN-ECB knows", self.path,
+                      len(self._durable["txnodes"]), len(self._durable["etags"]))  # fmt: skip
         return None
+
+    def _check(self) -> None:
+        """Idle, or stopping: if the file was deleted or replaced, write it all anew now,
+        rather than at the next write (which may never come)."""
+        if _inode(self.path) != self._inode:
+            error = self._commit([])  # kept in last_error (unhealthy), tried again next time
+            self._close_db()
+            if error is not None and self.last_error != self._check_error:
+                log.error("CAN-ECB database %s was deleted or replaced, and cannot be written "
+                          "anew: %s", self.path, error)  # fmt: skip
+            self._check_error = self.last_error
 
     def _close_db(self) -> None:
         if self._db is not None:
