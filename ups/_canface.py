@@ -19,6 +19,7 @@ import can
 
 from . import _canproto as p
 from . import _cantransfer as t
+from ._canannounce import Announcer
 from ._canbinding import RETRY_FIRST, SETTLE, Bindings
 from ._canjoin import Joiner
 from ._canlink import CanLink
@@ -35,8 +36,6 @@ from ._face import ChannelState, Deliver, FaceContext
 log = logging.getLogger("ups.can")
 
 _REBIND_MAX = 5.0  # a refused re-binding is asked again at most this far apart
-_ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
-_HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
 _LOG_GAP = 10.0
 #: a publisher waits this long before its first event on a channel of a larger size class (its
 #: binding may have just moved the channel there): the subscribers, who see their binding
@@ -117,8 +116,6 @@ class CanFace:
         self._suspended: set[int] = set()  # etags received but no longer relied on: counted
         self._wants_rx: dict[int, ChannelState] = {}  # uid -> subscribed channel being bound
         self._rebinding: dict[int, asyncio.Task[None]] = {}
-        self._announcer: asyncio.Task[None] | None = None
-        self._last_announce = -_HELLO_GAP
         self._logged: dict[str, float] = {}
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
@@ -136,6 +133,10 @@ class CanFace:
             heard=self.bindings.heard, counters=self.counters, warn=self._warn,
             bus=str(self.link.channel_info),
         )  # fmt: skip
+        self._announcer = Announcer(
+            send=self._send, node_id=node_id, txnode=lambda: self.txnode, channels=channels,
+            bound=self.bindings.bound, declared=self.streams.declared, counters=self.counters,
+        )  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
 
@@ -147,7 +148,7 @@ class CanFace:
         log.info("node %016x joined %s as TxNode 0x%02x", node_id, bus, self.txnode)
 
     async def close(self) -> None:
-        tasks = [t for t in (self._announcer, *self._rebinding.values()) if t is not None]
+        tasks = [t for t in (self._announcer.task, *self._rebinding.values()) if t is not None]
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -390,7 +391,7 @@ class CanFace:
         elif isinstance(msg, p.Grant | p.Refuse):
             self.streams.on_verdict(msg)
         elif isinstance(msg, p.Hello):
-            self._announce_all()
+            self._announcer.announce()
         elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
             self._moved(msg.txnode)
 
@@ -399,8 +400,7 @@ class CanFace:
         if txnode != self.txnode:
             log.warning("CAN-ECB moved this node from TxNode %s to %d", self.txnode, txnode)
             self.txnode = txnode
-            self._last_announce = -_HELLO_GAP
-            self._announce_all()  # our channels, under the new TxNode
+            self._announcer.announce(at_once=True)  # our channels, under the new TxNode
 
     def _adopted(self, etag: int, uid: int) -> None:
         """``uid`` is bound to ``etag`` now: receive it, if a subscription waits for that."""
@@ -482,44 +482,6 @@ class CanFace:
         etag = self.bindings.bound[uid]
         fields = declaration(size, period_ms, deadline_ms, jitter_ms, etag=etag, mtu=self.link.mtu)
         return await self.streams.declare(state, etag, fields)
-
-    # --- announcing ------------------------------------------------------------------------
-
-    def _announce_all(self) -> None:
-        """After a CAN-ECB's Hello: claim our TxNode and report every binding we hold, at most
-        once per ``_HELLO_GAP`` s (a later Hello is answered when the gap has passed)."""
-        if self._announcer is None or self._announcer.done():
-            self._announcer = asyncio.get_running_loop().create_task(self._announce())
-            self._announcer.add_done_callback(self._task_done)
-
-    async def _announce(self) -> None:
-        wait = self._last_announce + _HELLO_GAP - time.monotonic()
-        if wait > 0:
-            await asyncio.sleep(wait)
-        self._last_announce = time.monotonic()
-        txnode = self._my_txnode()
-        self._send(p.Request(p.CLAIM, txnode, self.node_id))
-        for state in list(self._channels.values()):
-            uid = state.channel.uid
-            roles = [False] if state.subs else []
-            if state.published:
-                roles.append(True)
-            for publish in roles:
-                await asyncio.sleep(_ANNOUNCE_GAP)
-                etag = self.bindings.bound.get(uid)  # now: a contradiction may have come meanwhile
-                if etag is not None and txnode == self.txnode:
-                    self._send(p.Holds(publish, txnode, etag, uid))
-            declared = self.streams.declared.get(uid)
-            if declared is not None and state.published:
-                await asyncio.sleep(_ANNOUNCE_GAP)
-                etag = self.bindings.bound.get(uid)
-                if etag is not None and txnode == self.txnode:
-                    self._send(p.Declare(txnode, etag, *declared.fields))
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        if not task.cancelled() and task.exception() is not None:
-            self.counters["task_errors"] += 1
-            log.error("announcing this node failed: %s", task.exception())
 
     # --- helpers ---------------------------------------------------------------------------
 
