@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ups import Node
 from ups._canlink import CanLink
+from ups.broker._quota import QUOTA
 from ups.broker.can_ecb import CanEcb
 
 
@@ -26,7 +27,9 @@ async def bind(channels: int, concurrency: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         link = CanLink.open("virtual:bench-bind")
         try:
-            ecb = CanEcb(link, Path(tmp) / "ecb.db")
+            # one node id creating thousands of bindings is past the CAN-ECB's default quota
+            quota = (max(channels, QUOTA[0]), *QUOTA[1:])
+            ecb = CanEcb(link, Path(tmp) / "ecb.db", quota=quota)
             await ecb.start()
             await asyncio.sleep(float(getattr(ecb, "_recovery", 0)) + 0.1)  # past recovery
             async with Node(can="virtual:bench-bind", node_id=0xB1D, join_timeout=30) as node:

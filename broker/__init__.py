@@ -36,7 +36,7 @@ async def hosted_can_ecb(
     """Serve ``bus`` (``INTERFACE:CHANNEL[,key=value...]``) as its CAN-ECB until the block ends.
 
     ``db`` is its SQLite file (default: the bus's own, as ``ups can-broker``); ``options`` are
-    ``CanEcb``'s (``bitrate``, ``recovery``, ``lease``, ``max_channels``).
+    ``CanEcb``'s (``bitrate``, ``recovery``, ``lease``, ``max_channels``, ``quota``).
     """
     from ups._canlink import CanLink
 

@@ -23,6 +23,7 @@ log = logging.getLogger("ups.can_ecb")
 RT_FIRST, RT_LAST = 0x02, 0x7F
 Key = tuple[int, int]  # (etag, TxNode)
 DECLARE_RATE = 10.0  #: analyses per second and TxNode (a burst of twice that)
+REMEMBERED = 4096  #: refusals remembered (answers to repeated declarations, and corrections)
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class Admission:
         self.granted: dict[Key, int] = {}
         self._asked: dict[Key, p.Declare] = {}
         self._refused: dict[p.Declare, p.Refuse] = {}  # valid while ``declared`` stays as is
+        self._last_refusal: dict[Key, p.Refuse] = {}  # the latest Refuse of each stream
         self._tokens: dict[int, tuple[float, float]] = {}  # TxNode -> tokens, when counted
 
     def within_rate(self, txnode: int) -> bool:
@@ -63,6 +65,17 @@ class Admission:
         if self._asked.get(key) == msg and key in self.granted:
             return p.Grant(msg.etag, msg.txnode, self.granted[key])
         return self._refused.get(msg)
+
+    def verdict(self, etag: int, txnode: int) -> p.Grant | p.Refuse:
+        """What this CAN-ECB says of stream (``etag``, ``txnode``): its Grant if admitted, else
+        the Refuse it last sent for it, else a Refuse naming the stream itself as unbounded (it
+        was never declared here)."""
+        key = (etag, txnode)
+        if key in self.granted:
+            return p.Grant(etag, txnode, self.granted[key])
+        return self._last_refusal.get(key) or p.Refuse(
+            etag, txnode, etag, txnode, p.RESPONSE_UNBOUNDED
+        )
 
     def decide(self, msg: p.Declare) -> Verdict:
         key = (msg.etag, msg.txnode)
@@ -92,8 +105,12 @@ class Admission:
             refuse = p.Refuse(msg.etag, msg.txnode, msg.etag, msg.txnode, 0)
         else:
             return self._admit(msg, candidate, values)
-        if len(self._refused) < 4096:
+        if len(self._refused) < REMEMBERED:
             self._refused[msg] = refuse
+        self._last_refusal.pop(key, None)
+        self._last_refusal[key] = refuse
+        if len(self._last_refusal) > REMEMBERED:
+            del self._last_refusal[next(iter(self._last_refusal))]
         return Verdict([refuse], admitted=False)
 
     def _admit(
@@ -103,6 +120,7 @@ class Admission:
         self._refused.clear()
         self.declared = candidate
         self._asked[key] = msg
+        self._last_refusal.pop(key, None)
         grants: list[p.Grant | p.Refuse] = []
         for k in sorted(candidate):
             priority = values[_name(k)]
@@ -115,6 +133,8 @@ class Admission:
         """A channel moved away from ``etag``: the streams declared on it are gone."""
         for key in [k for k in self.declared if k[0] == etag]:
             self._drop(key)
+        for key in [k for k in self._last_refusal if k[0] == etag]:
+            del self._last_refusal[key]
 
     def _drop(self, key: Key) -> None:
         self._refused.clear()
@@ -126,6 +146,8 @@ class Admission:
         """A node joined again: its declarations are gone."""
         for key in [k for k in self.declared if k[1] == txnode]:
             self._drop(key)
+        for key in [k for k in self._last_refusal if k[1] == txnode]:
+            del self._last_refusal[key]
 
 
 def _name(key: Key) -> str:

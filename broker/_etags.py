@@ -6,7 +6,9 @@ moves to a new etag (its nodes see the contradiction and bind it again). In a re
 requests for new bindings wait (at most ``MAX_DEFERRED``), and the bindings nodes report
 holding (Holds) are adopted when they contradict nothing; a report that contradicts the tables
 is answered with the tables' own Binds. When no etag of a class is free, the one unused
-longest is reclaimed once past the lease. See docs/protocol.md, *Binding*.
+longest is reclaimed once past the lease. A node id may create ``_quota.QUOTA`` bindings: past
+it, the one it created that was unused longest is reclaimed once past the lease, else its
+request is answered with Limit. See docs/protocol.md, *Binding* and *Bounds*.
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Awaitable, Callable, Container
+from collections.abc import Awaitable, Callable, Mapping
 
 from ups import _canproto as p
 from ups import _cantransfer as sizes
 
 from ._admission import Admission
 from ._channels import Channels
+from ._quota import Quota
 from ._store import Store, Write
 from ._txnodes import Phase
 
@@ -39,8 +42,9 @@ class Etags:
 
     Handed the CAN-ECB's ``phase``, its channel table (``channels``: who uses each channel,
     each TxNode's limit), its ``admission`` (streams declared on an etag that is left are
-    dropped), ``assigned`` (the TxNodes held by nodes), its ``send``, ``counters`` (bound,
-    deferred, refused, moved, adopted, conflicts, reclaimed), rate-limited ``warn``, and
+    dropped), ``assigned`` (TxNode -> the node id that holds it), the ``quota`` of bindings
+    each node id may create, its ``send``, ``counters`` (bound, deferred, refused, moved,
+    adopted, conflicts, reclaimed, quota_hit), rate-limited ``warn``, and
     ``stored``/``log_failure`` to report writes."""
 
     def __init__(
@@ -50,7 +54,8 @@ class Etags:
         phase: Phase,
         channels: Channels,
         admission: Admission,
-        assigned: Container[int],
+        assigned: Mapping[int, int],
+        quota: Quota,
         send: Callable[[p.Management], None],
         counters: dict[str, int],
         warn: Callable[..., None],
@@ -63,6 +68,7 @@ class Etags:
         self._channels = channels
         self._admission = admission
         self._assigned = assigned
+        self._quota = quota
         self._send = send
         self._counters = counters
         self._warn = warn
@@ -91,12 +97,19 @@ class Etags:
         for kind, txnode, uid, size_class in deferred:
             self.on_request(p.Request(kind, txnode, uid, size_class))
 
+    def truth(self, etag: int, uid: int) -> list[p.Bind]:
+        """The tables' Binds of ``etag`` and of ``uid`` where they differ from (etag, uid)."""
+        binds = []
+        if etag in self.uid_at:
+            binds.append(p.Bind(etag, self.uid_at[etag]))
+        if uid in self._store.etags and self._store.etags[uid] != etag:
+            binds.append(p.Bind(self._store.etags[uid], uid))
+        return binds
+
     def correct(self, etag: int, uid: int) -> None:
         """Repeat the tables' truth about ``etag`` and ``uid``."""
-        if etag in self.uid_at:
-            self._send(p.Bind(etag, self.uid_at[etag]))
-        if uid in self._store.etags and self._store.etags[uid] != etag:
-            self._send(p.Bind(self._store.etags[uid], uid))
+        for bind in self.truth(etag, uid):
+            self._send(bind)
 
     def on_request(self, msg: p.Request) -> None:
         """Bind ``uid`` to an etag of at least the asked size class: the one it has, or a new
@@ -120,7 +133,10 @@ class Etags:
             pending[1].append((msg.kind, txnode, size_class))
             self._channels.ask(txnode, uid)
             return
+        creator = self._assigned.get(txnode)
         writes: list[Write] = []
+        if creator is None or not self._within_quota(writes, creator, txnode, uid, size_class):
+            return
         etag = self._free(writes, size_class)
         if etag is None:
             self._counters["refused"] += 1
@@ -134,8 +150,60 @@ class Etags:
         self._pending[uid] = (etag, [(msg.kind, txnode, size_class)])
         self._storing.add(etag)
         self._channels.ask(txnode, uid)
-        writes.append(("etags", uid, etag))
+        self._quota.reserve(uid, creator, size_class)
+        writes += [("etags", uid, etag), ("creators", uid, creator)]
         self._store.submit(writes, self._stored_for(uid, etag))
+
+    def _within_quota(
+        self, writes: list[Write], creator: int, txnode: int, uid: int, size_class: int
+    ) -> bool:
+        """May node ``creator`` (at ``txnode``) create a binding of ``size_class``? Past its
+        quota, the one it created that was unused longest is reclaimed, once past the lease;
+        else it is told so (Limit) and it is counted."""
+        if self._quota.allows(creator, size_class) or self._reclaim_own(
+            writes, creator, size_class
+        ):
+            return True
+        self._counters["quota_hit"] += 1
+        self._warn("quota", "node %016x (TxNode 0x%02x) created %d bindings of size class %d, "
+                   "its quota: refused %016x", creator, txnode,
+                   self._quota.used(creator, size_class), size_class, uid)  # fmt: skip
+        self._send(p.Limit(txnode, uid))
+        return False
+
+    def _reclaim_own(self, writes: list[Write], creator: int, size_class: int) -> bool:
+        now = time.monotonic()
+        if now - self._started < self._lease:  # nothing can have been unused that long
+            return False
+        idle = [self._store.etags[u] for u in self._quota.created_by(creator, size_class)]
+        oldest = min(filter(self._idle, idle), key=self._last_use, default=None)
+        if oldest is None or now - self._last_use(oldest) < self._lease:
+            return False
+        self._reclaim(writes, oldest)
+        self._free_from[size_class] = min(self._free_from[size_class], oldest)
+        return True
+
+    def _idle(self, etag: int) -> bool:
+        """No node the CAN-ECB knows uses ``etag``'s channel, and it is not being stored."""
+        uid = self.uid_at.get(etag)
+        return (
+            uid is not None
+            and etag not in self._storing
+            and not self._channels.subscribers.get(uid)
+            and not self._channels.publishers.get(uid)
+        )
+
+    def _last_use(self, etag: int) -> float:
+        return self.seen.get(etag, self._started)
+
+    def _reclaim(self, writes: list[Write], etag: int) -> None:
+        """Unbind ``etag``, unused past the lease: its etag is free, its creator's quota too."""
+        old_uid = self.uid_at.pop(etag)
+        del self._store.etags[old_uid]
+        self._quota.release(old_uid)
+        writes += [("etags", old_uid, None), ("creators", old_uid, None)]
+        self._counters["reclaimed"] += 1
+        log.warning("reclaimed etag %#x of channel %016x, unused", etag, old_uid)
 
     def _stored_for(self, uid: int, etag: int) -> Callable[[BaseException | None], None]:
         def done(error: BaseException | None) -> None:
@@ -144,11 +212,13 @@ class Etags:
             for _, txnode, _ in asks:
                 self._channels.answered(txnode, uid)
             if not self._stored(error, f"etag {etag:#x} of channel {uid:016x}", uid):
+                self._quota.cancel(uid)
                 cls = sizes.size_class(etag)
                 self._free_from[cls] = min(self._free_from[cls], etag)
                 return
             self._counters["bound"] += 1
             self._hold(uid, etag)
+            self._quota.commit(uid)
             for kind, txnode, size_class in asks:
                 if txnode not in self._assigned:
                     continue
@@ -186,19 +256,11 @@ class Etags:
         if etag < etags.stop:
             return etag
         now = time.monotonic()
-        idle = [
-            e for e, u in self.uid_at.items()
-            if e in etags and e not in pending and not self._channels.subscribers.get(u)
-            and not self._channels.publishers.get(u)
-        ]  # fmt: skip
-        oldest = min(idle, key=lambda e: self.seen.get(e, self._started), default=None)
-        if oldest is None or now - self.seen.get(oldest, self._started) < self._lease:
+        idle = [e for e in self.uid_at if e in etags and self._idle(e)]
+        oldest = min(idle, key=self._last_use, default=None)
+        if oldest is None or now - self._last_use(oldest) < self._lease:
             return None
-        old_uid = self.uid_at.pop(oldest)
-        del self._store.etags[old_uid]
-        writes.append(("etags", old_uid, None))
-        self._counters["reclaimed"] += 1
-        log.warning("reclaimed etag %#x of channel %016x, unused", oldest, old_uid)
+        self._reclaim(writes, oldest)
         return oldest
 
     def _hold(self, uid: int, etag: int) -> None:
@@ -227,12 +289,21 @@ class Etags:
             and etag not in self._storing
             and uid not in self._pending
         ):
-            if not self._channels.within_limit(msg.txnode, uid):
+            creator = self._assigned.get(msg.txnode)
+            writes: list[Write] = []
+            cls = sizes.size_class(etag)
+            if (
+                creator is None
+                or not self._channels.within_limit(msg.txnode, uid)
+                or not self._within_quota(writes, creator, msg.txnode, uid, cls)
+            ):
                 return
             self._counters["adopted"] += 1
             log.info("adopting etag %#x of channel %016x from TxNode 0x%02x", etag, uid, msg.txnode)
             self._hold(uid, etag)
-            self._store.submit([("etags", uid, etag)], self._log_failure(f"adopted etag {etag:#x}"))
+            self._quota.adopt(uid, creator, cls)
+            writes += [("etags", uid, etag), ("creators", uid, creator)]
+            self._store.submit(writes, self._log_failure(f"adopted etag {etag:#x}"))
             self._channels.use(msg.publish, uid, msg.txnode)
             return
         self._counters["conflicts"] += 1

@@ -75,6 +75,7 @@ CAN_ECB = table(
         "offers_withdrawn": "TxNodes offered to a joiner that did not claim them in time",
         "moved": "channels moved to an etag of a larger size class",
         "late_claims": "offers claimed after they had lapsed",
+        "quota_hit": "bindings refused because their node id created its quota of them",
         "census_censuses": "censuses of joining nodes run",
         "census_knocks": "Knocks of joining nodes heard",
         "census_queries": "census queries sent",

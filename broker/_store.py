@@ -7,8 +7,9 @@ only after its callback said it is durable.
 
 A file is used by one CAN-ECB at a time: ``Store`` holds an exclusive lock on ``FILE.lock``
 and refuses to open a file another process holds. The file is open only while writes are
-queued; if it was deleted or replaced, the writer writes the whole table into a new file at
-the same path.
+queued. If it was deleted or replaced, the writer writes the whole table into a new file at the
+same path: at the next write, at the latest ``CHECK_EVERY`` seconds later (it looks while idle),
+and before it stops; so a file lost while the CAN-ECB runs loses nothing it knew.
 """
 
 from __future__ import annotations
@@ -31,17 +32,25 @@ log = logging.getLogger("ups.can_ecb")
 
 BUSY_TIMEOUT = 5.0  #: seconds a write waits for a lock that another program holds on the file
 MAX_BATCH = 4096  #: writes committed in one transaction, at most
+CHECK_EVERY = 1.0  #: seconds between two looks, while idle, whether the file is still there
 
-#: One write: (table, key, value). table is "txnodes" (node id -> TxNode) or "etags" (UID ->
-#: etag); value None deletes the row.
+#: One write: (table, key, value). table is "txnodes" (node id -> TxNode), "etags" (UID ->
+#: etag) or "creators" (UID -> the node id that created its binding, for the quota); value None
+#: deletes the row.
 Write = tuple[str, int, int | None]
 Done = Callable[[BaseException | None], None]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS txnodes (node_id TEXT PRIMARY KEY, txnode INTEGER UNIQUE NOT NULL);
 CREATE TABLE IF NOT EXISTS etags (uid TEXT PRIMARY KEY, etag INTEGER UNIQUE NOT NULL);
+CREATE TABLE IF NOT EXISTS creators (uid TEXT PRIMARY KEY, node_id TEXT NOT NULL);
 """
-_COLUMNS = {"txnodes": ("node_id", "txnode"), "etags": ("uid", "etag")}
+_COLUMNS = {
+    "txnodes": ("node_id", "txnode"),
+    "etags": ("uid", "etag"),
+    "creators": ("uid", "node_id"),
+}
+_UNIQUE = {"txnodes", "etags"}  # tables whose values are unique too (a TxNode, an etag)
 __all__ = ["Store", "default_db", "state_dir"]  # the state files' paths live in ups._bindings
 
 
@@ -56,6 +65,7 @@ class Store:
             try:
                 self.txnodes: dict[int, int] = _load(db, "txnodes")
                 self.etags: dict[int, int] = _load(db, "etags")
+                self.creators: dict[int, int] = _load(db, "creators")
             finally:
                 db.close()
         except sqlite3.Error as exc:
@@ -64,13 +74,17 @@ class Store:
         self._inode = _inode(self.path)
         self._db: sqlite3.Connection | None = None  # open while writes are queued
         #: what the file holds, as the writer thread knows it (to rewrite a deleted file)
-        self._durable = {"txnodes": dict(self.txnodes), "etags": dict(self.etags)}
+        self._durable = {
+            "txnodes": dict(self.txnodes), "etags": dict(self.etags),
+            "creators": dict(self.creators),
+        }  # fmt: skip
         self._queue: queue.SimpleQueue[tuple[list[Write], Done] | None] = queue.SimpleQueue()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self.batches = 0
         self.errors = 0
         self.last_error: str | None = None
+        self._check_error: str | None = None  # the last error of a look at the file (logged)
 
     def start(self) -> None:
         """Start the writer; callbacks run on the calling (running) event loop."""
@@ -96,14 +110,20 @@ class Store:
     # --- the writer thread -----------------------------------------------------------------
 
     def _connect(self) -> sqlite3.Connection:
+        self.path.parent.mkdir(parents=True, exist_ok=True)  # deleted with the file, maybe
         db = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT, check_same_thread=False)
         db.executescript(_SCHEMA)
         return db
 
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
+            try:
+                item = self._queue.get(timeout=CHECK_EVERY)
+            except queue.Empty:
+                self._check()
+                continue
             if item is None:
+                self._check()
                 return
             batch = [item]
             while len(batch) < MAX_BATCH:
@@ -131,18 +151,18 @@ class Store:
                 self._close_db()
                 self._db = self._connect()
             db = self._db
+            lost = inode != self._inode  # deleted or replaced: write it all anew
             with db:
-                if inode != self._inode:  # deleted or replaced: write it all anew
-                    log.error(
-                        "CAN-ECB database %s was deleted or replaced: writing it anew", self.path
-                    )
+                if lost:
                     self._write_all(db)
                 for table, key, value in writes:
                     key_col, value_col = _COLUMNS[table]
                     db.execute(f"DELETE FROM {table} WHERE {key_col} = ?", (f"{key:016x}",))
                     if value is not None:
-                        db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
-                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", (f"{key:016x}", value))
+                        if table in _UNIQUE:
+                            db.execute(f"DELETE FROM {table} WHERE {value_col} = ?", (value,))
+                        row = (f"{key:016x}", _column(table, value))
+                        db.execute(f"INSERT INTO {table} VALUES (?, ?)", row)
             self._inode = _inode(self.path)
         except (sqlite3.Error, OSError) as exc:
             self.errors += 1
@@ -156,7 +176,22 @@ class Store:
                 self._durable[table].pop(key, None)
             else:
                 self._durable[table][key] = value
+        if lost:
+            log.error("CAN-ECB database %s was deleted or replaced: written anew, with the "
+                      "%d TxNodes and %d etags this CAN-ECB knows", self.path,
+                      len(self._durable["txnodes"]), len(self._durable["etags"]))  # fmt: skip
         return None
+
+    def _check(self) -> None:
+        """Idle, or stopping: if the file was deleted or replaced, write it all anew now,
+        rather than at the next write (which may never come)."""
+        if _inode(self.path) != self._inode:
+            error = self._commit([])  # kept in last_error (unhealthy), tried again next time
+            self._close_db()
+            if error is not None and self.last_error != self._check_error:
+                log.error("CAN-ECB database %s was deleted or replaced, and cannot be written "
+                          "anew: %s", self.path, error)  # fmt: skip
+            self._check_error = self.last_error
 
     def _close_db(self) -> None:
         if self._db is not None:
@@ -169,7 +204,7 @@ class Store:
             db.execute(f"DELETE FROM {table}")
             db.executemany(
                 f"INSERT INTO {table} VALUES (?, ?)",
-                [(f"{k:016x}", v) for k, v in self._durable[table].items()],
+                [(f"{k:016x}", _column(table, v)) for k, v in self._durable[table].items()],
             )
 
     def _call_back(self, done: Done, error: BaseException | None) -> None:
@@ -180,7 +215,13 @@ class Store:
 
 
 def _load(db: sqlite3.Connection, table: str) -> dict[int, int]:
-    return {int(k, 16): v for k, v in db.execute(f"SELECT * FROM {table}")}
+    rows = db.execute(f"SELECT * FROM {table}")
+    return {int(k, 16): int(v, 16) if isinstance(v, str) else v for k, v in rows}
+
+
+def _column(table: str, value: int) -> int | str:
+    """A value as its column holds it: node ids (64 bits, beyond SQLite's integers) in hex."""
+    return f"{value:016x}" if table == "creators" else value
 
 
 def _inode(path: Path) -> tuple[int, int] | None:

@@ -194,6 +194,22 @@ class TxNodes:
         self._store.txnodes[node_id] = txnode
         self.node_at[txnode] = node_id
 
+    def txnode_of(self, node_id: int) -> int | None:
+        """The TxNode the table gives ``node_id``."""
+        return self._store.txnodes.get(node_id)
+
+    def truth(self, node_id: int) -> list[p.Management]:
+        """What contradicts a TxNodesFull or Failed of ``node_id``: the Assign of the TxNode it
+        holds, or the Offer of the one it is offered (again); nothing while its assignment is
+        being stored (the Assign follows) or when nothing is known of it."""
+        if node_id in self._pending:
+            return []
+        txnode = self._store.txnodes.get(node_id)
+        if txnode is not None:
+            return [p.Assign(txnode, node_id)]
+        offer = self._offers.get(node_id)
+        return [p.Offer(offer[0], node_id)] if offer is not None else []
+
     def on_claim(self, txnode: int, node_id: int) -> None:
         offer = self._offers.get(node_id)
         if offer is not None and offer[0] == txnode:  # a joiner takes the TxNode offered
@@ -201,6 +217,8 @@ class TxNodes:
             del self._offers[node_id]
             self._assign(node_id, txnode)
             return
+        if self._pending.get(node_id) == txnode:  # claimed again (an Offer came twice): the
+            return  # assignment is being stored, and its Assign follows
         if self._lapsed.get(node_id) == txnode and node_id not in self._store.txnodes:
             del self._lapsed[node_id]  # a joiner that was slow to claim what it was offered
             self._counters["late_claims"] += 1

@@ -39,6 +39,8 @@ from ._census import Census
 from ._channels import Channels
 from ._election import Election, Role
 from ._etags import Etags
+from ._forged import Corrections
+from ._quota import QUOTA, Quota
 from ._store import Store
 from ._txnodes import TxNodes
 
@@ -72,6 +74,7 @@ class CanEcb:
         recovery: float = RECOVERY,
         lease: float = LEASE,
         max_channels: int = MAX_CHANNELS,
+        quota: tuple[int, int, int, int, int] = QUOTA,
     ) -> None:
         self.link = link
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
@@ -97,7 +100,7 @@ class CanEcb:
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
                 "adopted", "conflicts", "foreign_ecb_frames", "unassigned", "deferred",
                 "limited", "reclaimed", "storage_errors", "handler_errors", "offers_withdrawn",
-                "moved", "late_claims",
+                "moved", "late_claims", "quota_hit",
             ),
             0,
         )  # fmt: skip
@@ -116,7 +119,12 @@ class CanEcb:
         self._etags = Etags(
             self._store, phase=self, channels=self._channels, admission=self._admission,
             assigned=self._txnodes.node_at, send=self._send, counters=self.counters,
+            quota=Quota(quota, self._store.creators, self._store.etags),
             warn=self._warn, stored=self._stored, log_failure=self._log_failure, lease=lease,
+        )  # fmt: skip
+        self._corrections = Corrections(
+            etags=self._etags, txnodes=self._txnodes, admission=self._admission,
+            send=self._send, counters=self.counters, warn=self._warn,
         )  # fmt: skip
 
     # --- tables and statistics -------------------------------------------------------------
@@ -138,6 +146,11 @@ class CanEcb:
     def etags(self) -> dict[int, int]:
         """channel UID -> etag, every durable binding on this bus."""
         return dict(self._store.etags)
+
+    @property
+    def creators(self) -> dict[int, int]:
+        """channel UID -> the node id that created its binding (its quota's count)."""
+        return dict(self._store.creators)
 
     @property
     def declared(self) -> dict[tuple[int, int], object]:
@@ -316,21 +329,8 @@ class CanEcb:
             if msg.instance != self.instance:
                 self._warn("ecb", "another CAN-ECB (%016x) on this bus: %s", msg.instance,
                            type(msg).__name__)  # fmt: skip
-        elif isinstance(msg, p.Bind) and self._etags.uid_at.get(msg.etag) != msg.uid:
-            self.counters["conflicts"] += 1
-            self._warn("bind", "a Bind(%#x, %016x) that this CAN-ECB did not send: correcting",
-                       msg.etag, msg.uid)  # fmt: skip
-            self._etags.correct(msg.etag, msg.uid)
-        elif isinstance(msg, p.Assign) and self._store.txnodes.get(msg.node_id) not in (
-            None, msg.txnode,
-        ):  # fmt: skip
-            self.counters["conflicts"] += 1  # a node told to move where its table does not say
-            self._warn("assign", "an Assign(%d, %016x) that this CAN-ECB did not send: "
-                       "correcting", msg.txnode, msg.node_id)  # fmt: skip
-            self._send(p.Assign(self._store.txnodes[msg.node_id], msg.node_id))
         else:
-            self._warn("ecb", "a %s that this CAN-ECB did not send: another CAN-ECB or a "
-                       "forger", type(msg).__name__)  # fmt: skip
+            self._corrections.correct(msg)
 
     def _elect(self, frames: list[p.Hello | p.Serving | p.Probe]) -> None:
         """Carry out what the election decided: a change of role, its frames, its next timer."""

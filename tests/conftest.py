@@ -103,6 +103,40 @@ async def eventually(predicate: Callable[[], bool], timeout: float = 5.0) -> Non
         await asyncio.sleep(0.001)
 
 
+class HeldBus(can.BusABC):
+    """A virtual bus whose receiving can be held, as a busy node's: frames wait, in order."""
+
+    def __init__(self, channel: str) -> None:
+        self.inner = can.Bus(interface="virtual", channel=channel)
+        self.reading = threading.Event()
+        self.reading.set()
+        self.parked = threading.Event()  # the reader waits for ``reading``, in no receive call
+        super().__init__(channel=channel)
+        self.channel_info = f"held virtual {channel}"
+
+    async def hold(self) -> None:
+        """Stop receiving: once this returns, frames wait until ``reading`` is set again (a
+        receive call under way when it was asked may still take frames sent before)."""
+        self.reading.clear()
+        self.parked.clear()
+        if not await asyncio.to_thread(self.parked.wait, 5.0):
+            raise AssertionError("the bus's reader never stopped")
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self.reading.is_set():
+            self.parked.set()
+            if not self.reading.wait(timeout):
+                return None, False
+        return self.inner.recv(timeout), False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.inner.send(msg, timeout)
+
+    def shutdown(self) -> None:
+        self.inner.shutdown()
+        super().shutdown()
+
+
 @pytest.fixture(
     params=[
         pytest.param("udp_multicast", marks=pytest.mark.netns),

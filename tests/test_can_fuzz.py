@@ -25,7 +25,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import threading
 from pathlib import Path
 
 import can
@@ -46,7 +45,7 @@ from ups.benchmarks.can_fuzz import (
 from ups.broker._etags import MAX_DEFERRED
 from ups.broker.can_ecb import MAX_CHANNELS
 
-from .conftest import eventually, running_ecb
+from .conftest import HeldBus, eventually, running_ecb
 
 FRAMES = 20_000
 SEED = 1
@@ -350,29 +349,6 @@ async def test_a_contradiction_right_after_the_answer_to_a_rebind_is_not_lost(
                 )
     finally:
         shared.close()
-
-
-class HeldBus(can.BusABC):
-    """A virtual bus whose receiving can be held, as a busy node's: frames wait, in order."""
-
-    def __init__(self, channel: str) -> None:
-        self.inner = can.Bus(interface="virtual", channel=channel)
-        self.reading = threading.Event()
-        self.reading.set()
-        super().__init__(channel=channel)
-        self.channel_info = f"held virtual {channel}"
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        if not self.reading.wait(timeout):
-            return None, False
-        return self.inner.recv(timeout), False
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self.inner.send(msg, timeout)
-
-    def shutdown(self) -> None:
-        self.inner.shutdown()
-        super().shutdown()
 
 
 async def test_a_rebind_never_takes_an_etag_heard_bound_to_another_channel(

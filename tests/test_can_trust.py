@@ -271,6 +271,21 @@ async def test_a_deleted_database_is_written_anew(bus: str, tmp_path: Path) -> N
     assert uids == {name_to_uid("before"), name_to_uid("after")} and nodes_ == {1}
 
 
+async def test_a_deleted_database_is_written_anew_with_no_write_to_make(
+    bus: str, tmp_path: Path
+) -> None:
+    """Nothing asks for a write after the file is lost: the CAN-ECB looks while idle."""
+    db = tmp_path / "ecb.db"
+    async with running_ecb(bus, db, recovery=0.1) as ecb, nodes(bus, [1]) as (node,):
+        await node.subscribe("before")
+        db.unlink()
+        await eventually(db.exists, timeout=5)
+        assert ecb.healthy
+    with sqlite3.connect(db) as conn:
+        uids = {int(u, 16) for (u,) in conn.execute("SELECT uid FROM etags")}
+    assert uids == {name_to_uid("before")}
+
+
 async def test_a_locked_database_fails_requests_clearly_and_never_blocks_the_loop(
     bus: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -4,8 +4,10 @@ A node relies only on a Bind that answers its own request (see docs/protocol.md,
 A Bind that contradicts a binding it relies on (another UID on the etag, or another etag for
 the UID) is handed to the face (``on_contradicted``), which stops using the channels involved
 and binds them again; an answer to such a re-binding is adopted only after it stood
-``SETTLE`` seconds without a contradiction. (``_bindings`` is another thing: the tools' view of
-a bus's bindings, read from the CAN-ECB or a recording.)
+``SETTLE`` seconds without a contradiction. A refusal (EtagsFull, Failed, Limit) ends a request
+only once it has stood ``REFUSAL_WAIT`` seconds while the node kept asking, with no Bind
+answering it: anyone can send one. (``_bindings`` is another thing: the tools' view of a bus's
+bindings, read from the CAN-ECB or a recording.)
 """
 
 from __future__ import annotations
@@ -25,6 +27,9 @@ RETRY_MAX = 1.0  #: the longest wait between two asks
 BIND_TIMEOUT = 5.0  #: an ask unanswered this long raises BrokerUnavailable
 SETTLE = 0.05  #: an answer to a re-binding must stand this long before it is relied on
 IN_FLIGHT = 128  #: binding requests outstanding at once (the rest wait their turn)
+#: a refusal (TxNodesFull, Failed, EtagsFull, Limit) ends a join or a request once it stood this
+#: long with nothing the CAN-ECB said contradicting it (longer than its recovery, 2 s)
+REFUSAL_WAIT = 3.0
 
 
 class Bindings:
@@ -62,6 +67,9 @@ class Bindings:
         self.uid_at: dict[int, int] = {}
         self.heard: dict[int, int] = {}
         self.pending: dict[int, asyncio.Future[int]] = {}  # uid -> the etag awaited
+        #: uid -> since when a refusal of its pending request stands, and the error it ends it
+        #: with (the first one's time, the latest one's error); an answer adopted voids it
+        self._refused: dict[int, tuple[float, Exception]] = {}
         self._min_class: dict[int, int] = {}  # uid -> the size class its pending request needs
         #: uid being bound again -> the etag an answer gave, adopted if nothing contradicts it
         #: within SETTLE (the CAN-ECB corrects a forged Bind at once)
@@ -94,37 +102,53 @@ class Bindings:
             async with self._in_flight:
                 if fut.done():  # answered while this request waited its turn
                     return fut.result()
-                return await self.ask(
-                    p.Request(kind, self._txnode(), uid, size_class), fut, f"bind {uid:#018x}"
-                )
+                return await self._ask(p.Request(kind, self._txnode(), uid, size_class), fut)
         finally:
             if self.pending.get(uid) is fut:
                 del self.pending[uid]
                 self._min_class.pop(uid, None)
+                self._refused.pop(uid, None)
 
-    async def ask(self, msg: p.Management, fut: asyncio.Future[int], what: str) -> int:
-        """Send ``msg`` until ``fut`` has the CAN-ECB's answer: 50 ms, doubling, 5 s in all."""
+    async def _ask(self, msg: p.Request, fut: asyncio.Future[int]) -> int:
+        """Send ``msg`` until ``fut`` has the CAN-ECB's answer (50 ms, doubling, 5 s in all),
+        or a refusal of it has stood ``REFUSAL_WAIT``."""
+        loop = asyncio.get_running_loop()
         delay = RETRY_FIRST
-        waited = 0.0
+        started = loop.time()
         while True:
             self._send(msg)
+            wait = delay
+            refused = self._refused.get(msg.value)
+            if refused is not None:
+                wait = min(wait, max(0.005, refused[0] + REFUSAL_WAIT - loop.time()))
             try:
-                return await asyncio.wait_for(asyncio.shield(fut), delay)
+                return await asyncio.wait_for(asyncio.shield(fut), wait)
             except TimeoutError:
                 if fut.done():  # the answer was an error (BrokerUnavailable is a TimeoutError)
                     return fut.result()
-                waited += delay
-                if waited >= BIND_TIMEOUT:
-                    raise BrokerUnavailable(
-                        f"the CAN-ECB on {self._bus} did not {what} within {BIND_TIMEOUT:g} s"
-                    ) from None
-                delay = min(delay * 2, RETRY_MAX)
+            now = loop.time()
+            refused = self._refused.get(msg.value)
+            if refused is not None and now >= refused[0] + REFUSAL_WAIT:
+                raise refused[1]  # it stood: the CAN-ECB's answer
+            if now - started >= BIND_TIMEOUT:
+                if refused is not None:
+                    raise refused[1]
+                raise BrokerUnavailable(
+                    f"the CAN-ECB on {self._bus} did not bind {msg.value:#018x} within "
+                    f"{BIND_TIMEOUT:g} s"
+                ) from None
+            delay = min(delay * 2, RETRY_MAX)
 
     def fail(self, uid: int, exc: Exception) -> None:
-        """The CAN-ECB cannot bind ``uid``: its request raises ``exc``."""
-        fut = self.pending.pop(uid, None)
-        if fut is not None and not fut.done():
-            fut.set_exception(exc)
+        """The CAN-ECB (or a forger) says it cannot bind ``uid``: its request raises ``exc``
+        once that has stood ``REFUSAL_WAIT`` while the node asked again with no answer."""
+        fut = self.pending.get(uid)
+        if fut is None or fut.done():
+            return
+        self._counters["refusals"] += 1
+        refused = self._refused.get(uid)
+        since = asyncio.get_running_loop().time() if refused is None else refused[0]
+        self._refused[uid] = (since, exc)
 
     def on_bind(self, etag: int, uid: int) -> None:
         heard = self.heard.get(etag)
@@ -168,6 +192,7 @@ class Bindings:
             return
         self.bound[uid] = etag
         self.uid_at[etag] = uid
+        self._refused.pop(uid, None)  # contradicted: the CAN-ECB bound it after all
         self._on_adopted(etag, uid)
         fut.set_result(etag)
 

@@ -20,10 +20,11 @@ import can
 
 from . import _canproto as p
 from . import _cantransfer as t
+from ._canannounce import Announcer
 from ._canbinding import RETRY_FIRST, SETTLE, Bindings
 from ._canjoin import Joiner
 from ._canlink import CanLink
-from ._canstreams import declaration, refusal
+from ._canstreams import Streams, declaration
 from ._catalog import Catalog
 from ._errors import (
     BrokerUnavailable,
@@ -37,8 +38,6 @@ from ._face import ChannelState, Deliver, FaceContext, Found
 log = logging.getLogger("ups.can")
 
 _REBIND_MAX = 5.0  # a refused re-binding is asked again at most this far apart
-_ANNOUNCE_GAP = 0.001  # pacing of the burst of announcements after a CAN-ECB's Hello
-_HELLO_GAP = 1.0  # at most one announcement per this many seconds, however many Hellos
 _LOG_GAP = 10.0
 #: a publisher waits this long before its first event on a channel of a larger size class (its
 #: binding may have just moved the channel there): the subscribers, who see their binding
@@ -124,21 +123,26 @@ class CanFace:
         self._suspended: set[int] = set()  # etags received but no longer relied on: counted
         self._wants_rx: dict[int, ChannelState] = {}  # uid -> subscribed channel being bound
         self._rebinding: dict[int, asyncio.Task[None]] = {}
-        self._announcer: asyncio.Task[None] | None = None
-        self._last_announce = -_HELLO_GAP
         self._logged: dict[str, float] = {}
-        self._declared: dict[int, tuple[int, int, int, int]] = {}  # uid -> size, T, D, J
-        self._verdicts: dict[int, asyncio.Future[int]] = {}  # etag -> granted priority
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
              "rebinds", "moves", "reassigned", "unbound_dropped", "task_errors", "too_large",
-             "refused_large"),
+             "refused_large", "stray_verdicts", "refusals"),
             0,
         )  # fmt: skip
         self.bindings = Bindings(
             send=self._send, txnode=self._my_txnode, bus=str(self.link.channel_info),
             counters=self.counters, warn=self._warn, on_adopted=self._adopted,
             on_contradicted=self._suspend, rebinding=self._rebinding,
+        )  # fmt: skip
+        self.streams = Streams(
+            send=self._send, txnode=self._my_txnode, uid_at=self.bindings.uid_at,
+            heard=self.bindings.heard, counters=self.counters, warn=self._warn,
+            bus=str(self.link.channel_info),
+        )  # fmt: skip
+        self._announcer = Announcer(
+            send=self._send, node_id=node_id, txnode=lambda: self.txnode, channels=channels,
+            bound=self.bindings.bound, declared=self.streams.declared, counters=self.counters,
         )  # fmt: skip
 
     # --- life cycle ------------------------------------------------------------------------
@@ -151,14 +155,13 @@ class CanFace:
         log.info("node %016x joined %s as TxNode 0x%02x", node_id, bus, self.txnode)
 
     async def close(self) -> None:
-        tasks = [t for t in (self._announcer, *self._rebinding.values()) if t is not None]
+        tasks = [t for t in (self._announcer.task, *self._rebinding.values()) if t is not None]
         for task in tasks:
             task.cancel()
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        for fut in self._verdicts.values():
-            fut.cancel()
+        self.streams.close()
         self.bindings.close()
         if self._expiry is not None:
             self._expiry.cancel()
@@ -170,6 +173,7 @@ class CanFace:
     def stats(self) -> dict[str, int]:
         return {
             **self.counters,
+            "refusals": self.counters["refusals"] + self._joiner.refusals,
             "tx_failed": self.link.tx_failed,
             "large_lost": self._reassembly.lost,
             "large_frames_dropped": self._reassembly.frames_dropped,
@@ -407,10 +411,9 @@ class CanFace:
                 ),
             )
         elif isinstance(msg, p.Grant | p.Refuse):
-            if msg.txnode == self.txnode:
-                self._on_verdict(msg)
+            self.streams.on_verdict(msg)
         elif isinstance(msg, p.Hello):
-            self._announce_all()
+            self._announcer.announce()
         elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
             self._moved(msg.txnode)
 
@@ -421,12 +424,12 @@ class CanFace:
         if txnode != self.txnode:
             log.warning("CAN-ECB moved this node from TxNode %s to %d", self.txnode, txnode)
             self.txnode = txnode
-            self._last_announce = -_HELLO_GAP
+            self._announcer.announce(at_once=True)  # our channels, under the new TxNode
         else:
             self.counters["reassigned"] += 1
             self._warn("reassigned", "the CAN-ECB assigned this node its TxNode %d again (a "
                        "join under its id): reporting its channels again", txnode)  # fmt: skip
-        self._announce_all()  # our channels, under the TxNode
+            self._announcer.announce()  # our channels, which the CAN-ECB forgot
 
     def _adopted(self, etag: int, uid: int) -> None:
         """``uid`` is bound to ``etag`` now: receive it, if a subscription waits for that."""
@@ -507,66 +510,7 @@ class CanFace:
             await self.grow(state, size)
         etag = self.bindings.bound[uid]
         fields = declaration(size, period_ms, deadline_ms, jitter_ms, etag=etag, mtu=self.link.mtu)
-        self._declared[uid] = fields
-        fut = self._verdicts[etag] = asyncio.get_running_loop().create_future()
-        msg = p.Declare(self._my_txnode(), etag, *fields)
-        try:
-            priority = await self.bindings.ask(msg, fut, f"admit {state.channel}")
-        except BaseException:  # refused, unanswered or cancelled: nothing to re-announce
-            self._declared.pop(uid, None)
-            raise
-        state.priority = priority
-        return priority
-
-    def _on_verdict(self, msg: p.Grant | p.Refuse) -> None:
-        uid = self.bindings.uid_at.get(msg.etag)
-        fut = self._verdicts.pop(msg.etag, None)
-        if isinstance(msg, p.Grant):
-            state = self._channels.get(uid) if uid is not None else None
-            if state is not None:  # also when another node's declaration moved ours
-                state.priority = msg.priority
-            if fut is not None and not fut.done():
-                fut.set_result(msg.priority)
-        elif fut is not None and not fut.done():
-            fut.set_exception(refusal(msg, uid, self.bindings.heard))
-
-    # --- announcing ------------------------------------------------------------------------
-
-    def _announce_all(self) -> None:
-        """After a CAN-ECB's Hello: claim our TxNode and report every binding we hold, at most
-        once per ``_HELLO_GAP`` s (a later Hello is answered when the gap has passed)."""
-        if self._announcer is None or self._announcer.done():
-            self._announcer = asyncio.get_running_loop().create_task(self._announce())
-            self._announcer.add_done_callback(self._task_done)
-
-    async def _announce(self) -> None:
-        wait = self._last_announce + _HELLO_GAP - time.monotonic()
-        if wait > 0:
-            await asyncio.sleep(wait)
-        self._last_announce = time.monotonic()
-        txnode = self._my_txnode()
-        self._send(p.Request(p.CLAIM, txnode, self.node_id))
-        for state in list(self._channels.values()):
-            uid = state.channel.uid
-            roles = [False] if state.subs else []
-            if state.published:
-                roles.append(True)
-            for publish in roles:
-                await asyncio.sleep(_ANNOUNCE_GAP)
-                etag = self.bindings.bound.get(uid)  # now: a contradiction may have come meanwhile
-                if etag is not None and txnode == self.txnode:
-                    self._send(p.Holds(publish, txnode, etag, uid))
-            if uid in self._declared and state.published:
-                await asyncio.sleep(_ANNOUNCE_GAP)
-                etag = self.bindings.bound.get(uid)
-                if etag is not None and txnode == self.txnode:
-                    size, period, deadline, jitter = self._declared[uid]
-                    self._send(p.Declare(txnode, etag, size, period, deadline, jitter))
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        if not task.cancelled() and task.exception() is not None:
-            self.counters["task_errors"] += 1
-            log.error("announcing this node failed: %s", task.exception())
+        return await self.streams.declare(state, etag, fields)
 
     # --- helpers ---------------------------------------------------------------------------
 

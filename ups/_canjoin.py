@@ -11,6 +11,12 @@ ones, or several nodes of one process). It knocks again when, for 0.3 s (doublin
 Knock up to 2 s), it has neither knocked nor heard a Knock, Census, Query or Offer (another
 joiner's Knock is the same frame as its own: on a real bus they merge); at once when a CAN-ECB
 says Hello; and it gives up after ``timeout``.
+
+TxNodesFull or Failed with its id does not end the join at once: anyone can send them. It ends
+the join only once it has stood ``REFUSAL_WAIT`` seconds (counted again from each Hello, Census
+or Query heard meanwhile: a census is under way, whose Offer may follow) with no Offer or Assign
+of its id, which contradicts it; meanwhile the node answers as always but does not knock (a
+census it started would answer it anew).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import time
 from collections.abc import Callable
 
 from . import _canproto as p
+from ._canbinding import REFUSAL_WAIT
 from ._errors import BrokerUnavailable, Exhausted
 
 KNOCK_FIRST = 0.3  #: seconds without a Knock sent or a Census, Query or Offer heard ...
@@ -46,15 +53,24 @@ class Joiner:
         #: epoch -> (when last heard, {stage << 4 | nibble}): Stage frames of other joiners
         self._sent_by_others: dict[int, tuple[float, set[int]]] = {}
         self.stages_sent = 0
+        #: a TxNodesFull or Failed of this id, nothing contradicted yet: since when (counted
+        #: again from each Hello, Census or Query), and the error it ends the join with
+        self._refusal: tuple[float, Exception] | None = None
+        self.refusals = 0  #: TxNodesFull and Failed of this id heard while joining
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         self._result = result = loop.create_future()
         deadline = None if self._timeout is None else loop.time() + self._timeout
         self._delay = KNOCK_FIRST
+        self._refusal = None
         self._knock()
         while True:
-            wait = max(0.005, self._quiet_since + self._delay - loop.time())
+            refusal = self._refusal
+            if refusal is None:
+                wait = max(0.005, self._quiet_since + self._delay - loop.time())
+            else:
+                wait = max(0.005, refusal[0] + REFUSAL_WAIT - loop.time())
             if deadline is not None:
                 wait = min(wait, max(0.0, deadline - loop.time()))
             try:
@@ -63,13 +79,18 @@ class Joiner:
                 if result.done():  # the answer was an error (BrokerUnavailable is a TimeoutError)
                     return int(result.result())
             now = loop.time()
+            refusal = self._refusal
+            if refusal is not None and (
+                now >= refusal[0] + REFUSAL_WAIT or (deadline is not None and now >= deadline)
+            ):
+                raise refusal[1]  # it stood: the CAN-ECB's answer
             if deadline is not None and now >= deadline:
                 raise BrokerUnavailable(
                     f"no CAN-ECB gave this node a TxNode on {self._bus} within "
                     f"{self._timeout:g} s; start one with 'ups can-broker --can ...' or a gateway"
                 )
-            if now - self._quiet_since >= self._delay:  # nothing for a while: knock again
-                self._knock()
+            if refusal is None and now - self._quiet_since >= self._delay:  # nothing for a
+                self._knock()  # while: knock again
                 self._delay = min(self._delay * 2, KNOCK_MAX)
 
     def _knock(self) -> None:
@@ -80,6 +101,8 @@ class Joiner:
         result = self._result
         if result is None or result.done():
             return
+        if isinstance(msg, p.Census | p.Query | p.Hello) and self._refusal is not None:
+            self._refusal = (asyncio.get_running_loop().time(), self._refusal[1])  # at work
         if isinstance(msg, p.Census):
             self._heard()
             self._burst(msg.epoch, 0)
@@ -93,20 +116,27 @@ class Joiner:
                 self._burst(msg.epoch, len(msg.prefix))
         elif isinstance(msg, p.Offer) and msg.node_id == self.node_id:
             self._heard()
+            self._refusal = None  # contradicted: a TxNode for it after all
             self._send(p.Request(p.CLAIM, msg.txnode, self.node_id))
         elif isinstance(msg, p.Assign) and msg.node_id == self.node_id:
             result.set_result(msg.txnode)
         elif isinstance(msg, p.TxNodesFull) and msg.node_id == self.node_id:
-            result.set_exception(
-                Exhausted(f"all {p.TXNODE_COUNT} TxNodes of {self._bus} are taken")
-            )
+            self._refused(Exhausted(f"all {p.TXNODE_COUNT} TxNodes of {self._bus} are taken"))
         elif isinstance(msg, p.Failed) and msg.value == self.node_id:
-            result.set_exception(
+            self._refused(
                 BrokerUnavailable(
                     f"the CAN-ECB of {self._bus} could not store this node's TxNode: its "
                     "database fails (see its log and 'ups status')"
                 )
             )
+
+    def _refused(self, error: Exception) -> None:
+        """TxNodesFull or Failed of this id: the end of the join if nothing contradicts it."""
+        self.refusals += 1
+        if self._refusal is None:
+            self._refusal = (asyncio.get_running_loop().time(), error)
+        else:  # the first one's time, the latest one's error
+            self._refusal = (self._refusal[0], error)
 
     def _heard(self) -> None:
         """The CAN-ECB is at work on the census: no knock needed for a while."""

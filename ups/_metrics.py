@@ -119,6 +119,9 @@ NODE = table(
         "unbound_dropped": "events dropped while their channel was being bound again (can)",
         "task_errors": "background tasks of the CAN face that failed (can)",
         "refused_large": "subscriptions refused: the channel's events exceed max_event (can)",
+        "stray_verdicts": "Grants and Refuses for streams this node did not declare, ignored (can)",
+        "refusals": "TxNodesFull, Failed, EtagsFull and Limit heard for this node's join or "
+        "requests; each ends them only if it stands 3 s (can)",
         "large_lost": "multi-frame events given up in reassembly (can)",
         "large_frames_dropped": "frames of multi-frame events given up (can)",
         "reconnects": "reconnections to the TCP-ECB (tcp)",

@@ -38,6 +38,7 @@ from ._frames import (
 )
 
 Match = Frame | type | tuple[type, ...] | Callable[[Frame], bool]
+REFUSAL_WAIT = 3.0  #: Timers: a refusal ends a join or request once it stood this long
 
 
 class Heard(NamedTuple):
@@ -163,9 +164,10 @@ class Wire:
 class RawNode:
     """A UPS node written from docs/protocol.md only, on a ``Wire``.
 
-    It joins (Knock, Stage answers to Census and Query, knock retry), asks for bindings, and
-    answers Hello (CLAIM, SUB_AT, PUB_AT) at most once per second. A node that is already
-    "joined" (for recovery tests) is made with ``txnode=``.
+    It joins (Knock, Stage answers to Census and Query, knock retry; a TxNodesFull or Failed
+    of its id ends the join once it has stood the refusal wait, 3 s, with no Offer or Assign of
+    its id), asks for bindings, and answers Hello (CLAIM, SUB_AT, PUB_AT) at most once per
+    second. A node that is already "joined" (for recovery tests) is made with ``txnode=``.
     """
 
     def __init__(self, wire: Wire, node_id: int, *, txnode: int | None = None) -> None:
@@ -174,7 +176,8 @@ class RawNode:
         self.txnode = txnode
         self.subs: dict[int, int] = {}  #: uid -> etag it subscribes at
         self.pubs: dict[int, int] = {}  #: uid -> etag it publishes at
-        self.failure: Frame | None = None
+        self.failure: Frame | None = None  #: the latest refusal of its join
+        self.refused_at: float | None = None  #: since when a refusal stands, uncontradicted
         self.answer_hello = True
         self.claim_offers = True
         self._loop = asyncio.get_running_loop()
@@ -197,22 +200,28 @@ class RawNode:
 
     def _on_frame(self, frame: Frame) -> None:
         if self.txnode is None:
+            now = self._loop.time()
+            if isinstance(frame, Census | Query | Hello) and self.refused_at is not None:
+                self.refused_at = now  # "counted ... from the last Hello, Census or Query"
             match frame:
                 case Census(epoch):
-                    self._last_query = self._loop.time()
+                    self._last_query = now
                     self._stages(epoch, 0)
                 case Query(epoch, prefix):
-                    self._last_query = self._loop.time()
+                    self._last_query = now
                     if nibbles(self.node_id, len(prefix)) == prefix:
                         self._stages(epoch, len(prefix))
                 case Offer(txnode, node_id) if node_id == self.node_id:
-                    self._last_query = self._loop.time()
+                    self._last_query = now
+                    self.refused_at = None  # contradicted
                     if self.claim_offers:
                         self.wire.send(claim(txnode, self.node_id))
                 case Assign(txnode, node_id) if node_id == self.node_id:
                     self.txnode = txnode
                 case TxNodesFull(node_id) | Failed(node_id) if node_id == self.node_id:
                     self.failure = frame
+                    if self.refused_at is None:
+                        self.refused_at = now
             return
         match frame:
             case Hello() if self.answer_hello:
@@ -229,10 +238,12 @@ class RawNode:
         self.wire.send(Knock())
         knocked = self._loop.time()
         while self.txnode is None:
-            assert self.failure is None, f"join of {self.node_id:#x} failed: {self.failure}"
             now = self._loop.time()
+            refused = self.refused_at is not None and now >= self.refused_at + REFUSAL_WAIT
+            assert not refused, f"join of {self.node_id:#x} failed: {self.failure}"
             assert now < deadline, f"node {self.node_id:#x} not assigned within {timeout} s"
-            if now - max(knocked, self._last_query) >= max(retry, 0.3):
+            quiet = now - max(knocked, self._last_query) >= max(retry, 0.3)
+            if quiet and self.refused_at is None:  # "does not knock" while a refusal is open
                 self.wire.send(Knock())
                 knocked = now
                 retry = min(2 * retry, 1.0)
