@@ -32,6 +32,7 @@ log = logging.getLogger("ups.can_ecb")
 
 GATE_TIMEOUT = 1.0  #: the longest a publisher's binding waits for the gateway
 MAX_DEFERRED = 4096  #: binding requests held during the recovery window
+_ANSWER_ONLY = -1  #: in a pending binding's asks: a SUB_BIND its node took back (UNSUB) meanwhile
 
 
 class Etags:
@@ -154,6 +155,20 @@ class Etags:
         writes += [("etags", uid, etag), ("creators", uid, creator)]
         self._store.submit(writes, self._stored_for(uid, etag))
 
+    def unsubscribed(self, uid: int, txnode: int) -> None:
+        """UNSUB of ``uid`` from ``txnode``: a SUB_BIND of it still held (recovery) is dropped,
+        and one waiting for ``uid``'s etag to be stored is answered (the node may publish on
+        it too) without making the node a subscriber."""
+        for key in [k for k in self.deferred if k[:3] == (p.SUB_BIND, txnode, uid)]:
+            del self.deferred[key]
+        pending = self._pending.get(uid)
+        if pending is not None:
+            asks = pending[1]
+            asks[:] = [
+                (_ANSWER_ONLY if kind == p.SUB_BIND and t == txnode else kind, t, cls)
+                for kind, t, cls in asks
+            ]
+
     def _within_quota(
         self, writes: list[Write], creator: int, txnode: int, uid: int, size_class: int
     ) -> bool:
@@ -222,7 +237,9 @@ class Etags:
             for kind, txnode, size_class in asks:
                 if txnode not in self._assigned:
                     continue
-                if sizes.size_class(etag) >= size_class:
+                if kind == _ANSWER_ONLY:  # it left meanwhile (UNSUB): answered, not a subscriber
+                    self._send(p.Bind(etag, uid))
+                elif sizes.size_class(etag) >= size_class:
                     self._bound(kind, txnode, uid, etag)
                 else:  # asked for more while a smaller etag was being stored
                     self.on_request(p.Request(kind, txnode, uid, size_class))

@@ -300,6 +300,7 @@ class CanEcb:
             elif isinstance(msg, p.Declare):
                 self._on_declare(msg)
             elif msg.kind == p.UNSUB:
+                self._etags.unsubscribed(msg.value, msg.txnode)
                 self._channels.unsubscribe(msg.value, msg.txnode)
             else:
                 self._etags.on_request(msg)

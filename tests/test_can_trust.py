@@ -367,3 +367,54 @@ async def test_a_node_the_can_ecb_missed_is_let_back_in_and_only_it(
         assert 0xF00D not in ecb.txnodes and ecb.stats()["unassigned"] == 1
         send(raw_bus, p.Request(p.SUB_BIND, 9, 0x5EED))  # now served
         await eventually(lambda: 0x5EED in ecb.etags)
+
+
+async def test_an_unsub_while_the_binding_is_stored_leaves_no_subscriber(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    """BUG (broker/_etags.py): an UNSUB that came while the etag of a new channel was being
+    stored found no subscriber to remove; then the stored binding made the node one anyway, for
+    good (a gateway forwarded the channel to a node that did not want it). The same for a
+    SUB_BIND held during recovery. The asker still gets its Bind (it may have asked to publish
+    as well); it is just not a subscriber."""
+    db = tmp_path / "ecb.db"
+    async with running_ecb(bus, db, recovery=0.1) as ecb, nodes(bus, [1]) as (node,):
+        txnode = node.stats()["txnode"]
+        uid, kept = name_to_uid("left/at/once"), name_to_uid("stays")
+        other = sqlite3.connect(db, timeout=0)  # the write waits while another holds the file
+        other.execute("BEGIN EXCLUSIVE")
+        requests = ecb.counters["requests"]
+        send(raw_bus, p.Request(p.SUB_BIND, txnode, uid))
+        send(raw_bus, p.Request(p.SUB_BIND, txnode, kept))
+        send(raw_bus, p.Request(p.UNSUB, txnode, uid))
+        await eventually(lambda: ecb.counters["requests"] >= requests + 3)
+        other.rollback()
+        other.close()
+        await eventually(lambda: uid in ecb.etags and kept in ecb.etags)
+        assert txnode in ecb.subscribers.get(kept, ())
+        assert txnode not in ecb.subscribers.get(uid, ())
+
+
+async def test_an_unsub_during_recovery_takes_back_a_held_sub_bind(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    """The recovery-window half of the bug above: a SUB_BIND of a new channel held until the
+    window ends, then an UNSUB of it, made the node a subscriber once the window ended."""
+    db = tmp_path / "ecb.db"
+    async with running_ecb(bus, db, recovery=0.1) as first:
+        async with nodes(bus, [1]) as (node,):
+            txnode = node.stats()["txnode"]
+            first.close()
+            async with running_ecb(bus, db, recovery=1.0) as ecb:
+                uid, kept = name_to_uid("held/then/left"), name_to_uid("held/and/kept")
+                assert ecb.recovering
+                requests = ecb.counters["requests"]
+                send(raw_bus, p.Request(p.SUB_BIND, txnode, uid))
+                send(raw_bus, p.Request(p.SUB_BIND, txnode, kept))
+                send(raw_bus, p.Request(p.UNSUB, txnode, uid))
+                await eventually(lambda: ecb.counters["requests"] >= requests + 3)
+                assert ecb.recovering  # the SUB_BINDs were held
+                await eventually(lambda: not ecb.recovering)
+                await eventually(lambda: kept in ecb.etags)
+                assert txnode in ecb.subscribers.get(kept, ())
+                assert txnode not in ecb.subscribers.get(uid, ())
