@@ -176,7 +176,7 @@ void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now)
     if ((ch->flags & (UPS__PEND | UPS__REBIND)) != UPS__PEND) {
         return; /* none waits; or maybe stray: a channel being bound again keeps asking */
     }
-    unsigned since = refusal_of(ch) != 0 ? ch->etag : now; /* the first one's time */
+    unsigned since = ch->etag != 0u ? ch->etag : now; /* the first one's time */
     ch->etag = (uint16_t)(((unsigned)(-why - 8) << REFUSAL_SHIFT) | (since & REFUSAL_TIME));
 }
 
