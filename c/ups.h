@@ -196,7 +196,8 @@ typedef struct {
                                      ups_filters() before feeding the next frame (an etag relied
                                      on is received from the Bind on) */
 #define UPS_NOTE_CHANNELS 0x08u /**< a channel's state changed: see ups_channel_state() */
-#define UPS_NOTE_DECLARATIONS 0x10u /**< a declaration was granted, refused or given up */
+#define UPS_NOTE_DECLARATIONS 0x10u /**< a declaration's answer stood (granted or refused),
+                                         it was given up, or a verdict changed its priority */
 
 /* ---- the node ------------------------------------------------------------------------------ */
 
@@ -214,9 +215,13 @@ typedef struct {
 #if UPS_DECLARATIONS
 typedef struct {
     uint8_t channel;  /* 0xFF: unused */
-    int8_t state;     /* 1 waiting, 2 granted, or a UPS_ERR_ code */
+    int8_t state;     /* 1 waiting for the answer, 2 granted, or a UPS_ERR_ code */
+    uint8_t heard;    /* waiting: 0 DECLARE not sent yet, 1 sent, else the latest verdict since
+                         (a granted priority, or 0x80: Refuse), the answer once it stood 0.5 s */
+    uint8_t fallback; /* the channel's priority before the declaration (after a Refuse) */
     uint8_t data[8];  /* DECLARE: etag, size, period, deadline, jitter (big-endian) */
-} ups_declaration_t; /* its retry runs on its channel's timer, free while the channel is bound */
+} ups_declaration_t; /* its retry, then its verdict wait, run on its channel's timer (free while
+                        the channel is bound) */
 #endif
 
 #if UPS_WITH_TRANSFERS
@@ -243,7 +248,8 @@ typedef struct {
     uint8_t knock_step;
     uint8_t tx_count;
     uint16_t t_join;      /* joining: when it began (for the give-up) */
-    uint16_t t_quiet;     /* joining: last Knock sent or heard, or Census/Query/Offer heard */
+    uint16_t t_quiet;     /* joining: last Knock sent or heard, or Census/Query/Offer heard;
+                             while a refusal is open: it, or the last Hello/Census/Query */
     uint16_t t_announce;  /* joined: when the last answer to Hello started */
     uint16_t t_pace;      /* joined: when its last owed frame was queued */
     uint8_t burst[2][2];  /* Stage answers still to send: {epoch, next stage}; stage 16: none */
@@ -309,7 +315,10 @@ void ups_tx_pop(ups_node_t *node);
 unsigned ups_notes(ups_node_t *node);
 
 /** The join: 0 not started, 1 joining, 2 joined, or UPS_ERR_TIMEOUT, UPS_ERR_TXNODES_FULL,
- *  UPS_ERR_FAILED when it ended. */
+ *  UPS_ERR_FAILED when it ended. Anyone can send TxNodesFull or Failed: one naming this node's
+ *  id ends the join only once it stood 3 s (the refusal wait, counted again from each Hello,
+ *  Census or Query heard after it) with no Offer or Assign of the id; meanwhile the node does
+ *  not knock. A join that reaches UPS_JOIN_GIVE_UP_MS with one open ends with its error. */
 int ups_join_state(const ups_node_t *node);
 
 /** This node's TxNode (0..126), or -1 while it holds none. */
@@ -346,7 +355,11 @@ int ups_set_priority(ups_node_t *node, int channel, uint8_t priority);
 
 /** A channel's state: 0 free, 1 waiting for its etag (or being bound again, or a publisher's
  *  150 ms pause on a larger size class), 2 bound, or a UPS_ERR_ code (the request ended:
- *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE). */
+ *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE).
+ *  EtagsFull, Limit and Failed are refusals, and anyone can send them: the node keeps asking,
+ *  and one ends the request only once it stood 3 s with no Bind answering the request (or
+ *  when the request gives up after 5 s with one open). A channel being bound again after a
+ *  contradiction keeps asking. */
 int ups_channel_state(const ups_node_t *node, int channel);
 
 /** The etag @p channel is bound to and relied on, or 0 (also during its re-binding). */
@@ -360,15 +373,22 @@ int ups_filters(const ups_node_t *node, ups_filter_t *out, int max);
 /** Declare @p channel (published on, in state 2) a real-time stream: at most one event of
  *  @p size bytes (frames per event on a larger size class) every @p period, released up to
  *  @p jitter late, due within @p deadline; times in units of 100 us. Sends DECLARE (request
- *  retry, 5 s) until Grant or Refuse, and again in every answer to Hello once granted.
+ *  retry, 5 s) until it hears Grant or Refuse for it, and again in every answer to Hello once
+ *  granted. The answer is the latest verdict heard since the DECLARE went (ups_tx_pop), once
+ *  it stood 0.5 s with no other (the verdict wait: the CAN-ECB corrects a forged one at once);
+ *  until then the channel keeps its priority. Only verdicts for a stream the node declared
+ *  count (its DECLARE sent, its answer not a Refuse); for one, a Grant sets the priority (also
+ *  unasked) and a Refuse puts back the priority from before ups_declare(), until a Grant.
  *  Returns UPS_OK, UPS_ERR_ARGUMENT (no such published channel, a period or deadline of 0, a
  *  size out of range), UPS_ERR_UNBOUND (not in state 2) or UPS_ERR_FULL (UPS_DECLARATIONS
  *  streams declared already, or none compiled in). */
 int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, uint16_t deadline,
                 uint8_t jitter, uint32_t now_ms);
 
-/** The declaration of @p channel: 0 none, 1 waiting, 2 granted (its priority is the
- *  channel's), or UPS_ERR_REFUSED, UPS_ERR_TIMEOUT. */
+/** The declaration of @p channel: 0 none, 1 waiting for its answer, 2 granted (its priority
+ *  is the channel's; a later Refuse puts the channel back to its former priority until a
+ *  Grant comes), UPS_ERR_REFUSED (the answer was Refuse: the declaration is over) or
+ *  UPS_ERR_TIMEOUT (no verdict within 5 s; a later Grant still makes it 2). */
 int ups_declaration_state(const ups_node_t *node, int channel);
 
 /** The counters (read-only; they saturate). */

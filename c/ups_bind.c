@@ -8,7 +8,13 @@
  * etag it relies on, another etag for a UID it relies on) makes it stop relying on every
  * binding involved and ask again; such a re-binding relies on an answer only once it stood
  * 50 ms uncontradicted (settling), and, with UPS_HEARD_BINDS, an answer naming an etag last
- * heard bound to another UID is doubted until it comes again.
+ * heard bound to another UID is doubted until it comes again. A refusal (EtagsFull, Limit,
+ * Failed: anyone can send one) ends a request only once it stood 3 s while the node kept
+ * asking with no Bind answering it, or when the request gives up with one open.
+ *
+ * A declaration takes a Grant or Refuse only once its DECLARE was sent and while its answer is
+ * not a Refuse; the answer is the latest verdict once it stood 0.5 s with no other, and after a
+ * Grant the stream follows each verdict at once.
  *
  * Every frame a channel sends is *owed* first (a bit of ups_channel_t.owe) and queued by
  * ups__queue_owed() one at a time, when there is room and no management frame waits before it:
@@ -22,6 +28,13 @@
 #define RETRY_MAX 1000u
 #define RETRY_STEPS 8u /* 50+100+200+400+800+1000*4 = 5550 ms: the 9th wait gives up (5 s) */
 #define SETTLE 50u
+#define REFUSAL_WAIT 3000u
+#define VERDICT_WAIT 500u
+
+/* ups_declaration_t.heard: before the first verdict, then the latest one */
+#define HEARD_UNSENT 0u     /* the DECLARE has not been sent: a verdict is not for it */
+#define HEARD_NONE 1u       /* sent, no verdict since */
+#define HEARD_REFUSE 0x80u  /* Refuse (a Grant's priority is 0x02-0x7F) */
 #define GROW_PAUSE 150u
 
 static unsigned retry_delay(unsigned step)
@@ -51,6 +64,23 @@ static ups_declaration_t *declaration_of(ups_node_t *node, unsigned channel)
         }
     }
     return NULL;
+}
+
+/** Verdict @p verdict (a granted priority, or HEARD_REFUSE) for the declared stream of @p ch:
+ *  a Grant sets its priority, a Refuse puts it back to the one from before the declaration;
+ *  taken as the answer (state 1), a Refuse ends the declaration. */
+static void follow(ups_node_t *node, ups_channel_t *ch, ups_declaration_t *decl, unsigned verdict)
+{
+    if (verdict != HEARD_REFUSE) {
+        ch->priority = (uint8_t)verdict;
+        decl->state = UPS__READY;
+    } else {
+        ch->priority = decl->fallback; /* best effort, until a Grant comes */
+        if (decl->state == UPS__WAITING) {
+            decl->state = UPS_ERR_REFUSED; /* over: later verdicts for it are stray */
+        }
+    }
+    note(node, UPS_NOTE_DECLARATIONS);
 }
 #endif
 
@@ -92,6 +122,17 @@ static void start_request(ups_node_t *node, ups_channel_t *ch)
 
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid)
 {
+#if UPS_DECLARATIONS
+    if (kind == RQ_DECLARE) { /* its data: the declaration's, as it was queued */
+        for (unsigned d = 0; d < UPS_DECLARATIONS; ++d) {
+            ups_declaration_t *decl = &node->decl[d];
+            if (decl->heard == HEARD_UNSENT && ups__same8(decl->data, uid)) {
+                decl->heard = HEARD_NONE; /* verdicts from now on are for it */
+            }
+        }
+        return;
+    }
+#endif
     int i = find_uid(node, uid);
     if (i >= 0) {
         ups_channel_t *ch = &node->channels[i];
@@ -105,20 +146,38 @@ void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid)
  *  channel in use that neither waits nor is bound has failed: see ups_channel_state). */
 static void fail(ups_node_t *node, ups_channel_t *ch, int why)
 {
-    if (ch->flags & UPS__REBIND) {
-        return; /* maybe stray: a channel being bound again keeps asking (request retry) */
-    }
     ch->flags = (uint8_t)(ch->flags & ~(UPS__PEND | UPS__ASKED | UPS__CAND | UPS__BOUND));
     ch->step = (uint8_t)((ch->step & 0xF0u) | (unsigned)-why);
     note(node, UPS_NOTE_CHANNELS);
 }
 
-void ups__refused(ups_node_t *node, const uint8_t *uid, int why)
+/* A refusal of a channel's request (EtagsFull, Limit, Failed) is open while it waits for its
+ * etag: its etag field, free then, holds the refusal (bits 14-15: -UPS_ERR_ - 8) and when the
+ * first one came (bits 0-13: the clock's low 14 bits, up to 16 s: the request ends within
+ * 5.6 s). No etag of a frame (14 bits) matches it; a Bind that answers the request overwrites
+ * it (voids the refusal), and so does a new request. */
+#define REFUSAL_SHIFT 14u
+#define REFUSAL_TIME 0x3FFFu
+
+/** The error of the refusal open on @p ch, or 0. */
+static int refusal_of(const ups_channel_t *ch)
+{
+    unsigned kind = (unsigned)ch->etag >> REFUSAL_SHIFT;
+    return kind != 0u ? -(int)(kind + 8u) : 0;
+}
+
+void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now)
 {
     int i = find_uid(node, uid);
-    if (i >= 0 && (node->channels[i].flags & UPS__PEND)) {
-        fail(node, &node->channels[i], why);
+    if (i < 0) {
+        return;
     }
+    ups_channel_t *ch = &node->channels[i];
+    if ((ch->flags & (UPS__PEND | UPS__REBIND)) != UPS__PEND) {
+        return; /* none waits; or maybe stray: a channel being bound again keeps asking */
+    }
+    unsigned since = ch->etag != 0u ? ch->etag : now; /* the first one's time */
+    ch->etag = (uint16_t)(((unsigned)(-why - 8) << REFUSAL_SHIFT) | (since & REFUSAL_TIME));
 }
 
 /** Queue frame @p bit that channel @p i owes; 0 when it is owed no more: a SUB_AT, PUB_AT or
@@ -330,8 +389,12 @@ static void tick_channel(ups_node_t *node, unsigned i, uint32_t now)
             adopt(node, ch, ch->etag, now); /* it stood 50 ms with nothing contradicting it */
         }
     } else if (flags & UPS__PEND) {
-        if (retry(ch, now, UPS__OWE_REQUEST)) {
-            fail(node, ch, UPS_ERR_TIMEOUT);
+        /* a refusal ends the request once it stood 3 s while the node kept asking, or when
+         * the request gives up (5 s) with it open */
+        int why = refusal_of(ch);
+        if ((why != 0 && ((now - ch->etag) & REFUSAL_TIME) >= REFUSAL_WAIT) ||
+            retry(ch, now, UPS__OWE_REQUEST)) {
+            fail(node, ch, why != 0 ? why : UPS_ERR_TIMEOUT);
         }
     } else if (UPS_WITH_TRANSFERS && (flags & UPS__WAIT)) {
         if (waited >= GROW_PAUSE) {
@@ -340,7 +403,11 @@ static void tick_channel(ups_node_t *node, unsigned i, uint32_t now)
         }
 #if UPS_DECLARATIONS
     } else if ((flags & UPS__BOUND) && decl != NULL && decl->state == UPS__WAITING) {
-        if (retry(ch, now, UPS__OWE_DECLARE)) {
+        if (decl->heard > HEARD_NONE) { /* no DECLARE after the first verdict: the latest */
+            if (waited >= VERDICT_WAIT) { /* stood 0.5 s with no other: the answer */
+                follow(node, ch, decl, decl->heard);
+            }
+        } else if (retry(ch, now, UPS__OWE_DECLARE)) {
             decl->state = UPS_ERR_TIMEOUT;
             note(node, UPS_NOTE_DECLARATIONS);
         }
@@ -358,22 +425,25 @@ void ups__tick_bind(ups_node_t *node, uint32_t now)
 /* ---- declarations -------------------------------------------------------------------------- */
 
 #if UPS_DECLARATIONS
-void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority)
+void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority,
+                     uint32_t now)
 {
-    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) { /* (streams are declared ones) */
+    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) {
         ups_declaration_t *decl = &node->decl[i];
         if (decl->channel >= UPS_CHANNELS) {
             continue; /* unused */
         }
         ups_channel_t *ch = &node->channels[decl->channel];
-        if ((ch->flags & UPS__BOUND) && ch->etag == etag) {
-            if (granted) { /* also unasked: another declaration moved it */
-                ch->priority = priority;
-                decl->state = UPS__READY;
-            } else if (decl->state == UPS__WAITING) {
-                decl->state = UPS_ERR_REFUSED;
-            }
-            note(node, UPS_NOTE_DECLARATIONS);
+        if (!(ch->flags & UPS__BOUND) || ch->etag != etag || decl->state == UPS_ERR_REFUSED ||
+            decl->heard == HEARD_UNSENT) {
+            continue; /* not a stream it declared (its DECLARE sent, not ended in a Refuse) */
+        }
+        unsigned verdict = granted ? priority : HEARD_REFUSE;
+        if (decl->state != UPS__WAITING) {
+            follow(node, ch, decl, verdict); /* also unasked: another declaration moved it */
+        } else {
+            decl->heard = (uint8_t)verdict; /* the answer, if it stands 0.5 s (tick_channel) */
+            ch->t0 = now16(now);
         }
     }
 }
@@ -516,8 +586,12 @@ int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, ui
     if (decl == NULL && (decl = declaration_of(node, 0xFFu)) == NULL) {
         return UPS_ERR_FULL;
     }
+    if (decl->channel != channel || decl->state <= 0) {
+        decl->fallback = ch->priority; /* (not a granted one: declared again) */
+    }
     decl->channel = (uint8_t)channel;
     decl->state = UPS__WAITING;
+    decl->heard = HEARD_UNSENT;
     decl->data[2] = size;
     decl->data[3] = (uint8_t)(period >> 8);
     decl->data[4] = (uint8_t)period;

@@ -61,6 +61,8 @@
 #define UPS__OWE_CLAIM 0x02u    /* a CLAIM is owed: to an Offer, or in the answer to Hello */
 #define UPS__ANNOUNCE_DUE 0x04u /* a Hello came within a second of the last answer */
 #define UPS__RECENT 0x08u       /* the last answer to Hello started less than a second ago */
+#define UPS__REFUSED 0x10u      /* joining: a TxNodesFull or Failed of its id is open ... */
+#define UPS__REFUSED_FAILED 0x20u /* ... and the latest was Failed (else TxNodesFull) */
 
 /* the frames a channel owes the CAN-ECB (ups_channel_t.owe), queued one at a time, lowest bit
  * first, when there is room and no management frame waits before them (ups__queue_owed) */
@@ -152,8 +154,9 @@ void ups__tick_hello(ups_node_t *node, uint32_t now);
 /** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
  *  may answer it (a Bind received before the request went does not count). */
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
-/** EtagsFull, Failed or Limit for @p uid: the request of its channel, if one waits, ends. */
-void ups__refused(ups_node_t *node, const uint8_t *uid, int why);
+/** EtagsFull, Failed or Limit (UPS_ERR_ code @p why) for @p uid: the request of its channel,
+ *  if one waits, ends with it once it stood 3 s with no Bind answering the request. */
+void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now);
 /** Queue the next frame a channel owes, if any; 1 when it queued one. */
 int ups__queue_owed(ups_node_t *node, uint32_t now);
 /** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
@@ -164,8 +167,10 @@ int ups__etag_known(const ups_node_t *node, uint16_t etag);
 /** The request and declaration retries, settling, the publisher's pause. */
 void ups__tick_bind(ups_node_t *node, uint32_t now);
 #if UPS_DECLARATIONS
-/** Grant or Refuse for this node's stream on @p etag. */
-void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority);
+/** Grant (of @p priority) or Refuse for this node's TxNode and @p etag: taken only for a
+ *  stream it declared; the latest one is the answer once it stood 0.5 s. */
+void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority,
+                     uint32_t now);
 #endif
 
 #if UPS_WITH_TRANSFERS

@@ -5,7 +5,9 @@
  * A joining node knocks, answers the CAN-ECB's Census and Query with Stage frames, claims the
  * TxNode an Offer names and is joined by the Assign of its id; a joined node moves when an
  * Assign gives its id another TxNode. Every frame of TxNode 0x7F that ups.c found well formed
- * comes here (ups__config_frame), for the joining and the joined node alike.
+ * comes here (ups__config_frame), for the joining and the joined node alike. A TxNodesFull or
+ * Failed of its id (anyone can send one) ends the join only once it stood the refusal wait with
+ * no Offer or Assign of the id (ups__tick_join).
  *
  * A joined node answers Hello (at most once a second) with CLAIM, then SUB_AT/PUB_AT of the
  * bindings it relies on and DECLARE of its admitted streams. Those are *owed* (a bit of the
@@ -20,6 +22,7 @@
 #define KNOCK_FIRST 300u
 #define KNOCK_MAX 2000u
 #define HELLO_GAP 1000u
+#define REFUSAL_WAIT 3000u
 #define ANNOUNCE_PACE 1u
 
 /* ---- joining ------------------------------------------------------------------------------- */
@@ -103,7 +106,7 @@ static void joined_as(ups_node_t *node, unsigned txnode)
 {
     node->txnode = (uint8_t)txnode;
     node->join = UPS__READY;
-    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+    node->mode = (uint8_t)(node->mode & ~(UPS__OWE_CLAIM | UPS__REFUSED | UPS__REFUSED_FAILED));
     node->burst[0][1] = node->burst[1][1] = 16u;
     node->tx_count = 0u; /* Knocks and Stages still queued are of no use now */
     note(node, UPS_NOTE_JOINED); /* the channels' requests, owed meanwhile, go now */
@@ -116,7 +119,7 @@ void ups_start(ups_node_t *node, uint32_t now_ms)
     }
     node->join = UPS__WAITING;
     node->txnode = UPS__MGMT;
-    node->mode = (uint8_t)(node->mode & ~UPS__OWE_CLAIM);
+    node->mode = (uint8_t)(node->mode & ~(UPS__OWE_CLAIM | UPS__REFUSED | UPS__REFUSED_FAILED));
     node->t_join = now16(now_ms);
     node->knock_step = 0u;
     knock(node, now16(now_ms));
@@ -187,7 +190,8 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
         } else if (arg & OFFER_BIT) {
             heard(node, now);
             node->txnode = (uint8_t)(arg & 0x7Fu);
-            node->mode = (uint8_t)(node->mode | UPS__OWE_CLAIM); /* refill() queues it */
+            node->mode = (uint8_t)((node->mode | UPS__OWE_CLAIM) & /* refill() queues it */
+                                   ~(UPS__REFUSED | UPS__REFUSED_FAILED)); /* a refusal: void */
         } else {
             joined_as(node, arg);
         }
@@ -199,11 +203,11 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
             on_hello(node, now);
         }
         if (status_refusal[status] != 0u && (status != ST_LIMIT || low == node->txnode)) {
-            ups__refused(node, data, -(int)status_refusal[status]);
+            ups__refused(node, data, -(int)status_refusal[status], now);
         }
 #if UPS_DECLARATIONS
         if ((status == ST_GRANT || status == ST_REFUSE) && data[2] == node->txnode) {
-            ups__on_verdict(node, get16(data), status == ST_GRANT, data[3]);
+            ups__on_verdict(node, get16(data), status == ST_GRANT, data[3], now);
         }
 #endif
     } else if (op == OP_QUERY || (op == OP_STATUS && status == ST_CENSUS)) {
@@ -226,24 +230,43 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
     } else if (status == ST_HELLO) {
         knock(node, now); /* a CAN-ECB has just started: it takes knocks at once */
     } else if (status == ST_KNOCK) {
-        node->t_quiet = now16(now); /* another joiner's Knock: on a real bus it is ours */
+        if (!(node->mode & UPS__REFUSED)) { /* (a refusal's wait goes on) */
+            node->t_quiet = now16(now); /* another joiner's Knock: on a real bus it is ours */
+        }
     } else if (((1u << status) & ((1u << ST_TXNODES_FULL) | (1u << ST_FAILED))) &&
                ups__same8(data, node->node_id)) {
-        end_join(node, status == ST_FAILED ? UPS_ERR_FAILED : UPS_ERR_TXNODES_FULL);
+        /* a refusal, anyone's: it ends the join once it stood the refusal wait (tick_join) */
+        if (!(node->mode & UPS__REFUSED)) {
+            node->t_quiet = now16(now);
+        }
+        node->mode = (uint8_t)((node->mode & ~UPS__REFUSED_FAILED) | UPS__REFUSED |
+                               (status == ST_FAILED ? UPS__REFUSED_FAILED : 0u));
     }
 }
 
 /* ---- the timers --------------------------------------------------------------------------- */
 
-/** The knock retry, and the give-up. */
+/** The knock retry, the refusal wait and the give-up. While a refusal is open (TxNodesFull
+ *  or Failed of its id, no Offer or Assign of its id since) the node does not knock, and
+ *  t_quiet holds when the refusal came or the last Hello, Census or Query after it: the
+ *  refusal stands 3 s from then, and ends the join with its error, as does the give-up. */
 void ups__tick_join(ups_node_t *node, uint32_t now)
 {
-    if (UPS_JOIN_GIVE_UP_MS != 0u && ups__since(now, node->t_join) >= UPS_JOIN_GIVE_UP_MS) {
-        end_join(node, UPS_ERR_TIMEOUT);
-        return;
-    }
+    unsigned mode = node->mode;
     unsigned delay = KNOCK_FIRST << node->knock_step;
-    if (ups__since(now, node->t_quiet) >= (delay < KNOCK_MAX ? delay : KNOCK_MAX)) {
+    int8_t why = UPS_ERR_TIMEOUT;
+    if (delay > KNOCK_MAX) {
+        delay = KNOCK_MAX;
+    }
+    if (mode & UPS__REFUSED) {
+        why = (mode & UPS__REFUSED_FAILED) ? UPS_ERR_FAILED : UPS_ERR_TXNODES_FULL;
+        delay = REFUSAL_WAIT; /* no knock: a census it started would only refuse it again */
+    }
+    int quiet = ups__since(now, node->t_quiet) >= delay;
+    if ((quiet && (mode & UPS__REFUSED)) ||
+        (UPS_JOIN_GIVE_UP_MS != 0u && ups__since(now, node->t_join) >= UPS_JOIN_GIVE_UP_MS)) {
+        end_join(node, why); /* the refusal stood, or the give-up came */
+    } else if (quiet) {
         knock(node, now);
         if (node->knock_step < 3u) {
             node->knock_step = (uint8_t)(node->knock_step + 1u);

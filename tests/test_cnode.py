@@ -128,7 +128,8 @@ async def test_limit_and_txnodes_full_are_reported(
         second = node.subscribe(CMD, now_ms())
         await c.until(lambda: node.channel_state(second) < 0)
         assert ERRORS[node.channel_state(second)] == "LIMIT"
-    async with c_nodes(bus, 0xC4) as c:  # no CAN-ECB: a forged TxNodesFull ends the join
+    # no CAN-ECB: a forged TxNodesFull ends the join, once it stood the refusal wait (3 s)
+    async with c_nodes(bus, 0xC4) as c:
         can_id, data = p.encode(p.TxNodesFull(0xC4))
         raw_bus.send(can.Message(arbitration_id=can_id, data=data))
         await c.until(lambda: c.nodes[0].join_state < 0)

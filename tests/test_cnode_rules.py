@@ -50,6 +50,54 @@ def test_claim_answering_an_offer_waits_for_room() -> None:
     assert w.node.counters()["tx_dropped"] == 0
 
 
+def test_a_refusal_ends_a_join_only_once_it_stood_3_s() -> None:
+    """Joining, Refusals: TxNodesFull or Failed of the joiner's id ends the join only once it
+    stood 3 s (refusal wait) with no Offer or Assign of its id, counted from the refusal or the
+    last Hello, Census or Query after it; meanwhile the joiner does not knock, but answers a
+    Census and claims an Offer, which voids the refusal."""
+    w = Wire()
+    w.node.start(w.now)
+    w.drain()
+    w.feed(p.TxNodesFull(w.node_id))  # forged: the CAN-ECB's Offer follows
+    w.tick(2000)
+    assert w.node.join_state == 1
+    assert w.mgmt().count(p.Knock()) == 1  # no knock while the refusal is open
+    w.feed(p.Offer(9, w.node_id))
+    w.drain()
+    assert p.Request(p.CLAIM, 9, w.node_id) in w.mgmt()
+    w.tick(2000)  # 4 s after the refusal: the Offer voided it
+    assert w.node.join_state == 1
+    w.feed(p.Assign(9, w.node_id))
+    assert w.node.txnode == 9
+
+    w = Wire()
+    w.node.start(w.now)
+    w.drain()
+    w.feed(p.Failed(w.node_id))
+    w.tick(2000)
+    w.feed(p.Census(2))  # a census under way: its Offer may follow
+    w.tick(2990)
+    assert w.node.join_state == 1
+    w.tick(20)  # 3 s after the Census, with nothing contradicting the refusal: it stands
+    assert ERRORS[w.node.join_state] == "FAILED"
+
+
+def test_a_join_reaching_its_give_up_with_a_refusal_open_ends_with_its_error() -> None:
+    """A join that reaches its give-up time (30 s) while a refusal is open (Census frames keep
+    coming, but no Offer) ends with that refusal's error, not a timeout."""
+    w = Wire()
+    w.node.start(w.now)
+    w.drain()
+    w.tick(20_000)
+    w.feed(p.TxNodesFull(w.node_id))
+    for epoch in range(4):
+        w.tick(2000)
+        w.feed(p.Census(epoch))
+    assert w.node.join_state == 1
+    w.tick(2100)  # 30.1 s in all, 2.1 s after the last Census
+    assert ERRORS[w.node.join_state] == "TXNODES_FULL"
+
+
 # --- management frames ----------------------------------------------------------------------
 
 
@@ -168,8 +216,8 @@ def test_only_an_answer_to_the_request_of_the_current_roles_counts() -> None:
 
 def test_a_channel_refused_during_the_publishers_pause_stays_refused() -> None:
     """A publisher that advertises larger events asks for their size class (PUB_BIND(c)); one
-    refused (EtagsFull) during its 150 ms pause after a Bind of class 1-4 stays refused, not
-    "bound" once the pause is over."""
+    refused (EtagsFull, standing its 3 s) during its 150 ms pause after a Bind of class 1-4 is
+    refused, not "bound" once the pause is over."""
     w = Wire()
     w.join()
     a = w.node.advertise(A, 100, w.now)
@@ -179,7 +227,46 @@ def test_a_channel_refused_during_the_publishers_pause_stays_refused() -> None:
     assert w.mgmt()[-1] == p.Request(p.PUB_BIND, 5, A, 3)
     w.feed(p.EtagsFull(A))
     w.tick(200)
+    assert w.node.channel_state(a) == 1  # waiting: the refusal has not stood yet
+    w.tick(2900)
     assert ERRORS[w.node.channel_state(a)] == "ETAGS_FULL"
+
+
+def test_a_refusal_ends_a_binding_request_only_once_it_stood_3_s() -> None:
+    """Binding: EtagsFull, Failed and Limit are refusals; the node keeps repeating its request
+    (request retry) and the refusal ends the request only once it stood 3 s with no Bind
+    answering the request; a Bind that answers it voids the refusal."""
+    w = Wire()
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    b = w.node.subscribe(B, w.now)
+    w.tick(1)
+    w.feed(p.EtagsFull(A))
+    w.feed(p.Limit(5, B))
+    mark = len(w.sent)
+    w.tick(1000)
+    assert w.mgmt(mark).count(p.Request(p.SUB_BIND, 5, A)) >= 3  # still asking
+    w.feed(p.Bind(0x21, B))  # the CAN-ECB's answer: the refusal of B was forged
+    w.tick(1990)
+    assert w.node.channel_state(a) == 1
+    assert w.node.channel_etag(b) == 0x21
+    w.tick(20)  # 3 s after the refusal, no Bind for A: it stands
+    assert ERRORS[w.node.channel_state(a)] == "ETAGS_FULL"
+    assert w.node.channel_etag(b) == 0x21
+
+
+def test_a_request_reaching_its_timeout_with_a_refusal_open_ends_with_its_error() -> None:
+    """A request that reaches its 5 s timeout with a refusal open ends with that refusal's
+    error, not a timeout."""
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.tick(4000)
+    w.feed(p.Failed(A))
+    w.tick(1400)
+    assert w.node.channel_state(a) == 1
+    w.tick(300)  # past the 5 s (the ninth wait of the request retry ends at 5.55 s)
+    assert ERRORS[w.node.channel_state(a)] == "FAILED"
 
 
 def test_events_never_crowd_the_frames_owed_to_the_can_ecb_out() -> None:
@@ -213,8 +300,9 @@ def test_the_answer_to_hello_keeps_its_order_when_the_queue_is_slow() -> None:
     a = w.node.advertise(A, 8, w.now)
     w.bind(a, 0x20, A)
     assert w.node.declare(a, 2, 100, 50, 0, w.now) == 0
-    w.drain()
+    w.tick(1)  # the DECLARE goes
     w.feed(p.Grant(0x20, 5, 0x02))
+    w.tick(500)  # the verdict wait
     assert w.node.declaration_state(a) == 2
     mark = len(w.sent)
     w.feed(p.Hello(1))
@@ -244,6 +332,86 @@ def test_an_assign_of_its_own_txnode_makes_it_announce() -> None:
     assert p.Request(p.CLAIM, 5, w.node_id) in w.mgmt(mark)
     assert p.Holds(True, 5, 0x20, A) in w.mgmt(mark)
     assert w.node.counters()["moves"] == 0
+
+
+# --- real-time declarations -----------------------------------------------------------------
+
+
+def _declared(w: Wire) -> int:
+    """A published channel bound to 0x20, its DECLARE sent."""
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.bind(a, 0x20, A)
+    assert w.node.declare(a, 2, 100, 50, 0, w.now) == 0
+    w.tick(1)
+    assert w.mgmt()[-1] == p.Declare(5, 0x20, 2, 100, 50, 0)
+    return a
+
+
+def _priority(w: Wire, channel: int) -> int:
+    """The priority of the channel's next event."""
+    mark = len(w.sent)
+    assert w.node.publish(channel, b"x") == 0
+    w.drain()
+    ((can_id, _),) = w.events(mark)
+    return int(can_id >> 21)
+
+
+def test_the_answer_to_a_declaration_is_the_latest_verdict_once_it_stood_half_a_second() -> None:
+    """A forged Grant before the CAN-ECB's Refuse is not the answer: the answer is the latest
+    verdict since the DECLARE once it stood 0.5 s (verdict wait) with no other, and the node
+    publishes at its former priority until then. It stops repeating DECLARE at the first
+    verdict."""
+    w = Wire()
+    a = _declared(w)
+    w.feed(p.Grant(0x20, 5, 0x02))  # forged
+    mark = len(w.sent)
+    w.tick(100)
+    w.feed(p.Refuse(0x20, 5, 0x30, 7, 900))  # the CAN-ECB's
+    w.tick(490)
+    assert w.node.declaration_state(a) == 1
+    assert _priority(w, a) == 0x80
+    w.tick(20)
+    assert ERRORS[w.node.declaration_state(a)] == "REFUSED"
+    assert _priority(w, a) == 0x80
+    w.tick(2000)
+    assert not any(isinstance(m, p.Declare) for m in w.mgmt(mark))  # not repeated
+    w.feed(p.Grant(0x20, 5, 0x02))  # a declaration whose answer is a Refuse is over
+    w.tick(600)
+    assert ERRORS[w.node.declaration_state(a)] == "REFUSED"
+    assert _priority(w, a) == 0x80
+
+
+def test_a_node_takes_verdicts_only_for_a_stream_it_declared() -> None:
+    """A Grant for the node's channel before its DECLARE went out, or for another TxNode, is
+    stray: it changes nothing."""
+    w = Wire()
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    w.bind(a, 0x20, A)
+    w.feed(p.Grant(0x20, 5, 0x02))  # nothing declared
+    assert w.node.declare(a, 2, 100, 50, 0, w.now) == 0
+    w.feed(p.Grant(0x20, 5, 0x03))  # declared, but its DECLARE is not sent yet
+    w.feed(p.Grant(0x20, 6, 0x04))  # another TxNode's stream
+    w.tick(600)
+    assert w.node.declaration_state(a) == 1
+    assert _priority(w, a) == 0x80
+    assert p.Declare(5, 0x20, 2, 100, 50, 0) in w.mgmt()
+
+
+def test_a_declared_stream_follows_the_latest_verdict() -> None:
+    """Once granted, a Grant sets the stream's priority (also unasked) and a Refuse puts the
+    channel back to its priority from before the declaration, until a Grant comes."""
+    w = Wire()
+    a = _declared(w)
+    w.feed(p.Grant(0x20, 5, 0x10))
+    w.tick(500)
+    assert w.node.declaration_state(a) == 2
+    assert _priority(w, a) == 0x10
+    w.feed(p.Refuse(0x20, 5, 0x30, 7, 900))
+    assert _priority(w, a) == 0x80
+    w.feed(p.Grant(0x20, 5, 0x12))  # unasked: another declaration moved it
+    assert _priority(w, a) == 0x12
 
 
 # --- transfers ------------------------------------------------------------------------------
