@@ -44,7 +44,10 @@ class Proc:
         if exact_env:
             environment = env
         else:
-            environment = None if env is None else {**os.environ, "PYTHONPATH": str(ROOT), **env}
+            # faulthandler: a process that does not exit in time is made to say where it is
+            environment = {**os.environ, "PYTHONFAULTHANDLER": "1"}
+            if env is not None:
+                environment.update({"PYTHONPATH": str(ROOT), **env})
         with contextlib.ExitStack() as files:
             out = files.enter_context(stdout.open("w")) if stdout else subprocess.PIPE
             self.popen = subprocess.Popen(
@@ -124,8 +127,10 @@ class Proc:
         try:
             self.popen.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
-            self.stop()
-            raise AssertionError(f"{self.args[0]} did not exit within {timeout} s") from None
+            raise AssertionError(
+                f"{self.args[0]} did not exit within {timeout} s; where it was:\n"
+                + self._where()
+            ) from None
         for reader in self._readers:
             reader.join(timeout=5)
         if self._stdout_file is not None:
@@ -146,6 +151,19 @@ class Proc:
 
     def resume(self) -> None:
         self.popen.send_signal(signal.SIGCONT)
+
+    def _where(self) -> str:
+        """SIGABRT a process that hangs: faulthandler (PYTHONFAULTHANDLER) prints every
+        thread's stack on stderr; the end of its stderr, once it is gone."""
+        self.popen.send_signal(signal.SIGCONT)
+        self.popen.send_signal(signal.SIGABRT)
+        try:
+            self.popen.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.stop()
+        for reader in self._readers:
+            reader.join(timeout=5)
+        return "".join(self.stderr_lines[-80:])
 
     def stop(self) -> int:
         """SIGTERM, then SIGKILL if it does not exit within 10 s; returns the exit code."""
