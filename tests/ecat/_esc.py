@@ -183,6 +183,7 @@ class Slave:
             start = phys + (low - log_start)
             where = slice(low - logical, high - logical)
             if kind == 1 and command in (LRD, LRW) and self._process_data(start, high - low):
+                self._before_read(start, start + high - low)
                 data[where] = self.memory[start : start + high - low]
                 read = True
             elif kind == 2 and command in (LWR, LRW) and self._process_data(start, high - low):
