@@ -15,6 +15,7 @@ with one datagram (``ok``, the JSON, or ``error: ...``). SIGTERM or SIGINT ends 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import select
@@ -102,10 +103,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--control", metavar="PATH")
     parser.add_argument("--watchdog", type=float, default=0.0, help="SM watchdog, s (0: off)")
     args = parser.parse_args(argv)
-    slaves = []
-    for n, ident in enumerate(args.slave, 1):
-        slaves.append(Slave(ident, watchdog=args.watchdog,
-                            on_change=lambda s, w, n=n: changed(s, w, n)))  # fmt: skip
+    slaves = [
+        Slave(ident, watchdog=args.watchdog, on_change=functools.partial(changed, position=n))
+        for n, ident in enumerate(args.slave, 1)
+    ]
     chain = Chain(slaves)
     wire = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE))
     wire.bind((args.ifname, ETHERTYPE))

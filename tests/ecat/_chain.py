@@ -60,6 +60,7 @@ class Chain:
         self.counts["frames"] += 1
         return bytes(out)
 
-    def _drop(self) -> None:
+    def _drop(self) -> bytes | None:
+        """Count a frame dropped; what ``process`` returns for it (None)."""
         self.counts["dropped"] += 1
         return None
