@@ -110,7 +110,9 @@ def test_kickcat_brings_the_emulated_slaves_to_op(tmp_path: Path) -> None:
         for position, value in ((1, "a1a2a3a4"), (2, "b1b2b3b4b5b6")):
             ask.sendto(f"inputs {position} {value}".encode(), str(control))
             assert ask.recv(4096) == b"ok"
-        bus = kickcat.Bus(kickcat.create_link(master, ""))
+        link = kickcat.create_link(master, "")
+        link.set_timeout(0.1)  # s per frame; KickCAT's 2 ms is for a C slave, not a busy Python
+        bus = kickcat.Bus(link)
         bus.init(1.0)
         assert [(s.address, s.output_size, s.input_size) for s in bus.slaves()] == [
             (1001, 0, 0), (1002, 0, 0)]  # fmt: skip
