@@ -23,7 +23,7 @@ _COPIED = ("setup.py", "pyproject.toml", "README.md")
 #: the project's other packages, installed inside ``ups`` (the links ``ups/broker`` ->
 #: ``../broker``, ...): not compiled; the copy links to the checkout's, and their modules stay
 #: loaded when a process switches to the copy
-LINKED = ("broker", "gateway", "jaus", "ros2", "examples", "benchmarks")
+LINKED = ("broker", "gateway", "jaus", "ros2", "ethercat", "examples", "benchmarks")
 
 
 def unavailable() -> str | None:

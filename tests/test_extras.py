@@ -97,6 +97,7 @@ ZENOH = "tcp/127.0.0.1:1"
         (["dbc", "-o", "robot.dbc", "--recording", "no.blf"], "tools"),
         (["ros2", "check", "examples/robot.ros2.toml"], "ros2"),
         (["ros2", "--map", "examples/robot.ros2.toml", "--can", "virtual:x"], "ros2"),
+        (["ethercat", "scan", "--ifname", "lo"], "ethercat"),
     ],
 )
 def test_a_missing_extra_is_one_line_naming_what_to_install(

@@ -5,7 +5,8 @@ JAUS host stand on the library; the demo and the benchmarks on all of those; the
 (``upscli``) on everything. Read from the sources (every import, lazy ones included), so a
 layer broken in a function that no test runs is caught too.
 
-The folders ``broker/``, ``gateway/``, ``jaus/``, ``ros2/``, ``examples/`` and ``benchmarks/``
+The folders ``broker/``, ``gateway/``, ``jaus/``, ``ros2/``, ``ethercat/``, ``examples/`` and
+``benchmarks/``
 install as ``ups.broker``, ``ups.gateway``, ... (links in ``ups/``), never under a name of their
 own: every import names them so.
 """
@@ -23,13 +24,15 @@ BELOW: dict[str, set[str]] = {
     "gateway": {"ups", "broker"},
     "jaus": {"ups"},
     "ros2": {"ups"},
-    "examples": {"ups", "broker", "gateway", "jaus", "ros2"},
-    "benchmarks": {"ups", "broker", "gateway", "jaus", "ros2"},
-    "upscli": {"ups", "broker", "gateway", "jaus", "ros2", "examples", "benchmarks"},
+    "ethercat": {"ups"},
+    "examples": {"ups", "broker", "gateway", "jaus", "ros2", "ethercat"},
+    "benchmarks": {"ups", "broker", "gateway", "jaus", "ros2", "ethercat"},
+    "upscli": {"ups", "broker", "gateway", "jaus", "ros2", "ethercat", "examples", "benchmarks"},
 }
 
 
-LINKED = ("broker", "gateway", "jaus", "ros2", "examples", "benchmarks")  #: installed as ups.<name>
+#: installed as ups.<name>
+LINKED = ("broker", "gateway", "jaus", "ros2", "ethercat", "examples", "benchmarks")
 SOURCES = (*BELOW, "tests")
 
 

@@ -52,5 +52,5 @@ def test_the_wheel_installs_only_our_names_and_the_demo_runs_from_it(tmp_path: P
     )  # fmt: skip
     assert without.returncode == 2, without.stderr
     assert without.stderr.strip().endswith("pip install 'ups-pubsub[zenoh]'"), without.stderr
-    sh(python, "-c", "import ups.broker, ups.gateway, ups.jaus, ups.examples, ups.benchmarks",
-       cwd=elsewhere)  # fmt: skip
+    sh(python, "-c", "import ups.broker, ups.gateway, ups.jaus, ups.ethercat, ups.examples, "
+       "ups.benchmarks", cwd=elsewhere)  # fmt: skip

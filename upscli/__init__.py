@@ -250,10 +250,11 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         module.add_arguments(cmd)
         cmd.set_defaults(run=module.run)
 
-    from . import _jaus, _ros2
+    from . import _ethercat, _jaus, _ros2
 
     _jaus.add_commands(command)
     _ros2.add_commands(command)
+    _ethercat.add_commands(command)
 
     from . import _cnode
 
