@@ -401,20 +401,19 @@ async def test_an_unsub_during_recovery_takes_back_a_held_sub_bind(
     """The recovery-window half of the bug above: a SUB_BIND of a new channel held until the
     window ends, then an UNSUB of it, made the node a subscriber once the window ended."""
     db = tmp_path / "ecb.db"
-    async with running_ecb(bus, db, recovery=0.1) as first:
-        async with nodes(bus, [1]) as (node,):
-            txnode = node.stats()["txnode"]
-            first.close()
-            async with running_ecb(bus, db, recovery=1.0) as ecb:
-                uid, kept = name_to_uid("held/then/left"), name_to_uid("held/and/kept")
-                assert ecb.recovering
-                requests = ecb.counters["requests"]
-                send(raw_bus, p.Request(p.SUB_BIND, txnode, uid))
-                send(raw_bus, p.Request(p.SUB_BIND, txnode, kept))
-                send(raw_bus, p.Request(p.UNSUB, txnode, uid))
-                await eventually(lambda: ecb.counters["requests"] >= requests + 3)
-                assert ecb.recovering  # the SUB_BINDs were held
-                await eventually(lambda: not ecb.recovering)
-                await eventually(lambda: kept in ecb.etags)
-                assert txnode in ecb.subscribers.get(kept, ())
-                assert txnode not in ecb.subscribers.get(uid, ())
+    async with running_ecb(bus, db, recovery=0.1) as first, nodes(bus, [1]) as (node,):
+        txnode = node.stats()["txnode"]
+        first.close()
+        async with running_ecb(bus, db, recovery=1.0) as ecb:
+            uid, kept = name_to_uid("held/then/left"), name_to_uid("held/and/kept")
+            assert ecb.recovering
+            requests = ecb.counters["requests"]
+            send(raw_bus, p.Request(p.SUB_BIND, txnode, uid))
+            send(raw_bus, p.Request(p.SUB_BIND, txnode, kept))
+            send(raw_bus, p.Request(p.UNSUB, txnode, uid))
+            await eventually(lambda: ecb.counters["requests"] >= requests + 3)
+            assert ecb.recovering  # the SUB_BINDs were held
+            await eventually(lambda: not ecb.recovering)
+            await eventually(lambda: kept in ecb.etags)
+            assert txnode in ecb.subscribers.get(kept, ())
+            assert txnode not in ecb.subscribers.get(uid, ())
