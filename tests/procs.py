@@ -128,8 +128,7 @@ class Proc:
             self.popen.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             raise AssertionError(
-                f"{self.args[0]} did not exit within {timeout} s; where it was:\n"
-                + self._where()
+                f"{self.args[0]} did not exit within {timeout} s; where it was:\n" + self._where()
             ) from None
         for reader in self._readers:
             reader.join(timeout=5)
