@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import itertools
 import os
+import signal
 import threading
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -23,7 +24,14 @@ _bus_numbers = itertools.count()
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """With ``UPS_EXPECT_COMPILED=1`` (tests/test_compiled.py), refuse to run on pure Python."""
+    """With ``UPS_EXPECT_COMPILED=1`` (tests/test_compiled.py), refuse to run on pure Python.
+
+    A suite started in the background of a shell without job control (``scripts/test &``,
+    ``nohup``) inherits SIGINT ignored, and so would every process the tests start: Ctrl-C
+    (tests/test_ctrl_c.py) would not reach ``ups jaus-ocu``, which relies on Python's own
+    handler. The tests start their processes as a terminal would: with SIGINT at its default."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # children get SIG_DFL
     if os.environ.get("UPS_EXPECT_COMPILED") == "1":
         import ups._tcplink
 
