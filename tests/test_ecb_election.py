@@ -341,6 +341,9 @@ def test_the_machine_finds_the_old_deadlock(slots: int) -> None:
                 phases=[Phase.generate],
                 database=None,
                 report_multiple_bugs=False,
+                # the old rules fail in more than one way ("2 active" too); a fixed sequence
+                # of examples finds this one every time (a random one found the other once)
+                derandomize=True,
             ),
         )
 
