@@ -54,6 +54,19 @@ async def _until_evicted(address: str, count: int) -> None:
         await asyncio.sleep(0.05)
 
 
+async def _stats_amid_the_flood(address: str) -> dict[str, int]:
+    """The TCP-ECB's counters, asked again while idle connections still arriving evict the
+    asking one (it waits among the 256 not admitted; on a busy machine the 5000 take a while
+    to be accepted)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 20
+    while True:
+        with contextlib.suppress(BrokerUnavailable):
+            return dict((await query_status(address, timeout=1))["stats"])
+        assert loop.time() < deadline, "no status within 20 s"
+        await asyncio.sleep(0.05)
+
+
 async def test_five_thousand_idle_connections_leave_the_ecb_bounded_and_open() -> None:
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard != resource.RLIM_INFINITY and hard < 6000:
@@ -73,8 +86,7 @@ async def test_five_thousand_idle_connections_leave_the_ecb_bounded_and_open() -
                 await node.publish("still/open", b"1")
                 assert (await sub.get_msg(timeout=5)).data == b"1"
             grown = _rss_kib(pid) - before
-            status = await query_status(address)
-            stats = status["stats"]
+            stats = await _stats_amid_the_flood(address)
             assert stats["evicted"] >= 1000 and stats["links"] <= 256 + 2, stats
             assert grown < 64 * 1024, f"the TCP-ECB grew by {grown} KiB"
         finally:
