@@ -15,6 +15,8 @@ from typing import Any
 import can
 import pytest
 
+from ups import Node
+from ups import _canproto as p
 from ups._canlink import CanLink, open_bus
 from ups.broker.can_ecb import CanEcb
 
@@ -66,6 +68,26 @@ def raw_bus(bus: str) -> Iterator[can.BusABC]:
     raw = can.Bus(interface="virtual", channel=bus.partition(":")[2])
     yield raw
     raw.shutdown()
+
+
+def send_management(raw: can.BusABC | CanLink, msg: p.Management) -> None:
+    """Put one management frame on the bus, as a forger (or a node of another program) would."""
+    can_id, data = p.encode(msg)
+    if isinstance(raw, CanLink):
+        raw.send(can_id, data)
+    else:
+        raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
+
+
+@contextlib.asynccontextmanager
+async def joined_nodes(bus: str, ids: list[int]) -> AsyncIterator[list[Node]]:
+    """CAN nodes with these ids, joined together (each given 15 s), closed on exit."""
+    async with contextlib.AsyncExitStack() as stack:
+        started = [Node(can=bus, node_id=i, join_timeout=15) for i in ids]
+        for node in started:
+            stack.push_async_callback(node.close)
+        await asyncio.gather(*(n.start() for n in started))
+        yield started
 
 
 @contextlib.asynccontextmanager

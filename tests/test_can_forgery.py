@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Callable
-from contextlib import AsyncExitStack, asynccontextmanager
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 import can
@@ -30,14 +30,11 @@ from ups._errors import DecodeError
 from ups.broker.can_ecb import CanEcb
 
 from .conftest import HeldBus, eventually, running_ecb
+from .conftest import joined_nodes as nodes
+from .conftest import send_management as send
 
 #: bindings one node id may create in size class 0 (docs/protocol.md, Bounds)
 QUOTA = 1024
-
-
-def send(raw: can.BusABC, msg: p.Management) -> None:
-    can_id, data = p.encode(msg)
-    raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
 
 
 class Forger:
@@ -76,16 +73,6 @@ async def forging(
         yield forger
     finally:
         forger.close()
-
-
-@asynccontextmanager
-async def nodes(bus: str, ids: list[int]) -> AsyncIterator[list[Node]]:
-    async with AsyncExitStack() as stack:
-        started = [Node(can=bus, node_id=i, join_timeout=15) for i in ids]
-        for node in started:
-            stack.push_async_callback(node.close)
-        await asyncio.gather(*(n.start() for n in started))
-        yield started
 
 
 def can_face(node: Node) -> CanFace:

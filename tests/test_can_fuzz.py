@@ -46,6 +46,7 @@ from ups.broker._etags import MAX_DEFERRED
 from ups.broker.can_ecb import MAX_CHANNELS
 
 from .conftest import HeldBus, eventually, running_ecb
+from .conftest import send_management as _send
 
 FRAMES = 20_000
 SEED = 1
@@ -281,14 +282,6 @@ def test_the_generator_is_seeded_and_keeps_to_its_rules() -> None:
 
 
 # --- bugs found by the fuzzing ----------------------------------------------------------------
-
-
-def _send(raw: can.BusABC | CanLink, msg: p.Management) -> None:
-    can_id, data = p.encode(msg)
-    if isinstance(raw, CanLink):
-        raw.send(can_id, data)
-    else:
-        raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
 
 
 async def _gets_one(pub: Node, sub_node: Node, channel: str, seconds: float = 5.0) -> bool:

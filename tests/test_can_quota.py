@@ -15,13 +15,9 @@ from ups import Exhausted, Node, name_to_uid
 from ups import _canproto as p
 
 from .conftest import eventually, running_ecb
+from .conftest import send_management as send
 
 SMALL = (3, 2, 2, 2, 2)
-
-
-def send(raw: can.BusABC, msg: p.Management) -> None:
-    can_id, data = p.encode(msg)
-    raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
 
 
 async def test_a_node_past_its_quota_is_told_and_counted_and_may_use_what_exists(

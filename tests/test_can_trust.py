@@ -7,8 +7,6 @@ from __future__ import annotations
 import asyncio
 import random
 import sqlite3
-from collections.abc import AsyncIterator
-from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
 
 import can
@@ -21,23 +19,10 @@ from ups.broker import _store
 from ups.broker.can_ecb import CanEcb
 
 from .conftest import eventually, running_ecb
+from .conftest import joined_nodes as nodes
+from .conftest import send_management as send
 
 CHANNELS = [f"trust/{i}" for i in range(24)]
-
-
-def send(raw: can.BusABC, msg: p.Management) -> None:
-    can_id, data = p.encode(msg)
-    raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
-
-
-@asynccontextmanager
-async def nodes(bus: str, ids: list[int]) -> AsyncIterator[list[Node]]:
-    async with AsyncExitStack() as stack:
-        started = [Node(can=bus, node_id=i, join_timeout=10) for i in ids]
-        for node in started:
-            stack.push_async_callback(node.close)
-        await asyncio.gather(*(n.start() for n in started))
-        yield started
 
 
 async def test_lost_database_restarts_never_move_an_etag_nor_misdeliver(
