@@ -401,7 +401,7 @@ async def settle(nodes: list[Node], flows: list[Flow], report: Report) -> None:
         await eventually(lambda: not any(unbound(f) for f in faces), timeout=SETTLE)
     except TimeoutError:
         report.settle_error = f"still unbound after {SETTLE:g} s: " + ", ".join(
-            f"TxNode {f.txnode}: {[f'{uid:#x}' for uid in unbound(f)]}" for f in faces
+            f"TxNode {f.txnode}: {[why_unbound(f, uid) for uid in unbound(f)]}" for f in faces
         )
     arrived = dict.fromkeys((f.label for f in flows), False)
     for _ in range(50):  # 50 rounds of 20 ms at most
@@ -428,6 +428,18 @@ def unbound(face: CanFace) -> list[int]:
         for uid, state in face._channels.items()
         if (state.subs or state.published) and uid not in face.bindings.bound
     ]
+
+
+def why_unbound(face: CanFace, uid: int) -> str:
+    """``uid`` and what its node's binding of it is waiting for."""
+    b = face.bindings
+    task = face._rebinding.get(uid)
+    heard = [f"{etag:#x}" for etag, other in b.heard.items() if other == uid]
+    return (
+        f"{uid:#x} (rebinding: {'none' if task is None else 'done' if task.done() else 'runs'}, "
+        f"pending: {uid in b.pending}, candidate: {b._candidates.get(uid, (None,))[0]}, "
+        f"refused: {uid in b._refused}, heard at: {heard})"
+    )
 
 
 async def late_join(bus: str | CanLink, node_id: int, fresh: str, flow: Flow) -> tuple[str, bool]:

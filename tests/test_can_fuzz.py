@@ -34,6 +34,7 @@ from ups import Node, name_to_uid
 from ups import _canproto as p
 from ups._canface import CanFace
 from ups._canlink import CanLink
+from ups._errors import DecodeError
 from ups.benchmarks._can_frames import U64, FrameGen, Targets, classify
 from ups.benchmarks.can_fuzz import (
     Report,
@@ -342,6 +343,91 @@ async def test_a_contradiction_right_after_the_answer_to_a_rebind_is_not_lost(
                 )
     finally:
         shared.close()
+
+
+async def test_a_contradiction_while_a_rebind_tells_its_role_is_not_lost(
+    bus: str, tmp_path: Path
+) -> None:
+    """BUG (ups/_canface.py, CanFace._rebind), CI's 'still unbound after 10 s' of the gateway's
+    flood. A node that subscribes to a channel and publishes on it ends a re-bind by telling
+    the CAN-ECB its role (Holds). A CAN-ECB on the same link (the gateway's layout) handles
+    that Holds inside the send and, when the answer the node adopted was forged, corrects it
+    at once: the Bind contradicting it reached the node before the re-bind ended. ``_suspend``
+    saw the re-bind running and left the check to it; it had checked already, and ended. The
+    channel stayed unbound for good: the gateway forwarded nothing on it again.
+
+    Here a handler on the shared link corrects the Holds as that CAN-ECB does; the CAN-ECB
+    itself is away meanwhile, so that the forged answer stands long enough to be adopted."""
+    db = tmp_path / "ecb.db"
+    shared = CanLink.open(bus)
+    uid = name_to_uid("x")
+    forged = 0x123  # an etag nothing on the bus is bound to
+    corrected: list[p.Holds] = []
+
+    def correct(frame: can.Message) -> None:
+        with contextlib.suppress(DecodeError):
+            msg = p.decode(frame.arbitration_id, bytes(frame.data))
+            if isinstance(msg, p.Holds) and msg.uid == uid and msg.etag == forged:
+                corrected.append(msg)
+                _send(shared, p.Bind(etag, uid))  # the true binding, from inside the send
+
+    try:
+        async with (
+            running_ecb(bus, db, recovery=0.1) as ecb,
+            Node(can=shared, node_id=1) as both,
+            Node(can=bus, node_id=2) as other,
+        ):
+            await both.subscribe("x")
+            assert await _gets_one(both, other, "x")
+            etag = ecb.etags[uid]
+            assert forged not in ecb.etags.values()
+            face = both.face
+            assert isinstance(face, CanFace)
+            ecb.close()
+            shared.add_handler(correct)
+            _send(shared, p.Bind(etag, 0xBAD))  # contradicts x: the node binds it again
+            await eventually(lambda: uid in face.bindings.pending)
+            _send(shared, p.Bind(forged, uid))  # a forged answer, adopted after SETTLE
+            await eventually(lambda: corrected)
+            async with running_ecb(bus, db, recovery=0.1):  # a CAN-ECB serves again
+                got = await _gets_one(both, other, "x")
+                assert got, (
+                    f"x never bound again: bound={face.bindings.bound} "
+                    f"pending={list(face.bindings.pending)} "
+                    f"rebinding={list(face._rebinding)} stats={both.stats()}"
+                )
+    finally:
+        shared.close()
+
+
+async def test_a_contradiction_while_a_publisher_binds_a_large_channel_is_not_lost(
+    bus: str, tmp_path: Path
+) -> None:
+    """BUG (ups/_canface.py, CanFace.bind), the second 'still unbound' of the gateway's flood:
+    a first publish of large events binds the channel, then pauses (``_GROW_PAUSE``) before
+    the channel counts as published. A contradiction in that pause found no publisher to bind
+    it again (``_suspend``), and the pause ended without looking: the channel stayed unbound
+    for good, every event dropped (``unbound_dropped``)."""
+    uid = name_to_uid("y")
+    async with (
+        running_ecb(bus, tmp_path / "ecb.db", recovery=0.1),
+        Node(can=bus, node_id=1) as pub,
+        Node(can=bus, node_id=2) as sub_node,
+    ):
+        face = pub.face
+        assert isinstance(face, CanFace)
+        advertising = asyncio.create_task(pub.advertise("y", max_size=100))
+        await eventually(lambda: uid in face.bindings.bound)
+        etag = face.bindings.bound[uid]
+        assert etag >= p.LARGE_FIRST_ETAG and not advertising.done()  # in the pause
+        _send(face.link, p.Bind(etag, 0xBAD))  # a contradiction, in the pause
+        await advertising
+        with contextlib.suppress(AssertionError):
+            await eventually(lambda: uid in face.bindings.bound)
+        assert await _gets_one(pub, sub_node, "y"), (
+            f"y never bound again: bound={face.bindings.bound} rebinding={list(face._rebinding)} "
+            f"stats={pub.stats()}"
+        )
 
 
 async def test_a_rebind_never_takes_an_etag_heard_bound_to_another_channel(

@@ -188,24 +188,31 @@ class CanFace:
         etag = bound.get(uid)
         if etag is not None:  # confirmed already: tell the CAN-ECB our role; it corrects us
             self._send(p.Holds(not subscribe, self._my_txnode(), etag, uid))
-        while etag is None or bound.get(uid) != etag:  # a contradiction came meanwhile
-            if subscribe:  # receive from the moment the Bind is handled, not a loop pass later
-                self._wants_rx[uid] = state
-            try:
-                kind, cls = (
-                    (p.SUB_BIND, 0)
-                    if subscribe
-                    else (p.PUB_BIND, t.class_for(min(size, t.MAX_EVENT)))
-                )
-                etag = await self.bindings.request(kind, uid, cls)
-            finally:
-                self._wants_rx.pop(uid, None)
-        state.max_size = t.max_size(etag)
-        if subscribe:
-            self._check_fits(state, etag)
-            self._receive(etag, state)
-        elif etag >= p.LARGE_FIRST_ETAG and not state.published:
+        while True:
+            while etag is None or bound.get(uid) != etag:  # a contradiction came meanwhile
+                if subscribe:  # receive from the moment the Bind is handled, not a loop later
+                    self._wants_rx[uid] = state
+                try:
+                    kind, cls = (
+                        (p.SUB_BIND, 0)
+                        if subscribe
+                        else (p.PUB_BIND, t.class_for(min(size, t.MAX_EVENT)))
+                    )
+                    etag = await self.bindings.request(kind, uid, cls)
+                finally:
+                    self._wants_rx.pop(uid, None)
+            state.max_size = t.max_size(etag)
+            if subscribe:
+                self._check_fits(state, etag)
+                self._receive(etag, state)
+                return
+            if etag < p.LARGE_FIRST_ETAG or state.published:
+                return
             await asyncio.sleep(_GROW_PAUSE)  # it may have moved just now: see _GROW_PAUSE
+            if bound.get(uid) == etag:
+                return
+            # contradicted during the pause: _suspend started no re-bind (the channel is
+            # ``published`` only once this returns), so bind it here
 
     async def grow(self, state: ChannelState, size: int) -> None:
         """Move the channel to the smallest size class that carries ``size`` bytes: ask the
@@ -462,10 +469,10 @@ class CanFace:
 
     async def _rebind(self, uid: int, state: ChannelState) -> None:
         """Bind ``uid`` again until it holds: refusals may be stray or forged frames too, and
-        another contradiction may come right after the answer."""
+        another contradiction may come right after the answer, or while this node tells the
+        CAN-ECB its role (a CAN-ECB on the same link answers a Holds at once, inside the send)."""
         delay = RETRY_FIRST
-        etag: int | None = None
-        while etag is None or self.bindings.bound.get(uid) != etag:
+        while True:
             if not (state.subs or state.published):
                 return  # nobody uses the channel any more
             if state.subs:
@@ -473,22 +480,26 @@ class CanFace:
             try:
                 etag = await self.bindings.request(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
             except (BrokerUnavailable, Exhausted) as exc:
-                etag = None
                 self._warn("rebind-wait", "still binding %016x again: %s", uid, exc)
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, _REBIND_MAX)
+                continue
             finally:
                 self._wants_rx.pop(uid, None)
-        state.max_size = t.max_size(etag)
-        if state.subs:
-            try:
-                self._check_fits(state, etag)
-            except PayloadTooLarge as exc:
-                log.warning("not receiving %s any more: %s", state.channel, exc)
-                return
-            self._receive(etag, state)
-            if state.published:
-                self._send(p.Holds(True, self._my_txnode(), etag, uid))
+            if self.bindings.bound.get(uid) != etag:
+                continue  # contradicted before this task ran again
+            state.max_size = t.max_size(etag)
+            if state.subs:
+                try:
+                    self._check_fits(state, etag)
+                except PayloadTooLarge as exc:
+                    log.warning("not receiving %s any more: %s", state.channel, exc)
+                    return
+                self._receive(etag, state)
+                if state.published:
+                    self._send(p.Holds(True, self._my_txnode(), etag, uid))
+            if self.bindings.bound.get(uid) == etag:  # nothing contradicted it meanwhile
+                break
         log.info("channel %s bound again, to etag %#x", state.channel, etag)
 
     def _rebind_done(self, task: asyncio.Task[None]) -> None:
