@@ -5,60 +5,17 @@ independent master, brings the same emulated slaves to OP and exchanges process 
 
 from __future__ import annotations
 
-import contextlib
-import itertools
 import json
-import os
 import re
 import socket
-import subprocess
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from .procs import Proc, private_network
+from .ecat_procs import SLAVES, emulator, veth_pair
+from .procs import Proc
 
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(120)]
-
-SLAVES = (
-    "vendor=0x2,product=0x7d23052,revision=0x00110000,name=EL-test-io,outputs=4,inputs=4",
-    "vendor=0x5a5,product=0x1234,revision=3,name=UPS drive,outputs=2,inputs=6",
-)
-_pairs = itertools.count()
-
-
-@contextlib.contextmanager
-def veth_pair() -> Iterator[tuple[str, str]]:
-    """A veth pair in our (private) namespace: (the master's end, the slaves' end)."""
-    private_network()  # refuses (skips or fails) outside a private namespace
-    if os.geteuid() != 0:
-        pytest.skip("needs root: a veth pair and raw sockets")
-    tag = f"{os.getpid() % 100000}x{next(_pairs)}"
-    master, slaves = f"ecm{tag}", f"ecs{tag}"
-    subprocess.run(["ip", "link", "add", master, "type", "veth", "peer", "name", slaves],
-                   check=True)  # fmt: skip
-    try:
-        for end in (master, slaves):
-            subprocess.run(["ip", "link", "set", end, "up"], check=True)
-        yield master, slaves
-    finally:
-        subprocess.run(["ip", "link", "del", master], check=False, capture_output=True)
-
-
-@contextlib.contextmanager
-def emulator(ifname: str, *slaves: str, control: Path | None = None) -> Iterator[Proc]:
-    """The emulated slaves on ``ifname``, listening once this yields."""
-    command = [sys.executable, "-m", "tests.ecat", "--ifname", ifname]
-    for slave in slaves:
-        command += ["--slave", slave]
-    if control is not None:
-        command += ["--control", str(control)]
-    line = " ".join(f"'{word}'" for word in command)
-    with Proc(shell=f"exec {line}", env={}) as proc:
-        proc.wait_for_line(rf"^ready {ifname} {len(slaves)}$", stdout=True)
-        yield proc
 
 
 def test_scan_finds_the_slaves_and_their_identities() -> None:

@@ -1,0 +1,50 @@
+"""``ups ethercat --ifname IF --map FILE (--can BUS | --broker HOST:PORT | --zenoh ENDPOINT)``:
+the EtherCAT master of a segment on a UPS node, until a signal."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+
+from ups._cliargs import network_choice, say
+
+from ._bridge import EthercatNode
+from ._cycle import Segment
+from ._map import EthercatMap
+
+
+async def serve(args: argparse.Namespace, emap: EthercatMap) -> int:
+    from ups import Node
+
+    cycle = args.cycle / 1000 if args.cycle else None
+    segment = Segment(args.ifname, emap, cycle)
+    await asyncio.to_thread(segment.start)  # the identities checked before UPS sees anything
+    try:
+        kind, where = network_choice(args)
+        node = Node(
+            can=where if kind == "can" else None,
+            broker=where if kind == "broker" else None,
+            zenoh=where if kind == "zenoh" else None,
+            zenoh_config=getattr(args, "zenoh_config", None),
+            node_id=args.node_id,
+            name="ups-ethercat",
+            join_timeout=args.timeout,
+        )
+        async with node:
+            bridge = EthercatNode(node, segment)
+            await bridge.start()
+            face = node.face
+            if hasattr(face, "extra_status"):  # TCP and Zenoh nodes answer `ups status`
+                face.extra_status = bridge.status
+            status = segment.status()
+            address = getattr(face, "address", None)
+            ask = f"; ups status {address[0]}:{address[1]}" if address else ""
+            say(args, f"master of {status['slaves']} slave(s) on {args.ifname}, "
+                f"{status['in_op']} in OP, cycle {status['cycle_ms']:g} ms{ask}")  # fmt: skip
+            try:
+                await asyncio.Event().wait()  # until a signal
+            finally:
+                await bridge.close()
+    finally:
+        await asyncio.to_thread(segment.stop)
+    return 0

@@ -1,0 +1,103 @@
+"""The EtherCAT map (ethercat/_map.py): examples/robot.ethercat.toml loads as it says, values
+pack into the process image and back, and every mistake is refused naming its line
+(``ups ethercat check`` exits 2 with it)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from ups.ethercat._map import MapError, load_map
+
+from .procs import Proc
+
+EXAMPLES = Path(__file__).parent.parent / "examples"
+
+GOOD = """\
+catalog = "robots.toml"
+cycle = 0.002
+
+[slave.1]
+vendor = 0x2
+product = 0x7d23052
+outputs = [
+  { channel = "robot/brake", field = "brake", byte = 0, type = "u8", safe = 1 },
+  { channel = "robot/max-speed", field = "limit", byte = 1, type = "i16", scale = 0.1 },
+]
+inputs = [{ channel = "robot/distance", field = "distance", byte = 2, type = "u16" }]
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    shutil.copy(EXAMPLES / "robots.toml", tmp_path / "robots.toml")
+    path = tmp_path / "map.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_example_map_loads_as_its_comments_say() -> None:
+    emap = load_map(EXAMPLES / "robot.ethercat.toml")
+    assert (emap.cycle, emap.timeout, emap.status) == (0.002, 0.5, "ethercat/status")
+    brake, speed = emap.slaves[1].outputs[0], emap.slaves[2].outputs[0]
+    assert brake.safe == b"\x01" and speed.safe == b"\x00\x00"
+    assert speed.pack(123) == ((1230).to_bytes(2, "little"), False)  # cm/s -> mm/s
+    assert [(c.spec.name, c.every, c.priority) for c in emap.inputs] == [
+        ("robot/distance", 0, None), ("robot/speed", 10, 4)]  # fmt: skip
+
+
+def test_values_saturate_and_say_so(tmp_path: Path) -> None:
+    brake, limit = load_map(write(tmp_path, GOOD)).slaves[1].outputs
+    assert brake.pack(300) == (b"\xff", True)
+    assert brake.pack(-1) == (b"\x00", True)
+    assert limit.pack(float("nan")) == (b"\x00\x00", True)
+    assert limit.pack(-3276.8) == ((-32768).to_bytes(2, "little", signed=True), False)
+    assert limit.unpack(b"\x00" + (-32768).to_bytes(2, "little", signed=True)) == -3276.8
+
+
+BAD = [
+    ("cycle = 0.002", "cycle = 0.0001", 2, "cycle: at least"),
+    ('catalog = "robots.toml"', 'catalog = "nope.toml"', 1, "cannot read the catalog"),
+    ("product = 0x7d23052", 'product = "x"', 6, "product: a 32-bit number"),
+    ("[slave.1]", "[slave.first]", 4, "N is a position"),
+    ('field = "brake", byte = 0', 'field = "brakes", byte = 0', 8, "has no field 'brakes'"),
+    ('type = "u8"', 'type = "u7"', 8, "type 'u7' is not one of"),
+    ("byte = 1,", "byte = 0,", 9, "byte 0 is written by line 8 too"),
+    ("safe = 1", "safe = 256", 8, "safe 256 does not fit a u8"),
+    ("scale = 0.1", "scale = 0", 9, "scale is a finite number other than 0"),
+    ('"robot/distance"', '"robot/nope"', 11, "has no fixed payload layout"),
+    ('type = "u16" }', 'type = "u16", publish = "sometimes" }', 11, 'publish is "change"'),
+    ('type = "u16" }', 'type = "u16", every = 3 }', 11, 'every K goes with publish = "every"'),
+    ("vendor = 0x2\n", "", 4, "no vendor"),
+    ("cycle = 0.002", "cycles = 0.002", 2, "unknown key 'cycles'"),
+]
+
+
+@pytest.mark.parametrize(("old", "new", "line", "says"), BAD)
+def test_a_mistake_is_refused_naming_its_line(
+    tmp_path: Path, old: str, new: str, line: int, says: str
+) -> None:
+    assert old in GOOD
+    path = write(tmp_path, GOOD.replace(old, new, 1))
+    with pytest.raises(MapError) as refused:
+        load_map(path)
+    assert str(refused.value).startswith(f"{path}:{line}:"), refused.value
+    assert says in str(refused.value)
+
+
+def test_an_input_channel_needs_every_field(tmp_path: Path) -> None:
+    text = GOOD.replace('"robot/distance", field = "distance"', '"robot/local-pose", field = "x"')
+    with pytest.raises(MapError, match=r":11: .*field 'y' of robot/local-pose comes from no input"):
+        load_map(write(tmp_path, text))
+
+
+def test_check_prints_the_map_or_exits_2_naming_the_line(tmp_path: Path) -> None:
+    code, out = Proc("ethercat", "check", str(EXAMPLES / "robot.ethercat.toml")).finish(30)
+    assert code == 0, out
+    assert "slave 2: vendor 0x000005a5 product 0x00001234" in out
+    assert "slave 2 input byte 0 (i16) -> robot/speed.speed, every 10 cycle(s)" in out
+    path = write(tmp_path, GOOD.replace('type = "u8"', 'type = "u7"'))
+    bad = Proc("ethercat", "check", str(path))
+    assert bad.finish(30)[0] == 2
+    assert bad.stderr_lines[-1].startswith(f"ups ethercat: {path}:8: [slave.1] outputs[0]")

@@ -1,0 +1,179 @@
+"""``ups ethercat --ifname IF --map FILE``, the EtherCAT master on a UPS node, as a process
+against the tests' slave emulator (tests/ecat, its own process) across a veth pair inside the
+private namespace of scripts/netns-run, with examples/robot.ethercat.toml: a UPS event reaches
+the slaves' outputs with the exact bytes, the slaves' inputs come back as UPS events on TCP/IP
+and on CAN, outputs fall back to their safe values when their channel goes silent, a slave
+unplugged mid-run is counted, reported and brought back to OP, and a wrong identity refuses to
+start."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import struct
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from ups import Node, Subscription
+from ups.ethercat._bridge import STATUS_FIELDS, STATUS_LAYOUT
+
+from .ecat_procs import SLAVES, Control, emulator, veth_pair
+from .procs import Proc, private_multicast_bus, start_tcp_broker
+
+pytestmark = [pytest.mark.netns, pytest.mark.timeout(180)]
+
+EXAMPLES = Path(__file__).parent.parent / "examples"
+MAP = EXAMPLES / "robot.ethercat.toml"
+ENV = {"UPS_CATALOG": str(EXAMPLES / "robots.toml")}
+
+
+@contextlib.contextmanager
+def segment(tmp_path: Path, *slaves: str, watchdog: float = 0.0) -> Iterator[
+        tuple[str, str, Proc, Control]]:  # fmt: skip
+    """(master's interface, slaves' interface, the emulator, its control socket)."""
+    ctl = tmp_path / "ctl"
+    with (
+        veth_pair() as (master, wire),
+        emulator(wire, *(slaves or SLAVES), control=ctl, watchdog=watchdog) as emu,
+    ):
+        control = Control(ctl)
+        try:
+            yield master, wire, emu, control
+        finally:
+            control.close()
+
+
+@contextlib.contextmanager
+def ethercat(ifname: str, *network: str) -> Iterator[tuple[Proc, str | None]]:
+    """``ups ethercat`` on ``ifname``, its slaves in OP; and its node's address (TCP)."""
+    with Proc("ethercat", "--ifname", ifname, "--map", str(MAP), *network, env=ENV) as proc:
+        line = proc.wait_for_line(r"master of 2 slave\(s\) on", timeout=60)
+        found = re.search(r"ups status (\S+)", line)
+        yield proc, found.group(1) if found else None
+
+
+async def line(proc: Proc, pattern: str, timeout: float = 20.0) -> str:
+    return await asyncio.to_thread(proc.wait_for_line, pattern, timeout, stdout=True)
+
+
+async def event(sub: Subscription, data: bytes, timeout: float = 10.0) -> None:
+    """Wait for an event carrying ``data`` (inputs published every K cycles come meanwhile)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    seen: set[bytes] = set()
+    while loop.time() < deadline:
+        with contextlib.suppress(TimeoutError):
+            msg = await sub.get_msg(timeout=max(0.01, deadline - loop.time()))
+            if msg.data == data:
+                return
+            seen.add(msg.data)
+    raise AssertionError(f"no event {data.hex()} on {sub}; seen {sorted(d.hex() for d in seen)}")
+
+
+async def set_link(ifname: str, state: str) -> None:
+    await asyncio.to_thread(subprocess.run, ["ip", "link", "set", ifname, state], check=True)
+
+
+async def status_of(address: str) -> dict[str, int]:
+    code, out = await asyncio.to_thread(Proc("status", address).finish, 30)
+    assert code == 0, out
+    return dict(json.loads(out)["ethercat"])
+
+
+async def outputs_and_inputs(node: Node, emu: Proc, control: Control) -> None:
+    """What every network must carry: events -> outputs, inputs -> events."""
+    distance = await node.subscribe("robot/distance")
+    speed = await node.subscribe("robot/speed")
+    await node.publish("robot/max-speed", struct.pack(">h", 123))  # cm/s, big-endian
+    await line(emu, r"^outputs 2 ce04$")  # 1230 mm/s, little-endian: exact bytes
+    await node.publish("robot/brake", b"\x00")
+    await line(emu, r"^outputs 1 00000000$")  # released
+    await asyncio.to_thread(control.inputs, 1, "d2040000")  # 1234 cm
+    await event(distance, struct.pack(">H", 1234))
+    await asyncio.to_thread(control.inputs, 2, "b80b00000000")  # 3000 mm/s
+    await event(speed, struct.pack(">h", 300))
+
+
+async def test_tcp_events_drive_the_outputs_inputs_come_back_and_silence_is_safe(
+    tmp_path: Path,
+) -> None:
+    broker, address = start_tcp_broker()
+    with (
+        broker,
+        segment(tmp_path) as (master, _wire, emu, control),
+        ethercat(master, "--broker", address) as (proc, node_address),
+    ):
+        await line(emu, r"^outputs 1 01000000$")  # the brake's safe value before any event
+        async with Node(broker=address) as node:
+            status = await node.subscribe("ethercat/status")
+            await outputs_and_inputs(node, emu, control)
+            # the UPS side goes silent: after the map's timeout (0.5 s), the safe values
+            await line(emu, r"^outputs 2 0000$")
+            await line(emu, r"^outputs 1 01000000$")
+            msg = await status.get_msg(timeout=5)
+            values = dict(zip(STATUS_FIELDS, STATUS_LAYOUT.unpack(msg.data), strict=True))
+            assert values["slaves"] == values["in_op"] == 2
+            assert values["cycles"] > 0 and values["last_wkc"] == values["expected_wkc"]
+        assert node_address is not None
+        seen = await status_of(node_address)
+        assert seen["silent"] == 2 and seen["in_op"] == 2 and seen["outputs"] == 2
+        assert seen["lost"] == seen["wkc_errors"] == seen["left_op"] == 0, seen
+        assert proc.popen.poll() is None
+
+
+async def test_can_events_drive_the_outputs_and_inputs_come_back(tmp_path: Path) -> None:
+    bus = private_multicast_bus()
+    with (
+        Proc("can-broker", "--can", bus, "--recovery", "0.2") as ecb,
+        segment(tmp_path) as (master, _wire, emu, control),
+    ):
+        ecb.wait_for_line("CAN-ECB on", timeout=30)
+        with ethercat(master, "--can", bus):
+            async with Node(can=bus, join_timeout=30) as node:
+                await outputs_and_inputs(node, emu, control)
+
+
+async def test_an_unplugged_slave_is_counted_reported_and_brought_back(tmp_path: Path) -> None:
+    """The slaves' link goes down for a second: the frames are lost, the slaves' watchdog
+    (0.2 s) takes them to SAFE-OP with an error (0x001B); when the link returns the master
+    acknowledges the error and brings them back to OP, and outputs flow again."""
+    broker, address = start_tcp_broker()
+    with (
+        broker,
+        segment(tmp_path, watchdog=0.2) as (master, wire, emu, _control),
+        ethercat(master, "--broker", address) as (proc, node_address),
+    ):
+        assert node_address is not None
+        await set_link(wire, "down")
+        await line(emu, r"^state 1 SAFE-OP 0x001b$")
+        await line(emu, r"^state 2 SAFE-OP 0x001b$")
+        await set_link(wire, "up")
+        await line(emu, r"^state 1 OP 0x0000$", timeout=30)
+        await line(emu, r"^state 2 OP 0x0000$", timeout=30)
+        async with Node(broker=address) as node:
+            await node.publish("robot/max-speed", struct.pack(">h", -5))
+            await line(emu, r"^outputs 2 ceff$")  # -50 mm/s
+        seen = await status_of(node_address)
+        assert seen["lost"] > 0 and seen["left_op"] >= 2 and seen["recoveries"] >= 2, seen
+        assert seen["in_op"] == 2
+        assert "slave 1 is in SAFE-OP+ERROR (0x001b (sync manager watchdog))" in "".join(
+            proc.stderr_lines)  # fmt: skip
+
+
+def test_a_slave_of_another_identity_refuses_to_start(tmp_path: Path) -> None:
+    other = SLAVES[1].replace("product=0x1234", "product=0x9999")
+    with segment(tmp_path, SLAVES[0], other) as (master, _wire, emu, _control):
+        proc = Proc("ethercat", "--ifname", master, "--map", str(MAP), "--broker",
+                    "127.0.0.1:9", env=ENV)  # fmt: skip
+        code, _ = proc.finish(60)
+        assert code == 2
+        assert proc.stderr_lines[-1].strip() == (
+            "ups ethercat: slave 2 is vendor 0x000005a5 product 0x00009999 revision 0x00000003; "
+            "the map expects vendor 0x000005a5 product 0x00001234 (line 21): not starting"
+        )
+        assert not [ln for ln in emu.stdout_lines if re.match(r"state \d (SAFE-)?OP ", ln)]
