@@ -72,6 +72,9 @@ NOTES = [
     "`ups jaus` (answering with an ACK), and JAUS -> UPS CAN echo -> JAUS (an every-change "
     "Event), beside UPS CAN -> CAN echo -> back; 10 ms apart (the paper: 100 ms). Its "
     "tests 6 and 4 ran on Windows XP, a Core 2 Quad 2.4 GHz, 2010.",
+    "EtherCAT (benchmarks/ethercat.py): `ups ethercat` against the tests' slave emulator on a "
+    "veth pair, its cycle beside a bare pysoem loop of the same period; paths one at a time, "
+    "10 ms apart, on one clock. Paper 000 proposes the JEBridge without figures for it.",
 ]
 Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
 
@@ -233,6 +236,10 @@ def tables(r: dict[str, Any]) -> list[Table]:
         from ups.benchmarks.jaus_paper000 import tables as jaus_tables
 
         out += jaus_tables(r["jaus_paper000"])
+    if r.get("ethercat"):
+        from ups.benchmarks.ethercat import tables as ethercat_tables
+
+        out += ethercat_tables(r["ethercat"])
     if r.get("rss_mb"):
         bare = r["rss_mb"].get("python_bare")
         body = [[k, f"{v:.1f}", _x(v, bare)] for k, v in r["rss_mb"].items()]

@@ -218,6 +218,14 @@ def jaus(quick: bool, netns: list[str]) -> dict[str, Any]:
     return result
 
 
+def ethercat(quick: bool, netns: list[str]) -> dict[str, Any]:
+    """Paper 000's EtherCAT side: ``ups ethercat``'s cycle beside a bare pysoem loop, and the
+    paths EtherCAT -> UPS CAN, UPS CAN -> EtherCAT, JAUS -> UPS -> EtherCAT."""
+    args = ["--seconds", "10" if quick else "60", "--messages", "100" if quick else "300"]
+    result: dict[str, Any] = _run_json("ethercat", args, _limit(quick), netns=netns)
+    return result
+
+
 def startup(quick: bool) -> dict[str, float]:
     """``ups --help`` against ``python -c pass``: medians of fresh interpreters, alternated."""
     runs = 11 if quick else 21
@@ -274,6 +282,11 @@ def run(quick: bool) -> dict[str, Any]:
         results["skipped"]["tcp_two_hosts"] = "needs root (ip netns add, a veth pair)"
     why_not_can = None if prefix else netns_note
     why_not_zenoh = None if importlib.util.find_spec("zenoh") else "eclipse-zenoh is not installed"
+    why_not_ecat = None
+    if os.geteuid() != 0 or importlib.util.find_spec("pysoem") is None:
+        why_not_ecat = "needs root (a veth pair, raw sockets) and pysoem (the ethercat extra)"
+    elif not (ROOT / "tests" / "ecat").is_dir():
+        why_not_ecat = "needs the tests' EtherCAT slave emulator: run from a checkout"
     ns = prefix or []
     as_root = os.geteuid() == 0
     parts: list[tuple[str, Callable[[], Any], str | None]] = [
@@ -287,6 +300,7 @@ def run(quick: bool) -> dict[str, Any]:
         ("table5", lambda: table5(quick, ns, as_root), why_not_can),
         ("can_latency", lambda: can_latency(quick, ns), why_not_can),
         ("jaus_paper000", lambda: jaus(quick, ns), why_not_can),
+        ("ethercat", lambda: ethercat(quick, ns), why_not_can or why_not_ecat),
     ]
     for key, part, why_not in parts:
         if why_not:
@@ -404,6 +418,15 @@ def summary(r: dict[str, Any]) -> dict[str, Any]:
         out["zenoh"] = _zenoh_summary(r["zenoh_face"])
         out["throughput_msgs_per_s"]["zenoh"] = out["zenoh"]["throughput_msgs_per_s"]
         out["throughput_msgs_per_s"]["gateway_can_to_zenoh"] = out["zenoh"]["gateway_can_to_zenoh"]
+    if "ethercat" in r:
+        e = r["ethercat"]
+        out["ethercat"] = {
+            "late_percent": {k: e["cycle"][k]["late_percent"] for k in ("ups", "pysoem")},
+            "lost": {k: e["cycle"][k]["lost"] for k in ("ups", "pysoem")},
+            "one_way_ms": {
+                k: (row["one_way_ms"] or {}).get("mean") for k, row in e["paths"].items()
+            },
+        }
     if "jaus_paper000" in r:
         out["jaus_one_way_ms"] = {
             key: (row["one_way_ms"] or {}).get("mean")

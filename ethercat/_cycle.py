@@ -54,6 +54,10 @@ class Segment:
         #: each output's latest raw bytes and when its channel's event came (monotonic s)
         self._latest: dict[Output, tuple[bytes, float]] = {}
         self._live: dict[Any, bool] = {}  # output channel spec -> not silent
+        self._changed = True  # an output changed since the images were last made
+        self._expires = 0.0  # when the next live output goes silent (monotonic s)
+        self._last_raw: dict[int, bytes] = {}  # each input slave's image as last read
+        self._input_slaves = sorted({e.slave for c in emap.inputs for e in c.entries})
         self._last_inputs: dict[InputChannel, bytes] = {}
         self._logged: dict[str, float] = {}
 
@@ -62,6 +66,7 @@ class Segment:
     def set_output(self, entry: Output, raw: bytes) -> None:
         """``entry``'s bytes from now on (its channel just spoke); any thread."""
         self._latest[entry] = (raw, time.monotonic())
+        self._changed = True
 
     def status(self) -> dict[str, Any]:
         return {
@@ -210,15 +215,23 @@ class Segment:
                 due = time.monotonic()  # (the missed exchange is not made up)
 
     def _write_outputs(self, now: float) -> None:
-        images: dict[int, bytearray] = {}
+        """Make the slaves' output images, when an output changed or went silent."""
+        if not self._changed and now < self._expires:
+            return
+        self._changed = False  # (before reading: a change meanwhile makes them again)
+        self._expires = float("inf")
         slaves = self._master.slaves
         timeout = self.map.timeout
         for position, wanted in self.map.slaves.items():
-            image = images[position] = bytearray(len(slaves[position - 1].output))
+            image = bytearray(len(slaves[position - 1].output))
             for entry in wanted.outputs:
                 latest = self._latest.get(entry)
                 live = latest is not None and now - latest[1] <= timeout
-                raw = latest[0] if live and latest is not None else entry.safe
+                if live and latest is not None:
+                    raw = latest[0]
+                    self._expires = min(self._expires, latest[1] + timeout)
+                else:
+                    raw = entry.safe
                 image[entry.byte : entry.byte + entry.size] = raw
                 if self._live.get(entry.spec, False) != live:
                     self._live[entry.spec] = live
@@ -226,20 +239,28 @@ class Segment:
                         self.counts["silent"] += 1
                         log.warning("%s silent for %g s: its outputs are safe", entry.spec.channel,
                                     timeout)  # fmt: skip
-        for position, image in images.items():
             slaves[position - 1].output = bytes(image)
 
     def _read_inputs(self) -> None:
+        """Hand the input channels due to ``on_inputs``: those whose bytes changed, those
+        published every K cycles at their cycle."""
         slaves = self._master.slaves
-        due: dict[InputChannel, bytes] = {}
         cycles = self.counts["cycles"]
+        raw = {position: slaves[position - 1].input for position in self._input_slaves}
+        changed = raw != self._last_raw
+        if not changed and not any(c.every and cycles % c.every == 0 for c in self.map.inputs):
+            return
+        self._last_raw = raw
+        due: dict[InputChannel, bytes] = {}
         for channel in self.map.inputs:
-            values = {e.field: e.unpack(slaves[e.slave - 1].input) for e in channel.entries}
-            payload = channel.spec.encode(values)
             if channel.every:
-                if cycles % channel.every == 0:
-                    due[channel] = payload
-            elif self._last_inputs.get(channel) != payload:
+                if cycles % channel.every:
+                    continue
+            elif not changed:
+                continue
+            values = {e.field: e.unpack(raw[e.slave]) for e in channel.entries}
+            payload = channel.spec.encode(values)
+            if channel.every or self._last_inputs.get(channel) != payload:
                 self._last_inputs[channel] = payload
                 due[channel] = payload
         if due:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import sys
 
 from ups._cliargs import network_choice, say
 
@@ -12,11 +13,16 @@ from ._bridge import EthercatNode
 from ._cycle import Segment
 from ._map import EthercatMap
 
+SWITCH_INTERVAL = 0.0002  #: s: see serve
+
 
 async def serve(args: argparse.Namespace, emap: EthercatMap) -> int:
     from ups import Node
 
     cycle = args.cycle / 1000 if args.cycle else None
+    # the cycle's thread waits for the interpreter lock at most this long when it wakes while
+    # the event loop runs Python (Python's default, 5 ms, is longer than a cycle)
+    sys.setswitchinterval(SWITCH_INTERVAL)
     segment = Segment(args.ifname, emap, cycle)
     await asyncio.to_thread(segment.start)  # the identities checked before UPS sees anything
     try:

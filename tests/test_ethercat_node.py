@@ -198,7 +198,9 @@ def test_tshark_decodes_the_exchange_as_the_emulator_and_the_map_say(tmp_path: P
     ):
         control.inputs(1, "d2040000")
         control.inputs(2, "b80b00000000")
-        with Proc(shell=f"exec {tshark} -i {master} -c 200 -w {capture}", env={}) as sniff:
+        with Proc(
+            shell=f"exec {tshark} -i {master} -f 'ether proto 0x88a4' -c 200 -w {capture}", env={}
+        ) as sniff:
             assert sniff.finish(60)[0] == 0, "".join(sniff.stderr_lines)
     fields = ["eth.src", "ecat.cmd", "ecat.lad", "ecat.cnt", "ecat.data"]
     decoded = subprocess.run(
