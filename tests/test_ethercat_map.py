@@ -4,16 +4,22 @@ pack into the process image and back, and every mistake is refused naming its li
 
 from __future__ import annotations
 
+import math
 import shutil
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from ups.ethercat._map import MapError, load_map
+from ups._catalog import ChannelSpec, Field
+from ups._channel import as_channel
+from ups.ethercat._map import Entry, MapError, _limits, load_map
 
 from .procs import Proc
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
+SPEC = ChannelSpec(as_channel("t/x"), fields=(Field("x", "f64"),))
 
 GOOD = """\
 catalog = "robots.toml"
@@ -101,3 +107,43 @@ def test_check_prints_the_map_or_exits_2_naming_the_line(tmp_path: Path) -> None
     bad = Proc("ethercat", "check", str(path))
     assert bad.finish(30)[0] == 2
     assert bad.stderr_lines[-1].startswith(f"ups ethercat: {path}:8: [slave.1] outputs[0]")
+
+
+def test_the_status_channel_in_the_catalog_is_what_ups_ethercat_publishes() -> None:
+    from ups import name_to_uid
+    from ups._catalog import Catalog
+    from ups.ethercat._bridge import STATUS_FIELDS, STATUS_LAYOUT
+
+    spec = Catalog.load(EXAMPLES / "robots.toml").get(name_to_uid("ethercat/status"))
+    assert spec is not None and spec.size == STATUS_LAYOUT.size
+    values = dict(zip(STATUS_FIELDS, range(1, 12), strict=True))
+    decoded = spec.decode(STATUS_LAYOUT.pack(*values.values()))
+    assert decoded == {**values, "reserved": 0}
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    kind=st.sampled_from(["u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64"]),
+    scale=st.sampled_from([1.0, 0.1, 0.001, 2.5, -1.0]),
+    offset=st.sampled_from([0.0, -40.0, 1000.0]),
+    value=st.floats(allow_nan=True, allow_infinity=True, width=64),
+)
+def test_a_value_packs_to_the_nearest_raw_in_range_or_says_it_was_clipped(
+    kind: str, scale: float, offset: float, value: float
+) -> None:
+    """The invariant of every output: the bytes are the type's width; unpacked they give the
+    value to within half a step of the scale, unless the value did not fit (clipped): then
+    they hold the nearest end of the range (NaN: 0)."""
+    entry = Entry(1, SPEC, "x", 0, kind, scale, offset, 1)
+    raw, clipped = entry.pack(value)
+    assert len(raw) == entry.size
+    back = entry.unpack(raw)
+    if not clipped:
+        assert math.isfinite(value)
+        assert abs(back - value) <= abs(scale) / 2 * (1 + 1e-9) + 1e-9 * abs(value)
+    elif math.isnan(value):
+        assert back == offset
+    else:
+        low, high = _limits(kind)
+        end = high if (value - offset) / scale > 0 else low
+        assert back == end * scale + offset
