@@ -45,6 +45,9 @@ class Segment:
         self.cycle = cycle or emap.cycle
         self.counts = dict.fromkeys(COUNTERS, 0)
         self.on_inputs: Callable[[dict[InputChannel, bytes]], None] = lambda payloads: None
+        #: called on the cycle's thread if the cycle stops on an error (``failure``)
+        self.on_failure: Callable[[], None] = lambda: None
+        self.failure: Exception | None = None
         self.expected_wkc = 0
         self.last_wkc = 0
         self.states: list[int] = []  #: each slave's AL state as last read
@@ -180,8 +183,10 @@ class Segment:
     def _run(self) -> None:
         try:
             self._cycle_until_stopped()
-        except Exception:  # a bug: said, and the outputs stop (the slaves' watchdogs act)
+        except Exception as exc:  # a bug, or the interface gone: said, and the node ends
             log.exception("the EtherCAT cycle stopped")
+            self.failure = exc
+            self.on_failure()
 
     def _cycle_until_stopped(self) -> None:
         master, period, counts = self._master, self.cycle, self.counts

@@ -12,6 +12,7 @@ from ups._cliargs import network_choice, say
 from ._bridge import EthercatNode
 from ._cycle import Segment
 from ._map import EthercatMap
+from ._master import EthercatError
 
 SWITCH_INTERVAL = 0.0002  #: s: see serve
 
@@ -47,8 +48,18 @@ async def serve(args: argparse.Namespace, emap: EthercatMap) -> int:
             ask = f"; ups status {address[0]}:{address[1]}" if address else ""
             say(args, f"master of {status['slaves']} slave(s) on {args.ifname}, "
                 f"{status['in_op']} in OP, cycle {status['cycle_ms']:g} ms{ask}")  # fmt: skip
+            failed = asyncio.Event()
+            loop = asyncio.get_running_loop()
+
+            def on_failure() -> None:
+                loop.call_soon_threadsafe(failed.set)
+
+            segment.on_failure = on_failure
+            if segment.failure is not None:  # (it stopped before it could say so)
+                failed.set()
             try:
-                await asyncio.Event().wait()  # until a signal
+                await failed.wait()  # or a signal
+                raise EthercatError(f"the EtherCAT cycle stopped: {segment.failure}")
             finally:
                 await bridge.close()
     finally:
