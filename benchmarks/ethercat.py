@@ -279,8 +279,6 @@ async def paths_part(master: str, wire: str, tmp: Path, args: argparse.Namespace
                 return (await asyncio.to_thread(emulator.wait, line) - start) / 1000
 
             ocu = Ocu((found.group(1), int(found.group(2))), (1, 1, 1))
-            await _take_control(ocu)
-            ocu.send(Resume())  # STANDBY -> READY: commands are carried out
 
             async def jaus_to_ecat(i: int) -> float:
                 percent = 1 + i % 90
@@ -302,6 +300,9 @@ async def paths_part(master: str, wire: str, tmp: Path, args: argparse.Namespace
                 ("jaus_to_ecat", jaus_to_ecat),
                 ("can_to_can", can_to_can),
             ):
+                if name == "jaus_to_ecat":  # control lapses after 5 s of silence: take it now
+                    await _take_control(ocu)
+                    ocu.send(Resume())  # STANDBY -> READY: commands are carried out
                 paths[name] = await timed(one, args.messages, args.gap / 1000)  # fmt: skip
                 print(f"{name}: {_mean(paths[name])} ms", file=sys.stderr)
             ocu.close()

@@ -29,7 +29,8 @@ log = logging.getLogger("ups.ethercat")
 
 STATUS_PERIOD = 1.0  #: s between two status events
 #: the status event (little-endian): cycles, late, lost, wkc_errors, left_op, recoveries,
-#: silent (u32 each), expected_wkc, last_wkc (u16), slaves, slaves in OP (u8), 2 bytes zero
+#: silent (u32 each), expected_wkc, last_wkc (u16; 0: no answer), slaves, slaves in OP (u8),
+#: 2 bytes zero
 STATUS_LAYOUT = struct.Struct("<7I2H2B2x")
 STATUS_FIELDS = (
     "cycles", "late", "lost", "wkc_errors", "left_op", "recoveries", "silent", "expected_wkc",
@@ -75,7 +76,7 @@ class EthercatNode:
 
     def status_payload(self) -> bytes:
         s = self.segment.status()
-        return STATUS_LAYOUT.pack(*(min(int(s[k]), _MAX[k]) for k in STATUS_FIELDS))
+        return STATUS_LAYOUT.pack(*(min(max(0, int(s[k])), _MAX[k]) for k in STATUS_FIELDS))
 
     # --- outputs --------------------------------------------------------------------------
 

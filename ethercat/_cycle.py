@@ -27,7 +27,9 @@ log = logging.getLogger("ups.ethercat")
 INIT, PREOP, SAFEOP, OP, ACK = 1, 2, 4, 8, 0x10
 STATE_CHECK = 0.1  #: s between two reads of the slaves' AL states while all is well
 START_TIMEOUT_US = 3_000_000  #: how long the slaves may take to reach SAFE-OP, then OP
-LOG_EVERY = 1.0  #: s: faults are logged at most this often (counted always)
+LOG_EVERY = 1.0  #: s: the same fault is logged at most this often (counted always)
+RECOVER_TIMEOUT_US = 5000  #: how long one step of bringing a slave back may wait
+CONFIRM_US = 2000  #: how long a slave found out of OP is asked again before it counts
 COUNTERS = (
     "cycles", "late", "lost", "wkc_errors", "left_op", "recoveries", "silent", "coalesced",
 )  # fmt: skip
@@ -194,6 +196,7 @@ class Segment:
         timeout = self._timeout_us()
         due = time.monotonic()
         next_check = due + STATE_CHECK
+        good = True  # the last cycle's working counter was right
         while not self._stop.is_set():
             now = time.monotonic()
             self._write_outputs(now)
@@ -202,13 +205,17 @@ class Segment:
             counts["cycles"] += 1
             if wkc == self.expected_wkc:
                 self._read_inputs()
-            elif wkc <= 0:
-                counts["lost"] += 1
-                self._say("lost", "EtherCAT frames lost (no answer within the cycle)")
             else:
-                counts["wkc_errors"] += 1
-                self._say("wkc", f"working counter {wkc}, expected {self.expected_wkc}")
-            if wkc != self.expected_wkc or now >= next_check:
+                if good:  # the first bad cycle: the states are read at once, then every
+                    next_check = now  # STATE_CHECK while it lasts (reading them costs cycles)
+                if wkc <= 0:
+                    counts["lost"] += 1
+                    self._say("lost", "EtherCAT frames lost (no answer within the cycle)")
+                else:
+                    counts["wkc_errors"] += 1
+                    self._say("wkc", f"working counter {wkc}, expected {self.expected_wkc}")
+            good = wkc == self.expected_wkc
+            if now >= next_check:
                 self._check_states(master)
                 next_check = now + STATE_CHECK
             due += period
@@ -278,6 +285,9 @@ class Segment:
         self.states = [s.state for s in slaves]
         for n, slave in enumerate(slaves, 1):
             state = slave.state
+            if state != OP:  # ask that slave again: a read lost on a busy link says 0 too
+                slave.state_check(OP, CONFIRM_US)  # (it returns the state without the error
+                state = self.states[n - 1] = slave.state  # flag; slave.state has it)
             was = before[n - 1] if n - 1 < len(before) else OP
             if state == OP:
                 if was != OP:
@@ -286,25 +296,31 @@ class Segment:
                 continue
             if was == OP:
                 self.counts["left_op"] += 1
-            self._say(f"state{n}", f"slave {n} is in {state_name(state)} "
-                      f"({al_code_name(slave.al_status)}): bringing it back to OP")  # fmt: skip
+            what = (
+                "does not answer"
+                if state == 0
+                else f"is in {state_name(state)} ({al_code_name(slave.al_status)})"
+            )  # each new situation said at once, the same one once a second
+            self._say(f"{n} {state} {slave.al_status}", f"slave {n} {what}: bringing it back "
+                      "to OP")  # fmt: skip
             self._recover(slave, state)
 
     def _recover(self, slave: Any, state: int) -> None:
-        """One step towards OP: acknowledge an error, set up a slave found in INIT or PRE-OP
-        (or not answering) again, ask SAFE-OP for OP."""
+        """One step towards OP, as SOEM's examples take it: find a slave that did not answer
+        again, acknowledge an error, set up a slave found in INIT or PRE-OP (power cycled or
+        replaced) again, ask SAFE-OP for OP. Each step waits at most ``RECOVER_TIMEOUT_US``
+        on the cycle's thread (cycles meanwhile are late, and counted)."""
         try:
-            if state & ACK:
+            if state == 0:
+                slave.recover(RECOVER_TIMEOUT_US)
+            elif state & ACK:
                 slave.state = (state & 0x0F) | ACK
                 slave.write_state()
             elif state == SAFEOP:
                 slave.state = OP
                 slave.write_state()
-            elif state in (0, INIT, PREOP):
-                slave.recover()  # (state 0: it did not answer; recover finds it again)
-                slave.reconfig()
-                slave.state = SAFEOP
-                slave.write_state()
+            elif state in (INIT, PREOP):
+                slave.reconfig(RECOVER_TIMEOUT_US)
         except Exception as exc:  # (it may have gone again): tried again at the next check
             self._say("recover", f"recovering a slave failed: {exc}")
 
