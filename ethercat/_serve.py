@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import sys
 
 from ups._cliargs import network_choice, say
@@ -25,7 +26,16 @@ async def serve(args: argparse.Namespace, emap: EthercatMap) -> int:
     # the event loop runs Python (Python's default, 5 ms, is longer than a cycle)
     sys.setswitchinterval(SWITCH_INTERVAL)
     segment = Segment(args.ifname, emap, cycle)
-    await asyncio.to_thread(segment.start)  # the identities checked before UPS sees anything
+    # the identities are checked before UPS sees anything; a signal meanwhile waits for the
+    # start to end (a thread cannot be cancelled), then stops the segment
+    starting = asyncio.ensure_future(asyncio.to_thread(segment.start))
+    try:
+        await asyncio.shield(starting)
+    except asyncio.CancelledError:
+        with contextlib.suppress(Exception):
+            await starting
+            await asyncio.to_thread(segment.stop)
+        raise
     try:
         kind, where = network_choice(args)
         node = Node(

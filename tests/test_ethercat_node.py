@@ -125,7 +125,10 @@ async def test_tcp_events_drive_the_outputs_inputs_come_back_and_silence_is_safe
         seen = await status_of(node_address)
         assert seen["silent"] == 2 and seen["in_op"] == 2 and seen["outputs"] == 2
         assert seen["left_op"] == 0, seen  # (lost frames: counted; a busy machine may lose some)
-        assert proc.popen.poll() is None
+        proc.popen.terminate()  # a daemon asked to stop: the slaves go to INIT, exit 0
+        assert (await asyncio.to_thread(proc.finish, 30))[0] == 0
+        await line(emu, r"^state 1 INIT 0x0000$")
+        await line(emu, r"^state 2 INIT 0x0000$")
 
 
 async def test_can_events_drive_the_outputs_and_inputs_come_back(tmp_path: Path) -> None:
