@@ -222,6 +222,7 @@ class TcpEcb:
         member: _Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
             if self._acl is None or self._acl.may_status(identity(link.transport)):
+                self._doorman.asked(link)  # evicted last while it waits for its answer
                 self._pacer.ask(link)  # answered with the next Status, built at most so often
             else:
                 self._refuse(link, 0, "status", "its identity may not read the broker's tables")

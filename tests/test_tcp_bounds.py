@@ -31,12 +31,14 @@ def _rss_kib(pid: int) -> int:
     raise AssertionError("no VmRSS")
 
 
-def _connect_idle(address: str, count: int) -> list[socket.socket]:
+def _connect_idle(address: str, count: int, wait: bool = False) -> list[socket.socket]:
+    """``count`` connections that say nothing; with ``wait``, each connected before the next
+    (the listener's backlog is short: its daemon must be accepting meanwhile)."""
     host, port = address.rsplit(":", 1)
     socks = []
     for _ in range(count):
         s = socket.socket()
-        s.setblocking(False)
+        s.setblocking(wait)
         with contextlib.suppress(BlockingIOError):
             s.connect((host, int(port)))
         socks.append(s)
@@ -89,6 +91,27 @@ async def test_five_thousand_idle_connections_leave_the_ecb_bounded_and_open() -
             stats = await _stats_amid_the_flood(address)
             assert stats["evicted"] >= 1000 and stats["links"] <= 256 + 2, stats
             assert grown < 64 * 1024, f"the TCP-ECB grew by {grown} KiB"
+        finally:
+            for s in socks:
+                s.close()
+
+
+async def test_a_link_waiting_for_its_status_is_evicted_after_the_idle_ones() -> None:
+    """A StatusRequest waits up to 0.5 s for the next Status (StatusPacer); connections that
+    say nothing, arriving meanwhile beyond the 256 that may wait, used to evict the oldest
+    waiting link: the one that asked (left alone last round, when the 5000-connection test
+    had to ask again). Now a link that asked goes after every waiting link that did not."""
+    async with running_tcp_ecb() as ecb:
+        address = f"127.0.0.1:{ecb.port}"
+        ecb._pacer.gap = 3.0  # the next build well after the idle connections came
+        await query_status(address)  # built now
+        asking = asyncio.create_task(query_status(address, timeout=10))
+        await eventually(lambda: ecb.counters["status_paced"] >= 1)  # it waits for that build
+        socks = await asyncio.to_thread(_connect_idle, address, 300, True)  # 300, beyond 256
+        try:
+            await eventually(lambda: ecb.stats()["evicted"] >= 300 - 256, timeout=10)
+            assert not asking.done()  # the build is still to come: it waited among them
+            assert "links" in (await asking)["stats"]  # answered, not evicted
         finally:
             for s in socks:
                 s.close()

@@ -139,11 +139,13 @@ class Doorman:
     At most ``max_links`` connections in all. A new one beyond closes the oldest connection
     still waiting to be admitted (``evicted``), or, if none waits, is closed itself
     (``refused``). At most ``max_waiting`` may wait to be admitted: when another comes, the
-    oldest waiting one is closed (``evicted``). A connection not admitted (``greeted``) within
-    ``hello_timeout`` seconds is closed (``timed_out``). Until ``lift`` or ``greeted``, a
-    connection may send frames of at most ``first_frame`` bytes. Until ``greeted`` it may not
-    grow its receive buffer; once admitted it grows it from ``budget`` (``receive_budget``
-    bytes for all the socket's links, counted in ``counters`` unless others are given).
+    oldest waiting one is closed (``evicted``); one that ``asked`` a question the daemon
+    answers (a StatusRequest) goes after every waiting one that did not. A connection not
+    admitted (``greeted``) within ``hello_timeout`` seconds is closed (``timed_out``). Until
+    ``lift`` or ``greeted``, a connection may send frames of at most ``first_frame`` bytes.
+    Until ``greeted`` it may not grow its receive buffer; once admitted it grows it from
+    ``budget`` (``receive_budget`` bytes for all the socket's links, counted in ``counters``
+    unless others are given).
     """
 
     def __init__(
@@ -162,6 +164,7 @@ class Doorman:
         self.first_frame = first_frame
         self.links = 0
         self._waiting: dict[Link, asyncio.TimerHandle] = {}  # oldest first
+        self._asked: set[Link] = set()  # waiting, and owed an answer: evicted last
         self.counters = dict.fromkeys(("refused", "evicted", "timed_out"), 0)
         self.budget = ReceiveBudget(receive_budget, self.counters if counters is None else counters)
 
@@ -175,21 +178,33 @@ class Doorman:
                 self.counters["refused"] += 1
                 link.abort(f"more than {self.max_links} connections")
                 return
-            oldest = next(iter(self._waiting))  # one not admitted yet makes room for the new one
-            self.counters["evicted"] += 1
-            oldest.abort(f"more than {self.max_links} connections, and not admitted")
+            self.counters["evicted"] += 1  # one not admitted yet makes room for the new one
+            self._evictee().abort(f"more than {self.max_links} connections, and not admitted")
         if len(self._waiting) >= self.max_waiting:
-            oldest = next(iter(self._waiting))
             self.counters["evicted"] += 1
-            oldest.abort(f"more than {self.max_waiting} connections without Hello")
+            self._evictee().abort(f"more than {self.max_waiting} connections without Hello")
         link.max_frame, link.full_frame = self.first_frame, link.max_frame
         loop = asyncio.get_running_loop()
         self._waiting[link] = loop.call_later(self.hello_timeout, self._time_out, link)
+
+    def asked(self, link: Link) -> None:
+        """``link`` asked what the daemon answers (a StatusRequest): while it waits to be
+        admitted, it is evicted only after every waiting link that did not ask."""
+        if link in self._waiting:
+            self._asked.add(link)
+
+    def _evictee(self) -> Link:
+        """The oldest waiting link that asked nothing, else the oldest waiting one."""
+        for link in self._waiting:
+            if link not in self._asked:
+                return link
+        return next(iter(self._waiting))
 
     def greeted(self, link: Link) -> None:
         """``link`` said Hello (and is admitted): it may stay, send full-sized frames, and grow
         its receive buffer to read them."""
         self.lift(link)
+        self._asked.discard(link)
         timer = self._waiting.pop(link, None)
         if timer is not None:
             timer.cancel()
@@ -204,6 +219,7 @@ class Doorman:
     def gone(self, link: Link) -> None:
         """``link`` ended (call from its on_lost)."""
         self.links -= 1
+        self._asked.discard(link)
         timer = self._waiting.pop(link, None)
         if timer is not None:
             timer.cancel()

@@ -187,6 +187,7 @@ class Inbox:
             else:
                 self._start(link, pub, frame)
         elif isinstance(frame, w.StatusRequest):
+            self._doorman.asked(link)  # evicted last while it waits for its answer
             self.gate.ask(link)
         elif isinstance(frame, w.Ping):
             link.send_control(w.encode(w.Pong()))
