@@ -230,9 +230,10 @@ class RawNode:
                 self.txnode = txnode
                 self._announce()
 
-    async def join(self, timeout: float = 3.0) -> int:
+    async def join(self, timeout: float = 15.0) -> int:
         """Knock until assigned; returns the TxNode. Knock retry: "50 ms, doubling to 1 s, and
-        at least 0.3 s" after the last Knock, Census, Query or Offer heard."""
+        at least 0.3 s" after the last Knock, Census, Query or Offer heard. ``timeout``: 15 s,
+        as the tests' Python nodes get (a census on a busy machine may wait up to 4 s)."""
         deadline = self._loop.time() + timeout
         retry = 0.05
         self.wire.send(Knock())
