@@ -27,6 +27,7 @@ log = logging.getLogger("ups.ethercat")
 INIT, PREOP, SAFEOP, OP, ACK = 1, 2, 4, 8, 0x10
 STATE_CHECK = 0.1  #: s between two reads of the slaves' AL states while all is well
 START_TIMEOUT_US = 3_000_000  #: how long the slaves may take to reach SAFE-OP, then OP
+OP_POLL_US = 2000  #: between two exchanges while the slaves go to OP
 LOG_EVERY = 1.0  #: s: the same fault is logged at most this often (counted always)
 RECOVER_TIMEOUT_US = 5000  #: how long one step of bringing a slave back may wait
 CONFIRM_US = 2000  #: how long a slave found out of OP is asked again before it counts
@@ -151,24 +152,30 @@ class Segment:
         self._write_outputs(time.monotonic())
         master.send_processdata()
         master.receive_processdata(self._timeout_us())
-        for target in (SAFEOP, OP):
-            if master.state_check(target, START_TIMEOUT_US) != target:
-                master.read_state()
-                refused = [
-                    f"slave {n} in {state_name(s.state)} ({al_code_name(s.al_status)})"
-                    for n, s in enumerate(slaves, 1)
-                    if s.state != target
-                ]  # fmt: skip
-                raise EthercatError(f"the slaves did not reach {state_name(target)}: "
-                                    + "; ".join(refused))  # fmt: skip
-            if target == SAFEOP:
-                master.state = OP
-                master.write_state()
-                for _ in range(3):  # OP needs valid outputs coming: a few cycles meanwhile
-                    master.send_processdata()
-                    master.receive_processdata(self._timeout_us())
+        if master.state_check(SAFEOP, START_TIMEOUT_US) != SAFEOP:
+            raise self._behind(master, SAFEOP)
+        master.state = OP
+        master.write_state()
+        deadline = time.monotonic() + START_TIMEOUT_US / 1e6
+        while True:  # a slave goes to OP only while valid outputs come: exchange meanwhile
+            master.send_processdata()
+            master.receive_processdata(self._timeout_us())
+            if master.state_check(OP, OP_POLL_US) == OP:
+                break
+            if time.monotonic() > deadline:
+                raise self._behind(master, OP)
         master.read_state()
         self.states = [s.state for s in slaves]
+
+    def _behind(self, master: Any, target: int) -> EthercatError:
+        """The error naming each slave that did not reach ``target``, its state and code."""
+        master.read_state()
+        behind = [
+            f"slave {n} in {state_name(s.state)} ({al_code_name(s.al_status)})"
+            for n, s in enumerate(master.slaves, 1)
+            if s.state != target
+        ]
+        return EthercatError(f"the slaves did not reach {state_name(target)}: " + "; ".join(behind))
 
     def _fits(self, end: int, size: int, position: int, line: int, kind: str) -> None:
         if end > size:
