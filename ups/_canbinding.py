@@ -144,6 +144,8 @@ class Bindings:
         once that has stood ``REFUSAL_WAIT`` while the node asked again with no answer."""
         fut = self.pending.get(uid)
         if fut is None or fut.done():
+            if uid in self.bound:  # after the answer: stray, forged or late, it changes nothing
+                self._counters["stray_refusals"] += 1
             return
         self._counters["refusals"] += 1
         refused = self._refused.get(uid)

@@ -127,7 +127,7 @@ class CanFace:
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
              "rebinds", "moves", "reassigned", "unbound_dropped", "task_errors", "too_large",
-             "refused_large", "stray_verdicts", "refusals"),
+             "refused_large", "stray_verdicts", "refusals", "stray_refusals"),
             0,
         )  # fmt: skip
         self.bindings = Bindings(

@@ -122,6 +122,8 @@ NODE = table(
         "stray_verdicts": "Grants and Refuses for streams this node did not declare, ignored (can)",
         "refusals": "TxNodesFull, Failed, EtagsFull and Limit heard for this node's join or "
         "requests; each ends them only if it stands 3 s (can)",
+        "stray_refusals": "EtagsFull, Failed and Limit naming a channel this node had bound "
+        "already, ignored (can)",
         "large_lost": "multi-frame events given up in reassembly (can)",
         "large_frames_dropped": "frames of multi-frame events given up (can)",
         "reconnects": "reconnections to the TCP-ECB (tcp)",
