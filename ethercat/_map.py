@@ -187,7 +187,7 @@ def load_map(path: str | Path) -> EthercatMap:
                               f"slave.{key}")  # fmt: skip
         slaves[int(key)] = _slave(int(key), entry, catalog, lines, inputs)
     return EthercatMap(path, catalog, cycle, timeout, status, dict(sorted(slaves.items())),
-                       _input_channels(inputs, lines))  # fmt: skip
+                       _input_channels(inputs))  # fmt: skip
 
 
 def _seconds(doc: dict[str, Any], key: str, default: float, lines: _Lines) -> float:
@@ -305,8 +305,9 @@ def _input_options(base: Entry, item: dict[str, Any],
     return base, where, every, priority
 
 
-def _input_channels(inputs: list[tuple[Entry, str, int, int | None]],
-                    lines: _Lines) -> tuple[InputChannel, ...]:  # fmt: skip
+def _input_channels(
+    inputs: list[tuple[Entry, str, int, int | None]],
+) -> tuple[InputChannel, ...]:
     by_channel: dict[ChannelSpec, list[tuple[Entry, str, int, int | None]]] = {}
     for one in inputs:
         by_channel.setdefault(one[0].spec, []).append(one)
