@@ -8,7 +8,7 @@ import asyncio
 import contextlib
 import sys
 
-from ups._cliargs import network_choice, say
+from ups._cliargs import node_for, say
 
 from ._bridge import EthercatNode
 from ._cycle import Segment
@@ -19,8 +19,6 @@ SWITCH_INTERVAL = 0.0002  #: s: see serve
 
 
 async def serve(args: argparse.Namespace, emap: EthercatMap) -> int:
-    from ups import Node
-
     cycle = args.cycle / 1000 if args.cycle else None
     # the cycle's thread waits for the interpreter lock at most this long when it wakes while
     # the event loop runs Python (Python's default, 5 ms, is longer than a cycle)
@@ -37,16 +35,7 @@ async def serve(args: argparse.Namespace, emap: EthercatMap) -> int:
             await asyncio.to_thread(segment.stop)
         raise
     try:
-        kind, where = network_choice(args)
-        node = Node(
-            can=where if kind == "can" else None,
-            broker=where if kind == "broker" else None,
-            zenoh=where if kind == "zenoh" else None,
-            zenoh_config=getattr(args, "zenoh_config", None),
-            node_id=args.node_id,
-            name="ups-ethercat",
-            join_timeout=args.timeout,
-        )
+        _, node = node_for(args, "ups-ethercat")
         async with node:
             bridge = EthercatNode(node, segment)
             await bridge.start()

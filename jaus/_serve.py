@@ -9,7 +9,7 @@ import os
 
 from ups import ConfigError
 from ups._address import parse_address
-from ups._cliargs import network_choice, say
+from ups._cliargs import node_for, say
 from ups._metrics import Reading, serving_metrics
 
 from ._codec import JausId
@@ -45,20 +45,9 @@ def parse_jaus_id(text: str) -> JausId:
 
 
 async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
-    from ups import Node
-
     me = parse_jaus_id(args.id)
     host, port = parse_judp_address(args.listen)
-    kind, where = network_choice(args)
-    node = Node(
-        can=where if kind == "can" else None,
-        broker=where if kind == "broker" else None,
-        zenoh=where if kind == "zenoh" else None,
-        zenoh_config=getattr(args, "zenoh_config", None),
-        node_id=args.node_id,
-        name="ups-jaus",
-        join_timeout=args.timeout,
-    )
+    kind, node = node_for(args, "ups-jaus")
     component: JausHost | None = None  # its counters are served once it exists
 
     def reading() -> Reading:

@@ -8,7 +8,7 @@ import asyncio
 import logging
 from typing import Any
 
-from ups._cliargs import network_choice, say
+from ups._cliargs import node_for, say
 from ups._errors import Closed
 from ups._metrics import CAN_LINK, NODE, Reading, serving_metrics, table
 
@@ -58,18 +58,7 @@ def ros2_reading(bridge: RosBridge | None, node: Any, network: str) -> Reading:
 
 
 async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
-    from ups import Node
-
-    kind, where = network_choice(args)
-    node = Node(
-        can=where if kind == "can" else None,
-        broker=where if kind == "broker" else None,
-        zenoh=where if kind == "zenoh" else None,
-        zenoh_config=getattr(args, "zenoh_config", None),
-        node_id=args.node_id,
-        name="ups-ros2",
-        join_timeout=args.timeout,
-    )
+    kind, node = node_for(args, "ups-ros2")
     ros: RosBridge | None = None
 
     def reading() -> Reading:

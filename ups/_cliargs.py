@@ -281,6 +281,25 @@ def explained(args: argparse.Namespace, exc: UpsError) -> str:
     return text
 
 
+def node_for(args: argparse.Namespace, name: str) -> tuple[str, Node]:
+    """The node a bridge daemon (``ups jaus``, ``ups ros2``, ``ups ethercat``) joins with:
+    on the network of :func:`network_choice`, with ``--node-id`` and ``--timeout`` to join;
+    and that network's kind ("can", "broker" or "zenoh")."""
+    from ._node import Node
+
+    kind, where = network_choice(args)
+    node = Node(
+        can=where if kind == "can" else None,
+        broker=where if kind == "broker" else None,
+        zenoh=where if kind == "zenoh" else None,
+        zenoh_config=getattr(args, "zenoh_config", None),
+        node_id=args.node_id,
+        name=name,
+        join_timeout=args.timeout,
+    )
+    return kind, node
+
+
 def add_network(cmd: argparse.ArgumentParser, can_help: str, ip_help: str) -> None:
     """``--can BUS | --broker HOST:PORT | --zenoh ENDPOINT`` (else the environment: see
     network_choice), and ``--zenoh-config``."""
