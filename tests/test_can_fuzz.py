@@ -36,13 +36,9 @@ from ups._canface import CanFace
 from ups._canlink import CanLink
 from ups._errors import DecodeError
 from ups.benchmarks._can_frames import U64, FrameGen, Targets, classify
-from ups.benchmarks.can_fuzz import (
-    Report,
-    prime_recovery,
-    scenario_ecb,
-    scenario_gateway,
-    scenario_node,
-)
+from ups.benchmarks._fuzz_report import Report
+from ups.benchmarks._fuzz_steps import prime_recovery
+from ups.benchmarks.can_fuzz import scenario_ecb, scenario_gateway, scenario_node
 from ups.broker._etags import MAX_DEFERRED
 from ups.broker.can_ecb import MAX_CHANNELS
 
