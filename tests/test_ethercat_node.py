@@ -17,6 +17,7 @@ import shutil
 import struct
 import subprocess
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -57,6 +58,31 @@ def ethercat(ifname: str, *network: str) -> Iterator[tuple[Proc, str | None]]:
         line = proc.wait_for_line(r"master of 2 slave\(s\) on", timeout=60)
         found = re.search(r"ups status (\S+)", line)
         yield proc, found.group(1) if found else None
+
+
+@dataclass
+class Rig:
+    """A TCP-ECB, the emulated slaves and ``ups ethercat`` serving them on TCP/IP."""
+
+    broker: str  #: the TCP-ECB's address
+    master: str  #: the master's interface
+    wire: str  #: the slaves' interface
+    emu: Proc
+    control: Control
+    proc: Proc  #: ups ethercat
+    status: str  #: its node's address, for ``ups status``
+
+
+@contextlib.contextmanager
+def over_tcp(tmp_path: Path, watchdog: float = 0.0) -> Iterator[Rig]:
+    broker, address = start_tcp_broker()
+    with (
+        broker,
+        segment(tmp_path, watchdog=watchdog) as (master, wire, emu, control),
+        ethercat(master, "--broker", address) as (proc, status),
+    ):
+        assert status is not None
+        yield Rig(address, master, wire, emu, control, proc, status)
 
 
 async def line(proc: Proc, pattern: str, timeout: float = 20.0) -> str:
@@ -104,31 +130,25 @@ async def outputs_and_inputs(node: Node, emu: Proc, control: Control) -> None:
 async def test_tcp_events_drive_the_outputs_inputs_come_back_and_silence_is_safe(
     tmp_path: Path,
 ) -> None:
-    broker, address = start_tcp_broker()
-    with (
-        broker,
-        segment(tmp_path) as (master, _wire, emu, control),
-        ethercat(master, "--broker", address) as (proc, node_address),
-    ):
-        await line(emu, r"^outputs 1 01000000$")  # the brake's safe value before any event
-        async with Node(broker=address) as node:
+    with over_tcp(tmp_path) as rig:
+        await line(rig.emu, r"^outputs 1 01000000$")  # the brake's safe value before any event
+        async with Node(broker=rig.broker) as node:
             status = await node.subscribe("ethercat/status")
-            await outputs_and_inputs(node, emu, control)
+            await outputs_and_inputs(node, rig.emu, rig.control)
             # the UPS side goes silent: after the map's timeout (0.5 s), the safe values
-            await line(emu, r"^outputs 2 0000$")
-            await line(emu, r"^outputs 1 01000000$")
+            await line(rig.emu, r"^outputs 2 0000$")
+            await line(rig.emu, r"^outputs 1 01000000$")
             msg = await status.get_msg(timeout=5)
             values = dict(zip(STATUS_FIELDS, STATUS_LAYOUT.unpack(msg.data), strict=True))
             assert values["slaves"] == values["in_op"] == 2
             assert values["cycles"] > 0 and values["last_wkc"] == values["expected_wkc"]
-        assert node_address is not None
-        seen = await status_of(node_address)
+        seen = await status_of(rig.status)
         assert seen["silent"] == 2 and seen["in_op"] == 2 and seen["outputs"] == 2
         assert seen["left_op"] == 0, seen  # (lost frames: counted; a busy machine may lose some)
-        proc.popen.terminate()  # a daemon asked to stop: the slaves go to INIT, exit 0
-        assert (await asyncio.to_thread(proc.finish, 30))[0] == 0
-        await line(emu, r"^state 1 INIT 0x0000$")
-        await line(emu, r"^state 2 INIT 0x0000$")
+        rig.proc.popen.terminate()  # a daemon asked to stop: the slaves go to INIT, exit 0
+        assert (await asyncio.to_thread(rig.proc.finish, 30))[0] == 0
+        await line(rig.emu, r"^state 1 INIT 0x0000$")
+        await line(rig.emu, r"^state 2 INIT 0x0000$")
 
 
 async def test_can_events_drive_the_outputs_and_inputs_come_back(tmp_path: Path) -> None:
@@ -147,31 +167,25 @@ async def test_an_unplugged_slave_is_counted_reported_and_brought_back(tmp_path:
     """The slaves' link goes down for a second: the frames are lost, the slaves' watchdog
     (0.2 s) takes them to SAFE-OP with an error (0x001B); when the link returns the master
     acknowledges the error and brings them back to OP, and outputs flow again."""
-    broker, address = start_tcp_broker()
-    with (
-        broker,
-        segment(tmp_path, watchdog=0.2) as (master, wire, emu, _control),
-        ethercat(master, "--broker", address) as (proc, node_address),
-    ):
-        assert node_address is not None
-        await set_link(wire, "down")
-        await line(emu, r"^state 1 SAFE-OP 0x001b$")
-        await line(emu, r"^state 2 SAFE-OP 0x001b$")
-        await set_link(wire, "up")
-        await line(emu, r"^state 1 OP 0x0000$", timeout=30)
-        await line(emu, r"^state 2 OP 0x0000$", timeout=30)
-        async with Node(broker=address) as node:
+    with over_tcp(tmp_path, watchdog=0.2) as rig:
+        await set_link(rig.wire, "down")
+        await line(rig.emu, r"^state 1 SAFE-OP 0x001b$")
+        await line(rig.emu, r"^state 2 SAFE-OP 0x001b$")
+        await set_link(rig.wire, "up")
+        await line(rig.emu, r"^state 1 OP 0x0000$", timeout=30)
+        await line(rig.emu, r"^state 2 OP 0x0000$", timeout=30)
+        async with Node(broker=rig.broker) as node:
             await node.publish("robot/max-speed", struct.pack(">h", -5))
-            await line(emu, r"^outputs 2 ceff$")  # -50 mm/s
-        seen = await status_of(node_address)
+            await line(rig.emu, r"^outputs 2 ceff$")  # -50 mm/s
+        seen = await status_of(rig.status)
         for _ in range(50):  # the master sees them in OP at its next state check (0.1 s)
             if seen["in_op"] == 2:
                 break
-            seen = await status_of(node_address)
+            seen = await status_of(rig.status)
         assert seen["in_op"] == 2, seen
         assert seen["lost"] > 0 and seen["left_op"] >= 2 and seen["recoveries"] >= 2, seen
         assert "slave 1 is in SAFE-OP+ERROR (0x001b (sync manager watchdog))" in "".join(
-            proc.stderr_lines)  # fmt: skip
+            rig.proc.stderr_lines)  # fmt: skip
 
 
 def test_a_slave_of_another_identity_refuses_to_start(tmp_path: Path) -> None:
@@ -197,17 +211,11 @@ def test_tshark_decodes_the_exchange_as_the_emulator_and_the_map_say(tmp_path: P
     if tshark is None:
         pytest.skip("tshark is not installed (scripts/setup --test installs it as root)")
     capture = tmp_path / "cycle.pcapng"
-    broker, address = start_tcp_broker()
-    with (
-        broker,
-        segment(tmp_path) as (master, _wire, _emu, control),
-        ethercat(master, "--broker", address),
-    ):
-        control.inputs(1, "d2040000")
-        control.inputs(2, "b80b00000000")
-        with Proc(
-            shell=f"exec {tshark} -i {master} -f 'ether proto 0x88a4' -c 200 -w {capture}", env={}
-        ) as sniff:
+    with over_tcp(tmp_path) as rig:
+        rig.control.inputs(1, "d2040000")
+        rig.control.inputs(2, "b80b00000000")
+        sniffing = f"exec {tshark} -i {rig.master} -f 'ether proto 0x88a4' -c 200 -w {capture}"
+        with Proc(shell=sniffing, env={}) as sniff:
             assert sniff.finish(60)[0] == 0, "".join(sniff.stderr_lines)
     fields = ["eth.src", "ecat.cmd", "ecat.lad", "ecat.cnt", "ecat.data"]
     decoded = subprocess.run(
@@ -234,24 +242,18 @@ async def test_a_flood_of_events_does_not_hold_the_cycle_back(tmp_path: Path) ->
     watches: no slave leaves OP (outputs kept coming), the cycle went on, and the output ends
     with the last event's bytes. (A frame the emulator answers late on a busy machine is
     counted lost: the invariant is progress, not timing.)"""
-    broker, address = start_tcp_broker()
-    with (
-        broker,
-        segment(tmp_path, watchdog=0.5) as (master, _wire, emu, _control),
-        ethercat(master, "--broker", address) as (_proc, node_address),
-    ):
-        assert node_address is not None
-        before = await status_of(node_address)
-        async with Node(broker=address) as node:
+    with over_tcp(tmp_path, watchdog=0.5) as rig:
+        before = await status_of(rig.status)
+        async with Node(broker=rig.broker) as node:
             await node.advertise("robot/max-speed")
             for i in range(20_000):
                 await node.publish("robot/max-speed", struct.pack(">h", i % 3000))
             await node.publish("robot/max-speed", struct.pack(">h", 3001))
-            await line(emu, r"^outputs 2 3a75$")  # 30010 mm/s, little-endian
-        after = await status_of(node_address)
+            await line(rig.emu, r"^outputs 2 3a75$")  # 30010 mm/s, little-endian
+        after = await status_of(rig.status)
         assert after["outputs"] - before["outputs"] >= 1 and after["cycles"] > before["cycles"]
         assert after["left_op"] == 0 and after["in_op"] == 2, after
-        assert not [ln for ln in emu.stdout_lines if "SAFE-OP" in ln and "0x001b" in ln]
+        assert not [ln for ln in rig.emu.stdout_lines if "SAFE-OP" in ln and "0x001b" in ln]
 
 
 async def test_the_jebridge_recipe_a_jaus_ocu_drives_an_ethercat_output(tmp_path: Path) -> None:
