@@ -38,7 +38,7 @@ def can_face(node: Node) -> CanFace:
 
 def link_stats_of(node: Node) -> Callable[[], dict[str, Any]]:
     link = can_face(node).link
-    return lambda: dict(link_stats(link))
+    return lambda: link_stats(link)
 
 
 async def flood(
@@ -252,7 +252,7 @@ class Scene:
     raw: can.BusABC  #: where the flood is sent from
     watch: EcbWatch  #: the CAN-ECB serving the bus, watched
     link: CanLink  #: the CAN-ECB's link: it hears every frame of the flood
-    links: list[CanLink]  #: every link whose queue must be empty before the flood is through
+    node_links: list[CanLink]  #: the real nodes' own links (the flood is through when they are)
     nodes: list[Node]  #: the real CAN nodes
     txnodes: dict[int, int | None]  #: their node ids and TxNodes before the flood
     flows: list[Flow]
@@ -272,15 +272,14 @@ async def run_flood(
     let a new node (``late``: its node id, a fresh channel, a flow to hear) join, and fill in
     ``report``."""
     watch, ecb = scene.watch, scene.watch.ecb
+    links = [scene.link, *scene.node_links]
     scene.parts.snap()
     report.tables_before = watch.tables()
     sizes_before = scene.sizes()
     uids_before = set(ecb.etags)
     prime_recovery(ecb, recovery)
     report.rss_kb = (rss_kb(), 0)
-    report.seconds = await flood(
-        scene.raw, gen, report.frames, scene.flows, scene.link, scene.links
-    )
+    report.seconds = await flood(scene.raw, gen, report.frames, scene.flows, scene.link, links)
     report.rss_kb = (report.rss_kb[0], rss_kb())
     await settle(scene.nodes, scene.flows, report)
     node_id, fresh, flow = late
@@ -290,7 +289,7 @@ async def run_flood(
     report.moved = moved_nodes(scene.nodes, scene.txnodes)
     report.handler_errors = {
         "can_ecb": int(ecb.counters["handler_errors"]),
-        **{f"link {i}": lk.handler_errors for i, lk in enumerate(scene.links)},
+        **{f"link {i}": lk.handler_errors for i, lk in enumerate(links)},
     }
     legit = {*scene.txnodes, node_id}
     finish(report, gen, watch, legit, uids_before, {name_to_uid(fresh)})

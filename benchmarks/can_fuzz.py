@@ -108,8 +108,8 @@ async def scenario_ecb(
             for name, node in zip("PSQ", nodes, strict=True):
                 parts.add(f"node {name}", node.stats)
                 parts.add(f"link {name}", link_stats_of(node))
-            links = [link, *(can_face(n).link for n in nodes)]
-            scene = Scene(bus, raw, watch, link, links, nodes, txnodes, flows, parts)
+            node_links = [can_face(n).link for n in nodes]
+            scene = Scene(bus, raw, watch, link, node_links, nodes, txnodes, flows, parts)
             await run_flood(
                 scene, report, gen, late=(0xF010, "fz/new", flows[0]), recovery=recovery
             )
@@ -182,8 +182,8 @@ async def scenario_gateway(
             parts.add("node gateway TCP", gw_tcp.stats)
             parts.add("node TS", ts.stats)
             parts.add("node TP", tp.stats)
-            links = [link, can_face(cp).link, can_face(cs).link]
-            scene = Scene(bus, raw, watch, link, links, can_nodes, txnodes, flows, parts)
+            node_links = [can_face(cp).link, can_face(cs).link]  # the gateway's CAN node: on link
+            scene = Scene(bus, raw, watch, link, node_links, can_nodes, txnodes, flows, parts)
             scene.sizes = lambda: _gateway_sizes(gw, tcp_ecb)
             await run_flood(scene, report, gen, late=(0xC2, "gw/new", flows[1]), recovery=recovery)
     finally:
@@ -251,8 +251,8 @@ async def scenario_node(
             parts.add("node H", helper.stats)
             parts.add("can_ecb", lambda: numeric(ecb.stats()))
             heard = can_face(target).bindings.heard
-            links = [link, target_link, can_face(helper).link]
-            scene = Scene(bus, raw, watch, link, links, nodes, txnodes, flows, parts)
+            node_links = [target_link, can_face(helper).link]
+            scene = Scene(bus, raw, watch, link, node_links, nodes, txnodes, flows, parts)
             scene.sizes = lambda: {"node N heard Binds of etags": len(heard)}
             await run_flood(scene, report, gen, late=(0xD2, "nd/new", flows[0]), recovery=recovery)
     finally:
