@@ -89,6 +89,23 @@ async def line(proc: Proc, pattern: str, timeout: float = 20.0) -> str:
     return await asyncio.to_thread(proc.wait_for_line, pattern, timeout, stdout=True)
 
 
+async def lines(proc: Proc, *patterns: str, timeout: float = 20.0) -> None:
+    """Wait until each of ``patterns`` matched a stdout line, in any order: what two slaves
+    do in the same cycle, or two outputs whose timeouts end in one, comes in either order."""
+    waiting = [re.compile(pattern) for pattern in patterns]
+    deadline = asyncio.get_running_loop().time() + timeout
+    while waiting:
+        left = deadline - asyncio.get_running_loop().time()
+        try:
+            got = await line(proc, "|".join(f"(?:{r.pattern})" for r in waiting), max(0.0, left))
+        except AssertionError:
+            recent = proc.stdout_lines[-10:]
+            raise AssertionError(
+                f"no line matching {[r.pattern for r in waiting]}; last {recent}"
+            ) from None
+        waiting = [r for r in waiting if not r.search(got)]
+
+
 async def event(sub: Subscription, data: bytes, timeout: float = 10.0) -> None:
     """Wait for an event carrying ``data`` (inputs published every K cycles come meanwhile)."""
     loop = asyncio.get_running_loop()
@@ -136,8 +153,7 @@ async def test_tcp_events_drive_the_outputs_inputs_come_back_and_silence_is_safe
             status = await node.subscribe("ethercat/status")
             await outputs_and_inputs(node, rig.emu, rig.control)
             # the UPS side goes silent: after the map's timeout (0.5 s), the safe values
-            await line(rig.emu, r"^outputs 2 0000$")
-            await line(rig.emu, r"^outputs 1 01000000$")
+            await lines(rig.emu, r"^outputs 2 0000$", r"^outputs 1 01000000$")
             msg = await status.get_msg(timeout=5)
             values = dict(zip(STATUS_FIELDS, STATUS_LAYOUT.unpack(msg.data), strict=True))
             assert values["slaves"] == values["in_op"] == 2
@@ -147,8 +163,7 @@ async def test_tcp_events_drive_the_outputs_inputs_come_back_and_silence_is_safe
         assert seen["left_op"] == 0, seen  # (lost frames: counted; a busy machine may lose some)
         rig.proc.popen.terminate()  # a daemon asked to stop: the slaves go to INIT, exit 0
         assert (await asyncio.to_thread(rig.proc.finish, 30))[0] == 0
-        await line(rig.emu, r"^state 1 INIT 0x0000$")
-        await line(rig.emu, r"^state 2 INIT 0x0000$")
+        await lines(rig.emu, r"^state 1 INIT 0x0000$", r"^state 2 INIT 0x0000$")
 
 
 async def test_can_events_drive_the_outputs_and_inputs_come_back(tmp_path: Path) -> None:
@@ -169,11 +184,9 @@ async def test_an_unplugged_slave_is_counted_reported_and_brought_back(tmp_path:
     acknowledges the error and brings them back to OP, and outputs flow again."""
     with over_tcp(tmp_path, watchdog=0.2) as rig:
         await set_link(rig.wire, "down")
-        await line(rig.emu, r"^state 1 SAFE-OP 0x001b$")
-        await line(rig.emu, r"^state 2 SAFE-OP 0x001b$")
+        await lines(rig.emu, r"^state 1 SAFE-OP 0x001b$", r"^state 2 SAFE-OP 0x001b$")
         await set_link(rig.wire, "up")
-        await line(rig.emu, r"^state 1 OP 0x0000$", timeout=30)
-        await line(rig.emu, r"^state 2 OP 0x0000$", timeout=30)
+        await lines(rig.emu, r"^state 1 OP 0x0000$", r"^state 2 OP 0x0000$", timeout=30)
         async with Node(broker=rig.broker) as node:
             await node.publish("robot/max-speed", struct.pack(">h", -5))
             await line(rig.emu, r"^outputs 2 ceff$")  # -50 mm/s
