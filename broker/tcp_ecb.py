@@ -122,7 +122,7 @@ class TcpEcb:
         self._tls = tls
         self._acl = acl
         self._names: dict[int, str] = {}  # uid -> its name, checked against the UID
-        self._watches = Watches(self._names, self._members, acl)
+        self._watches = Watches(self._names, self._members, acl, self._push)
         self._refusals_logged: set[tuple[str | None, str, int]] = set()
         self._doorman = Doorman(
             link_budget() if max_links is None else max_links, hello_timeout=hello_timeout
@@ -252,6 +252,7 @@ class TcpEcb:
         elif isinstance(frame, w.Ping):
             if member.stale is not None:
                 self._forget_stale(member)
+                self._watches.renewed(member.node_id)
             link.send_control(w.encode(w.Pong()))
         elif not isinstance(frame, w.Pong):
             self.counters["malformed"] += 1
@@ -295,7 +296,7 @@ class TcpEcb:
         if member is None or member.link is not link:
             return
         member.link = None
-        if not member.subs and not member.pubs:
+        if not member.subs and not member.pubs and not self._watches.watches(member.node_id):
             self._leave(member, "closed its link")
         else:
             log.info(
@@ -321,7 +322,7 @@ class TcpEcb:
                 hello.port,
             )
         else:  # the same node again: after a lost link, or restarted
-            self._watches.forget(hello.node_id)  # it watches again what it still watches
+            self._watches.renewing(hello.node_id)  # it watches again what it still watches
             old = member.link
             member.link = link
             member.name = hello.name
@@ -413,13 +414,13 @@ class TcpEcb:
 
     def _leave(self, member: _Member, why: str) -> None:
         del self._members[member.node_id]
-        self._watches.forget(member.node_id)
         self.counters["left"] += 1
         log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
         for uid in member.pubs:  # out of every table first: then tell the others
             self._discard(self._publishers, uid, member.node_id)
         for uid in member.subs:
             self._discard(self._subscribers, uid, member.node_id)
+        self._watches.forget(member.node_id)  # its pattern subscriptions: publishers are told
         for uid in member.pubs:
             self._vouch(uid, member)
         for uid in member.subs:
@@ -436,12 +437,18 @@ class TcpEcb:
                 del table[uid]
                 if uid not in self._subscribers and uid not in self._publishers:
                     self._channel_count -= 1
-                    self._names.pop(uid, None)
+                    if self._names.pop(uid, None) is not None:
+                        self._watches.unnamed(uid)
 
     # --- telling nodes ---------------------------------------------------------------------
 
+    def _subscribers_of(self, uid: int) -> set[int] | frozenset[int]:
+        """The nodes that subscribe to ``uid``: by name or UID, and by a pattern (``_watches``)."""
+        exact, implied = self._subscribers.get(uid, _NONE), self._watches.implied(uid)
+        return exact | implied if implied else exact
+
     def _subscribers_frame(self, uid: int) -> bytes:
-        peers = tuple(self._members[n].peer() for n in sorted(self._subscribers.get(uid, ())))
+        peers = tuple(self._members[n].peer() for n in sorted(self._subscribers_of(uid)))
         return w.encode(w.Subscribers(uid, peers))
 
     def _identities(self, uid: int) -> tuple[tuple[int, str], ...]:
@@ -474,7 +481,7 @@ class TcpEcb:
         Publishers (without TLS there are no identities to tell)."""
         if publisher.identity is None:
             return
-        for node_id in self._subscribers.get(uid, ()):
+        for node_id in self._subscribers_of(uid):
             self._answer(self._members[node_id], uid, subscribe=True)
             self.counters["pushes"] += 1
 
@@ -488,6 +495,9 @@ class TcpEcb:
                 if member is not None:
                     self._answer(member, uid, subscribe)
         log.info("TCP-ECB recovered: %d nodes registered", len(self._members))
+
+
+_NONE: frozenset[int] = frozenset()
 
 
 def _hex(value: int) -> str:

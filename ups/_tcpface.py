@@ -138,6 +138,7 @@ class TcpFace:
             deliver=deliver,
             channels=channels,
             subscribed=self._subscribed,
+            watching=lambda: self._watches.active,
             counters=self.counters,
             status=self._pacer.ask,
             checking=tls is not None,
@@ -209,6 +210,8 @@ class TcpFace:
         if self._ecb is not None:
             for uid in self._advertised:
                 self._ecb.send_control(w.encode(w.Unadvertise(uid)))
+            for frame in self._watches.frames(w.Unwatch):  # its pattern subscriptions too
+                self._ecb.send_control(frame)
             self._ecb.close()
         await self._outbox.close()
         self._inbox.close()
@@ -431,6 +434,7 @@ class TcpFace:
             self._on_refused(frame)
         elif isinstance(frame, w.Names):
             self._watches.names(frame)
+            self._inbox.named()  # a publisher's Start may have come before the names
         elif isinstance(frame, w.Hello):
             if self._welcome is not None and not self._welcome.done():
                 self._welcome.set_result(None)

@@ -8,6 +8,13 @@ Start) is not vouched for yet is held, unread, until the ECB's word comes; after
 (``unvouched``). A link whose node the ECB vouched for on no channel counts as waiting at the
 doorman: it is closed after 5 s, evicted first when too many wait, and reads no frame larger
 than its own 16 KiB buffer. The links' receive buffers grow from one budget (``_tcpbounds``).
+
+A Start of a channel the node does not subscribe to, while it watches patterns, is held the
+same way, up to ``NAMES_WAIT`` seconds, for the TCP-ECB's Names (``named``): the ECB puts a
+pattern subscriber on a newly named channel's lists before it tells the node the name, and the
+publisher's Start may come first. Once the name comes, the channel has joined the pattern's
+subscriptions and its events are delivered from the first; if it does not, the link goes on
+and the channel's events are counted as ``unsubscribed``.
 """
 
 from __future__ import annotations
@@ -31,6 +38,8 @@ log = logging.getLogger("ups.tcp")
 
 MAX_PUBLISHERS = 1024  #: links from publishers a node accepts at once
 VOUCH_WAIT = 5.0  #: seconds a link may wait for the ECB to vouch for its publisher
+NAMES_WAIT = 1.0  #: seconds a Start of a channel not subscribed to waits for the ECB's Names
+_UNNAMED = 1024  #: channels a link remembers having waited for in vain (then it forgets them)
 
 _HeldEvent = tuple[int, bytes, int, int]
 
@@ -38,7 +47,9 @@ _HeldEvent = tuple[int, bytes, int, int]
 class _Publisher:
     """The other side of one incoming link: who says it is, and who its certificate says."""
 
-    __slots__ = ("allowed", "expected", "held", "identity", "node_id", "timer")
+    __slots__ = (
+        "allowed", "awaiting", "expected", "held", "identity", "node_id", "timer", "unnamed",
+    )  # fmt: skip
 
     def __init__(self, node_id: int, identity: str | None, expected: dict[int, int]) -> None:
         self.node_id = node_id
@@ -47,6 +58,8 @@ class _Publisher:
         self.allowed: set[int] = set()  # channels vouched for on this link, for its lifetime
         self.held: list[_HeldEvent | w.Start] | None = None  # read while waiting for a voucher
         self.timer: asyncio.TimerHandle | None = None
+        self.awaiting: int | None = None  # held for this channel's name (None: for a voucher)
+        self.unnamed: set[int] = set()  # channels whose names were waited for in vain
 
 
 class Inbox:
@@ -62,8 +75,12 @@ class Inbox:
         counters: dict[str, int],
         status: Callable[[Link], None],
         checking: bool,
+        watching: Callable[[], bool] = lambda: False,
     ) -> None:
+        """``watching()``: whether the node watches patterns (a Start of a channel it does not
+        subscribe to then waits for the ECB's Names, see ``named``)."""
         self._deliver = deliver
+        self._watching = watching
         self._channels = channels
         self._subscribed = subscribed
         self._counters = counters
@@ -104,7 +121,7 @@ class Inbox:
 
         What the ECB vouched for once stands while we subscribe (the ACL does not change while
         the ECB runs): a publisher that withdrew still gets its last events through."""
-        if uid not in self._subscribed:
+        if not self._wants(uid):
             return
         self._vouched[uid] = self._vouched.get(uid, frozenset()).union(publishers)
         self._known.update(publishers)
@@ -115,6 +132,18 @@ class Inbox:
                 self._doorman.greeted(link)
         for link in list(self._holding):
             self._release(link)
+
+    def _wants(self, uid: int) -> bool:
+        """Whether we subscribe to ``uid``: registered, or joined by a pattern just now (its
+        Subscribe not sent yet)."""
+        state = self._channels.get(uid)
+        return uid in self._subscribed or (state is not None and bool(state.subs))
+
+    def named(self) -> None:
+        """The ECB named channels to our patterns: links waiting for that go on."""
+        for link in list(self._holding):
+            if link.peer.awaiting is not None:
+                self._release(link)
 
     def forget(self, uid: int) -> None:
         """We unsubscribed from ``uid``: what comes later is news, and needs the ECB's word."""
@@ -200,10 +229,12 @@ class Inbox:
         if self._checking and not self._allow(pub, frame.uid):
             self._hold(link, frame)
             return
-        if frame.uid not in self._subscribed:  # nothing to count for a channel we do not want
-            return
-        expected = pub.expected.get(frame.uid)
         state = self._channels.get(frame.uid)
+        if not self._wants(frame.uid):
+            if self._watching() and frame.uid not in pub.unnamed:  # its Names may be on the way
+                self._hold(link, frame, awaiting=frame.uid)
+            return  # else nothing to count for a channel we do not want
+        expected = pub.expected.get(frame.uid)
         if expected is not None and frame.seq > expected and state is not None and state.subs:
             self._lost_from(pub.node_id, frame.seq - expected)  # published while we were away
         if expected is None or frame.seq > expected:
@@ -242,13 +273,19 @@ class Inbox:
             return True
         return False
 
-    def _hold(self, link: Link, first: _HeldEvent | w.Start) -> None:
-        """Stop reading ``link`` until the ECB vouches for its publisher, or the wait ends."""
+    def _hold(self, link: Link, first: _HeldEvent | w.Start, awaiting: int | None = None) -> None:
+        """Stop reading ``link`` until the ECB vouches for its publisher (or names the channel
+        ``awaiting`` to our patterns), or the wait ends."""
         pub: _Publisher = link.peer
         pub.held = [first]
+        if pub.timer is not None and pub.awaiting != awaiting:  # waits for something else now
+            pub.timer.cancel()
+            pub.timer = None
+        pub.awaiting = awaiting
         if pub.timer is None:
             loop = asyncio.get_running_loop()
-            pub.timer = loop.call_later(VOUCH_WAIT, self._give_up, link)
+            wait = VOUCH_WAIT if awaiting is None else NAMES_WAIT
+            pub.timer = loop.call_later(wait, self._give_up, link)
             link.pause_reading(HELD)
             self._holding.add(link)
 
@@ -268,12 +305,18 @@ class Inbox:
         if pub.timer is not None:
             pub.timer.cancel()
             pub.timer = None
+        pub.awaiting = None
         link.resume_reading(HELD)
 
     def _give_up(self, link: Link) -> None:
         pub: _Publisher = link.peer
         pub.timer = None
-        if pub.held is not None:
+        if pub.held is not None and pub.awaiting is not None:  # no name came: go on without
+            if len(pub.unnamed) >= _UNNAMED:
+                pub.unnamed.clear()
+            pub.unnamed.add(pub.awaiting)
+            self._release(link)
+        elif pub.held is not None:
             self._refuse(link, pub)
             link.abort("events from a publisher the TCP-ECB does not vouch for")
 
@@ -284,6 +327,9 @@ class Inbox:
             pub.timer.cancel()
             pub.timer = None
         events = [item for item in held if not isinstance(item, w.Start)]
+        if pub.awaiting is not None:  # the link ended while its channel's name was awaited
+            self._counters["unsubscribed"] += len(events)
+            return
         self._counters["unvouched"] += len(events)
         uids = sorted({f"{item[0]:016x}" for item in events})
         log.warning(

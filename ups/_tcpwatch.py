@@ -32,9 +32,14 @@ class TcpWatches:
         #: the Watches sent whose answer has not come, oldest first
         self._pending: collections.deque[tuple[str, asyncio.Future[None]]] = collections.deque()
 
-    def frames(self) -> list[bytes]:
-        """A Watch for every pattern: sent again after a reconnect."""
-        return [w.encode(w.Watch(pattern)) for pattern in self._found]
+    @property
+    def active(self) -> bool:
+        """Whether any pattern is watched."""
+        return bool(self._found)
+
+    def frames(self, kind: type[w.Watch | w.Unwatch] = w.Watch) -> list[bytes]:
+        """A Watch for every pattern (sent again after a reconnect), or an Unwatch (at close)."""
+        return [w.encode(kind(pattern)) for pattern in self._found]
 
     async def watch(self, pattern: str, found: Found, send: Callable[[bytes], None] | None) -> None:
         """Ask the ECB (``send``: to its link; None while there is none: then the Watch goes
