@@ -30,6 +30,8 @@ TCP_ECB = table(
         "status_answers": "status requests answered",
         "status_paced": "status requests that waited for the next build",
         "watch_limited": "Watches refused: the node watches 64 patterns already",
+        "implied_limited": "pattern subscriptions left out: the node subscribes to 8192 "
+        "channels by its patterns already",
     },
     {
         "nodes": "nodes registered",
@@ -76,6 +78,9 @@ CAN_ECB = table(
         "moved": "channels moved to an etag of a larger size class",
         "late_claims": "offers claimed after they had lapsed",
         "quota_hit": "bindings refused because their node id created its quota of them",
+        "rosters": "Roster requests of joined nodes (a gateway that joins a running bus)",
+        "roster_frames": "Uses and RosterEnd frames sent in answer to Rosters",
+        "roster_replaced": "Roster requests replaced by a newer one of the same node while waiting",
         "census_censuses": "censuses of joining nodes run",
         "census_knocks": "Knocks of joining nodes heard",
         "census_queries": "census queries sent",

@@ -41,6 +41,7 @@ from ._election import Election, Role
 from ._etags import Etags
 from ._forged import Corrections
 from ._quota import QUOTA, Quota
+from ._roster import Rosters
 from ._store import Store
 from ._txnodes import TxNodes
 
@@ -62,7 +63,8 @@ class CanEcb:
     gateway forwards by them). ``bind_gate(uid, txnode)``, when set, is awaited (at most
     ``_etags.GATE_TIMEOUT`` s) before the binding of publisher ``txnode`` is answered, so that a
     gateway is forwarding the channel before its first event is sent. ``on_standby(reason)`` is
-    called when another CAN-ECB serves the bus and this one stops answering.
+    called when another CAN-ECB serves the bus and this one stops answering, ``on_serving()``
+    when it takes over again.
     """
 
     def __init__(
@@ -95,6 +97,7 @@ class CanEcb:
         self._election_timer: asyncio.TimerHandle | None = None
         self.on_change: Callable[[int], None] | None = None
         self.on_standby: Callable[[str], None] | None = None
+        self.on_serving: Callable[[], None] | None = None
         self.counters = dict.fromkeys(
             (
                 "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted",
@@ -121,6 +124,10 @@ class CanEcb:
             assigned=self._txnodes.node_at, send=self._send, counters=self.counters,
             quota=Quota(quota, self._store.creators, self._store.etags),
             warn=self._warn, stored=self._stored, log_failure=self._log_failure, lease=lease,
+        )  # fmt: skip
+        self._rosters = Rosters(
+            self.subscribers, self.publishers, send=self._send, counters=self.counters,
+            recovering=lambda: self.recovering,
         )  # fmt: skip
         self._corrections = Corrections(
             etags=self._etags, txnodes=self._txnodes, admission=self._admission,
@@ -217,6 +224,7 @@ class CanEcb:
         """Stop serving the bus (the link stays open). Safe to call twice."""
         self._census.close()
         self._txnodes.close()
+        self._rosters.close()
         for timer in (self._recovery_timer, self._election_timer):
             if timer is not None:
                 timer.cancel()
@@ -243,6 +251,7 @@ class CanEcb:
             return
         self.started_up = True
         self._etags.replay()
+        self._rosters.pump()  # the tables are whole again: rosters asked meanwhile
         if self._knocked:
             self._knocked = False
             self._census.knock()
@@ -289,12 +298,14 @@ class CanEcb:
                 self._knocked = True
             else:
                 self._census.knock()
-        elif isinstance(msg, p.Request | p.Holds | p.Declare):
+        elif isinstance(msg, p.Request | p.Holds | p.Declare | p.Roster):
             self.counters["requests"] += 1
             if isinstance(msg, p.Request) and msg.kind == p.CLAIM:
                 self._txnodes.on_claim(msg.txnode, msg.value)
             elif msg.txnode not in self._txnodes.node_at:
                 self._unassigned(msg.txnode)
+            elif isinstance(msg, p.Roster):
+                self._rosters.ask(msg)
             elif isinstance(msg, p.Holds):
                 self._etags.on_holds(msg)
             elif isinstance(msg, p.Declare):
@@ -339,6 +350,7 @@ class CanEcb:
         if role is Role.STANDBY and not self.standby:
             self.standby = True  # answer nothing, but probe now and then (the election's)
             self._census.close()
+            self._rosters.close()
             reason = self._election.reason
             log.error("%s: this CAN-ECB stands by and answers nothing", reason)
             if self.on_standby is not None:
@@ -347,6 +359,8 @@ class CanEcb:
             log.warning("the other CAN-ECB is silent: this one serves the bus again")
             self.standby = False
             self.started_up = False  # it heard nothing while standing by: learn the bus anew
+            if self.on_serving is not None:
+                self.on_serving()
         for frame in frames:
             if isinstance(frame, p.Hello):
                 self._hello()  # and a recovery window (the candidacy ends with it, or sooner)

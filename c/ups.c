@@ -147,7 +147,7 @@ static int node_frame_ok(unsigned priority, unsigned etag, const uint8_t *data, 
     if (etag >= UPS__FIRST_ETAG) {
         return 1; /* SUB_AT (priority 0) or PUB_AT (1) */
     }
-    if (priority != 0u || !((0x1E3Eu >> etag) & 1u)) { /* PUB_BIND ... DECLARE, PUB_BIND(1-4) */
+    if (priority != 0u || !((0x1E7Eu >> etag) & 1u)) { /* PUB_BIND ... ROSTER, PUB_BIND(1-4) */
         return 0;
     }
     /* DECLARE: etag:u16 size:u8 period:u16 deadline:u16 jitter:u8; sizes in bytes (0-8) on
@@ -159,10 +159,10 @@ static int node_frame_ok(unsigned priority, unsigned etag, const uint8_t *data, 
 }
 
 /* For each status frame (bits 8-11 of the etag field): 0x80 if it carries 8 data bytes, and
- * its largest low byte plus one (0: no such frame): Census carries its epoch there, Limit a
- * TxNode, the others nothing. */
+ * its largest low byte plus one (0: no such frame): Census carries its epoch there, Limit and
+ * Uses a TxNode, RosterEnd a TxNode (its top bit: done, checked apart), the others nothing. */
 static const uint8_t status_rule[16] = {16u,    0x81u, 0x81u, 0x81u, 0x81u, 0x81u, 0x81u, 0x81u,
-                                        0xFFu, 0x81u, 0u,    0u,    0u,    0u,    0u,    1u};
+                                        0xFFu, 0x81u, 0xFFu, 0xFFu, 0xFFu, 0u,    0u,    1u};
 
 /** Whether a frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg) matches a row of
  *  the tables, with the data length and field ranges they give. */
@@ -171,8 +171,13 @@ static int config_ok(unsigned op, unsigned arg, const uint8_t *data, unsigned le
     unsigned status = arg >> 8;
     if (op == OP_STATUS) {
         unsigned rule = status_rule[status];
-        if ((arg & 0xFFu) >= (rule & 0x7Fu) || len != ((rule >> 4) & 8u)) {
+        unsigned low = status == ST_ROSTER_END ? arg & 0x7Fu : arg & 0xFFu; /* bit 7: done */
+        if (low >= (rule & 0x7Fu) || len != ((rule >> 4) & 8u)) {
             return 0;
+        }
+        if (status == ST_ROSTER_END && (arg & 0x80u)) { /* done: no next UID */
+            return (data[0] | data[1] | data[2] | data[3] | data[4] | data[5] | data[6] |
+                    data[7]) == 0u;
         }
         if (status != ST_GRANT && status != ST_REFUSE) {
             return 1;

@@ -36,6 +36,9 @@
 #define ST_FAILED 7u
 #define ST_LIMIT 8u
 #define ST_PROBE 9u
+#define ST_USES_SUB 10u   /* the roster a gateway asks for: nodes ignore it */
+#define ST_USES_PUB 11u
+#define ST_ROSTER_END 12u
 #define ST_KNOCK 15u
 #define OFFER_BIT 0x80u
 /* node requests (the etag field, priority 0, the node's TxNode) */
@@ -44,6 +47,7 @@
 #define RQ_UNSUB 3u
 #define RQ_CLAIM 4u
 #define RQ_DECLARE 5u
+#define RQ_ROSTER 6u /* a gateway's: nodes ignore it */
 #define RQ_PUB_BIND_CLASS 8u
 
 /* channel flags */

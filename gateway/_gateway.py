@@ -133,7 +133,9 @@ class Gateway:
         self._link: CanLink | None = None
         self._owns_link = False
         self._ecb: CanEcb | None = None
-        self._tables: CanEcb | Tables | None = None
+        #: who uses what on the bus, learnt from the nodes' requests and the CAN-ECB's roster:
+        #: the tables forwarded by when there is no hosted CAN-ECB, or while it stands by
+        self._learnt: Tables | None = None
         self._id_lock: IO[bytes] | None = None
         self.can: Node | None = None
         self.ip: Node | None = None  #: the IP side's node (TCP/IP or Zenoh)
@@ -187,13 +189,14 @@ class Gateway:
                 if not isinstance(self._can_spec, str):
                     raise ConfigError("a gateway on a CanLink needs db=: the bus has no name")
                 db = default_db(self._can_spec)
-            self._ecb = self._tables = CanEcb(
-                self._link, db, bitrate=self.bitrate, recovery=self._recovery
-            )
+            self._ecb = CanEcb(self._link, db, bitrate=self.bitrate, recovery=self._recovery)
+            self._ecb.on_standby = self._stood_by
+            self._ecb.on_serving = self._serving
+        self._learnt = Tables(self._link)
+        self._learnt.start()
+        if self._ecb is not None:
             await self._ecb.start()
         else:
-            self._tables = Tables(self._link)
-            self._tables.start()
             self._link.start()
         if self._node_id is None:
             self._node_id, self._id_lock = claim_node_id(self.name)
@@ -201,6 +204,8 @@ class Gateway:
             can=self._link, node_id=self._node_id, name=self.name, join_timeout=self._join_timeout
         )
         await self.can.start()
+        if self._ecb is None or self._ecb.standby:  # what was bound before we came
+            self._learnt.ask_roster(self._can_face_txnode())
         kind, where = self._ip_network
         self.ip = Node(
             broker=where if kind == "broker" else None,
@@ -216,11 +221,12 @@ class Gateway:
         ip_face = self._ip_face()
         ip_face.on_targets = self._changed
         ip_face.extra_status = self.status
-        self._tables.on_change = self._changed
+        self._learnt.on_change = self._changed
+        if self._ecb is not None:
+            self._ecb.on_change = self._changed
         if self._ecb is not None:
             self._ecb.bind_gate = self._until_settled
-        self._dirty.update(dict.fromkeys(self._tables.subscribers))
-        self._dirty.update(dict.fromkeys(self._tables.publishers))
+        self._all_dirty()
         loop = asyncio.get_running_loop()
         self._tasks = [loop.create_task(self._reconciler()) for _ in range(RECONCILERS)]
         self._tasks.append(loop.create_task(self._pace()))
@@ -250,13 +256,14 @@ class Gateway:
             else:
                 log.warning("a gateway task did not end when cancelled: %s", task)
         self._tasks.clear()
-        if self._tables is not None:
-            self._tables.on_change = None
+        for tables in (self._learnt, self._ecb):
+            if tables is not None:
+                tables.on_change = None
         for node in (self.ip, self.can):
             if node is not None:
                 await node.close()
-        if isinstance(self._tables, Tables):
-            self._tables.close()
+        if self._learnt is not None:
+            self._learnt.close()
         if self._ecb is not None:
             self._ecb.close()
         if self._link is not None and self._owns_link:
@@ -304,10 +311,39 @@ class Gateway:
                 "channels_to_can": [f"0x{uid:016x}" for uid in sorted(self._to_can_sinks)],
                 "can_node": self.can.stats() if self.can else {},
                 "can_ecb": self._ecb.stats() if self._ecb else "external",
+                "roster": self._learnt.counters if self._learnt else {},
             }
         }
 
     # --- deciding what to forward ----------------------------------------------------------
+
+    def _tables(self) -> CanEcb | Tables:
+        """The tables that say who uses what now: the hosted CAN-ECB's while it serves, else
+        what the gateway learnt (requests heard, the serving CAN-ECB's roster)."""
+        if self._ecb is not None and not self._ecb.standby:
+            return self._ecb
+        assert self._learnt is not None
+        return self._learnt
+
+    def _all_dirty(self) -> None:
+        """Every channel either table knows is brought in line (the tables changed roles)."""
+        for tables in (self._ecb, self._learnt):
+            if tables is not None:
+                self._dirty.update(dict.fromkeys(tables.subscribers))
+                self._dirty.update(dict.fromkeys(tables.publishers))
+        self._wake.set()
+
+    def _stood_by(self, reason: str) -> None:
+        """The hosted CAN-ECB stands by for another: forward by what that one says."""
+        txnode = self.can.stats().get("txnode") if self.can is not None else None
+        if isinstance(txnode, int) and txnode >= 0:  # joined: else it asks once it is
+            assert self._learnt is not None
+            self._learnt.ask_roster(txnode)
+        self._all_dirty()
+
+    def _serving(self) -> None:
+        """The hosted CAN-ECB serves (again): its tables, relearnt in its recovery, lead."""
+        self._all_dirty()
 
     def _changed(self, uid: int) -> None:
         self._dirty[uid] = None
@@ -363,10 +399,11 @@ class Gateway:
         await fut
 
     async def _reconcile(self, uid: int) -> None:
-        assert self._tables is not None and self.can is not None and self.ip is not None
+        assert self.can is not None and self.ip is not None
         me = self._can_face_txnode()
-        can_subs = self._tables.subscribers.get(uid, set()) - {me}
-        can_pubs = self._tables.publishers.get(uid, set()) - {me}
+        tables = self._tables()
+        can_subs = tables.subscribers.get(uid, set()) - {me}
+        can_pubs = tables.publishers.get(uid, set()) - {me}
         channel = Channel(uid)
 
         if can_subs and uid not in self._to_can_sinks:  # IP -> CAN

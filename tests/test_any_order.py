@@ -1,14 +1,23 @@
 """Subscribed means delivered, in the start orders a new user meets (issue 38): a pattern
 subscriber on TCP/IP gets the events of channels named after it, also channels published
-once; with TLS and an ACL, exactly those its identity may read."""
+once (with TLS and an ACL, exactly those its identity may read); a gateway that joins a running
+bus forwards what was bound before it came, to TCP/IP and to Zenoh."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import socket
 from pathlib import Path
 
-from .procs import Proc, start_tcp_broker
+import pytest
+
+from ups._canlink import open_bus
+
+from .procs import Proc, private_multicast_bus, start_tcp_broker
 from .test_acl import fleet as fleet
+from .test_gateway_processes import event_ids
+from .test_zenoh_processes import start_router
 
 NO_ENV = {"UPS_BROKER": "", "UPS_CAN": "", "UPS_ZENOH": "", "UPS_CATALOG": ""}
 
@@ -70,3 +79,46 @@ def test_with_tls_and_an_acl_a_pattern_gets_exactly_what_its_identity_may_read(
         sub.stop()
     assert sorted(events[:2]) == [("fleet/go", "01"), ("robot/speed", "01")]
     assert events[2] == ("fleet/go", "02")
+
+
+def _free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+@pytest.mark.parametrize(
+    ("side", "mode"),
+    [("broker", "--external-can-ecb"), ("zenoh", "--external-can-ecb"), ("broker", "hosting")],
+)
+def test_a_gateway_that_joins_a_running_bus_forwards_what_was_bound_before_it(
+    side: str, mode: str, tmp_path: Path
+) -> None:
+    """`ups can-broker`, a CAN publisher, then `ups gateway --external-can-ecb`: a subscriber
+    on the IP side gets the publisher's events (before: 0 events, `bindings: 0`). So does a
+    gateway that hosts a CAN-ECB of its own, which stands by for the one already serving."""
+    bus = private_multicast_bus()
+    with contextlib.ExitStack() as stack:
+        if side == "broker":
+            broker, where = start_tcp_broker("--recovery", "0")
+            stack.enter_context(broker)
+        else:
+            where = _free_endpoint()
+            stack.enter_context(start_router(where))
+        ip = (f"--{side}", where)
+        ecb = stack.enter_context(Proc("can-broker", "--can", bus, "--db", str(tmp_path / "e.db")))
+        ecb.wait_for_line("CAN-ECB on")
+        stack.enter_context(
+            Proc("pub", "robot/speed", "0032", "--can", bus, "--count", "100000", "--rate", "20")
+        )
+        listener = open_bus(bus)
+        stack.callback(listener.shutdown)
+        event_ids(listener, 2)  # it publishes: its channel was bound before the gateway came
+        own = ("--db", str(tmp_path / "gw.db")) if mode == "hosting" else (mode,)
+        gw = stack.enter_context(Proc("gateway", *own, "--can", bus, *ip, "--node-id", "0x6a7f"))
+        gw.wait_for_line("gateway .* between", timeout=60)
+        with Proc("sub", "robot/speed", *ip, "--json", "--count", "3", "--timeout", "20",
+                  env=NO_ENV) as sub:  # fmt: skip
+            code, out = sub.finish(timeout=40)
+        assert code == 0, "".join(sub.stderr_lines[-20:] + gw.stderr_lines[-20:])
+    assert [json.loads(line)["data"] for line in out.splitlines()] == ["0032"] * 3

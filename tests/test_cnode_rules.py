@@ -116,6 +116,26 @@ def test_every_row_of_the_table_is_well_formed() -> None:
     assert w.node.counters()["malformed"] == 3
 
 
+def test_the_roster_frames_are_ignored_cleanly() -> None:
+    """A gateway's Roster and the CAN-ECB's Uses and RosterEnd need no action from a node: they
+    are neither malformed nor answered, in every build; a RosterEnd that says done and names a
+    next UID is malformed."""
+    for variant in ("full", "min"):
+        w = Wire(variant=variant)
+        w.join()
+        w.drain()
+        sent = len(w.mgmt())
+        for msg in (p.Roster(5, 0), p.Roster(5, CMD), p.Uses(False, 5, CMD), p.Uses(True, 6, CMD),
+                    p.RosterEnd(5, CMD, False), p.RosterEnd(5, 0, True)):  # fmt: skip
+            w.feed(msg)
+        w.tick(100)
+        assert w.node.counters()["malformed"] == 0, variant
+        assert len(w.mgmt()) == sent, variant
+        can_id, _ = p.encode(p.RosterEnd(5, 0, True))
+        w.feed_raw(can_id, CMD.to_bytes(8, "big"))
+        assert w.node.counters()["malformed"] == 1, variant
+
+
 # --- binding --------------------------------------------------------------------------------
 
 

@@ -76,6 +76,7 @@ def id_of(nibbles: tuple[int, ...]) -> int:
 _OP_STAGE, _OP_QUERY, _OP_ASSIGN, _OP_STATUS = 0, 1, 2, 3
 _ST_CENSUS, _ST_TXNODES_FULL, _ST_ETAGS_FULL, _ST_HELLO, _ST_GRANT, _ST_REFUSE = range(6)
 _ST_SERVING, _ST_FAILED, _ST_LIMIT, _ST_PROBE = 6, 7, 8, 9
+_ST_USES_SUB, _ST_USES_PUB, _ST_ROSTER_END = 10, 11, 12
 _ST_KNOCK = 0xF
 _OFFER = 0x80  #: in an Assign frame's argument: only an offer
 
@@ -203,6 +204,26 @@ class Refuse:
     response_10us: int
 
 
+@dataclass(frozen=True, slots=True)
+class Uses:
+    """Part of the CAN-ECB's answer to a Roster: node ``txnode`` subscribes to (``publish``
+    false) or publishes on (true) channel ``uid``."""
+
+    publish: bool
+    txnode: int
+    uid: int
+
+
+@dataclass(frozen=True, slots=True)
+class RosterEnd:
+    """The end of one answer to the Roster of ``txnode``: ``done``, the roster is complete
+    (``next`` is 0); else ask again from ``next`` (the lowest UID not listed yet)."""
+
+    txnode: int
+    next: int
+    done: bool
+
+
 RESPONSE_UNBOUNDED = 0xFFFF
 TIME_UNIT_US = 100  #: declared periods, deadlines and jitters are multiples of 100 us
 
@@ -224,6 +245,7 @@ SUB_BIND = 0x0002  #: bind a channel and subscribe to it
 UNSUB = 0x0003  #: the node's last subscriber of the channel left
 CLAIM = 0x0004  #: "I hold this TxNode": the answer to Hello
 DECLARE = 0x0005  #: a real-time declaration (see Declare)
+ROSTER = 0x0006  #: who uses which channel, from a UID on (see Roster)
 PUB_BIND_CLASS = 0x0008  #: 0x0009..0x000C: PUB_BIND for events of size class 1..4
 SIZE_CLASSES = 5  #: size class 0 (one frame) and the four classes of larger events
 _REQUEST_KINDS = (PUB_BIND, SUB_BIND, UNSUB, CLAIM)
@@ -265,6 +287,15 @@ class Declare:
     jitter: int  # 0..255
 
 
+@dataclass(frozen=True, slots=True)
+class Roster:
+    """A joined node asks the CAN-ECB who uses the channels whose UIDs are ``cursor`` or
+    higher (a gateway that joins a running bus); answered with Uses frames, then RosterEnd."""
+
+    txnode: int
+    cursor: int
+
+
 Management = (
     Knock
     | Census
@@ -285,13 +316,16 @@ Management = (
     | Request
     | Holds
     | Declare
+    | Roster
+    | Uses
+    | RosterEnd
 )
 
 #: The frames only a CAN-ECB sends (a CAN-ECB that hears one it did not send knows that
 #: another CAN-ECB, or a forger, is on the bus).
 ECB_FRAMES = (
     Census, Query, Offer, Assign, Hello, Serving, Probe, TxNodesFull, EtagsFull, Failed, Limit,
-    Grant, Refuse, Bind,
+    Grant, Refuse, Bind, Uses, RosterEnd,
 )  # fmt: skip
 
 
@@ -335,6 +369,14 @@ def encode(msg: Management) -> tuple[int, bytes]:
             ">HBBHH", msg.etag, msg.txnode, msg.miss_txnode, msg.miss_etag, msg.response_10us
         )
         return _config_id(_OP_STATUS, _ST_REFUSE << 8), data
+    if isinstance(msg, Uses):
+        status = _ST_USES_PUB if msg.publish else _ST_USES_SUB
+        return _config_id(_OP_STATUS, (status << 8) | msg.txnode), msg.uid.to_bytes(8, "big")
+    if isinstance(msg, RosterEnd):
+        arg = (_ST_ROSTER_END << 8) | (0x80 if msg.done else 0) | msg.txnode
+        return _config_id(_OP_STATUS, arg), msg.next.to_bytes(8, "big")
+    if isinstance(msg, Roster):
+        return make_id(CONFIG_PRIORITY, msg.txnode, ROSTER), msg.cursor.to_bytes(8, "big")
     if isinstance(msg, Bind):
         return make_id(BIND_PRIORITY, MGMT_TXNODE, msg.etag), msg.uid.to_bytes(8, "big")
     if isinstance(msg, Holds):
@@ -393,6 +435,13 @@ def _decode_status(status: int, low: int, data: bytes, can_id: int) -> Managemen
         return Census(low)
     if status == _ST_LIMIT and low < TXNODE_COUNT:
         return Limit(low, _u64(data, can_id))
+    if status in (_ST_USES_SUB, _ST_USES_PUB) and low < TXNODE_COUNT:
+        return Uses(status == _ST_USES_PUB, low, _u64(data, can_id))
+    if status == _ST_ROSTER_END and low & 0x7F < TXNODE_COUNT:
+        value, done = _u64(data, can_id), bool(low & 0x80)
+        if done and value:
+            raise DecodeError(f"a complete roster names no next UID: {can_id:#010x}")
+        return RosterEnd(low & 0x7F, value, done)
     if low:
         raise DecodeError(f"unknown status frame {can_id:#010x}")
     if status == _ST_KNOCK:
@@ -445,6 +494,8 @@ def _decode_node_frame(
         ):
             raise DecodeError(f"bad declaration {data.hex()}")
         return Declare(txnode, etag, size, period, deadline, jitter)
+    if priority == CONFIG_PRIORITY and etag == ROSTER:
+        return Roster(txnode, _u64(data, can_id))
     if priority == CONFIG_PRIORITY and PUB_BIND_CLASS < etag < PUB_BIND_CLASS + SIZE_CLASSES:
         return Request(PUB_BIND, txnode, _u64(data, can_id), etag - PUB_BIND_CLASS)
     if priority != CONFIG_PRIORITY or etag not in _REQUEST_KINDS:

@@ -18,7 +18,7 @@ LAST_ETAG = 0x3FFF
 BEST_EFFORT = 0x80  #: default priority of best-effort events
 
 # --- node requests: priority 0x00, own TxNode, etag 0x0001-0x0005, 8 data bytes -------------
-PUB_BIND, SUB_BIND, UNSUB, CLAIM, DECLARE = 1, 2, 3, 4, 5
+PUB_BIND, SUB_BIND, UNSUB, CLAIM, DECLARE, ROSTER = 1, 2, 3, 4, 5, 6
 REQUEST_NAMES = {PUB_BIND: "PUB_BIND", SUB_BIND: "SUB_BIND", UNSUB: "UNSUB", CLAIM: "CLAIM"}
 
 # --- CAN-ECB / joiner frames: priority 0x00, TxNode 0x7F, op in the etag's two high bits -----
@@ -27,6 +27,8 @@ OFFER_BIT = 0x80  #: in the etag field of op 0b10: an Offer, not an Assign
 # status codes: bits 11..8 of the etag field when the op is 0b11
 S_CENSUS, S_TXNODES_FULL, S_ETAGS_FULL, S_HELLO, S_GRANT = 0x0, 0x1, 0x2, 0x3, 0x4
 S_REFUSE, S_SERVING, S_FAILED, S_LIMIT, S_PROBE, S_KNOCK = 0x5, 0x6, 0x7, 0x8, 0x9, 0xF
+S_USES_SUB, S_USES_PUB, S_ROSTER_END = 0xA, 0xB, 0xC
+DONE_BIT = 0x80  #: in RosterEnd's etag field: the roster is complete
 
 
 def ident(priority: int, txnode: int, etag: int) -> int:
@@ -139,6 +141,26 @@ class Knock:
 
 
 @dataclass(frozen=True, order=True)
+class Uses:
+    publish: bool
+    txnode: int
+    uid: int
+
+
+@dataclass(frozen=True, order=True)
+class RosterEnd:
+    txnode: int  #: the node whose Roster this answers
+    next: int
+    done: bool
+
+
+@dataclass(frozen=True, order=True)
+class Roster:
+    txnode: int
+    cursor: int
+
+
+@dataclass(frozen=True, order=True)
 class Bind:
     etag: int
     uid: int
@@ -212,6 +234,9 @@ Frame = (
     | Failed
     | Limit
     | Knock
+    | Uses
+    | RosterEnd
+    | Roster
     | Bind
     | Request
     | Declare
@@ -238,6 +263,8 @@ ECB_FRAMES = (
     Grant,
     Refuse,
     Bind,
+    Uses,
+    RosterEnd,
 )
 
 
@@ -304,6 +331,12 @@ def encode(frame: Frame) -> tuple[int, bytes]:
             return _status(S_LIMIT, t), _u64(uid)
         case Knock():
             return _status(S_KNOCK), b""
+        case Uses(publish, t, uid):
+            return _status(S_USES_PUB if publish else S_USES_SUB, t), _u64(uid)
+        case RosterEnd(t, after, done):
+            return _status(S_ROSTER_END, (DONE_BIT if done else 0) | t), _u64(after)
+        case Roster(t, cursor):
+            return ident(0, t, ROSTER), _u64(cursor)
         case Bind(etag, uid):
             return ident(1, ECB, etag), _u64(uid)
         case Request(kind, t, value):
@@ -366,6 +399,8 @@ def decode_id(identifier: int, data: bytes) -> Frame:
         return bad
     if prio == 0x00 and PUB_BIND <= etag <= CLAIM and value is not None:
         return Request(etag, tx, value)
+    if prio == 0x00 and etag == ROSTER and value is not None:
+        return Roster(tx, value)
     if prio == 0x00 and etag == DECLARE and len(data) == 8:
         return Declare(
             tx,
@@ -407,6 +442,13 @@ def _decode_ecb(etag: int, data: bytes) -> Frame | None:
         return Knock() if low == 0 and not data else None
     if a == S_LIMIT:
         return Limit(low, value) if not low & 0x80 and value is not None else None
+    if a in (S_USES_SUB, S_USES_PUB):  # 11 101p 0ttt tttt
+        return Uses(a == S_USES_PUB, low, value) if low < 0x7F and value is not None else None
+    if a == S_ROSTER_END:  # 11 1100 dttt tttt; done: the next UID is 0
+        t, done = low & 0x7F, bool(low & DONE_BIT)
+        if t == 0x7F or value is None or (done and value):
+            return None
+        return RosterEnd(t, value, done)
     if low or value is None:
         return None
     if a == S_GRANT:
