@@ -367,10 +367,10 @@ class TcpEcb:
             if frame.name is not None and self._names.get(uid) != frame.name:
                 self._names[uid] = frame.name
                 self._watches.named(uid, frame.name)
-            if subscribe:
-                self._answer(member, uid, subscribe=True)
+            if subscribe:  # publishers hear of a new subscriber before it is answered
                 if new:
                     self._push(uid, skip=member.node_id)
+                self._answer(member, uid, subscribe=True)
             else:  # subscribers hear of a new publisher before it hears of them
                 if new:
                     self._vouch(uid, member)

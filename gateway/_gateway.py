@@ -34,7 +34,7 @@ from typing import IO, Any
 from ups import _canproto as p
 from ups import _cantransfer as sizes
 from ups._canlink import CanLink
-from ups._channel import Channel
+from ups._catalog import Catalog
 from ups._errors import AccessDenied, ConfigError, UpsError
 from ups._face import ChannelState
 from ups._message import Message
@@ -75,8 +75,9 @@ class Gateway:
     By default it hosts the bus's CAN-ECB, its tables in the SQLite file ``db`` (by default the
     bus's own file, ``broker._store.default_db``, the same a standalone CAN-ECB would use);
     ``host_can_ecb=False`` uses a CAN-ECB that already serves the bus. In that case the gateway
-    learns who subscribes and publishes from the nodes' requests, so it sees only what nodes
-    register after it starts, or re-announce when their CAN-ECB restarts. ``bitrate`` is the
+    learns who subscribes and publishes from the nodes' requests and from the serving CAN-ECB's
+    roster (``_tables``). ``catalog`` names the bus's channels on the IP side (pattern
+    subscriptions there match names). ``bitrate`` is the
     bus's bit rate (admission control, pacing). ``recovery`` is the hosted CAN-ECB's recovery
     window after its Hello (``CanEcb``'s; shorter only where no node can be on the bus before
     the gateway, as in the demo's own virtual bus). ``listen`` is where TCP publishers reach it
@@ -100,6 +101,7 @@ class Gateway:
         join_timeout: float | None = 30.0,
         can_queue: int = 256,
         tls: Tls | None = None,
+        catalog: Catalog | None = None,
     ) -> None:
         if can_queue < 1:
             raise ConfigError(f"can_queue must be at least 1, got {can_queue}")
@@ -115,6 +117,9 @@ class Gateway:
             require_zenoh()
         self._can_spec = can
         self._tls = tls
+        #: names of the bus's channels (CAN nodes send none): registered with them on the IP
+        #: side, so that the TCP-ECB and Zenoh match them against pattern subscriptions
+        self._catalog = catalog or Catalog()
         #: the IP side: ("broker", HOST:PORT) or ("zenoh", ENDPOINT)
         self._ip_network = ("broker", broker) if broker is not None else ("zenoh", zenoh or "")
         self._zenoh_config = zenoh_config
@@ -404,7 +409,7 @@ class Gateway:
         tables = self._tables()
         can_subs = tables.subscribers.get(uid, set()) - {me}
         can_pubs = tables.publishers.get(uid, set()) - {me}
-        channel = Channel(uid)
+        channel = self._catalog.channel(uid)
 
         if can_subs and uid not in self._to_can_sinks:  # IP -> CAN
             can_state = await self.can._publishing_state(channel)
@@ -421,7 +426,9 @@ class Gateway:
             log.info("stopped forwarding %016x from %s to CAN", uid, self.side)
 
         ip_state = None
-        if can_pubs:  # advertise it on the IP side, to learn who subscribes
+        if can_pubs or can_subs:  # advertise it on the IP side, to learn who subscribes:
+            # a channel used on the bus is forwarded from the moment it has IP subscribers,
+            # so that a publisher that comes later loses none of its first events
             try:
                 ip_state = await self.ip._publishing_state(channel)
             except AccessDenied as exc:

@@ -20,6 +20,7 @@ from ups import tools
 from ups._address import DEFAULT_PORT
 from ups._cliargs import (
     add_can,
+    add_catalog,
     add_tls,
     add_zenoh,
     add_zenoh_config,
@@ -199,6 +200,8 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    add_catalog(cmd, "channel names, given on the IP side to the bus's channels (so patterns "
+                "there match them)")  # fmt: skip
     add_tls(cmd, node=True)
     add_metrics(cmd)
     cmd.set_defaults(run=_run_gateway)
@@ -380,6 +383,7 @@ def _run_broker(args: argparse.Namespace) -> int:
 
 
 def _run_gateway(args: argparse.Namespace) -> int:
+    from ups._catalog import load_catalog
     from ups.gateway import Gateway, serve
 
     broker, zenoh = args.broker, args.zenoh
@@ -403,6 +407,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         node_id=args.node_id,
         listen=args.listen,
         tls=tls_of(args),
+        catalog=load_catalog(args.catalog),
     )
     warn_if_virtual(args.can)
 
