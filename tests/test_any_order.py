@@ -122,3 +122,25 @@ def test_a_gateway_that_joins_a_running_bus_forwards_what_was_bound_before_it(
             code, out = sub.finish(timeout=40)
         assert code == 0, "".join(sub.stderr_lines[-20:] + gw.stderr_lines[-20:])
     assert [json.loads(line)["data"] for line in out.splitlines()] == ["0032"] * 3
+
+
+def test_a_subscriber_started_before_its_tcp_ecb_gets_every_event() -> None:
+    """`ups sub ... --join-timeout 15`, then the TCP-ECB, then a publisher: every event."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    net = ("--broker", f"127.0.0.1:{port}")
+    with Proc("sub", "robot/speed", "fleet/*", *net, "--json", "--join-timeout", "15",
+              "--count", "6", "--timeout", "40", env=NO_ENV) as sub:  # fmt: skip
+        sub.wait_for_line("waiting for the TCP-ECB")
+        broker, _ = start_tcp_broker(port=port)
+        with broker:
+            sub.wait_for_line("subscribed to")
+            _publish(net, "robot/speed", "0032", count=3, extra=("--rate", "50"))
+            _publish(net, "fleet/c1", "01")
+            _publish(net, "fleet/c2", "02", count=2)
+            code, out = sub.finish(timeout=40)
+    assert code == 0, "".join(sub.stderr_lines[-10:])
+    events = sorted((e["channel"], e["data"]) for e in map(json.loads, out.splitlines()))
+    assert events == [("fleet/c1", "01"), ("fleet/c2", "02"), ("fleet/c2", "02"),
+                      *[("robot/speed", "0032")] * 3]  # fmt: skip
