@@ -4,6 +4,7 @@ channel catalog. A channel that is named later joins; a literal name is never a 
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 from collections.abc import AsyncIterator
@@ -14,6 +15,7 @@ import pytest
 import zenoh
 
 from ups import AccessDenied, Channel, ConfigError, Message, Node, Subscription, name_to_uid
+from ups import _tcpwire as w
 from ups._catalog import Catalog
 from ups.broker._acl import Acl
 from ups.broker.tcp_ecb import TcpEcb
@@ -154,3 +156,35 @@ async def test_can_a_pattern_takes_its_names_from_the_catalog(bus: str, ecb: Any
         assert msg.channel.name == "robot/brake" and msg.data == b"\x01"
         with pytest.raises(ConfigError, match="names come only from a channel catalog"):
             await b.subscribe("robot/*")  # no catalog: refused, never a literal
+
+
+async def _raw_publisher(node: Node, *frames: bytes) -> asyncio.StreamWriter:
+    """A publisher's link to ``node``, written by hand: Hello, then ``frames``."""
+    host, port = node.face.address
+    _, writer = await asyncio.open_connection(host, port)
+    writer.write(w.encode(w.Hello(0xFEED, "raw", "127.0.0.1", 1)) + b"".join(frames))
+    await writer.drain()
+    return writer
+
+
+async def test_tcp_a_start_that_comes_before_the_names_waits_for_them(tcp_ecb: TcpEcb) -> None:
+    """A publisher's Start (and event) of a channel the node does not subscribe to yet, while it
+    watches a pattern, waits for the TCP-ECB's Names; one never named goes on after 1 s,
+    counted as unsubscribed. Nothing is delivered twice, nothing out of order."""
+    uid, other = name_to_uid("fleet/early"), name_to_uid("other/never")
+    async with tcp_node(tcp_ecb, "a") as a, tcp_node(tcp_ecb, "b") as b:
+        sub = await a.subscribe("fleet/*")
+        writer = await _raw_publisher(
+            a, w.encode(w.Start(uid, 1)), w.encode_event(uid, b"\x01", 0x80, 1),
+            w.encode_event(uid, b"\x02", 0x80, 2),
+        )  # fmt: skip
+        await b.advertise("fleet/early")  # the ECB names it to a's pattern now
+        got = [await sub.get_msg(timeout=5) for _ in range(2)]
+        assert [m.data for m in got] == [b"\x01", b"\x02"] and got[0].channel.name == "fleet/early"
+        writer.write(w.encode(w.Start(other, 1)) + w.encode_event(other, b"\x09", 0x80, 1)
+                     + w.encode_event(uid, b"\x03", 0x80, 3))  # fmt: skip
+        await writer.drain()
+        msg = await sub.get_msg(timeout=5)  # after the second the name of other/never is owed
+        assert msg.data == b"\x03" and a.stats()["unsubscribed"] == 1
+        assert a.stats()["lost"] == 0
+        writer.close()
