@@ -41,7 +41,7 @@ PATTERN = "ord/*"
 EXAMPLES = int(os.environ.get("UPS_ORDER_EXAMPLES", "3"))
 NO_ENV = {"UPS_BROKER": "", "UPS_CAN": "", "UPS_ZENOH": "", "UPS_CATALOG": ""}
 READY = {
-    "tcp-ecb": r"TCP-ECB on",
+    "ip-broker": r"TCP-ECB on|Zenoh router .* on",
     "ecb": r"CAN-ECB on",
     "gw": r"gateway .* between",
     "sub": r"subscribed to",
@@ -56,19 +56,20 @@ class Scene:
     buses: tuple[str, ...]  # "A", and maybe "B"
     standalone: tuple[str, ...]  # buses with an `ups can-broker`
     gateways: tuple[tuple[str, bool], ...]  # (bus, hosts a CAN-ECB)
-    subs: tuple[tuple[str, str], ...]  # (network: "tcp" or a bus, channel or pattern)
+    subs: tuple[tuple[str, str], ...]  # (network: "ip" or a bus, channel or pattern)
     feeds: tuple[str | None, ...]  # the network of each channel's long-lived publisher, if any
     shots: tuple[tuple[str, str], ...]  # short-lived publishers: (network, channel)
-    order: tuple[str, ...]  # the start actions, "tcp-ecb", "ecb:A", "gw:0", "sub:1", "feed:2"
+    order: tuple[str, ...]  # the start actions, "ip-broker", "ecb:A", "gw:0", "sub:1", "feed:2"
     gaps: tuple[float, ...]  # seconds before each action
     restart: tuple[int, str] | None  # (after the action at this index, what restarts)
+    ip: str = "tcp"  # the IP network: "tcp" (a TCP-ECB) or "zenoh" (a Zenoh router)
 
     def reaches(self, source: str, sink: str) -> bool:
         """Whether an event published on network ``source`` can reach one ``sink``."""
         bridged = {bus for bus, _ in self.gateways}
         if source == sink:
             return True
-        return (source == "tcp" or source in bridged) and (sink == "tcp" or sink in bridged)
+        return (source == "ip" or source in bridged) and (sink == "ip" or sink in bridged)
 
 
 @st.composite
@@ -82,19 +83,20 @@ def scenes(draw: st.DrawFn) -> Scene:
             gateways.append((bus, kind.startswith("hosting")))
         if kind in ("none", "external", "hosting+ecb"):
             standalone.append(bus)
-    nets = ("tcp", *buses)
+    nets = ("ip", *buses)
     subs = draw(
         st.lists(
             st.tuples(st.sampled_from(nets), st.sampled_from((*CHANNELS, PATTERN))),
             min_size=1,
-            max_size=3,
+            max_size=4,
         )
     )
-    subs = [(net, CHANNELS[0] if net != "tcp" and spec == PATTERN else spec) for net, spec in subs]
+    subs = [(net, CHANNELS[0] if net != "ip" and spec == PATTERN else spec) for net, spec in subs]
     feeds = tuple(draw(st.sampled_from((*nets, None))) for _ in CHANNELS)
-    shot = st.tuples(st.sampled_from(nets), st.sampled_from(CHANNELS))
-    shots = draw(st.lists(shot, min_size=1, max_size=3))
-    actions = ["tcp-ecb", *(f"ecb:{b}" for b in standalone)]
+    wanted = sorted({c for _, spec in subs for c in CHANNELS if _matches(spec, c)})
+    shot = st.tuples(st.sampled_from(nets), st.sampled_from(wanted))  # channels someone wants
+    shots = draw(st.lists(shot, min_size=1, max_size=4))
+    actions = ["ip-broker", *(f"ecb:{b}" for b in standalone)]
     actions += [f"gw:{i}" for i in range(len(gateways))]
     actions += [f"sub:{i}" for i in range(len(subs))]
     actions += [f"feed:{i}" for i, net in enumerate(feeds) if net is not None]
@@ -106,8 +108,9 @@ def scenes(draw: st.DrawFn) -> Scene:
     if restartable and restarting:
         at = draw(st.sampled_from(restartable))
         restart = (draw(st.integers(at, len(order) - 1)), order[at])
+    ip = draw(st.sampled_from(("tcp", "tcp", "zenoh")))
     return Scene(buses, tuple(standalone), tuple(gateways), tuple(subs), feeds, tuple(shots),
-                 order, gaps, restart)  # fmt: skip
+                 order, gaps, restart, ip)  # fmt: skip
 
 
 class Run:
@@ -120,25 +123,30 @@ class Run:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             self.broker = f"127.0.0.1:{s.getsockname()[1]}"
+        self.router = f"tcp/{self.broker}"  # the same free port, for a Zenoh router
         self.catalog = tmp / "catalog.toml"
         self.catalog.write_text("".join(f'[channel."{c}"]\n' for c in CHANNELS))
         self.procs: dict[str, Proc] = {}
         self.retired: list[Proc] = []
 
     def net(self, net: str) -> tuple[str, ...]:
-        return ("--broker", self.broker) if net == "tcp" else ("--can", self.bus[net])
+        if net != "ip":
+            return ("--can", self.bus[net])
+        return ("--broker", self.broker) if self.scene.ip == "tcp" else ("--zenoh", self.router)
 
     def start(self, action: str) -> None:
         kind, _, arg = action.partition(":")
         scene = self.scene
-        if kind == "tcp-ecb":
+        if kind == "ip-broker" and scene.ip == "tcp":
             proc = Proc("broker", "--listen", self.broker)
+        elif kind == "ip-broker":
+            proc = Proc("zenoh-router", "--listen", self.router)
         elif kind == "ecb":
             proc = Proc("can-broker", *self.net(arg), "--db", str(self.tmp / f"ecb-{arg}.db"))
         elif kind == "gw":
             bus, hosting = scene.gateways[int(arg)]
             own = ("--db", str(self.tmp / f"gw-{arg}.db")) if hosting else ("--external-can-ecb",)
-            ip = ("--broker", self.broker, "--catalog", str(self.catalog))
+            ip = (*self.net("ip"), "--catalog", str(self.catalog))
             proc = Proc("gateway", *own, *self.net(bus), *ip, "--node-id", hex(0x6A00 + int(arg)))
         elif kind == "sub":
             net, spec = scene.subs[int(arg)]
@@ -252,7 +260,7 @@ def _log(scene: Scene, subs: list[tuple[Proc, str, str]], shots: list[tuple[str,
                   for _, net, spec in subs for n, c, _ in shots)  # fmt: skip
     lost = sum(int(m.group(1)) for sub, _, _ in subs
                for m in re.finditer(r"lost (\d+) events", "".join(sub.stderr_lines)))  # fmt: skip
-    row = {"order": scene.order, "restart": scene.restart, "gateways": scene.gateways,
+    row = {"ip": scene.ip, "buses": scene.buses, "order": scene.order, "restart": scene.restart, "gateways": scene.gateways,
            "standalone": scene.standalone, "subs": scene.subs, "feeds": scene.feeds,
            "shots": len(shots), "deliveries_checked": checked,
            "events": sum(len(sub.stdout_lines) for sub, _, _ in subs), "counted_lost": lost,
@@ -263,12 +271,12 @@ def _log(scene: Scene, subs: list[tuple[Proc, str, str]], shots: list[tuple[str,
 
 #: the two orders of issue 38, always tried: a gateway that joins a running bus with a
 #: publisher on it, and a pattern subscriber whose channels are named by one event each
-LATE_GATEWAY = Scene(("A",), ("A",), (("A", False),), (("tcp", "ord/c0"),), ("A", None, None),
-                     (("A", "ord/c0"),), ("tcp-ecb", "ecb:A", "feed:0", "sub:0", "gw:0"),
+LATE_GATEWAY = Scene(("A",), ("A",), (("A", False),), (("ip", "ord/c0"),), ("A", None, None),
+                     (("A", "ord/c0"),), ("ip-broker", "ecb:A", "feed:0", "sub:0", "gw:0"),
                      (0.0, 0.0, 0.0, 0.0, 4.0), None)  # fmt: skip
-NAMED_LATER = Scene(("A",), ("A",), (), (("tcp", PATTERN),), (None, None, None),
-                    (("tcp", "ord/c1"), ("tcp", "ord/c2"), ("A", "ord/c0")),
-                    ("tcp-ecb", "ecb:A", "sub:0"), (0.0, 0.0, 0.0), None)  # fmt: skip
+NAMED_LATER = Scene(("A",), ("A",), (), (("ip", PATTERN),), (None, None, None),
+                    (("ip", "ord/c1"), ("ip", "ord/c2"), ("A", "ord/c0")),
+                    ("ip-broker", "ecb:A", "sub:0"), (0.0, 0.0, 0.0), None)  # fmt: skip
 
 
 @pytest.mark.netns
