@@ -260,7 +260,8 @@ def _log(scene: Scene, subs: list[tuple[Proc, str, str]], shots: list[tuple[str,
                   for _, net, spec in subs for n, c, _ in shots)  # fmt: skip
     lost = sum(int(m.group(1)) for sub, _, _ in subs
                for m in re.finditer(r"lost (\d+) events", "".join(sub.stderr_lines)))  # fmt: skip
-    row = {"ip": scene.ip, "buses": scene.buses, "order": scene.order, "restart": scene.restart, "gateways": scene.gateways,
+    row = {"ip": scene.ip, "buses": scene.buses, "order": scene.order, "restart": scene.restart,
+           "gateways": scene.gateways,
            "standalone": scene.standalone, "subs": scene.subs, "feeds": scene.feeds,
            "shots": len(shots), "deliveries_checked": checked,
            "events": sum(len(sub.stdout_lines) for sub, _, _ in subs), "counted_lost": lost,
