@@ -64,7 +64,7 @@ class CanEcb:
     ``_etags.GATE_TIMEOUT`` s) before the binding of publisher ``txnode`` is answered, so that a
     gateway is forwarding the channel before its first event is sent. ``on_standby(reason)`` is
     called when another CAN-ECB serves the bus and this one stops answering, ``on_serving()``
-    when it takes over again.
+    whenever it serves with whole tables (a recovery window ended, not standing by).
     """
 
     def __init__(
@@ -252,6 +252,8 @@ class CanEcb:
         self.started_up = True
         self._etags.replay()
         self._rosters.pump()  # the tables are whole again: rosters asked meanwhile
+        if self.on_serving is not None:
+            self.on_serving()
         if self._knocked:
             self._knocked = False
             self._census.knock()
@@ -359,8 +361,6 @@ class CanEcb:
             log.warning("the other CAN-ECB is silent: this one serves the bus again")
             self.standby = False
             self.started_up = False  # it heard nothing while standing by: learn the bus anew
-            if self.on_serving is not None:
-                self.on_serving()
         for frame in frames:
             if isinstance(frame, p.Hello):
                 self._hello()  # and a recovery window (the candidacy ends with it, or sooner)

@@ -323,9 +323,10 @@ class Gateway:
     # --- deciding what to forward ----------------------------------------------------------
 
     def _tables(self) -> CanEcb | Tables:
-        """The tables that say who uses what now: the hosted CAN-ECB's while it serves, else
-        what the gateway learnt (requests heard, the serving CAN-ECB's roster)."""
-        if self._ecb is not None and not self._ecb.standby:
+        """The tables that say who uses what now: the hosted CAN-ECB's while it serves with
+        whole tables, else what the gateway learnt (requests heard, the serving CAN-ECB's
+        roster): while the CAN-ECB stands by, or relearns the bus in a recovery window."""
+        if self._ecb is not None and not self._ecb.standby and not self._ecb.recovering:
             return self._ecb
         assert self._learnt is not None
         return self._learnt
@@ -347,7 +348,7 @@ class Gateway:
         self._all_dirty()
 
     def _serving(self) -> None:
-        """The hosted CAN-ECB serves (again): its tables, relearnt in its recovery, lead."""
+        """The hosted CAN-ECB serves with whole tables (a recovery ended): they lead again."""
         self._all_dirty()
 
     def _changed(self, uid: int) -> None:

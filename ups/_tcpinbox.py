@@ -298,8 +298,9 @@ class Inbox:
                 self._start(link, pub, item)
             else:
                 self._event(link, *item)
-            if pub.held is not None:  # still not vouched for: wait on
-                pub.held.extend(held[i + 1 :])
+            again = _held(pub)  # (not pub.held: mypyc would keep it None, as mypy narrowed it)
+            if again is not None:  # still not vouched for (or named): wait on
+                again.extend(held[i + 1 :])
                 return
         self._holding.discard(link)
         if pub.timer is not None:
@@ -337,3 +338,8 @@ class Inbox:
             "it as a publisher",
             len(events), pub.identity, pub.node_id, link.name, ", ".join(uids),
         )  # fmt: skip
+
+
+def _held(pub: _Publisher) -> list[_HeldEvent | w.Start] | None:
+    """What ``pub``'s link holds now (None: it goes on)."""
+    return pub.held
