@@ -75,9 +75,9 @@ class Watches:
         """Whether the node watches any pattern."""
         return bool(self._by_node.get(node_id))
 
-    def pattern_subscriptions(self, node_id: int) -> int:
-        """How many channels the node subscribes to by its patterns."""
-        return len(self._implied_of.get(node_id, ()))
+    def implied_of(self, node_id: int) -> set[int]:
+        """The channels the node subscribes to by its patterns (a copy)."""
+        return set(self._implied_of.get(node_id, ()))
 
     def handle(self, node_id: int, frame: w.Watch | w.Unwatch) -> str | None:
         """A node's Watch or Unwatch; the reason to refuse it, or None."""

@@ -335,7 +335,7 @@ class TcpEcb:
             }
             if member.address != (hello.host, hello.port):
                 member.address = (hello.host, hello.port)
-                for uid in member.subs:
+                for uid in member.subs | self._watches.implied_of(hello.node_id):
                     self._push(uid)
             log.info(
                 "node %016x (%s) is back from %s:%d", hello.node_id, hello.name, *member.address

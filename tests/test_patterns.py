@@ -188,3 +188,22 @@ async def test_tcp_a_start_that_comes_before_the_names_waits_for_them(tcp_ecb: T
         assert msg.data == b"\x03" and a.stats()["unsubscribed"] == 1
         assert a.stats()["lost"] == 0
         writer.close()
+
+
+async def test_tcp_a_pattern_subscriber_back_at_another_address_is_reached_there(
+    tcp_ecb: TcpEcb,
+) -> None:
+    """The same node id says Hello again from a new process (another listening port) before
+    the old one left: its publishers are told its new address for its pattern's channels too."""
+    async with tcp_node(tcp_ecb, "p") as p:
+        await p.advertise("fleet/a")
+        old = tcp_node(tcp_ecb, "w", node_id=0xBEEF)
+        await old.start()
+        await old.subscribe("fleet/*")  # the ECB lists it, at its old address, for fleet/a
+        try:
+            async with tcp_node(tcp_ecb, "w", node_id=0xBEEF) as new:
+                sub = await new.subscribe("fleet/*")
+                msg = await received(sub, p, "fleet/a", b"\x07")
+                assert msg.channel.name == "fleet/a"
+        finally:
+            await old.close()
