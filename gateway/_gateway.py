@@ -46,6 +46,7 @@ from ups.broker.can_ecb import RECOVERY, CanEcb
 from ups.rt import frame_bits
 
 from ._tables import Tables
+from ._tap import Tap
 
 log = logging.getLogger("ups.gateway")
 
@@ -141,6 +142,7 @@ class Gateway:
         #: who uses what on the bus, learnt from the nodes' requests and the CAN-ECB's roster:
         #: the tables forwarded by when there is no hosted CAN-ECB, or while it stands by
         self._learnt: Tables | None = None
+        self._tap: Tap | None = None  #: a new publisher's first events, until forwarded
         self._id_lock: IO[bytes] | None = None
         self.can: Node | None = None
         self.ip: Node | None = None  #: the IP side's node (TCP/IP or Zenoh)
@@ -199,6 +201,12 @@ class Gateway:
             self._ecb.on_serving = self._serving
         self._learnt = Tables(self._link)
         self._learnt.start()
+        self._tap = Tap(
+            self._link, forwarding=self._to_ip_sinks.__contains__, receives=self._receives,
+            own=self._own_txnode, counters=self.counters,
+        )  # fmt: skip
+        self._tap.start()
+        self._tap.wide(self._ecb is None)  # a hosted CAN-ECB's bind gate does its work
         if self._ecb is not None:
             await self._ecb.start()
         else:
@@ -269,6 +277,8 @@ class Gateway:
                 await node.close()
         if self._learnt is not None:
             self._learnt.close()
+        if self._tap is not None:
+            self._tap.close()
         if self._ecb is not None:
             self._ecb.close()
         if self._link is not None and self._owns_link:
@@ -341,6 +351,8 @@ class Gateway:
 
     def _stood_by(self, reason: str) -> None:
         """The hosted CAN-ECB stands by for another: forward by what that one says."""
+        if self._tap is not None:
+            self._tap.wide(True)  # a new publisher's binding is no longer ours to hold
         txnode = self.can.stats().get("txnode") if self.can is not None else None
         if isinstance(txnode, int) and txnode >= 0:  # joined: else it asks once it is
             assert self._learnt is not None
@@ -349,6 +361,8 @@ class Gateway:
 
     def _serving(self) -> None:
         """The hosted CAN-ECB serves with whole tables (a recovery ended): they lead again."""
+        if self._tap is not None:
+            self._tap.wide(False)
         self._all_dirty()
 
     def _changed(self, uid: int) -> None:
@@ -440,14 +454,21 @@ class Gateway:
         elif uid in self._to_ip_sinks and self._lingers(uid):
             return  # forwarded a while longer: the subscribers may be back soon
         if wanted and uid not in self._to_ip_sinks:  # CAN -> IP
-            assert ip_state is not None
+            assert ip_state is not None and self._tap is not None
             sink_ip = _Forward(self._to_ip, ip_state)
-            await self.can._attach(channel, sink_ip)
+            face = self._ip_face()
+            self._tap.forward(uid, lambda data, prio: self._to_ip_data(face, ip_state, data, prio))
+            try:
+                await self.can._attach(channel, sink_ip)
+            finally:
+                self._tap.drop(uid)  # the CAN face receives it now (or could not: tried again)
             self._to_ip_sinks[uid] = sink_ip  # listed once it works
             log.info("forwarding %016x from CAN to %s", uid, self.side)
         elif not wanted and uid in self._to_ip_sinks:
             await self.can._detach(channel, self._to_ip_sinks.pop(uid))
             log.info("stopped forwarding %016x from CAN to %s", uid, self.side)
+        elif not wanted and self._tap is not None:
+            self._tap.drop(uid)  # nobody on the IP side wants what it kept
 
     def _lingers(self, uid: int) -> bool:
         """Whether ``uid``, no longer subscribed on the IP side, is still forwarded: for the
@@ -473,6 +494,11 @@ class Gateway:
     def _to_ip(self, ip_state: ChannelState, msg: Message) -> None:
         self.counters[self._to_ip_counter] += 1
         self._ip_face().send(ip_state, msg.data, msg.priority)
+
+    def _to_ip_data(self, face: Any, ip_state: ChannelState, data: bytes, priority: int) -> None:
+        """What the tap kept or hands over (``_tap``), forwarded as the CAN face's events are."""
+        self.counters[self._to_ip_counter] += 1
+        face.send(ip_state, data, priority)
 
     def _to_can(self, can_state: ChannelState, msg: Message) -> None:
         if len(msg.data) > sizes.MAX_EVENT:
@@ -547,6 +573,15 @@ class Gateway:
         elsewhere, ``subscribed_elsewhere``, and call ``on_targets`` when that changes)."""
         assert self.ip is not None
         return self.ip.face
+
+    def _receives(self, etag: int) -> bool:
+        """Whether the gateway's CAN face receives ``etag`` itself."""
+        face: Any = self.can.face if self.can is not None else None  # a CanFace
+        return face is not None and bool(face.receives(etag))
+
+    def _own_txnode(self) -> int | None:
+        txnode = self.can.stats().get("txnode") if self.can is not None else None
+        return txnode if isinstance(txnode, int) else None
 
     def _can_face_txnode(self) -> int:
         assert self.can is not None

@@ -21,6 +21,8 @@ _COMMON = table(
         "reconcile_errors": "failures to bring a channel's forwarding in line (tried again)",
         "pacer_errors": "events to CAN whose frames could not be sent",
         "denied": "channels the TCP-ECB's ACL does not let the gateway forward",
+        "tapped": "events of a new publisher kept until the gateway forwarded its channel",
+        "tap_dropped": "events of a new publisher dropped: more than the tap keeps per channel",
     },
     {"can_queued": "events waiting to go to CAN, paced to the bit rate"},
 )

@@ -329,6 +329,10 @@ class CanFace:
 
     # --- receiving -------------------------------------------------------------------------
 
+    def receives(self, etag: int) -> bool:
+        """Whether this node receives ``etag``: it relies on its binding, and subscribes."""
+        return etag in self._rx
+
     def _on_frame(self, frame: can.Message) -> None:
         if not frame.is_extended_id or frame.is_remote_frame or frame.is_error_frame:
             self.counters["foreign"] += 1
