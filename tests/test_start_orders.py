@@ -14,8 +14,9 @@ publishers' events of every channel it matches and can reach), and from then on 
 published, by short-lived publishers (`ups pub --count 1`) on any network, reaches every
 subscriber whose channel or pattern matches and that a path reaches exactly once, or is counted
 as lost where the user sees it (`ups sub` says so); no subscriber gets an event of a channel it
-does not match. CI runs the two orders of the issue, one this test found, and ``UPS_ORDER_EXAMPLES`` drawn ones (3 by
-default); a long run sets more, and ``UPS_ORDER_LOG=FILE`` for a line of figures per example.
+does not match. CI runs the two orders of the issue, one this test found, and
+``UPS_ORDER_EXAMPLES`` drawn ones (3 by default); a long run sets more, and
+``UPS_ORDER_LOG=FILE`` for a line of figures per example.
 """
 
 from __future__ import annotations
