@@ -24,15 +24,12 @@ bus moves the channel to a larger class first (see ``CanFace.grow``).
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from ups import _canproto as p
-from ups import _cantransfer as sizes
 from ups._canlink import CanLink
 from ups._catalog import Catalog
 from ups._errors import AccessDenied, ConfigError, UpsError
@@ -43,14 +40,13 @@ from ups._nodeid import claim_node_id
 from ups._tls import Tls
 from ups.broker._store import default_db
 from ups.broker.can_ecb import RECOVERY, CanEcb
-from ups.rt import frame_bits
 
+from ._pacer import Pacer
 from ._tables import Tables
 from ._tap import Tap
 
 log = logging.getLogger("ups.gateway")
 
-_BURST = 4  # frames the pacer may send back to back after an idle spell
 CLOSE_TRIES = 5  # times close() cancels a task (a second apart) before it gives up on it
 #: channels whose forwarding is brought in line at once (each waits for the CAN-ECB and the IP
 #: side); a flood of forged channels then delays a real one by its share of the backlog only
@@ -134,8 +130,8 @@ class Gateway:
         self.name = name
         self._listen = listen
         self._join_timeout = join_timeout
-        self._can_queue: collections.deque[tuple[ChannelState, bytes, int]] = collections.deque()
-        self._can_queue_limit = can_queue
+        self._can_queue = can_queue
+        self._pacer: Pacer | None = None  #: TCP->CAN, paced to the bit rate
         self._link: CanLink | None = None
         self._owns_link = False
         self._ecb: CanEcb | None = None
@@ -154,7 +150,6 @@ class Gateway:
         self._running: set[int] = set()  # the channels being reconciled
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
-        self._pacer_wake = asyncio.Event()
         self.counters = dict.fromkeys(
             (
                 f"to_{self.side}",
@@ -242,7 +237,9 @@ class Gateway:
         self._all_dirty()
         loop = asyncio.get_running_loop()
         self._tasks = [loop.create_task(self._reconciler()) for _ in range(RECONCILERS)]
-        self._tasks.append(loop.create_task(self._pace()))
+        self._pacer = Pacer(self.can.face, bitrate=self.bitrate, fd=self._link.fd,
+                            limit=self._can_queue, counters=self.counters)  # fmt: skip
+        self._tasks.append(loop.create_task(self._pacer.run()))
         self._wake.set()
         address = getattr(ip_face, "address", None)  # where TCP publishers reach us
         log.info(
@@ -305,7 +302,7 @@ class Gateway:
         ip_stats = self.ip.stats() if self.ip else {}
         return {
             **self.counters,
-            "can_queued": len(self._can_queue),
+            "can_queued": len(self._pacer) if self._pacer is not None else 0,
             f"{self.side}_dropped": ip_stats.get("peer_dropped", 0),
             f"{self.side}_lost": ip_stats.get("lost", 0),
             "can_tx_failed": can_stats.get("tx_failed", 0),
@@ -501,70 +498,8 @@ class Gateway:
         face.send(ip_state, data, priority)
 
     def _to_can(self, can_state: ChannelState, msg: Message) -> None:
-        if len(msg.data) > sizes.MAX_EVENT:
-            self.counters["too_large_for_can"] += 1
-            return
-        queue = self._can_queue
-        if len(queue) >= self._can_queue_limit:
-            queue.popleft()
-            self.counters["can_dropped"] += 1
-        queue.append((can_state, msg.data, msg.priority))
-        self._pacer_wake.set()
-
-    async def _pace(self) -> None:
-        """Send the TCP->CAN queue no faster than the bus carries it (token bucket)."""
-        loop = asyncio.get_running_loop()
-        assert self.can is not None
-        face = self.can.face
-        bits_per_s = float(self.bitrate)
-        assert self._link is not None
-        fd = self._link.fd
-        mtu = 64 if fd else 8
-        full = frame_bits(mtu, 29, "worst", fd)
-        capacity = float(_BURST * full)  # the bucket holds bus time, in bits
-        tokens = capacity
-        last = loop.time()
-        queue = self._can_queue
-        while True:
-            if not queue:
-                self._pacer_wake.clear()
-                await self._pacer_wake.wait()
-            now = loop.time()
-            tokens = min(capacity, tokens + (now - last) * bits_per_s)
-            last = now
-            while queue:
-                state, data, priority = queue[0]
-                if len(data) > state.max_size and not await self._grow(state, len(data)):
-                    queue.popleft()
-                    continue
-                if len(data) <= p.CLASSIC_MAX_DATA and state.max_size <= p.CLASSIC_MAX_DATA:
-                    cost = frame_bits(len(data), 29, "worst", fd)
-                else:
-                    cost = sizes.frames_for(len(data), mtu) * full
-                wanted = min(cost, capacity)  # an event longer than the bucket: go into debt
-                if tokens < wanted:
-                    await asyncio.sleep((wanted - tokens) / bits_per_s)
-                    break
-                tokens -= cost
-                queue.popleft()
-                try:
-                    face.send(state, data, priority)
-                except Exception:  # one bad frame must not stop TCP->CAN for every channel
-                    self.counters["pacer_errors"] += 1
-                    log.exception("could not send a TCP->CAN frame on %s", state.channel)
-                    continue
-                self.counters["to_can"] += 1
-
-    async def _grow(self, state: ChannelState, size: int) -> bool:
-        """Move ``state``'s channel to a size class that carries ``size`` bytes on the bus."""
-        assert self.can is not None
-        try:
-            await self.can.face.grow(state, size)
-        except UpsError as exc:  # no etag of that class left, the CAN-ECB does not answer...
-            self.counters["too_large_for_can"] += 1
-            log.warning("cannot forward a %d-byte event of %s: %s", size, state.channel, exc)
-            return False
-        return True
+        assert self._pacer is not None
+        self._pacer.put(can_state, msg.data, msg.priority)
 
     # --- helpers ---------------------------------------------------------------------------
 
