@@ -1,5 +1,5 @@
 """What ``ups bench`` prints and writes: tables beside the paper's figures and the floors and
-peers of the same run, issue 11's targets met or missed with their ratios, and plots
+peers of the same run, the project's targets met or missed with their ratios, and plots
 (matplotlib, when installed). The same tables go to the terminal (aligned text) and to
 report.md (Markdown)."""
 
@@ -105,8 +105,8 @@ def _ups_row(r: dict[str, Any]) -> dict[str, Any]:
 
 
 def targets(r: dict[str, Any]) -> list[tuple[str, float | None, str, bool | None]]:
-    """(target, measured, against what, met) for each of issue 11's; met is None when the
-    figure was not measured in this run."""
+    """(target, measured, against what, met) for each of the project's targets (set when the
+    benchmarks began); met is None when the figure was not measured in this run."""
     rows = r.get("tcp_compare", {}).get("rows", {})
     ups, raw = _ups_row(r), rows.get("raw TCP", {})
     out: list[tuple[str, float | None, str, bool | None]] = []
@@ -250,7 +250,9 @@ def tables(r: dict[str, Any]) -> list[Table]:
                 ["ups --help", f"{s['ups_help'] * 1000:.0f}", f"{s['ratio']:.2f}x"]]  # fmt: skip
         out.append((f"Start-up, median of {s.get('runs', '?')}", ["command", "ms", "x"], body))
     body = [[n, _f(v, ".2f", f" {a}"), _met(m)] for n, v, a, m in targets(r)]
-    out.append(("Issue 11's targets", ["target", "measured", ""], body))
+    out.append(("Targets: UPS against the floors and peers measured in this same run (each "
+                "target says what it compares; met, MISSED, or not measured when a part did "
+                "not run)", ["target", "measured", "met"], body))  # fmt: skip
     return out
 
 
