@@ -53,6 +53,8 @@ def test_a_port_in_use_is_one_line() -> None:
         (["sub", "x"], "which network?"),
         (["sub", "x", "--broker", "nohost:99999"], "expected HOST:PORT"),
         (["pub", "x", "zz", "--broker", "127.0.0.1:1"], "not hex digits"),
+        (["pub", "x", "032", "--broker", "127.0.0.1:1"], "odd number of hex digits (3)"),
+        (["sub", "x", "--zenoh", "127.0.0.1:7447"], "did you mean --zenoh tcp/127.0.0.1:7447"),
         (["can-broker", "--can", "virtual:x", "--db", "/proc/no/such.db"], "cannot use"),
         (["sub", "x", "--can", "nosuch:x"], "cannot open CAN bus"),
         (["sub", "x", "--can", "virtual:x,bogus=1"], "unknown option 'bogus'"),
@@ -72,6 +74,26 @@ def test_a_port_in_use_is_one_line() -> None:
 )
 def test_bad_input_is_one_line(args: list[str], message: str) -> None:
     assert message in one_line_error(Proc(*args, env=NO_NETWORK))
+
+
+def test_socketcan_on_a_kernel_without_it_says_so() -> None:
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except OSError:
+        pass
+    else:
+        pytest.skip("this kernel has SocketCAN")
+    text = one_line_error(Proc("sub", "x", "--can", "socketcan:vcan9", env=NO_NETWORK))
+    assert "this kernel has no SocketCAN" in text and "udp_multicast" in text
+    assert "Errno" not in text
+
+
+def test_ups_sub_stopped_by_a_signal_says_how_many_events_it_printed() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    with broker, Proc("sub", "x", "--broker", address, env=NO_NETWORK) as sub:
+        sub.wait_for_line("subscribed to x")
+        sub.stop()
+    assert "ups sub: stopped after 0 events" in "".join(sub.stderr_lines)
 
 
 def test_a_missing_zenoh_router_is_announced_and_then_given_up() -> None:

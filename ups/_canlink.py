@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import importlib
 import inspect
 import logging
@@ -112,7 +113,15 @@ def open_bus(spec: str) -> can.BusABC:
     kwargs = check_bus_spec(spec)
     try:
         bus = can.Bus(**kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+    except OSError as exc:
+        if exc.errno == errno.EAFNOSUPPORT and kwargs.get("interface") == "socketcan":
+            raise ConfigError(
+                f"cannot open CAN bus {spec!r}: this kernel has no SocketCAN (address family "
+                "not supported). In one process use --can virtual:NAME; across processes, "
+                "--can udp_multicast:239.74.163.2,port=43114 inside scripts/netns-run"
+            ) from exc
+        raise ConfigError(f"cannot open CAN bus {spec!r}: {exc}") from exc
+    except (can.CanError, ValueError, ImportError, TypeError) as exc:
         raise ConfigError(f"cannot open CAN bus {spec!r}: {exc}") from exc
     _widen_receive_buffer(bus)
     return bus

@@ -254,10 +254,7 @@ class Catalog:
         catalog's layout of ``channel`` encodes (a value cannot hold a comma)."""
         text = text.strip()
         if "=" not in text:
-            try:
-                return bytes.fromhex(text)
-            except ValueError:
-                raise ConfigError(f"not hex digits: {text!r}") from None
+            return hex_bytes(text)
         spec = self._by_uid.get(channel.uid)
         if spec is None or not spec.fields:
             raise ConfigError(f"{text!r}: the catalog has no layout of {channel}")
@@ -392,6 +389,20 @@ def _seconds(entry: dict[str, Any], key: str, zero: bool = False) -> float | Non
         least = "0 or more" if zero else "above 0"
         raise ConfigError(f"{key} must be a finite number of seconds {least}, not {value!r}")
     return float(value)
+
+
+def hex_bytes(text: str) -> bytes:
+    """Bytes as a person types them in hex ('' for none, spaces allowed); the error says what
+    is wrong: a character that is not a hex digit, or an odd number of digits."""
+    try:
+        return bytes.fromhex(text)
+    except ValueError:
+        pass
+    digits = "".join(text.split())
+    if digits and all(c in "0123456789abcdefABCDEF" for c in digits):
+        raise ConfigError(f"{text!r} has an odd number of hex digits ({len(digits)}): a byte is "
+                          f"two digits, as in {'0' + digits!r}")  # fmt: skip
+    raise ConfigError(f"not hex digits: {text!r}")
 
 
 def load_catalog(path: str | None) -> Catalog:

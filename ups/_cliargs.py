@@ -137,10 +137,9 @@ def channel_or_pattern_arg(text: str) -> Channel | str:
 
 
 def hex_arg(text: str) -> bytes:
-    try:
-        return bytes.fromhex(text)
-    except ValueError:
-        raise ConfigError(f"not hex digits: {text!r}") from None
+    from ._catalog import hex_bytes
+
+    return hex_bytes(text)
 
 
 def positive_float(text: str) -> float:

@@ -115,10 +115,14 @@ def zenoh_config(endpoint: str, config: str | Path | None, mode: str = "client")
     if not re.search(r"""\bmulticast["']?\s*:""", text):
         conf.insert_json5("scouting/multicast/enabled", "false")
     if endpoint:
+        if "/" not in endpoint:  # HOST:PORT, as for --broker: say the form, not Zenoh's internals
+            raise ConfigError(f"bad Zenoh endpoint {endpoint!r}: it names no protocol (did you "
+                              f"mean --zenoh tcp/{endpoint}?)")  # fmt: skip
         try:
             conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
         except zenoh.ZError as exc:
-            raise ConfigError(f"bad Zenoh endpoint {endpoint!r}: {exc}") from None
+            why = re.sub(r"\s+at /\S+\.rs:\d+.*", "", str(exc), flags=re.S)  # no Rust paths
+            raise ConfigError(f"bad Zenoh endpoint {endpoint!r}: {why}") from None
     return conf
 
 

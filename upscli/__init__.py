@@ -200,6 +200,11 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--node-id", type=lambda t: int(t, 0), default=None, help="64-bit node id")
+    cmd.add_argument(
+        "--join-timeout", type=positive_float, default=30.0, metavar="S",
+        help="wait up to S seconds for the CAN-ECB (with --external-can-ecb) and the TCP-ECB or "
+        "Zenoh router, also ones not started yet (default 30)",
+    )  # fmt: skip
     add_catalog(cmd, "channel names, given on the IP side to the bus's channels (so patterns "
                 "there match them)")  # fmt: skip
     add_tls(cmd, node=True)
@@ -408,6 +413,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         listen=args.listen,
         tls=tls_of(args),
         catalog=load_catalog(args.catalog),
+        join_timeout=args.join_timeout,
     )
     warn_if_virtual(args.can)
 

@@ -152,7 +152,7 @@ def _run_sub(args: argparse.Namespace) -> int:
                     got += 1
                     print(_event_line(msg, args.json, args.on_can, catalog), flush=True)
             except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
-                pass
+                print(f"ups sub: stopped after {got} events", file=sys.stderr)
             stats = node.stats()
             dropped, skipped = sub.dropped, stats.get("lost", 0) + stats.get("large_lost", 0)
         if dropped or skipped:  # every loss is reported, however the run ended
