@@ -159,3 +159,16 @@ def test_ls_ecb_of_something_else_is_one_line() -> None:
         code, _ = ls.finish()
         assert code == 2 and len(ls.stderr_lines) == 1
         assert "not a CAN-ECB's status port" in ls.stderr_lines[0]
+
+
+def test_one_node_and_one_channel_are_said_in_the_singular() -> None:
+    from ups.tools import ls
+
+    node = {"node_id": "0x1", "name": "a", "identity": None, "address": "x:1",
+            "connected": True, "subscribed": 1, "published": 0}  # fmt: skip
+    channel = {"uid": "0x2", "name": "c", "publishers": [], "subscribers": []}
+    table = {"total": {"nodes": 1, "channels": 1}, "nodes": [node], "channels": [channel]}
+    lines = ls.render(table).splitlines()
+    assert "1 node" in lines and "1 channel" in lines
+    table["total"] = {"nodes": 2, "channels": 0}
+    assert {"2 nodes", "0 channels"} <= set(ls.render(table).splitlines())

@@ -165,7 +165,7 @@ def render(table: dict[str, Any]) -> str:
          "up" if n["connected"] else "down", str(n["subscribed"]), str(n["published"]))
         for n in table["nodes"]
     ]  # fmt: skip
-    lines = [f"{table['total']['nodes']} nodes", *_aligned(rows), ""]
+    lines = [_counted(table["total"]["nodes"], "node"), *_aligned(rows), ""]
     rated = any("events_per_s" in c for c in table["channels"])
     rows = [("UID", "NAME", "PUBLISHERS", "SUBSCRIBERS", *(("EVENTS/S",) if rated else ()))]
     rows += [
@@ -173,7 +173,7 @@ def render(table: dict[str, Any]) -> str:
          *((str(c.get("events_per_s", "-")),) if rated else ()))
         for c in table["channels"]
     ]  # fmt: skip
-    lines += [f"{table['total']['channels']} channels", *_aligned(rows)]
+    lines += [_counted(table["total"]["channels"], "channel"), *_aligned(rows)]
     if rated and len(table["channels"]) > MAX_RATED:
         lines.append(f"(rates of the first {MAX_RATED} channels only)")
     if table.get("lost_while_counting"):
@@ -273,7 +273,7 @@ def render_can(table: dict[str, Any]) -> str:
         (n["node_id"], n["txnode"], "yes" if n["heard"] else "no", str(n["frames_per_s"]))
         for n in table["nodes"]
     ]
-    lines = [f"{table['total']['nodes']} nodes", *_aligned(rows), ""]
+    lines = [_counted(table["total"]["nodes"], "node"), *_aligned(rows), ""]
     subs = any(c["subscribers"] is not None for c in table["channels"])  # the CAN-ECB said
     rows = [("UID", "NAME", "ETAG", "PUBLISHERS HEARD", *(("SUBSCRIBERS",) if subs else ()),
              "FRAMES/S")]  # fmt: skip
@@ -284,5 +284,10 @@ def render_can(table: dict[str, Any]) -> str:
          str(c["frames_per_s"]))
         for c in table["channels"]
     ]  # fmt: skip
-    lines += [f"{table['total']['channels']} channels", *_aligned(rows)]
+    lines += [_counted(table["total"]["channels"], "channel"), *_aligned(rows)]
     return "\n".join(lines)
+
+
+def _counted(count: int, thing: str) -> str:
+    """``1 node``, ``2 nodes``."""
+    return f"{count} {thing}{'' if count == 1 else 's'}"
