@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -143,6 +144,10 @@ def largest(cpu: str, config: str, count: int = 8) -> str:
 
 
 def main() -> int:
+    if shutil.which(CC) is None:
+        print(f"make size: {CC} is not on PATH: install it (Debian: apt-get install "
+              "gcc-arm-none-eabi)", file=sys.stderr)  # fmt: skip
+        return 2
     results = [measure(cpu, config) for cpu in CPUS for config in CONFIGS]
     (HERE / "build" / "size.json").write_text(json.dumps(results, indent=1) + "\n")
     print(f"{'cpu':14} {'config':16} {'flash':>6} {'ram':>6} {'stack':>6}  (bytes)")

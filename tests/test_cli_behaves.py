@@ -172,3 +172,12 @@ def test_each_command_is_built_alone_as_it_is_in_the_whole_command_line() -> Non
         assert {k: v for k, v in alone.items() if k in mine} == mine, command
     listed = _options(_parser(only=""))
     assert set(listed) == {"ups", *(f"ups {c}" for c in commands)}  # every command, no options
+
+
+def test_ups_sub_of_a_name_the_catalog_does_not_have_says_so() -> None:
+    catalog = str(ROOT / "examples" / "robots.toml")
+    broker, address = start_tcp_broker("--recovery", "0")
+    with broker, Proc("sub", "robot/sped", "--broker", address, "--catalog", catalog,
+                      "--timeout", "1", env=NO_NETWORK) as sub:  # fmt: skip
+        line = sub.wait_for_line("not in the catalog")
+    assert "robot/sped is not in the catalog" in line and "did you mean robot/speed?" in line

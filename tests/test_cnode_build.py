@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -51,3 +52,20 @@ def test_sizes_are_measured_and_the_minimal_node_fits_the_target() -> None:
         assert r["flash"] > 1000 and r["ram"] >= r["node"] > 0 and 0 < r["stack"] < 1024
     (minimal,) = [r for r in results if (r["cpu"], r["config"]) == ("cortex-m0plus", "minimal")]
     assert minimal["flash"] <= 4096 and minimal["ram"] <= 256, minimal
+
+
+def test_make_size_without_the_arm_toolchain_names_the_package(tmp_path: Path) -> None:
+    """A PATH with make and python3 but no arm-none-eabi-gcc: one line, no traceback."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool in ("make", "python3", "sh"):
+        found = shutil.which(tool)
+        assert found is not None
+        (bin_dir / tool).symlink_to(found)
+    done = subprocess.run(
+        ["make", "-C", str(ROOT / "c"), "size"], capture_output=True, text=True, timeout=60,
+        check=False, env={"PATH": str(bin_dir)},
+    )  # fmt: skip
+    assert done.returncode != 0
+    assert "apt-get install gcc-arm-none-eabi" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr

@@ -132,6 +132,8 @@ def _run_sub(args: argparse.Namespace) -> int:
                           f"subscribing to {patterns[0]} needs one (--catalog FILE or "
                           "$UPS_CATALOG)")  # fmt: skip
 
+    _unknown_to_the_catalog(args, catalog)
+
     async def run() -> int:
         got = 0
         code = 0
@@ -166,6 +168,21 @@ def _run_sub(args: argparse.Namespace) -> int:
         return code
 
     return run_until_signal(run())
+
+
+def _unknown_to_the_catalog(args: argparse.Namespace, catalog: Catalog) -> None:
+    """Say which channel names the catalog given does not have (a typo waits for ever)."""
+    import difflib
+
+    if catalog.path is None:
+        return
+    names = [spec.name for spec in catalog if spec.name]
+    for chan in args.channels:
+        if isinstance(chan, str) or chan.name is None or catalog.get(chan.uid) is not None:
+            continue
+        close = difflib.get_close_matches(chan.name, names, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        say(args, f"{chan.name} is not in the catalog {catalog.path}{hint}")
 
 
 def _subscribed(asked: list[Channel | str], sub: Subscription, on_can: bool) -> str:
