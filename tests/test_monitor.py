@@ -177,6 +177,14 @@ def test_monitor_bad_input_is_one_line_and_exit_2(args: tuple[str, ...], says: s
     )
 
 
+def test_monitor_that_never_reached_its_broker_within_its_duration_says_so() -> None:
+    """Empty tables are not a result: exit 2, as ``ups ls`` does (it used to exit 0)."""
+    proc = Proc("monitor", "--broker", "127.0.0.1:1", "--duration", "1", "--plain")
+    code, out = proc.finish()
+    assert code == 2 and "CHANNEL" in out, proc.stderr_lines
+    assert "nothing answered at 127.0.0.1:1 within --duration 1 s" in proc.stderr_lines[-1]
+
+
 def test_monitor_outlives_a_restart_of_the_tcp_ecb() -> None:
     broker, address = start_tcp_broker("--recovery", "0")
     port = int(address.rpartition(":")[2])

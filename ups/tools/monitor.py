@@ -22,6 +22,7 @@ from .._cliargs import (
     positive_int,
     run_until_signal,
 )
+from .._errors import BrokerUnavailable
 from ._net import network_of
 
 if TYPE_CHECKING:
@@ -80,12 +81,16 @@ async def _watch(
 
     from ._live import feed_can, feed_tcp
 
+    joined = can is not None  # on CAN, listening needs nobody's answer
+
     async def feed() -> None:
+        nonlocal joined
         if can is not None:
             await feed_can(live, can, bindings)
             return
         assert net is not None
         async with net.node("ups-monitor") as node:
+            joined = True
             await feed_tcp(live, node, net, [c.uid for c in args.channels])
 
     feeder = asyncio.create_task(feed())
@@ -113,6 +118,10 @@ async def _watch(
             display.close()
         feeder.cancel()
         await asyncio.gather(feeder, return_exceptions=True)
+    if not joined and deadline is not None and loop.time() >= deadline:  # empty tables: say why
+        assert net is not None
+        raise BrokerUnavailable(f"nothing answered at {net.where} within --duration "
+                                f"{args.duration:g} s: the tables above are empty")  # fmt: skip
     return 0
 
 
