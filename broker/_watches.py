@@ -160,12 +160,8 @@ class Watches:
 
     def unnamed(self, uid: int) -> None:
         """The ECB forgot ``uid``'s name (nobody subscribes to or publishes on it by name)."""
-        for node_id in self._implied.pop(uid, ()):
-            implied = self._implied_of.get(node_id)
-            if implied is not None:
-                implied.discard(uid)
-                if not implied:
-                    del self._implied_of[node_id]
+        for node_id in list(self._implied.get(uid, ())):
+            self._unimply(node_id, uid)
 
     def _imply(self, node_id: int, uid: int, push: bool = True) -> None:
         if node_id in self._implied.get(uid, ()):

@@ -232,7 +232,6 @@ class Gateway:
         self._learnt.on_change = self._changed
         if self._ecb is not None:
             self._ecb.on_change = self._changed
-        if self._ecb is not None:
             self._ecb.bind_gate = self._until_settled
         self._all_dirty()
         loop = asyncio.get_running_loop()
@@ -350,8 +349,8 @@ class Gateway:
         """The hosted CAN-ECB stands by for another: forward by what that one says."""
         if self._tap is not None:
             self._tap.wide(True)  # a new publisher's binding is no longer ours to hold
-        txnode = self.can.stats().get("txnode") if self.can is not None else None
-        if isinstance(txnode, int) and txnode >= 0:  # joined: else it asks once it is
+        txnode = self._own_txnode()
+        if txnode is not None:  # joined: else it asks once it is
             assert self._learnt is not None
             self._learnt.ask_roster(txnode)
         self._all_dirty()
@@ -453,8 +452,7 @@ class Gateway:
         if wanted and uid not in self._to_ip_sinks:  # CAN -> IP
             assert ip_state is not None and self._tap is not None
             sink_ip = _Forward(self._to_ip, ip_state)
-            face = self._ip_face()
-            self._tap.forward(uid, lambda data, prio: self._to_ip_data(face, ip_state, data, prio))
+            self._tap.forward(uid, lambda data, prio: self._to_ip_data(ip_state, data, prio))
             try:
                 await self.can._attach(channel, sink_ip)
             finally:
@@ -489,13 +487,12 @@ class Gateway:
     # --- forwarding ------------------------------------------------------------------------
 
     def _to_ip(self, ip_state: ChannelState, msg: Message) -> None:
-        self.counters[self._to_ip_counter] += 1
-        self._ip_face().send(ip_state, msg.data, msg.priority)
+        self._to_ip_data(ip_state, msg.data, msg.priority)
 
-    def _to_ip_data(self, face: Any, ip_state: ChannelState, data: bytes, priority: int) -> None:
-        """What the tap kept or hands over (``_tap``), forwarded as the CAN face's events are."""
+    def _to_ip_data(self, ip_state: ChannelState, data: bytes, priority: int) -> None:
+        """An event from CAN (the CAN face's, or what the tap kept) to the IP side."""
         self.counters[self._to_ip_counter] += 1
-        face.send(ip_state, data, priority)
+        self._ip_face().send(ip_state, data, priority)
 
     def _to_can(self, can_state: ChannelState, msg: Message) -> None:
         assert self._pacer is not None
@@ -515,7 +512,9 @@ class Gateway:
         return face is not None and bool(face.receives(etag))
 
     def _own_txnode(self) -> int | None:
-        txnode = self.can.stats().get("txnode") if self.can is not None else None
+        """The CAN face's TxNode (None before it joined): read per tapped frame, so not from
+        ``stats()``, which builds a dict."""
+        txnode = getattr(self.can.face, "txnode", None) if self.can is not None else None
         return txnode if isinstance(txnode, int) else None
 
     def _can_face_txnode(self) -> int:

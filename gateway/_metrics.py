@@ -23,6 +23,7 @@ _COMMON = table(
         "denied": "channels the TCP-ECB's ACL does not let the gateway forward",
         "tapped": "events of a new publisher kept until the gateway forwarded its channel",
         "tap_dropped": "events of a new publisher dropped: more than the tap keeps per channel",
+        "tap_full": "new publishers' channels not tapped: 64 channels tapped already",
     },
     {"can_queued": "events waiting to go to CAN, paced to the bit rate"},
 )

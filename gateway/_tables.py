@@ -57,11 +57,6 @@ class Tables:
             self._timer.cancel()
             self._timer = None
 
-    @property
-    def learnt(self) -> bool:
-        """Whether the roster came whole (or was given up on)."""
-        return self._asker is None
-
     def ask_roster(self, txnode: int) -> None:
         """Ask the CAN-ECB who uses what, from the lowest UID on, as the node holding
         ``txnode`` (the gateway's own)."""

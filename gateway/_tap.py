@@ -16,9 +16,10 @@ filter widened only once the Bind is heard would come too late for the frames ri
 The gateway opens it while it does not host the serving CAN-ECB, and closes it otherwise (its
 CAN-ECB's bind gate does the tap's work); closed, it costs nothing.
 
-Bounds: ``TAP_ETAGS`` etags tapped at once (a Bind beyond is not tapped), ``TAP_FRAMES``
-frames kept per etag (more are dropped, counted in ``tap_dropped``), and ``TAP_TIME`` s for
-the gateway to decide (then what nobody wanted is dropped, not counted: no one subscribed).
+Bounds: ``TAP_ETAGS`` etags tapped at once (a Bind beyond is not tapped: ``tap_full``),
+``TAP_FRAMES`` frames kept per etag (more are dropped, counted in ``tap_dropped``), and
+``TAP_TIME`` s for the gateway to decide (then what nobody wanted is dropped, not counted: no
+one subscribed).
 Only one-frame etags (below 0x3000) are tapped; a large event's transfer is not.
 """
 
@@ -77,7 +78,7 @@ class Tap:
         self._taps: dict[int, _Tapped] = {}  # etag -> what it keeps
         self._expiry: asyncio.TimerHandle | None = None
         self._wide = False
-        counters.update(tapped=0, tap_dropped=0)
+        counters.update(tapped=0, tap_dropped=0, tap_full=0)
 
     def start(self) -> None:
         self._link.add_handler(self._on_announcement, _PRIORITY_1)
@@ -134,6 +135,7 @@ class Tap:
         if tapped is not None and tapped.uid == uid:
             return
         if tapped is None and len(self._taps) >= TAP_ETAGS:
+            self._counters["tap_full"] += 1  # its first events may go unforwarded
             return
         self._taps[etag] = _Tapped(uid, time.monotonic())  # (an etag bound anew: start over)
         if self._expiry is None:

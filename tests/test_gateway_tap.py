@@ -9,7 +9,7 @@ import can
 from ups import _canproto as p
 from ups import name_to_uid
 from ups._canlink import CanLink
-from ups.gateway._tap import TAP_FRAMES, Tap
+from ups.gateway._tap import TAP_ETAGS, TAP_FRAMES, Tap
 
 from .conftest import eventually, send_management
 
@@ -70,6 +70,10 @@ async def test_the_tap_is_bounded(bus: str, raw_bus: can.BusABC) -> None:
         await eventually(lambda: counters["tap_dropped"] == 10)
         tap.drop(UID)  # nobody wanted it
         assert not tap._taps
+        for n in range(TAP_ETAGS + 1):  # one etag more than it taps at once: counted
+            send_management(raw_bus, p.Bind(0x0200 + n, name_to_uid(f"tap/{n}")))
+        await eventually(lambda: counters["tap_full"] == 1)
+        assert len(tap._taps) == TAP_ETAGS
     finally:
         tap.close()
         link.close()
