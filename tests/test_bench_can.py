@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -18,7 +19,7 @@ from .procs import private_multicast_bus
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(240)]
 
 
-def _report_of(results: dict, tmp_path: Path) -> tuple[str, str, dict]:
+def _report_of(results: dict[str, Any], tmp_path: Path) -> tuple[str, str, dict[str, Any]]:
     """The terminal text, report.md and results.json of ``results``, as ``ups bench`` writes
     them (after the summary)."""
     results.update(bench.summary(results))
