@@ -181,3 +181,20 @@ def test_ups_sub_of_a_name_the_catalog_does_not_have_says_so() -> None:
                       "--timeout", "1", env=NO_NETWORK) as sub:  # fmt: skip
         line = sub.wait_for_line("not in the catalog")
     assert "robot/sped is not in the catalog" in line and "did you mean robot/speed?" in line
+
+
+@pytest.mark.parametrize(
+    ("args", "usage", "meant"),
+    [
+        (["sub", "x", "--brokr", "127.0.0.1:1"], "usage: ups sub ", "did you mean --broker?"),
+        (["pub", "x", "01", "--cann=virtual:x"], "usage: ups pub ", "did you mean --can?"),
+        (["jaus-ocu", "discover", "--bogus"], "usage: ups jaus-ocu discover ", None),
+    ],
+)
+def test_a_misspelt_option_shows_its_commands_usage_and_the_option_meant(
+    args: list[str], usage: str, meant: str | None
+) -> None:
+    text = one_line_error(Proc(*args, env=NO_NETWORK))
+    assert usage in text and "error: unrecognized arguments: --" in text
+    assert "usage: ups [-h]" not in text  # not the top level's
+    assert (meant in text) if meant else ("did you mean" not in text)

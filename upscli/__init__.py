@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import importlib
 import os
 import re
@@ -43,7 +44,10 @@ DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus", "ros2")
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), "")  # the command, if any
-    args = _parser(only=chosen).parse_args(argv)
+    parser = _parser(only=chosen)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the command's own usage, not the top level's, and the option meant
+        _unrecognized(parser, args, unknown)
     import logging  # after parsing: --help does without it
 
     quiet = args.command not in DAEMONS  # a daemon logs what it does; a command says it
@@ -68,6 +72,25 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         return 130
+
+
+def _unrecognized(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, unknown: list[str]
+) -> None:
+    """Exit with the usage of the (sub)command that was given ``unknown`` arguments, and the
+    option a misspelt one most likely meant."""
+    while True:  # down to the deepest subcommand chosen: its usage is the one to show
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        chosen = getattr(args, sub.dest, None) if sub is not None else None
+        if sub is None or chosen not in sub.choices:
+            break
+        parser = sub.choices[chosen]
+    message = f"unrecognized arguments: {' '.join(unknown)}"
+    options = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
+    meant = difflib.get_close_matches(unknown[0].split("=", 1)[0], options, n=1, cutoff=0.8)
+    if unknown[0].startswith("--") and meant:
+        message += f" (did you mean {meant[0]}?)"
+    parser.error(message)
 
 
 class _Version(argparse.Action):
