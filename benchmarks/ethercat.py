@@ -150,8 +150,8 @@ def cycle_part(master: str, wire: str, tmp: Path, args: argparse.Namespace) -> d
 
 def _counters(node: str) -> dict[str, int]:
     """The cycle's counters of ``ups ethercat`` (``ups status`` of its TCP node)."""
-    status = subprocess.run(ups_argv("status", node), capture_output=True, text=True, check=True,
-                            timeout=30)  # fmt: skip
+    status = subprocess.run(ups_argv("status", node, "--json"), capture_output=True, text=True,
+                            check=True, timeout=30)  # fmt: skip
     seen = json.loads(status.stdout)["ethercat"]
     return {k: int(seen[k]) for k in ("cycles", "late", "lost", "wkc_errors")}
 

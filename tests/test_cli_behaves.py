@@ -5,6 +5,7 @@ stop."""
 from __future__ import annotations
 
 import argparse
+import json
 import socket
 import subprocess
 import sys
@@ -198,3 +199,39 @@ def test_a_misspelt_option_shows_its_commands_usage_and_the_option_meant(
     assert usage in text and "error: unrecognized arguments: --" in text
     assert "usage: ups [-h]" not in text  # not the top level's
     assert (meant in text) if meant else ("did you mean" not in text)
+
+
+def test_ups_status_is_readable_by_default_and_json_with_json() -> None:
+    broker, address = start_tcp_broker("--recovery", "0")
+    catalog = str(ROOT / "examples" / "robots.toml")
+    with broker, Proc("sub", "robot/*", "--broker", address, "--catalog", catalog,
+                      env=NO_NETWORK) as sub:  # fmt: skip
+        sub.wait_for_line("subscribed to robot/*")
+        with Proc("pub", "robot/speed", "01", "--broker", address, "--count", "100000",
+                  "--rate", "200", env=NO_NETWORK):  # fmt: skip
+            sub.wait_for_line("robot/speed", stdout=True)  # delivered: both are in the tables
+            code, raw = Proc("status", address, "--json", env=NO_NETWORK).finish()
+            assert code == 0
+            doc = json.loads(raw)
+            code, text = Proc("status", address, env=NO_NETWORK).finish()
+    assert code == 0 and not text.lstrip().startswith("{")
+    lines = text.splitlines()
+    assert lines[0] == f"ups-broker {doc['node_id']}"
+    joined = doc["stats"]["joined"]
+    assert f"joined {joined}" in text and "more at 0" in text  # counters: the ones not 0
+    assert [line.split()[:2] for line in lines].count(["NODE_ID", "NAME"]) == 1
+    rows = {line.split()[1]: line for line in lines if line.strip().startswith("0x")}
+    assert {"ups-sub", "ups-pub", "robot/speed"} <= set(rows), text
+    assert "robot/speed" in rows["ups-sub"] and "robot/speed" in rows["ups-pub"]  # by name
+    assert "SUBSCRIBERS" in text and len(doc["nodes"]) == 2
+
+
+def test_ups_status_renders_any_status_document() -> None:
+    from ups.tools.status import render
+
+    assert render([]) == "no UPS node or gateway answered"
+    a = {"name": "a", "node_id": "0x1", "stats": {"x": 0, "y": 0, "z": 0, "w": 0}}
+    b = {"name": "b", "node_id": "0x2", "peers": [{"node": "0x1", "sent": 3}]}
+    text = render([a, b])
+    assert text.split("\n\n")[0] == "a 0x1\n  stats:\n    4 counters, all 0"
+    assert "peers (1):" in text and "NODE  SENT" in text and "0x1   3" in text

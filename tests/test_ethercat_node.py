@@ -125,7 +125,7 @@ async def set_link(ifname: str, state: str) -> None:
 
 
 async def status_of(address: str) -> dict[str, int]:
-    code, out = await asyncio.to_thread(Proc("status", address).finish, 30)
+    code, out = await asyncio.to_thread(Proc("status", address, "--json").finish, 30)
     assert code == 0, out
     return dict(json.loads(out)["ethercat"])
 

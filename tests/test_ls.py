@@ -146,7 +146,7 @@ def test_ls_of_a_can_bus_asks_the_can_ecb_for_who_subscribes(tmp_path: Path) -> 
             assert speed["name"] == "robot/speed" and speed["etag"] == "0x0010"
             assert speed["subscribers"] == [f"0x{0x5B:016x}"]
             assert speed["publishers"] == [f"0x{0x5A:016x}"]
-            status_proc = Proc("status", status)
+            status_proc = Proc("status", status, "--json")
             code, out = status_proc.finish()
             assert code == 0 and json.loads(out)["stats"]["joined"] >= 2
 

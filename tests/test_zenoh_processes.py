@@ -123,7 +123,7 @@ def start_gateway(
 def zenoh_status(endpoint: str, prefix: tuple[str, ...] = ()) -> list[dict[str, Any]]:
     """``ups status --zenoh``: every UPS node and gateway on the network."""
     out = subprocess.run(
-        [*prefix, sys.executable, "-m", "upscli", "status", "--zenoh", endpoint],
+        [*prefix, sys.executable, "-m", "upscli", "status", "--zenoh", endpoint, "--json"],
         capture_output=True, text=True, check=True, cwd=ROOT, timeout=30,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
     ).stdout  # fmt: skip

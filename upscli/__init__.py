@@ -240,6 +240,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     add_zenoh(cmd)
     add_zenoh_config(cmd)
     cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
+    cmd.add_argument("--json", action="store_true", help="the Status as JSON, for a program")
     add_tls(cmd)
     cmd.set_defaults(run=_run_status)
 
@@ -474,7 +475,12 @@ def _run_status(args: argparse.Namespace) -> int:
             from ups._tcpquery import query_status
 
             info = await query_status(args.address, args.timeout, tls_of(args))
-        print(json.dumps(info, indent=2))
+        if args.json:
+            print(json.dumps(info, indent=2))
+        else:
+            from ups.tools.status import render
+
+            print(render(info))
         return 0
 
     return run_until_signal(run())
