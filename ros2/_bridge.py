@@ -32,13 +32,14 @@ import asyncio
 import contextlib
 import json
 import logging
+import re
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ups import Channel, ConfigError, DecodeError, UpsError
+from ups import BrokerUnavailable, Channel, ConfigError, DecodeError, UpsError
 from ups._message import Message
 from ups._zenohface import STATUS_PREFIX, zenoh_config
 
@@ -100,11 +101,22 @@ class RosBridge:
     router is at ``ros`` (or as the Zenoh config file ``ros_config`` says)."""
 
     def __init__(
-        self, node: Node, bridge: Bridge, ros: str, ros_config: str | Path | None = None
+        self,
+        node: Node,
+        bridge: Bridge,
+        ros: str,
+        ros_config: str | Path | None = None,
+        join_timeout: float = 30.0,
     ) -> None:
+        """Checks ``ros`` at once (before the node joins); ``start`` waits up to
+        ``join_timeout`` seconds for the router to answer."""
+        if ros and "/" not in ros:  # HOST:PORT: say the form, not Zenoh's internals
+            raise ConfigError(f"bad ROS 2 router endpoint {ros!r}: it names no protocol (did you "
+                              f"mean --ros tcp/{ros}?)")  # fmt: skip
         self.node = node
         self.bridge = bridge
         self.ros = ros
+        self.join_timeout = join_timeout
         self._config = zenoh_config(ros, ros_config)  # says so when Zenoh is not installed
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.topics = [_Live(t, i + 1) for i, t in enumerate(bridge.topics)]
@@ -128,14 +140,7 @@ class RosBridge:
         import zenoh
 
         self._loop = asyncio.get_running_loop()
-        try:
-            self._session = await asyncio.to_thread(zenoh.open, self._config)
-        except zenoh.ZError as exc:
-            from ups import BrokerUnavailable
-
-            raise BrokerUnavailable(
-                f"could not join the ROS 2 router at {self.ros}: {exc}"
-            ) from None
+        self._session = await self._open()
         self.zid = str(self._session.zid())
         b = self.bridge
         self._tokens.append(self._session.liveliness().declare_token(
@@ -179,6 +184,38 @@ class RosBridge:
         log.info("ROS 2 node %s%s on %s (Zenoh id %s, domain %d): %d topics",
                  b.namespace.rstrip("/") + "/", b.node, self.ros, self.zid, b.domain,
                  len(self.topics))  # fmt: skip
+
+    async def _open(self) -> Any:
+        """The Zenoh session to the ROS 2 router, which may start after the bridge: tried again
+        (0.1 s, doubling to 1 s) for up to ``join_timeout`` seconds, as the UPS side waits for
+        its CAN-ECB or TCP-ECB; then ``BrokerUnavailable`` saying what to start."""
+        import zenoh
+
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.join_timeout
+        delay, said = 0.1, False
+        while True:
+            try:  # opening connects, or fails at once when nothing listens: not on the loop
+                return await asyncio.to_thread(zenoh.open, self._config)
+            except zenoh.ZError as exc:
+                if loop.time() + delay > deadline:
+                    raise BrokerUnavailable(self._unavailable(exc)) from None
+            if not said:
+                log.warning("waiting for the ROS 2 router at %s (up to %g s)", self.ros,
+                            self.join_timeout)  # fmt: skip
+                said = True
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, 1.0)
+
+    def _unavailable(self, exc: BaseException) -> str:
+        """Why the router could not be joined, for people: Zenoh's text without its Rust
+        source location, and what to start there."""
+        reason = re.sub(r"\s+at \S+\.rs:\d+.*", "", str(exc), flags=re.S).strip()
+        if reason.startswith("Unable to connect"):
+            reason = "nothing answers there"
+        return (f"could not join the ROS 2 router at {self.ros} within {self.join_timeout:g} s "
+                f"({reason}); start rmw_zenohd there (ros2 run rmw_zenoh_cpp rmw_zenohd), or "
+                f"where ROS 2 is absent 'ups zenoh-router --listen {self.ros}'")  # fmt: skip
 
     async def close(self) -> None:
         if self._task is not None:

@@ -59,13 +59,15 @@ def ros2_reading(bridge: RosBridge | None, node: Any, network: str) -> Reading:
 
 async def serve(args: argparse.Namespace, bridge: Bridge) -> int:
     kind, node = node_for(args, "ups-ros2")
-    ros: RosBridge | None = None
+    # --ros is checked before the node joins; the router is waited for after (args.timeout)
+    ros = RosBridge(node, bridge, args.ros, args.ros_config, join_timeout=args.timeout)
+    joined = False
 
     def reading() -> Reading:
-        return ros2_reading(ros, node, kind)
+        return ros2_reading(ros if joined else None, node, kind)
 
     async with serving_metrics(getattr(args, "metrics", None), "ros2", reading), node:
-        ros = RosBridge(node, bridge, args.ros, args.ros_config)
+        joined = True
         try:
             await ros.start()
             name = f"{bridge.namespace.rstrip('/')}/{bridge.node}"
