@@ -134,3 +134,30 @@ def test_ctrl_c_while_waiting_for_a_broker_or_router_ends_without_a_traceback() 
 def test_ctrl_c_while_waiting_for_a_can_ecb_ends_without_a_traceback() -> None:
     bus = private_multicast_bus()
     interrupted(Proc("sub", "x", "--can", bus), "the CAN-ECB")
+
+
+def test_a_certificate_from_another_ca_is_named_on_either_side(fleet: Path, tmp_path: Path) -> None:
+    """A node whose fleet CA is not the TCP-ECB's: the side that refused which certificate,
+    said at once (it was 'no TCP-ECB answered ... or give --join-timeout S' after waiting)."""
+    other = tmp_path / "other"
+    certs(tmp_path, "ca", str(other))
+    certs(tmp_path, "issue", str(other), "robot")
+    broker, address = start_tcp_broker("--recovery", "0", *tls_options(fleet, "broker"))
+    with broker:
+        # it trusts the other CA: the TCP-ECB's certificate is refused here
+        sub = Proc("sub", "robot/speed", "--broker", address, "--join-timeout", "600",
+                   *tls_options(other, "robot"))  # fmt: skip
+        line = one_line(sub)
+        assert (
+            f"the TCP-ECB at {address} shows a certificate that the CA {other / 'ca.crt'}" in line
+        )
+        assert "does not vouch for (certificate signature failure)" in line
+        assert "one fleet CA" in line
+        # it trusts the fleet's CA, its own certificate is the other CA's: refused there
+        mixed = ["--tls-ca", str(fleet / "ca.crt"), "--tls-cert", str(other / "robot.crt"),
+                 "--tls-key", str(other / "robot.key")]  # fmt: skip
+        line = one_line(Proc("pub", "robot/speed", "01", "--broker", address, *mixed))
+        assert f"refused this side's certificate {other / 'robot.crt'}" in line
+        assert f"not signed by the CA {fleet / 'ca.crt'}" in line
+        line = one_line(Proc("status", address, *mixed))
+        assert f"the daemon at {address} refused this side's certificate" in line

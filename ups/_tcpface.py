@@ -171,7 +171,7 @@ class TcpFace:
             except (OSError, TimeoutError, UpsError) as exc:
                 if not probed and not isinstance(exc, ConnectionRefusedError | TimeoutError):
                     probed = True  # it answered, and hung up: it may speak TLS, or not
-                    why = await mismatch(*self.broker, self._tls is not None, "the TCP-ECB")
+                    why = await mismatch(*self.broker, self._tls, "the TCP-ECB")
                     if why is not None:
                         raise ConfigError(why) from None
                 if deadline is not None and loop.time() + delay > deadline:

@@ -45,7 +45,7 @@ async def query_status(
     else:
         failed, reason = None, "it closed the link without a status"
     if not isinstance(failed, ConnectionRefusedError | TimeoutError):  # TLS on one side only?
-        why = await mismatch(host, port, tls is not None, "the daemon")
+        why = await mismatch(host, port, tls, "the daemon")
         if why is not None:
             raise ConfigError(why)
     raise BrokerUnavailable(f"no status from {host}:{port}: {reason}")
