@@ -7,10 +7,12 @@ QoS and GID rmw_zenoh's own would have (``_rmw``).
 
 Forwarding follows the Zenoh face's rule, per topic:
 
-- UPS -> ROS while a ROS subscriber matches the topic's exact key (Zenoh's matching status of
-  the bridge's publisher: a subscriber of another type, type hash or domain has another key and
-  does not count). Only then does the bridge subscribe to the channel on the UPS side; when
-  the last ROS subscriber leaves it unsubscribes, and nothing more goes to Zenoh.
+- UPS -> ROS while a Zenoh subscriber matches the topic's key (Zenoh's matching status of the
+  bridge's publisher): a ROS subscriber of that exact key, or any whose key expression includes
+  it (``0/**``, ``**``: a recorder, a bridge, ``z_sub``), as rmw_zenoh's own publishers would
+  feed it; one of another type, type hash or domain has another key and does not count. Only
+  then does the bridge subscribe to the channel on the UPS side; when the last subscriber
+  leaves it unsubscribes, and nothing more goes to Zenoh.
 - ROS -> UPS only while someone on the UPS side subscribes to the channel: the bridge declares
   its ROS subscription (Zenoh subscriber and ``MS`` token) then, and withdraws it when they
   leave. TCP/IP and Zenoh faces say who subscribes elsewhere; a CAN bus is a broadcast medium

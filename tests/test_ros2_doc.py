@@ -41,3 +41,17 @@ def test_the_worked_example_is_what_the_bridge_makes() -> None:
     rows = [extra[:8], extra[8:16], extra[16:17], extra[17:]]
     assert all(f"| `{spaced(row)}` |" in DOC for row in rows)
     assert DOC.count(RMW_ZENOH_COMMIT) >= 2
+
+
+def test_the_forwarding_rule_is_the_one_the_processes_test_shows() -> None:
+    """UPS -> ROS opens for any Zenoh subscriber whose key expression matches, ``**`` too, as
+    tests/test_ros2_processes.py shows with real processes (the page used to say only a ROS
+    subscriber of the exact key)."""
+    from . import test_ros2_processes
+
+    assert hasattr(test_ros2_processes, "test_any_zenoh_subscriber_whose_key_matches_turns_"
+                   "forwarding_on")  # fmt: skip
+    rule = DOC[DOC.index("## Forwarding") :].split("\n- **ROS → UPS")[0]
+    assert "**UPS → ROS only while a Zenoh subscriber matches the topic's key.**" in rule
+    assert "exact key" not in rule
+    assert "`**`" in rule and "`to_ros` topic of the map" in rule

@@ -5,8 +5,9 @@ liveliness tokens, attachment and GIDs, and CDR by hand.
 
 What it shows: CAN events arrive as typed messages whose attachments carry consecutive sequence
 numbers from 1 and the GID of the bridge's publisher token; nothing is put on Zenoh before a
-subscriber of that exact key matches, nor after it leaves (the numbers go on where they
-stopped); a listener of another type or domain gets nothing and makes the bridge open nothing;
+subscriber of that key matches, nor after it leaves (the numbers go on where they stopped); a
+listener of another type or domain gets nothing and makes the bridge open nothing, while a
+plain Zenoh subscriber of ``**`` (no ROS node) opens every topic sent to ROS;
 rmw_zenoh-shaped publications reach a CAN subscriber as the catalog's bytes; values out of
 range and NaN into an integer are dropped and counted; a Twist crosses classic CAN (a 24-byte
 event: several frames) both ways, never reflected.
@@ -94,8 +95,9 @@ fields.angular = {{ x = "wx", y = "wy", z = "wz" }}
 """
 
 #: A ROS 2 participant as rmw_zenoh's docs/design.md describes one, in a few lines of zenoh:
-#: argv[1] is a JSON object: mode ("listen", "publish" or "graph"), endpoint, domain, topic,
-#: type ("pkg/msg/Type"), hash, and for "publish" the payloads (hex; "plain": no attachment).
+#: argv[1] is a JSON object: mode ("listen", "publish", "graph", or "plain": a subscriber of the
+#: key expression "key" with no ROS node or token), endpoint, domain, topic, type
+#: ("pkg/msg/Type"), hash, and for "publish" the payloads (hex; "plain:": no attachment).
 ROS_SIDE = r"""
 import json, os, struct, sys, time, zenoh, xxhash
 cfg = json.loads(sys.argv[1])
@@ -113,16 +115,20 @@ if cfg["mode"] == "graph":  # what ros2 topic list reads: every liveliness token
     sys.stdin.read()
     session.close()
     os._exit(0)
-pkg, _, name = cfg["type"].split("/")
-dds = f"{pkg}::msg::dds_::{name}_"
-key = f"{domain}/{cfg['topic'].strip('/')}/{dds}/{cfg['hash']}"
-node_name = "ros_side"
-node = f"@ros2_lv/{domain}/{zid}/0/0/NN/%/%/{node_name}"
-kind = "MS" if cfg["mode"] == "listen" else "MP"
-entity = (f"@ros2_lv/{domain}/{zid}/0/10/{kind}/%/%/{node_name}/{cfg['topic'].replace('/', '%')}"
-          f"/{dds}/{cfg['hash']}/::,10:,:,:,,")
-tokens = [session.liveliness().declare_token(node), session.liveliness().declare_token(entity)]
-if cfg["mode"] == "listen":
+if cfg["mode"] == "plain":  # a Zenoh program, no ROS node: a subscriber of cfg["key"], no token
+    key, tokens = cfg["key"], []
+else:
+    pkg, _, name = cfg["type"].split("/")
+    dds = f"{pkg}::msg::dds_::{name}_"
+    key = f"{domain}/{cfg['topic'].strip('/')}/{dds}/{cfg['hash']}"
+    node_name = "ros_side"
+    node = f"@ros2_lv/{domain}/{zid}/0/0/NN/%/%/{node_name}"
+    kind = "MS" if cfg["mode"] == "listen" else "MP"
+    entity = (f"@ros2_lv/{domain}/{zid}/0/10/{kind}/%/%/{node_name}/"
+              f"{cfg['topic'].replace('/', '%')}/{dds}/{cfg['hash']}/::,10:,:,:,,")
+    tokens = [session.liveliness().declare_token(node),
+              session.liveliness().declare_token(entity)]
+if cfg["mode"] in ("listen", "plain"):
     def show(sample):
         att = sample.attachment
         print(json.dumps({"key": str(sample.key_expr), "data": sample.payload.to_bytes().hex(),
@@ -195,9 +201,11 @@ class RosSide:
 
 
 def ros_side(endpoint: str, mode: str, topic: str = "", ros_type: str = "", hash_: str = "",
-             domain: int = 0, payloads: list[str] | None = None) -> RosSide:  # fmt: skip
+             domain: int = 0, payloads: list[str] | None = None,
+             key: str = "") -> RosSide:  # fmt: skip
     return RosSide({"mode": mode, "endpoint": endpoint, "domain": domain, "topic": topic,
-                    "type": ros_type, "hash": hash_, "payloads": payloads or []})  # fmt: skip
+                    "type": ros_type, "hash": hash_, "payloads": payloads or [],
+                    "key": key})  # fmt: skip
 
 
 def bridge_info(endpoint: str) -> dict[str, Any]:
@@ -299,6 +307,36 @@ def test_can_events_reach_a_ros_listener_only_while_it_listens(
         again = samples(listener.lines())
     assert again[0][0] == stopped_at + 1
     assert [s[0] for s in again] == list(range(stopped_at + 1, stopped_at + 1 + len(again)))
+
+
+def test_any_zenoh_subscriber_whose_key_matches_turns_forwarding_on(
+    system: tuple[str, str, Proc],
+) -> None:
+    """docs/ros2.md, *Forwarding*: not only a ROS subscriber of the topic's exact key. A plain
+    Zenoh subscriber of ``**`` (a recorder, a bridge, ``z_sub``: no ROS node, no liveliness
+    token) turns every ``to_ros`` topic of the map on, and off again when it leaves; the
+    numbers go on where they stopped."""
+    bus, endpoint, _ = system
+    topics = ("/robot/speed", "/robot/cmd_vel")  # the map's to_ros and both topics
+
+    def forwarding() -> list[bool]:
+        return [topic_info(endpoint, t)["to_ros_forwarding"] for t in topics]
+
+    def of_speed(lines: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        return [line for line in lines if line["key"].startswith("0/robot/speed/")]
+
+    with Proc("pub", "robot/speed", "0304", "--can", bus, "--count", "3000", "--rate", "50"):
+        wait_until(lambda: forwarding() == [False, False], 30)  # nobody listens yet
+        before = topic_info(endpoint, "/robot/speed")["sequence"]
+        with ros_side(endpoint, "plain", key="**") as recorder:
+            wait_until(lambda: len(of_speed(recorder.seen)) >= 3, timeout=60)
+            wait_until(lambda: forwarding() == [True, True], 30)
+            with ros_side(endpoint, "graph") as graph:  # and it is in no ROS graph
+                assert not any("/ros_side" in t for t in graph.lines()[0]["tokens"])
+        got = samples(of_speed(recorder.lines()))
+        wait_until(lambda: forwarding() == [False, False], 30)
+    assert [s[0] for s in got] == list(range(before + 1, before + 1 + len(got)))
+    assert {s[3] for s in got} == {CDR + struct.pack("<h", 0x0304) + b"\x00\x00"}
 
 
 def test_ros_publications_reach_a_can_subscriber_as_the_catalogs_bytes(
