@@ -46,6 +46,9 @@ def test_c_node_and_python_tools_on_can(tmp_path: Path) -> None:
         with c_node(bus, 0xC2, "--pub", "robot/speed=0102", "--count", "3", "--rate",
                     "20") as c_pub:  # fmt: skip
             assert c_pub.finish(timeout=60)[0] == 0
+        said = "".join(c_pub.stderr_lines)  # what it did, not only its join (issue 39)
+        assert "ups c-node: publishing: robot/speed is etag 0x" in said
+        assert "ups c-node: published 3 events on robot/speed" in said
         code, out = py_sub.finish(timeout=60)
         assert code == 0
         got = [json.loads(line) for line in out.splitlines()]
@@ -56,6 +59,9 @@ def test_c_node_and_python_tools_on_can(tmp_path: Path) -> None:
             assert py_pub.finish(timeout=60)[0] == 0
         wait_until(lambda: len(events(c_sub)) == 3, timeout=30)
         assert {(e["channel"], e["data"]) for e in events(c_sub)} == {("robot/cmd", "0a0b")}
+        c_sub.stop()  # SIGTERM: a normal way to stop, and it says what it got
+    said = "".join(c_sub.stderr_lines)
+    assert "subscribed: robot/cmd is etag 0x" in said and "received 3 events" in said
 
 
 def test_large_events_both_ways(tmp_path: Path) -> None:

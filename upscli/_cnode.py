@@ -20,6 +20,7 @@ from ups._cliargs import (
 )
 
 EXIT_FAILED = 1  #: the join or a channel's binding ended with an error
+BOUND = 2  #: a channel's state once its etag is granted (libups's UPS_CHANNEL_BOUND)
 
 
 def _pub_arg(text: str) -> tuple[Channel, bytes]:
@@ -127,10 +128,14 @@ def _run_c_node(args: argparse.Namespace) -> int:
     pubs = [(node.advertise(ch.uid, len(data), now), ch, data) for ch, data in args.pub]
     sent = dict.fromkeys(range(len(pubs)), 0)
 
+    received = 0
+
     def on_event(_: CNode, event: Event, timestamp: float) -> None:
+        nonlocal received
         channel = subs.get(event.channel)
         if channel is None:
             return
+        received += 1
         if args.json:
             line = json.dumps(
                 {"uid": f"0x{channel.uid:016x}", "channel": channel.name,
@@ -156,6 +161,7 @@ def _run_c_node(args: argparse.Namespace) -> int:
         runner.start_all()
         start = time.monotonic()
         announced = False
+        bound: set[int] = set()  # the channels whose binding was said
         first: float | None = None
         try:
             while True:
@@ -166,9 +172,15 @@ def _run_c_node(args: argparse.Namespace) -> int:
                 if not announced and node.txnode is not None:
                     announced = True
                     say(args, f"node {node_id:016x} joined as TxNode 0x{node.txnode:02x}")
+                for channel, ch in [*subs.items(), *((c, ch) for c, ch, _ in pubs)]:
+                    if channel not in bound and node.channel_state(channel) == BOUND:
+                        bound.add(channel)
+                        etag = node.channel_etag(channel)
+                        use = "subscribed" if channel in subs else "publishing"
+                        say(args, f"{use}: {ch} is etag 0x{etag:04x}")
                 clock = time.monotonic()
                 for k, (channel, _, data) in enumerate(pubs):
-                    if sent[k] >= args.count or node.channel_state(channel) != 2:
+                    if sent[k] >= args.count or node.channel_state(channel) != BOUND:
                         continue
                     first = clock if first is None else first
                     if clock >= first + sent[k] / args.rate and node.publish(channel, data) == 0:
@@ -181,8 +193,15 @@ def _run_c_node(args: argparse.Namespace) -> int:
                     runner.step()  # the last frames out
                     break
                 await asyncio.sleep(0.001)
+        except asyncio.CancelledError:  # SIGTERM or SIGINT: a normal way to stop
+            pass
         finally:
             bus.shutdown()
+            for k, (_, ch, _) in enumerate(pubs):  # what was done, however the run ended
+                short = f" of {args.count}" if sent[k] < args.count else ""
+                say(args, f"published {sent[k]}{short} events on {ch}")
+            if subs:
+                say(args, f"received {received} events")
         return 0
 
     return run_until_signal(run())
