@@ -247,3 +247,42 @@ def test_large_events_record_decode_and_replay_whole(tmp_path: Path, suffix: str
         code, out = sub.finish(timeout=30)
         assert code == 0, sub.stderr_lines
         assert [bytes.fromhex(json.loads(x)["data"]) for x in out.splitlines()] == events
+
+
+@pytest.mark.netns
+def test_dbc_names_the_channels_it_leaves_out_for_being_larger_than_a_frame(
+    tmp_path: Path,
+) -> None:
+    """A channel larger than one frame goes as transfers on etags of its own, which no DBC
+    message describes: ``ups dbc`` says which, instead of leaving them out without a word."""
+    catalog = tmp_path / "catalog.toml"
+    catalog.write_text(CATALOG + '\n[channel."robot/map"]\ndescription = "a map tile"\n')
+    recording = tmp_path / "run.log"
+    bus = private_multicast_bus()
+    db = str(tmp_path / "ecb.db")
+    big = bytes(range(100)).hex()
+    with Proc("can-broker", "--can", bus, "--db", db, "--recovery", "0.2") as ecb:
+        ecb.wait_for_line("CAN-ECB on")
+        with Proc("record", str(recording), "--can", bus, "--db", db, "--count", "6") as rec:
+            rec.wait_for_line("recording")
+            for channel, data in (("robot/speed", SPEED), ("robot/map", big)):
+                code, _, err = ups("pub", channel, data, "--can", bus, "--count", "3")
+                assert code == 0, err
+            code, _ = rec.finish()
+            assert code == 0, rec.stderr_lines
+        # the live bus too: a DBC of what is heard while the large channel is published
+        with Proc("pub", "robot/map", big, "--can", bus, "--count", "100000", "--rate", "50"):
+            code, _, err = ups("dbc", "--can", bus, "--db", db, "--catalog", str(catalog),
+                               "--listen-for", "1", "-o", str(tmp_path / "live.dbc"))  # fmt: skip
+        assert code == 0, err
+        assert "larger than one frame: robot/map (100 B)" in "".join(err)
+    dbc = tmp_path / "bus.dbc"
+    code, _, err = ups("dbc", "--recording", str(recording), "--catalog", str(catalog),
+                       "-o", str(dbc))  # fmt: skip
+    assert code == 0, err
+    said = "".join(err)
+    assert "ups dbc: 1 messages in" in said, said  # robot/speed
+    assert "left out: 1 channel larger than one frame: robot/map (100 B)" in said
+    assert "show those frames as unknown" in said
+    names = [m.name for m in cantools.database.load_file(str(dbc)).messages]
+    assert len(names) == 1 and names[0].startswith("robot_speed")

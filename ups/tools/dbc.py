@@ -8,6 +8,10 @@ from the live bus (``--can BUS``: its CAN-ECB's database and a moment of listeni
 recording (``--recording FILE``). The catalog (``--catalog``) gives names and the signals of
 each channel's layout; a channel without one gets a single ``raw`` signal when it fits 64 bits.
 Run it again after the CAN-ECB gives out etags or TxNodes anew (a lost database, a lease).
+
+A channel whose events are larger than one frame is sent as transfers of several frames, on
+etags of their own (from 0x3000): a DBC message is one frame, so none describes them. Such
+channels are left out, and said so by name.
 """
 
 from __future__ import annotations
@@ -21,12 +25,13 @@ from .._cliargs import add_catalog, positive_float
 from .._errors import ConfigError
 
 if TYPE_CHECKING:
-    from .._bindings import Bindings, Event
+    from .._bindings import Bindings
     from .._catalog import Catalog, ChannelSpec
 
 HELP = "write a DBC that labels a UPS bus's frames (for cantools, SavvyCAN ...)"
 Stream = tuple[int, int, int]  #: (priority, TxNode, etag) of frames in use
 Streams = dict[Stream, tuple[int | None, int]]  #: -> (channel UID then, longest payload)
+Large = dict[int | None, int]  #: channels sent as transfers of several frames -> longest event
 
 
 def add_arguments(cmd: argparse.ArgumentParser) -> None:
@@ -54,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     require("cantools", "tools", "ups dbc writes with cantools, which is not installed")
     catalog = load_catalog(args.catalog)
     if args.recording is not None:
-        bindings, streams = _from_recording(args.recording)
+        bindings, streams, large = _from_recording(args.recording)
     else:
         bus = args.can or os.environ.get("UPS_CAN") or None
         if bus is None:
@@ -62,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
                 "which frames? give --can BUS (the live bus) or --recording FILE: a DBC names "
                 "frames by their identifier, which holds the TxNode and etag chosen on the bus"
             )
-        bindings, streams = _from_bus(bus, args.db, args.listen_for)
+        bindings, streams, large = _from_bus(bus, args.db, args.listen_for)
     database, skipped = build(bindings, streams, catalog)
     database.refresh()
     import cantools
@@ -76,7 +81,29 @@ def run(args: argparse.Namespace) -> int:
         + (f"; left out: {skipped} streams on etags bound to no known channel" if skipped else ""),
         file=sys.stderr,
     )
+    if large:
+        print(f"ups dbc: left out: {_large(large, bindings, catalog)}", file=sys.stderr)
     return 0
+
+
+def _large(large: Large, bindings: Bindings, catalog: Catalog) -> str:
+    """The channels sent as transfers of several frames, by name, and why no DBC has them."""
+
+    def name(uid: int | None) -> str:
+        if uid is None:
+            return "a channel bound to no known UID"
+        return catalog.channel(uid).name or bindings.names.get(uid) or f"0x{uid:016x}"
+
+    named = ", ".join(
+        f"{name(uid)} ({size} B)" if size else name(uid)
+        for uid, size in sorted(large.items(), key=lambda item: name(item[0]))
+    )
+    return (
+        f"{len(large)} channel{'s' * (len(large) != 1)} larger than one frame: {named}. Their "
+        "events go as transfers of several frames on etags from 0x3000, which no DBC message "
+        "(one frame each) describes: cantools and SavvyCAN show those frames as unknown; "
+        "'ups decode' reads them"
+    )
 
 
 def build(bindings: Bindings, streams: Streams, catalog: Catalog) -> tuple[Any, int]:
@@ -149,24 +176,29 @@ def _signals(spec: ChannelSpec | None, observed: int) -> tuple[list[Any], int]:
     return signals, at
 
 
-def _from_recording(path: str) -> tuple[Bindings, Streams]:
-    from .._bindings import Event
+def _from_recording(path: str) -> tuple[Bindings, Streams, Large]:
     from .decode import Tally, bindings_for, read
 
     bindings = bindings_for(path, None, None)
     streams: Streams = {}
+    large: Large = {}
     for _, item in read(path, bindings, Tally()):
-        if isinstance(item, Event):
-            _add(streams, item)
-    return bindings, streams
+        _add(streams, large, item)
+    return bindings, streams, large
 
 
-def _add(streams: Streams, ev: Event) -> None:
+def _add(streams: Streams, large: Large, ev: object) -> None:
     """One event of a stream: the channel it carried (its last, when bound anew) and the
-    longest payload."""
+    longest payload; a transfer (or a frame of one), to ``large``."""
     from .. import _canproto as p
+    from .._bindings import Event, Fragment
 
+    if isinstance(ev, Fragment) and ev.etag >= p.LARGE_FIRST_ETAG:
+        large.setdefault(ev.uid, 0)
+    if not isinstance(ev, Event):
+        return
     if ev.etag >= p.LARGE_FIRST_ETAG:  # a transfer of several frames: no DBC message is one
+        large[ev.uid] = max(large.get(ev.uid, 0), len(ev.data))
         return
     stream = (ev.priority, ev.txnode, ev.etag)
     uid, size = streams.get(stream, (ev.uid, 0))
@@ -175,15 +207,16 @@ def _add(streams: Streams, ev: Event) -> None:
     streams[stream] = (ev.uid, max(size, len(ev.data)))
 
 
-def _from_bus(bus: str, db: str | None, seconds: float) -> tuple[Bindings, Streams]:
+def _from_bus(bus: str, db: str | None, seconds: float) -> tuple[Bindings, Streams, Large]:
     import time
 
-    from .._bindings import Bindings, Event, default_db
+    from .._bindings import Bindings, default_db
     from .._canlink import open_bus
 
     bindings = Bindings()
     bindings.load_db(db if db is not None else default_db(bus))
     streams: Streams = {}
+    large: Large = {}
     listener = open_bus(bus)
     try:
         deadline = time.monotonic() + seconds
@@ -191,9 +224,8 @@ def _from_bus(bus: str, db: str | None, seconds: float) -> tuple[Bindings, Strea
             msg = listener.recv(left)
             if msg is None or not msg.is_extended_id or msg.is_error_frame:
                 continue
-            item = bindings.read(msg.arbitration_id, bytes(msg.data))
-            if isinstance(item, Event):
-                _add(streams, item)
+            item = bindings.read(msg.arbitration_id, bytes(msg.data), fd=msg.is_fd)
+            _add(streams, large, item)
     finally:
         listener.shutdown()
-    return bindings, streams
+    return bindings, streams, large
