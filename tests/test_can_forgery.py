@@ -189,6 +189,65 @@ async def test_a_verdict_forged_before_the_can_ecbs_answer_is_not_the_answer(
                 assert await priority_on_the_wire(pub, pub, "rt") == p.DEFAULT_PRIORITY
 
 
+# --- a forged answer to a re-binding ------------------------------------------------------------
+
+
+async def test_a_forged_answer_to_a_rebinding_that_the_can_ecb_corrects_at_once_is_not_adopted(
+    bus: str, tmp_path: Path, raw_bus: can.BusABC
+) -> None:
+    """The settle rule (docs/protocol.md, "A Bind counts as the answer"; ``Bindings._spoil``).
+    A subscriber re-binding x after a contradiction hears a forged answer Bind(F, x) and, at
+    once after it, the CAN-ECB's correction Bind(E, x): it must rely on E, where x's
+    publisher sends. Without the rule it adopted F 50 ms later, ignoring the true Bind, and
+    listened on an etag nobody publishes on, for good (mutation audit, issue 41).
+
+    The order is made, not hoped for: the CAN-ECB is held (a busy one) from before the
+    contradiction until the forged answer is on the bus, and the subscriber is held while the
+    forged answer and the CAN-ECB's Binds queue up for it, so it handles them back to back.
+    The publisher is held throughout (it is busy: it has not read the contradiction yet, so
+    it still sends on E, as a publisher that never heard the forger would)."""
+    uid, forged = name_to_uid("x"), 0x123  # an etag nothing on the bus is bound to
+    channel = bus.partition(":")[2]
+    held_pub, held_sub = HeldBus(channel), HeldBus(channel)
+    link_pub, link_sub = CanLink(held_pub), CanLink(held_sub)
+    try:
+        async with (
+            held_ecb(bus, tmp_path / "ecb.db") as (ecb, held),
+            Node(can=link_pub, node_id=1, join_timeout=15) as pub,
+            Node(can=link_sub, node_id=2, join_timeout=15) as sub_node,
+        ):
+            sub = await sub_node.subscribe("x")
+            await pub.publish("x", b"before")
+            assert (await sub.get_msg(timeout=5)).data == b"before"
+            etag = ecb.etags[uid]
+            assert forged != etag and forged not in ecb.etags.values()
+            face = can_face(sub_node)
+            await held_pub.hold()  # the publisher reads nothing more until the end
+            await held.hold()  # nor does the CAN-ECB, for now
+            send(raw_bus, p.Bind(etag, 0xBAD))  # contradicts x: the subscriber binds it again
+            await eventually(lambda: uid in face.bindings.pending)
+            await held_sub.hold()
+            conflicts = ecb.counters["conflicts"]
+            send(raw_bus, p.Bind(forged, uid))  # the forged answer
+            held.reading.set()  # the CAN-ECB corrects both forged Binds and answers the requests
+            await eventually(lambda: ecb.counters["conflicts"] >= conflicts + 2)
+            held_sub.reading.set()  # the forged answer, then the true Binds, back to back
+            await eventually(lambda: uid in face.bindings.bound)
+            await pub.publish("x", b"after")  # on E: the publisher never heard the forger
+            try:
+                assert (await sub.get_msg(timeout=5)).data == b"after"
+            except TimeoutError:
+                raise AssertionError(
+                    f"the subscriber relies on etag {face.bindings.bound.get(uid, -1):#x} for x, "
+                    f"which is at {etag:#x}"
+                ) from None
+    finally:
+        held_pub.reading.set()
+        held_sub.reading.set()
+        link_pub.close()
+        link_sub.close()
+
+
 # --- TxNodesFull and Failed during a join ---------------------------------------------------------
 
 
