@@ -21,8 +21,8 @@ has sent nothing for ``timeout`` seconds. Commands of the mobility services are 
 from the holder and only when READY (:meth:`Access.refusal`).
 
 While an id holds control it is bound to the address it asked from: :meth:`Access.admits`
-refuses that id from any other address (the host drops such messages whole and counts them;
-only Set Emergency, which anyone may send, is taken), so another client using the same id can
+refuses that id from any other address (the host answers its queries there and takes its Set
+Emergency, as anyone's, and drops the rest, counted), so another client using the same id can
 neither command, nor keep control alive, nor have the holder's answers sent to it. An
 emergency is cleared only by the id *and* address that set it.
 """

@@ -23,10 +23,14 @@ Bounds, each counted when it bites:
 - datagrams that do not decode (``malformed``) and messages no service here answers
   (``unserved``) are counted and dropped; an exception inside a service is logged and counted
   (``handler_errors``) and the component keeps serving.
-- while a client holds control, its JAUS id is bound to its UDP address: a message (or a part
-  of one) with that id from another address is dropped before anything else, counted
-  (``refused_other_address``) and logged (``_access.Notes``); a Request Control among them is
-  answered Not Available, a Set Emergency is still taken (anyone may stop the robot).
+- while a client holds control, its JAUS id is bound to its UDP address: a message with that
+  id from another address never reaches the holder's state (its client, its route, its events,
+  its control's liveness). A query is answered, to the address it came from, as any client's
+  is (what anyone may read); a Set Emergency is taken (anyone may stop the robot); anything
+  else is dropped, counted (``refused_other_address``) and logged (``_access.Notes``), and
+  told so when JAUS has a word for it: Request and Release Control are answered Not Available,
+  an event request Reject Event Request (connection refused, saying why). The parts of a
+  large message are never joined with the holder's.
 """
 
 from __future__ import annotations
@@ -38,8 +42,15 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from ._codec import AckNak, JausDecodeError, JausId
-from ._component import Component
-from ._core_payloads import SetEmergency
+from ._component import Component, Unserved
+from ._core_payloads import (
+    CancelEvent,
+    CreateEvent,
+    EventRejection,
+    RejectEventRequest,
+    SetEmergency,
+    UpdateEvent,
+)
 from ._events import EVENT_TIMEOUT
 from ._judp import (
     Broadcast,
@@ -52,7 +63,14 @@ from ._judp import (
 )
 from ._mapping import Bridge
 from ._messages import decode_payload, encode_payload
-from ._payloads import ConfirmControl, ControlResponse, RequestControl
+from ._payloads import (
+    ConfirmControl,
+    ControlResponse,
+    RejectControl,
+    RejectResponse,
+    ReleaseControl,
+    RequestControl,
+)
 from ._ra33 import (
     RA33_PREFIX,
     Ra33Address,
@@ -297,7 +315,11 @@ class JausHost(asyncio.DatagramProtocol):
         self.counters["received"] += 1
         if not self.component.access.admits(source, addr):
             to = Client(source, addr, ra33, instance, 0.0, ra33_as=ra33_as or self.me.component)
-            self._refuse(source, addr, payload, to)
+            try:
+                self._refuse(source, addr, payload, to)
+            except Exception:  # one bad message must not stop the component
+                self.counters["handler_errors"] += 1
+                log.exception("could not answer %s from %s", type(payload).__name__, addr)
             return
         client = self._client(source, addr, ra33, instance)
         client.ra33_as = ra33_as or self.me.component
@@ -313,10 +335,14 @@ class JausHost(asyncio.DatagramProtocol):
     def _refuse(
         self, source: JausId, addr: tuple[str, int], payload: Any = None, to: Client | None = None
     ) -> None:
-        """A message with the controller's id from another address: dropped, counted, logged;
-        a Request Control is told Not Available, a Set Emergency is taken."""
+        """A message with the controller's id from another address (``to`` reaches it there):
+        a query is answered, a Set Emergency taken; the rest is refused, counted, logged, and
+        told so where JAUS can say it."""
         if isinstance(payload, SetEmergency):
             self.component.emergency(source, addr, payload)
+            return
+        if to is not None and _is_query(payload):
+            self._answer_elsewhere(to, payload)
             return
         holder = self.component.access.holder_address or ("?", 0)
         self.component.notes(
@@ -325,8 +351,30 @@ class JausHost(asyncio.DatagramProtocol):
             type(payload).__name__ if payload is not None else "a message",
             addr[0], addr[1], source, holder[0], holder[1],
         )  # fmt: skip
-        if isinstance(payload, RequestControl) and to is not None:
+        if to is None:
+            return
+        if isinstance(payload, RequestControl):
             self._send(to, ConfirmControl(ControlResponse.NOT_AVAILABLE))
+        elif isinstance(payload, ReleaseControl):
+            self._send(to, RejectControl(RejectResponse.NOT_AVAILABLE))
+        elif isinstance(payload, CreateEvent | UpdateEvent | CancelEvent):
+            why = f"{source} controls this component from another address"
+            refused = EventRejection.CONNECTION_REFUSED
+            self._send(to, RejectEventRequest(payload.request_id, refused, why))
+
+    def _answer_elsewhere(self, to: Client, query: Any) -> None:
+        """A query from the controller's id at another address, answered there; nothing about
+        the controller (its route, its liveness) changes."""
+        try:
+            report = self.component.answer(query)
+        except Unserved:
+            self.counters["unserved"] += 1
+            return
+        if report is None:
+            self.counters["not_yet"] += 1  # JAUS has no "no data" reply: nothing is sent
+            return
+        self._send(to, report)
+        self.counters["replies"] += 1
 
     def _client(self, source: JausId, addr: tuple[str, int], ra33: bool, instance: int) -> Client:
         now = time.monotonic()
@@ -394,6 +442,11 @@ class JausHost(asyncio.DatagramProtocol):
         sequence = self._sequence
         self._sequence = (sequence + count) & 0xFFFF
         return sequence
+
+
+def _is_query(payload: Any) -> bool:
+    """Whether ``payload`` is a query (codes 0x2000-0x3FFF): it asks, it changes nothing."""
+    return 0x2000 <= getattr(payload, "CODE", 0) < 0x4000
 
 
 def _for(me: JausId, to: JausId, broadcast_subsystem: int) -> bool:

@@ -23,7 +23,10 @@ OPERATOR = (200, 1, 1)
 REQUEST_CONTROL, CONFIRM_CONTROL, RESUME, SET_WRENCH_EFFORT = 0x000D, 0x000F, 0x0004, 0x0405
 RELEASE_CONTROL, REJECT_CONTROL = 0x000E, 0x0010
 QUERY_CONTROL, REPORT_CONTROL, QUERY_STATUS, REPORT_STATUS = 0x200D, 0x400D, 0x2002, 0x4002
-READY = 1
+QUERY_TIMEOUT, REPORT_TIMEOUT = 0x2003, 0x4003
+CREATE_EVENT, REJECT_EVENT_REQUEST = 0x01F0, 0x01F4
+READY, STANDBY = 1, 2
+CONNECTION_REFUSED = 3
 NOT_AVAILABLE, INSUFFICIENT_AUTHORITY = 1, 2
 
 MAPPING = """
@@ -133,6 +136,40 @@ def test_the_controllers_id_from_another_port_is_refused_and_counted(tmp_path: P
         stats = stats_at_stop(component)
     assert stats["refused_other_address"] == 2 and stats["commands"] == 1
     assert stats["control_granted"] == 1
+
+
+def test_the_controllers_id_from_another_port_is_answered_its_queries_and_told_the_rest(
+    tmp_path: Path,
+) -> None:
+    """Issue 39: a second run of an OCU with the controller's id (``ups jaus-ocu`` right after
+    ``control request``) got no answer at all until the control lapsed. Its queries are
+    answered, at its own port, and what it may not do is refused aloud: Release Control with
+    Not Available, Create Event with Reject Event Request (connection refused, saying why).
+    The controller keeps control, and its answers keep coming to it alone."""
+    with robot(tmp_path) as (address, wheels, component):
+        operator = Ocu(address, OPERATOR, "127.0.0.1")
+        second = Ocu(address, OPERATOR, "127.0.0.1")  # the same id, another port
+        assert operator.ask(REQUEST_CONTROL, bytes([10]), CONFIRM_CONTROL) == bytes([0])
+        body = second.ask(QUERY_CONTROL, b"", REPORT_CONTROL)
+        assert body == struct.pack("<HBBB", *OPERATOR, 10)
+        assert second.ask(QUERY_STATUS, b"", REPORT_STATUS)[0] == STANDBY
+        assert second.ask(QUERY_TIMEOUT, b"", REPORT_TIMEOUT) == bytes([5])  # seconds
+        assert second.ask(RELEASE_CONTROL, b"", REJECT_CONTROL) == bytes([NOT_AVAILABLE])
+        # Create Event: request 1, every change, rate 0, the query (count u32, then its code)
+        create = struct.pack("<BBHIH", 1, 1, 0, 2, QUERY_STATUS)
+        refused = second.ask(CREATE_EVENT, create, REJECT_EVENT_REQUEST)
+        assert refused[:3] == bytes([0b11, 1, CONNECTION_REFUSED])  # with a code and a text
+        assert refused[3:].rstrip(b"\0") == b"200.1.1 controls this component from another address"
+        # the operator still controls: it resumes and drives, its answers come to it
+        operator.send(RESUME)
+        assert operator.ask(QUERY_STATUS, b"", REPORT_STATUS)[0] == READY
+        operator.send(SET_WRENCH_EFFORT, effort(10))
+        assert the_wheels_got(wheels) == 20
+        operator.close()
+        second.close()
+        stats = stats_at_stop(component)
+    assert stats["refused_other_address"] == 2  # the Release Control and the Create Event
+    assert stats["control_granted"] == 1 and stats["commands"] == 1
 
 
 AUTHORITY = """
