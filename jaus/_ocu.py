@@ -17,13 +17,18 @@ hears no broadcast), or only to ``--broadcast ADDRESS``; ``discover`` prints eve
 that answers (once each), the other actions talk to the first (of id ``--to``, when given).
 
 Every command speaks JUDP (``--framing ra33`` for paper 001's RA 3.3 framing) from the JAUS id
-``--id`` (default 200.1.1): a component recognises its controller by that id, so ``control
-request`` in one command and ``send`` in the next act as one OCU, as long as the second comes
-within the component's control timeout. ``send --control`` takes control, resumes, sends and
-releases in one go; ``waypoints`` takes control, loads a local waypoint list, executes it and
-follows it (one line each time the active waypoint changes) until the robot has reached the
-last, keeping control all along, then releases it.
+``--id`` (default 200.1.1), from a UDP port of its own. ``ups jaus`` binds control to the id
+*and* the address it was asked from, so the control one run takes is that run's: ``send
+--control`` takes control, resumes, sends, keeps control ``--hold`` seconds and releases it;
+``waypoints`` takes control, loads a local waypoint list, executes it and follows it (one line
+per waypoint the robot heads for, in order) until the robot has reached the last, keeping
+control all along, then releases it (``_ocu_waypoints``). A ``control request`` holds control
+until it lapses after that run; meanwhile a run with the same ``--id`` is answered its queries
+and refused the rest.
 
+When the component refuses (control not available, an event refused, a command sent without
+control), the JSON line of its answer is followed on stderr by one line saying why, from what
+the component reports (its status, its controller, its control timeout), and exit 1.
 Whatever goes wrong is one line naming the messages as the standard does ("no answer (Report
 Global Pose) to Query Global Pose from 127.0.0.1:3794 within 2 s"), and exit 2.
 """
@@ -34,7 +39,6 @@ import argparse
 import dataclasses
 import enum
 import json
-import socket
 import sys
 import time
 import typing
@@ -43,145 +47,25 @@ from typing import Any
 
 from ups import ConfigError, UpsError
 
-from ._codec import AckNak, JausDecodeError, JausId
-from ._codes import message_name
-from ._judp import JUDP_PORT, Broadcast, JudpHeader, JudpMessage, decode_judp, encode_judp
-from ._lists import ALL_ELEMENTS, Element
+from ._codec import JausId
+from ._judp import JUDP_PORT
 from ._messages import PAYLOAD_TYPES, decode_payload, encode_payload
 from ._messages import payloads as p
-from ._ra33 import RA33_PREFIX, Ra33Address, Ra33Header, Ra33Message, decode_ra33, encode_ra33
-from ._ra33_payloads import decode_ra33_payload, encode_ra33_payload
+from ._ocu_link import (
+    Ocu,
+    control_refused,
+    controller,
+    named,
+    needs_control,
+    to_json,
+)
+from ._ocu_waypoints import waypoints
 
 BY_NAME = {cls.__name__: cls for cls in PAYLOAD_TYPES.values()}
-EVERYONE = JausId(0xFFFF, 0xFF, 0xFF)
 #: where ``discover`` asks by default: the network by broadcast, and this host (a component
 #: listening on loopback, as ``ups demo --jaus`` does, hears no broadcast)
 DEFAULT_TARGETS = (("255.255.255.255", JUDP_PORT), ("127.0.0.1", JUDP_PORT))
 MAX_EVENT_RATE = 1092.0  #: Hz: Create Event's rate field, scaled 0..1092
-
-
-class Ocu:
-    """One OCU socket: sends messages in one framing to its targets, reads what comes back."""
-
-    def __init__(
-        self,
-        me: JausId,
-        targets: list[tuple[str, int]],
-        *,
-        ra33: bool,
-        broadcast: bool,
-        timeout: float,
-    ) -> None:
-        self.me, self.targets, self.ra33, self.broadcast = me, targets, ra33, broadcast
-        self.timeout = timeout
-        self.unreachable: dict[tuple[str, int], str] = {}  # targets a send could not reach
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        if broadcast:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        self.sock.bind(("0.0.0.0", 0))
-        self._sequence = 0
-
-    def close(self) -> None:
-        self.sock.close()
-
-    def where(self) -> str:
-        return " and ".join(f"{host}:{port}" for host, port in self.targets)
-
-    def send(self, payload: Any, to: JausId | None = None) -> None:
-        to = to or EVERYONE
-        self._sequence = (self._sequence + 1) & 0xFFFF
-        if self.ra33:
-            code, body = encode_ra33_payload(payload)
-            dest = Ra33Address(
-                min(to.subsystem, 0xFF), to.node, to.component, 0xFF if to == EVERYONE else 1
-            )
-            me = Ra33Address(self.me.subsystem, self.me.node, self.me.component)
-            ra_header = Ra33Header(code, dest, me, sequence=self._sequence)
-            datagram = encode_ra33(Ra33Message(ra_header, body))
-        else:
-            code, body = encode_payload(payload)
-            header = JudpHeader(
-                destination=to,
-                source=self.me,
-                sequence=self._sequence,
-                broadcast=Broadcast.GLOBAL if to == EVERYONE else Broadcast.NONE,
-            )
-            datagram = encode_judp([JudpMessage(header, code, body)])
-        sent = 0
-        for target in self.targets:
-            try:
-                self.sock.sendto(datagram, target)
-                sent += 1
-            except OSError as exc:  # a broadcast with no network to go out on, say
-                self.unreachable[target] = exc.strerror or str(exc)
-        if not sent:
-            why = "; ".join(f"{h}:{p}: {text}" for (h, p), text in self.unreachable.items())
-            raise ConfigError(f"cannot send to {why}")
-
-    def receive(self, until: float) -> tuple[JausId, Any, tuple[str, int]] | None:
-        """The next message decoded (its sender's id, payload and address), or None at
-        ``until`` (a time.monotonic() value). Datagrams this codec cannot read are skipped."""
-        while (left := until - time.monotonic()) > 0:
-            self.sock.settimeout(left)
-            try:
-                data, addr = self.sock.recvfrom(65536)
-            except TimeoutError:
-                return None
-            except ConnectionRefusedError:  # an ICMP "port unreachable" from a target
-                continue
-            try:
-                if data.startswith(RA33_PREFIX):
-                    m = decode_ra33(data)
-                    if m.header.ack_nak != AckNak.NONE:
-                        continue
-                    src = m.header.source
-                    payload = decode_ra33_payload(m.header.command_code, m.data)
-                    source = JausId(src.subsystem, src.node, src.component)
-                else:
-                    (msg, *_) = decode_judp(data)
-                    if msg.code is None:
-                        continue
-                    payload = decode_payload(msg.code, msg.payload)
-                    source = msg.header.source
-            except JausDecodeError:
-                continue
-            if payload is not None:
-                return source, payload, addr
-        return None
-
-    def ask(self, payload: Any, answer: Any, to: JausId | None) -> tuple[JausId, Any]:
-        self.send(payload, to)
-        until = time.monotonic() + self.timeout
-        while (got := self.receive(until)) is not None:
-            if isinstance(got[1], answer):
-                return got[0], got[1]
-        raise ConfigError(
-            f"no answer ({' or '.join(_named(a) for a in typing.get_args(answer) or (answer,))})"
-            f" to {_named(type(payload))} from {self.where()} within {self.timeout:g} s"
-        )
-
-
-def _named(cls: type) -> str:
-    """A message's name as the standard writes it: "Report Global Pose"."""
-    code = getattr(cls, "CODE", None)
-    return (message_name(code) if code is not None else None) or cls.__name__
-
-
-def to_json(source: JausId, payload: Any) -> str:
-    def plain(value: Any) -> Any:
-        if isinstance(value, enum.Enum):
-            return value.name
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-        if isinstance(value, tuple | list):
-            return [plain(v) for v in value]
-        if isinstance(value, bytes):
-            return value.hex()
-        return value
-
-    return json.dumps(
-        {"from": str(source), "message": type(payload).__name__, "fields": plain(payload)}
-    )
 
 
 def build(name: str, assignments: list[str]) -> Any:
@@ -248,7 +132,7 @@ def _query_of(topic: str) -> Any:
     try:
         return cls()
     except TypeError:
-        raise ConfigError(f"{_named(cls)} needs fields: send {cls.__name__} FIELD=VALUE") from None
+        raise ConfigError(f"{named(cls)} needs fields: send {cls.__name__} FIELD=VALUE") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -342,23 +226,61 @@ def _control(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
     else:
         source, reply = ocu.ask(p.QueryControl(), p.ReportControl, to)
     print(to_json(source, reply), flush=True)
-    granted = not isinstance(reply, p.ConfirmControl) or reply.response == 0
-    return 0 if granted else 1
+    if isinstance(reply, p.ConfirmControl) and reply.response != 0:
+        _why(control_refused(ocu, to, source, reply))
+        return 1
+    if isinstance(reply, p.RejectControl) and reply.response != 0:
+        _why(f"nothing to release: this run does not control {source}; {controller(ocu, to)}")
+        return 1
+    return 0
 
 
 def _send(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
     message = build(args.message, args.fields)
-    if args.control:
-        source, reply = ocu.ask(p.RequestControl(args.authority), p.ConfirmControl, to)
-        print(to_json(source, reply), flush=True)
-        if reply.response != 0:
-            return 1
+    if args.hold and not args.control:
+        raise ConfigError("--hold keeps the control that --control takes: give both")
+    if not args.control:
+        ocu.send(message, to)
+        print(json.dumps({"sent": args.message}), flush=True)
+        if not needs_control(message):
+            return 0
+        # handled after the command: a component carries it out only from its controller
+        source, _ = ocu.ask(p.QueryStatus(), p.ReportStatus, to)
+        _why(f"{named(type(message))} went without control, and {source} carries it out only "
+             f"from the OCU that controls it: {controller(ocu, to)}; give --control")  # fmt: skip
+        return 1
+    source, reply = ocu.ask(p.RequestControl(args.authority), p.ConfirmControl, to)
+    print(to_json(source, reply), flush=True)
+    if reply.response != 0:
+        _why(control_refused(ocu, to, source, reply))
+        return 1
+    try:
         ocu.send(p.Resume(), to)
-    ocu.send(message, to)
-    if args.control:
-        ocu.ask(p.QueryStatus(), p.ReportStatus, to)  # carried out by now: then let go
-        source, reply = ocu.ask(p.ReleaseControl(), p.RejectControl, to)
-    print(json.dumps({"sent": args.message}), flush=True)
+        ocu.send(message, to)
+        ocu.ask(p.QueryStatus(), p.ReportStatus, to)  # carried out by now
+        print(json.dumps({"sent": args.message}), flush=True)
+        held = _hold(ocu, to, args.hold) if args.hold else 0
+    except BaseException:  # Ctrl-C, or no answer: let go, sent and not awaited (a robot gone
+        ocu.send(p.ReleaseControl(), to)  # silent must not hide why we stopped)
+        raise
+    ocu.ask(p.ReleaseControl(), p.RejectControl, to)
+    return held
+
+
+HOLD_EVERY = 1.0  #: seconds between the questions that keep control while --hold lasts
+
+
+def _hold(ocu: Ocu, to: JausId | None, seconds: float) -> int:
+    """Keep control ``seconds`` (a question every HOLD_EVERY seconds: control lapses after
+    the component's timeout of silence); 1 if the component takes it back meanwhile."""
+    end = time.monotonic() + seconds
+    while (now := time.monotonic()) < end:
+        ocu.send(p.QueryStatus(), to)
+        until = min(end, now + HOLD_EVERY)
+        while (got := ocu.receive(until)) is not None:
+            if isinstance(got[1], p.RejectControl):
+                _why(f"{got[0]} took control back ({got[1].response.name}) while held")
+                return 1
     return 0
 
 
@@ -369,9 +291,12 @@ def _watch(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
     code, body = encode_payload(query)
     kind = 1 if args.change else 0
     create = p.CreateEvent(1, p.EventType(kind), args.rate, code.to_bytes(2, "little") + body)
-    _, confirm = ocu.ask(create, p.ConfirmEventRequest | p.RejectEventRequest, to)
+    source, confirm = ocu.ask(create, p.ConfirmEventRequest | p.RejectEventRequest, to)
     if isinstance(confirm, p.RejectEventRequest):
-        print(to_json(to or EVERYONE, confirm), flush=True)
+        print(to_json(source, confirm), flush=True)
+        code_name = confirm.response_code.name if confirm.response_code is not None else "no code"
+        said = f": {confirm.error_message}" if confirm.error_message else ""
+        _why(f"{source} refused the event ({code_name}){said}")
         return 1
     shown = 0
     try:
@@ -391,53 +316,9 @@ def _watch(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
     return 0
 
 
-def _waypoints(ocu: Ocu, to: JausId | None, args: argparse.Namespace) -> int:
-    if ocu.ra33:
-        raise ConfigError("waypoints needs --framing judp: the List Manager's messages are "
-                          "served in JUDP only")  # fmt: skip
-    if args.tolerance is not None and args.tolerance > 100:
-        raise ConfigError("--tolerance is at most 100 m (Set Local Waypoint's range)")
-    if args.speed > 327.67:
-        raise ConfigError("--speed is at most 327.67 m/s (Execute List's range)")
-    elements = []
-    for i, text in enumerate(args.points):
-        try:
-            x, y = (float(v) for v in text.split(","))
-        except ValueError:
-            raise ConfigError(f"a waypoint is X,Y in metres, not {text!r}") from None
-        if not (abs(x) <= 100000 and abs(y) <= 100000):
-            raise ConfigError(f"waypoint {text}: x and y are -100000..100000 m in JAUS")
-        code, body = encode_payload(p.SetLocalWaypoint(x, y, waypoint_tolerance=args.tolerance))
-        after = i + 2 if i + 1 < len(args.points) else 0
-        elements.append(Element(i + 1, i, after, code.to_bytes(2, "little") + body))
-    source, reply = ocu.ask(p.RequestControl(args.authority), p.ConfirmControl, to)
-    print(to_json(source, reply), flush=True)
-    if reply.response != 0:
-        return 1
-    answered = p.ConfirmElementRequest | p.RejectElementRequest
-    try:
-        ocu.send(p.Resume(), to)
-        _, status = ocu.ask(p.QueryStatus(), p.ReportStatus, to)
-        if status.status != p.ManagementStatus.READY:  # the list would not run
-            print(json.dumps({"error": f"the component is {status.status.name}, not READY"}))
-            return 1
-        ocu.ask(p.DeleteElement(1, (ALL_ELEMENTS,)), answered, to)
-        source, reply = ocu.ask(p.SetElement(2, tuple(elements)), answered, to)
-        print(to_json(source, reply), flush=True)
-        if isinstance(reply, p.RejectElementRequest):
-            return 1
-        ocu.send(p.ExecuteList(args.speed), to)
-        shown = None
-        while True:  # asking keeps control: it lapses after 5 s of silence
-            _, active = ocu.ask(p.QueryActiveElement(), p.ReportActiveElement, to)
-            if active.uid != shown:
-                shown = active.uid
-                print(json.dumps({"active": active.uid}), flush=True)
-            if active.uid == 0:
-                return 0
-            time.sleep(args.poll)
-    finally:  # sent, not awaited: a robot gone silent must not hide why we stopped
-        ocu.send(p.ReleaseControl(), to)
+def _why(reason: str) -> None:
+    """The one line after a refused answer's JSON: why, on stderr."""
+    print(f"ups jaus-ocu: {reason}", file=sys.stderr, flush=True)
 
 
 _ACTIONS = {
@@ -446,5 +327,5 @@ _ACTIONS = {
     "control": _control,
     "send": _send,
     "watch": _watch,
-    "waypoints": _waypoints,
+    "waypoints": waypoints,
 }

@@ -3,7 +3,9 @@ private network namespace (the demo's JAUS component takes UDP port 3794 on loop
 ``discover`` broadcasts): the OCU finds the demo with no options, its Global Pose is plausible,
 a 10 Hz Global Pose event keeps coming, paper 001's RA 3.3 pose query to the Global Pose
 Sensor (component 38) is answered, a waypoint list is driven to its end, and a failing
-``waypoints`` says why in one line that names no Python class."""
+``waypoints`` says why in one line that names no Python class; right after ``control
+request``, the next runs are answered, or told in one line why not; every waypoint the robot
+heads for is reported, in order."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import math
 import re
 import socket
 import struct
+import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
 
@@ -35,10 +38,16 @@ def demo() -> Iterator[Proc]:
 
 def ocu(*args: str, timeout: float = 60) -> list[dict[str, object]]:
     """``ups jaus-ocu ARGS``: its JSON lines; it must exit 0."""
+    code, lines, errors = ocu_run(*args, timeout=timeout)
+    assert code == 0, "".join(errors)
+    return lines
+
+
+def ocu_run(*args: str, timeout: float = 60) -> tuple[int, list[dict[str, object]], list[str]]:
+    """``ups jaus-ocu ARGS``: its exit code, JSON lines and stderr lines."""
     with Proc("jaus-ocu", *args) as proc:
         code, out = proc.finish(timeout=timeout)
-    assert code == 0, "".join(proc.stderr_lines)
-    return [json.loads(line) for line in out.splitlines()]
+    return code, [json.loads(line) for line in out.splitlines()], proc.stderr_lines
 
 
 def test_discover_finds_the_demo_with_no_options(demo: Proc) -> None:
@@ -147,3 +156,65 @@ def test_a_second_jaus_demo_on_the_same_port_says_why_in_one_line(demo: Proc) ->
         "ups demo: the JAUS component cannot listen on 127.0.0.1:3794 (UDP): Address already in "
         "use; try --jaus HOST:PORT\n"
     ]
+
+
+HELD_BY_AN_EARLIER_RUN = (
+    "200.1.1 (this OCU's --id) controls it from another address: the control an earlier run "
+    "took, which lapses 5 s after that run's last message"
+)
+
+
+def test_right_after_control_request_the_next_run_is_answered_or_told_why(demo: Proc) -> None:
+    """Issue 39: after ``control request``, every ``ups jaus-ocu`` run got no answer at all
+    until the control lapsed (the component held the id's control at the first run's port and
+    dropped everything else from that id). Now queries are answered, and what is refused says
+    so in one line naming the holder; each within the OCU's own 2 s timeout."""
+    (granted,) = ocu("control", "request")
+    assert granted["fields"] == {"response": "CONTROL_ACCEPTED"}
+    (found,) = ocu("discover")
+    assert found["id"] == "1.1.1"
+    (status,) = ocu("query", "Status")
+    assert status["fields"] == {"status": "STANDBY", "reserved": 0}
+    (control,) = ocu("control", "query")
+    assert control["fields"] == {"subsystem": 200, "node": 1, "component": 1, "authority": 10}
+    for args, answer, why in (
+        (("send", "SetWrenchEffort", "propulsive_linear_x=20", "--control"),
+         {"response": "NOT_AVAILABLE"},
+         f"control of 1.1.1 is not available: {HELD_BY_AN_EARLIER_RUN}"),
+        (("send", "SetWrenchEffort", "propulsive_linear_x=20"), None,
+         "Set Wrench Effort went without control, and 1.1.1 carries it out only from the OCU "
+         f"that controls it: {HELD_BY_AN_EARLIER_RUN}; give --control"),
+        (("waypoints", "2,0"), {"response": "NOT_AVAILABLE"},
+         f"control of 1.1.1 is not available: {HELD_BY_AN_EARLIER_RUN}"),
+        (("control", "release"), {"response": "NOT_AVAILABLE"},
+         f"nothing to release: this run does not control 1.1.1; {HELD_BY_AN_EARLIER_RUN}"),
+        (("watch", "GlobalPose", "--count", "1"), None,
+         "1.1.1 refused the event (CONNECTION_REFUSED): 200.1.1 controls this component from "
+         "another address"),
+    ):  # fmt: skip
+        code, lines, errors = ocu_run(*args)
+        assert (code, errors) == (1, [f"ups jaus-ocu: {why}\n"]), args
+        if answer is not None:
+            assert lines[0]["fields"] == answer
+    wait_until_nobody_controls()
+
+
+def wait_until_nobody_controls(within: float = 60) -> None:
+    """Until the component reports no controller (a control left by a test lapses after 5 s
+    of silence), so that the next test may take control."""
+    deadline = time.monotonic() + within
+    while ocu("control", "query")[0]["fields"] != NOBODY:
+        assert time.monotonic() < deadline, "the control never lapsed"
+
+
+NOBODY = {"subsystem": 0, "node": 0, "component": 0, "authority": 0}
+
+
+def test_every_waypoint_the_robot_heads_for_is_reported_in_order(demo: Proc) -> None:
+    """Issue 39: ``waypoints 1,0 1,1`` reported active 1 then 0, never 2, though the robot
+    headed for (1, 1): the OCU asked every 0.5 s and the robot got within the tolerance of
+    both sooner. Within 100 m each waypoint is reached at the next pose, far quicker than the
+    3 s between questions here: every one is still reported, in order, then 0."""
+    lines = ocu("waypoints", "1,0", "1,1", "--tolerance", "100", "--poll", "3")
+    assert [line.get("active") for line in lines[2:]] == [1, 2, 0]
+    demo.wait_for_line(r"navigator: heading for the waypoint x=1\.00 m, y=1\.00 m", stdout=True)

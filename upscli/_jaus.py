@@ -93,6 +93,10 @@ def _add_ocu_arguments(cmd: argparse.ArgumentParser) -> None:
     act.add_argument("fields", nargs="*", metavar="FIELD=VALUE")
     act.add_argument("--control", action="store_true",
                      help="take control and resume first, release after")  # fmt: skip
+    act.add_argument(
+        "--hold", type=positive_float, default=None, metavar="SECONDS",
+        help="with --control: keep control SECONDS after sending (Ctrl-C lets go sooner)",
+    )  # fmt: skip
     act.add_argument("--authority", type=authority, default=10, help="0-255 (default 10)")
     act = actions.add_parser("watch", help="an event subscription: each report as it comes")
     act.add_argument("message", metavar="MESSAGE", help="e.g. GlobalPose")
