@@ -130,3 +130,25 @@ async def test_an_offer_nobody_claims_lapses_and_a_late_claim_still_gets_it(
     assert not raw.find(lambda f: isinstance(f, Assign) and f.node_id == 0x6060)
     late = raw.send(claim(offer.txnode, 0x6060))  # the slow node claims at last
     await raw.expect(lambda f: f == Assign(offer.txnode, 0x6060), since=late, timeout=3.0)
+
+
+async def test_an_answer_missing_a_middle_stage_is_incomplete_and_asked_again(
+    raw: Wire, can_ecb: CanEcb
+) -> None:
+    """ "a stage from |P| to 15 with no nibble (frames were lost ...): the answer is incomplete.
+    The prefix known for certain ... is queried again". A census answer that lost its Stage
+    frame of stage 7 is not read as complete (the stages before the gap are certain, those
+    after it are not): the CAN-ECB sends Query(P = the first 7 nibbles), and the joiner's
+    answer to that gets it its Offer (mutation audit, issue 41: counted as complete, it found
+    nobody, asked nothing, and the joiner waited for another census)."""
+    node_id, gap = 0xFEDC_BA98_7654_3210, 7
+    ids = nibbles(node_id)
+    _, census = await raw.expect(Census, since=raw.send(Knock()))
+    answered = raw.send(*(Stage(census.epoch, s, ids[s]) for s in range(16) if s != gap))
+    i_query, query = await raw.expect(Query, since=answered, timeout=5.0)
+    assert query.prefix == nibbles(node_id, gap)
+    assert not raw.find(Offer, since=answered, until=i_query), "an Offer from the torn answer"
+    rest = raw.send(*(Stage(query.epoch, s, ids[s]) for s in range(gap, 16)))
+    _, offer = await raw.expect(Offer, since=rest, timeout=5.0)
+    assert offer.node_id == node_id
+    assert can_ecb.stats()["census_incomplete"] == 1
