@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import struct
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -334,6 +335,46 @@ async def test_a_stalled_subscriber_that_leaves_keeps_its_drops_counted(tcp_ecb:
                 assert pub.stats()["peer_dropped"] >= dropped  # ...is there all the same
                 await eventually(lambda: not outbox._closing)
                 assert pub.stats()["peer_dropped"] > dropped  # and what was queued: dropped
+
+
+async def test_drops_stay_counted_when_the_link_is_lost_and_dialled_again(
+    tcp_ecb: TcpEcb,
+) -> None:
+    """A subscriber's link is reset and its publisher dials it again: what was dropped for it
+    on the lost link stays in ``peer_dropped`` (and in its row of the status), and what is
+    dropped on the new link adds to it (mutation audit, issue 41: the lost link's count
+    vanished at the redial)."""
+    uid = name_to_uid("x")
+    loop = asyncio.get_running_loop()
+    with stalled_subscriber() as stalled:
+        stalled.setblocking(False)
+        async with (
+            tcp_node(tcp_ecb, "pub", peer_queue=100) as pub,
+            registered_at(tcp_ecb, 0x54, stalled.getsockname(), uid),
+        ):
+            await pub.advertise("x")
+            first, _ = await asyncio.wait_for(loop.sock_accept(stalled), 10)
+            with first:
+                for _ in range(50):  # until the kernel's buffers and the queue are full
+                    for _ in range(1000):
+                        await pub.publish("x", bytes(1000))
+                    if pub.stats()["peer_dropped"]:
+                        break
+                dropped = pub.stats()["peer_dropped"]
+                assert dropped > 0
+                # closed with a reset (linger on, 0 s): the link is lost, not ended
+                first.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            second, _ = await asyncio.wait_for(loop.sock_accept(stalled), 10)  # redialled
+            with second:
+                assert pub.stats()["peer_dropped"] >= dropped
+                (row,) = pub.face.status()["peers"]  # type: ignore[attr-defined]
+                assert row["dropped"] == pub.stats()["peer_dropped"]
+                for _ in range(50):  # the new link fills up too: its drops add up
+                    for _ in range(1000):
+                        await pub.publish("x", bytes(1000))
+                    if pub.stats()["peer_dropped"] > dropped:
+                        break
+                assert pub.stats()["peer_dropped"] > dropped
 
 
 async def test_a_peer_link_that_breaks_is_dialled_again(
