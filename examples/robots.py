@@ -19,7 +19,8 @@ Runs in one process on a python-can ``virtual`` bus and loopback TCP, so it need
 * a dashboard subscribes to everything and prints what it sees;
 * the operator station, a TCP/IP node, subscribes to ``robot/speed`` and ``robot/brake``
   (the gateway forwards them from CAN, because someone on TCP subscribes) and publishes
-  ``robot/max-speed`` (the gateway forwards it to CAN, because the encoder subscribes).
+  ``robot/max-speed`` (the gateway forwards it to CAN, because the encoder subscribes);
+  with ``--jaus``, it stands aside while a JAUS operator controls the robot.
 
 ``ups demo`` (or ``scripts/demo``) runs it; it exits 0 when every channel was seen on CAN and
 the operator saw the robot slow down to its limit and brake.
@@ -30,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import struct
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -120,10 +122,18 @@ async def dashboard(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> No
             print(f"dashboard: {name} = {value} (from TxNode 0x{msg.source:02x})")
 
 
-async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]) -> None:
-    """On TCP/IP: watch the robot through the gateway, and cap its speed once it moves."""
+async def operator_station(
+    node: Node,
+    stop: asyncio.Event,
+    seen: dict[str, int],
+    jaus_controller: Callable[[], object | None] = lambda: None,
+) -> None:
+    """On TCP/IP: watch the robot through the gateway, and cap its speed while it is too fast;
+    but while a JAUS operator controls the robot (``jaus_controller()`` names it: ``ups demo
+    --jaus``), the speed is that operator's and the station stands aside."""
     sub = await node.subscribe(SPEED, BRAKE)
     sent = 0.0  # when the limit was last sent
+    aside: object | None = None  # the JAUS operator the station stands aside for
     while not stop.is_set():
         try:
             msg = await sub.get_msg(timeout=0.2)
@@ -138,9 +148,20 @@ async def operator_station(node: Node, stop: asyncio.Event, seen: dict[str, int]
         (speed,) = struct.unpack(">h", msg.data)
         if speed <= LIMIT_CM_S:
             seen["slowed"] = 1
+        holder = jaus_controller()
+        if holder != aside:
+            if holder is not None:
+                print(f"operator (TCP): JAUS operator {holder} controls the robot; leaving "
+                      f"{MAX_SPEED} to it")  # fmt: skip
+            else:
+                print(f"operator (TCP): no JAUS operator controls the robot; I cap it at "
+                      f"{LIMIT_CM_S} cm/s again")  # fmt: skip
+            aside = holder
         now = asyncio.get_running_loop().time()
-        if speed > LIMIT_CM_S and now - sent >= 0.5:  # again until it slows: the first may
-            if not sent:  # go out before the gateway has told TCP/IP the encoder listens
+        if aside is None and speed > LIMIT_CM_S and now - sent >= 0.5:
+            # again until it slows: the first may go out before the gateway has told TCP/IP
+            # that the encoder listens
+            if not sent:
                 print(f"operator (TCP): robot moves at {speed} cm/s; limiting it to {LIMIT_CM_S}")
             await node.publish(MAX_SPEED, struct.pack(">h", LIMIT_CM_S))
             sent = now
@@ -188,9 +209,11 @@ Try, in another shell (Ctrl-C here ends the demo):{first}
   ups jaus-ocu {target}query GlobalPose
   ups jaus-ocu {target}watch LocalPose --rate 10 --count 20
   ups jaus-ocu {target}waypoints 2,0 2,2 0,2 --speed 0.3
-  ups jaus-ocu {target}send SetWrenchEffort propulsive_linear_x=20 --control
+  ups jaus-ocu {target}send SetWrenchEffort propulsive_linear_x=20 --control --hold 10
 The waypoints drive the robot around a square (the navigator says so here); the last command
-limits it to 40 cm/s (the wheel encoder says so)."""
+limits it to 40 cm/s for 10 s (the wheel encoder says so). While a JAUS operator controls the
+robot, the operator station on TCP/IP stands aside; when none does, it caps the speed at 30
+cm/s again."""
 
 
 async def jaus_face(bus: str, where: str) -> tuple[Node, Any]:
@@ -250,6 +273,11 @@ async def run_demo(
         nodes = [Node(can=bus, name=name, node_id=0x0D3E_0000 + i) for i, name in enumerate(names)]
         operator = Node(broker=broker, name="operator", node_id=0x0D3E_0100)
         jaus_host: Any = None
+
+        def jaus_controller() -> object | None:
+            """The JAUS operator controlling the robot, if any (the operator station asks)."""
+            return None if jaus_host is None else jaus_host.component.access.holder
+
         stop = asyncio.Event()
         tasks: list[asyncio.Task[None]] = []
         try:
@@ -269,7 +297,7 @@ async def run_demo(
             encoder, sensor, controller, board, steering = nodes[:5]
             tasks = [
                 asyncio.create_task(dashboard(board, stop, seen)),
-                asyncio.create_task(operator_station(operator, stop, remote)),
+                asyncio.create_task(operator_station(operator, stop, remote, jaus_controller)),
                 asyncio.create_task(motor_controller(controller, stop)),
                 asyncio.create_task(wheel_encoder(encoder, stop)),
                 asyncio.create_task(sonar(sensor, stop)),

@@ -5,7 +5,8 @@ a 10 Hz Global Pose event keeps coming, paper 001's RA 3.3 pose query to the Glo
 Sensor (component 38) is answered, a waypoint list is driven to its end, and a failing
 ``waypoints`` says why in one line that names no Python class; right after ``control
 request``, the next runs are answered, or told in one line why not; every waypoint the robot
-heads for is reported, in order."""
+heads for is reported, in order; the demo's own operator stands aside while a JAUS operator
+controls the robot."""
 
 from __future__ import annotations
 
@@ -218,3 +219,43 @@ def test_every_waypoint_the_robot_heads_for_is_reported_in_order(demo: Proc) -> 
     lines = ocu("waypoints", "1,0", "1,1", "--tolerance", "100", "--poll", "3")
     assert [line.get("active") for line in lines[2:]] == [1, 2, 0]
     demo.wait_for_line(r"navigator: heading for the waypoint x=1\.00 m, y=1\.00 m", stdout=True)
+
+
+def test_the_demos_operator_stands_aside_while_a_jaus_operator_controls(demo: Proc) -> None:
+    """Issue 39: the operator station on TCP/IP capped robot/max-speed at 30 cm/s every 0.5 s
+    while the robot went faster, so an OCU's Set Wrench Effort (20 %: 40 cm/s) was undone at
+    once. While the OCU holds control, 40 speed readings in a row are 40 cm/s; once it lets
+    go, the station caps the robot again, and says so, as the demo's text does."""
+    said = "".join(demo.stdout_lines[: printed(demo, r"^cm/s again\.$", 0)])  # the demo's text
+    command = "ups jaus-ocu send SetWrenchEffort propulsive_linear_x=20 --control --hold 10"
+    assert f"  {command}\n" in said
+    assert "While a JAUS operator controls the\nrobot, the operator station on TCP/IP stands " \
+        "aside; when none does, it caps the speed at 30\ncm/s again." in said  # fmt: skip
+    start = len(demo.stdout_lines)
+    with Proc("jaus-ocu", "send", "SetWrenchEffort", "propulsive_linear_x=20", "--control",
+              "--hold", "120") as holder:  # fmt: skip
+        holder.wait_for_line('"sent"', 60, stdout=True)
+        printed(demo, r"operator \(TCP\): JAUS operator 200\.1\.1 controls the robot; "
+                r"leaving robot/max-speed to it", start)  # fmt: skip
+        printed(demo, r"wheel-encoder: speed limit 40 cm/s", start)  # in either order
+        speeds = ocu("--id", "201.1.1", "watch", "VelocityState", "--change", "--count", "40")
+        velocity = [s["fields"]["velocity_x"] for s in speeds]  # type: ignore[index]
+        assert velocity == [pytest.approx(0.4, abs=0.005)] * 40
+        start = len(demo.stdout_lines)
+        holder.interrupt()  # Ctrl-C: it lets go
+        assert holder.finish(timeout=60)[0] == 130
+    printed(demo, r"operator \(TCP\): no JAUS operator controls the robot; I cap it at "
+            r"30 cm/s again", start)  # fmt: skip
+    printed(demo, r"wheel-encoder: speed limit 30 cm/s", start)
+
+
+def printed(proc: Proc, pattern: str, start: int, timeout: float = 60) -> int:
+    """Wait for a stdout line of ``proc`` matching ``pattern`` among those from index
+    ``start`` on; the index after it."""
+    regex, deadline, at = re.compile(pattern), time.monotonic() + timeout, start
+    while True:
+        lines = proc.wait_for_stdout(at + 1, timeout=max(0.0, deadline - time.monotonic()))
+        for i in range(at, len(lines)):
+            if regex.search(lines[i]):
+                return i + 1
+        at = len(lines)
