@@ -25,13 +25,13 @@ keeps the other bindings); a node id is pinned to one identity at most.
 from __future__ import annotations
 
 import fnmatch
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ups._channel import name_to_uid, parse_channel
 from ups._errors import ConfigError
+from ups._tomlfile import parse_toml, read_text
 
 _GLOB = frozenset("*?[")
 _KEYS = frozenset({"publish", "subscribe", "status", "node_ids"})
@@ -70,18 +70,11 @@ class Acl:
     @classmethod
     def load(cls, path: str | Path) -> Acl:
         """Read an ACL file; a ``ConfigError`` names the file and what is wrong in it."""
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"cannot read the ACL {path}: {exc.strerror or exc}") from None
-        return cls.parse(text, str(path))
+        return cls.parse(read_text(path, "the ACL"), str(path))
 
     @classmethod
     def parse(cls, text: str, source: str = "<acl>") -> Acl:
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{source}: not TOML: {exc}") from None
+        doc = parse_toml(text, source)
         extra = set(doc) - {"identity"}
         if extra:
             raise ConfigError(f"{source}: unknown top-level key {sorted(extra)[0]!r}; "

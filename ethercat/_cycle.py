@@ -36,6 +36,16 @@ COUNTERS = (
 )  # fmt: skip
 
 
+def judge(wkc: int, expected: int) -> str | None:
+    """What a cycle's working counter says: None when right, ``"lost"`` when no frame came
+    back within the wait (pysoem gives SOEM's EC_NOFRAME, -1), ``"wkc_errors"`` for any other
+    count, 0 included (an answer that no slave counted: slaves out of SAFE-OP or OP, or that
+    lost their configuration)."""
+    if wkc == expected:
+        return None
+    return "lost" if wkc < 0 else "wkc_errors"
+
+
 class Segment:
     """The master on ``ifname`` for ``emap``'s slaves, cycling every ``cycle`` s once started.
 
@@ -210,16 +220,16 @@ class Segment:
             master.send_processdata()
             wkc = self.last_wkc = master.receive_processdata(timeout)
             counts["cycles"] += 1
-            if wkc == self.expected_wkc:
+            verdict = judge(wkc, self.expected_wkc)
+            if verdict is None:
                 self._read_inputs()
             else:
                 if good:  # the first bad cycle: the states are read at once, then every
                     next_check = now  # STATE_CHECK while it lasts (reading them costs cycles)
-                if wkc <= 0:
-                    counts["lost"] += 1
+                counts[verdict] += 1
+                if verdict == "lost":
                     self._say("lost", "EtherCAT frames lost (no answer within the cycle)")
                 else:
-                    counts["wkc_errors"] += 1
                     self._say("wkc", f"working counter {wkc}, expected {self.expected_wkc}")
             good = wkc == self.expected_wkc
             if now >= next_check:

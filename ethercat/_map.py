@@ -32,13 +32,13 @@ from __future__ import annotations
 import math
 import re
 import struct
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ups import ConfigError, parse_channel
 from ups._catalog import Catalog, ChannelSpec
+from ups._tomlfile import read_toml
 
 #: process-data types and their struct codes (little-endian)
 TYPES = {
@@ -49,6 +49,9 @@ DEFAULT_CYCLE = 0.002
 DEFAULT_TIMEOUT = 0.5
 DEFAULT_STATUS = "ethercat/status"
 MIN_CYCLE = 0.0005  #: a shorter cycle than this is refused (a Python master cannot keep it)
+MAX_CYCLE = 1.0  #: a longer cycle than this is refused (no slave's watchdog waits so long)
+MAX_TIMEOUT = 3600.0  #: the longest silence before outputs go safe (an hour)
+MAX_EVERY = 1_000_000  #: the most cycles between two events of a channel published "every"
 _TOP = {"catalog", "cycle", "timeout", "status", "slave"}
 _SLAVE = {"vendor", "product", "revision", "outputs", "inputs"}
 _COMMON = {"channel", "field", "byte", "type", "scale", "offset"}
@@ -153,12 +156,9 @@ def load_map(path: str | Path) -> EthercatMap:
     """Read and check the map at ``path`` and the catalog it names."""
     path = Path(path)
     try:
-        text = path.read_text()
-        doc = tomllib.loads(text)
-    except OSError as exc:
-        raise MapError(f"{path}: {exc.strerror or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MapError(f"{path}: {exc}") from None
+        text, doc = read_toml(path, "the map")
+    except ConfigError as exc:
+        raise MapError(str(exc)) from None
     lines = _Lines(path, text)
     for key in doc:
         if key not in _TOP:
@@ -169,10 +169,10 @@ def load_map(path: str | Path) -> EthercatMap:
         catalog = Catalog.load(path.parent / str(doc["catalog"]))
     except ConfigError as exc:
         raise lines.error(str(exc), "catalog") from None
-    cycle = _seconds(doc, "cycle", DEFAULT_CYCLE, lines)
+    cycle = _seconds(doc, "cycle", DEFAULT_CYCLE, lines, MAX_CYCLE)
     if cycle < MIN_CYCLE:
         raise lines.error(f"cycle: at least {MIN_CYCLE} s", "cycle")
-    timeout = _seconds(doc, "timeout", DEFAULT_TIMEOUT, lines)
+    timeout = _seconds(doc, "timeout", DEFAULT_TIMEOUT, lines, MAX_TIMEOUT)
     status = doc.get("status", DEFAULT_STATUS)
     if not isinstance(status, str) or not status:
         raise lines.error("status: a channel name", "status")
@@ -190,10 +190,10 @@ def load_map(path: str | Path) -> EthercatMap:
                        _input_channels(inputs))  # fmt: skip
 
 
-def _seconds(doc: dict[str, Any], key: str, default: float, lines: _Lines) -> float:
+def _seconds(doc: dict[str, Any], key: str, default: float, lines: _Lines, most: float) -> float:
     value = doc.get(key, default)
-    if not isinstance(value, int | float) or isinstance(value, bool) or not value > 0:
-        raise lines.error(f"{key}: seconds, a number above 0", key)
+    if not isinstance(value, int | float) or isinstance(value, bool) or not 0 < value <= most:
+        raise lines.error(f"{key}: seconds, a number above 0 and at most {most:g}", key)
     return float(value)
 
 
@@ -298,6 +298,8 @@ def _input_options(base: Entry, item: dict[str, Any],
     if not isinstance(every, int) or isinstance(every, bool) or (publish == "every"
                                                                  and every < 1):  # fmt: skip
         raise MapError(f"{where}: every is a number of cycles, 1 or more")
+    if every > MAX_EVERY:
+        raise MapError(f"{where}: every is at most {MAX_EVERY} cycles")
     priority = item.get("priority")
     if priority is not None and (not isinstance(priority, int) or isinstance(priority, bool)
                                  or not 0 <= priority <= 255):  # fmt: skip

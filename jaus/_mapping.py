@@ -36,7 +36,6 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import re
-import tomllib
 import typing
 from collections.abc import Mapping as MappingABC
 from dataclasses import dataclass
@@ -45,6 +44,7 @@ from typing import Any
 
 from ups import ConfigError, parse_channel
 from ups._catalog import Catalog, ChannelSpec
+from ups._tomlfile import read_toml
 
 from ._access import AuthorityCaps
 from ._messages import TYPES
@@ -121,12 +121,9 @@ def load_mapping(path: str | Path, catalog: Catalog | None = None) -> Bridge:
     names the channel catalog unless one is given."""
     path = Path(path)
     try:
-        text = path.read_text()
-        doc = tomllib.loads(text)
-    except OSError as exc:
-        raise MappingError(f"{path}: {exc.strerror or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MappingError(f"{path}: {exc}") from None
+        text, doc = read_toml(path, "the mapping")
+    except ConfigError as exc:
+        raise MappingError(str(exc)) from None
     where = _Where(path, text)
     unknown = set(doc) - {"catalog", "message", "authority"}
     if unknown:

@@ -29,13 +29,13 @@ from __future__ import annotations
 import math
 import os
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ups import ConfigError, parse_channel
 from ups._catalog import Catalog
+from ups._tomlfile import read_toml
 
 from ._rmw import DURABILITY, HISTORY, PROFILES, RELIABILITY, Qos
 from ._topic import NUMERIC, FieldMap, TopicMap, build_topic
@@ -70,12 +70,9 @@ def load_map(path: str | Path, catalog: Catalog | None = None, domain: int | Non
     domain (``--domain``)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-        doc = tomllib.loads(text)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise MapError(f"{path}: {getattr(exc, 'strerror', None) or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MapError(f"{path}: {exc}") from None
+        text, doc = read_toml(path, "the map")
+    except ConfigError as exc:
+        raise MapError(str(exc)) from None
     where = _Where(path, text)
     unknown = sorted(set(doc) - _TOP)
     if unknown:

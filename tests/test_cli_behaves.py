@@ -48,9 +48,11 @@ def test_a_port_in_use_is_one_line() -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["pub", "x", "00", "--broker", "127.0.0.1:1", "--rate", "-5"], "must be 0 or more"),
-        (["sub", "x", "--broker", "127.0.0.1:1", "--timeout", "-1"], "must be above 0"),
-        (["sub", "x", "--broker", "127.0.0.1:1", "--join-timeout", "0"], "must be above 0"),
+        (["pub", "x", "00", "--broker", "127.0.0.1:1", "--rate", "-5"], "0 or more"),
+        (["sub", "x", "--broker", "127.0.0.1:1", "--timeout", "-1"], "must be a finite number"),
+        (["sub", "x", "--broker", "127.0.0.1:1", "--join-timeout", "0"], "above 0"),
+        (["sub", "x", "--broker", "127.0.0.1:1", "--timeout", "inf"], "must be a finite number"),
+        (["pub", "x", "00", "--broker", "127.0.0.1:1", "--rate", "nan"], "must be a finite"),
         (["sub", "x"], "which network?"),
         (["sub", "x", "--broker", "nohost:99999"], "expected HOST:PORT"),
         (["pub", "x", "zz", "--broker", "127.0.0.1:1"], "not hex digits"),

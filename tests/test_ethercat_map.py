@@ -77,6 +77,24 @@ BAD = [
     ('type = "u16" }', 'type = "u16", every = 3 }', 11, 'every K goes with publish = "every"'),
     ("vendor = 0x2\n", "", 4, "no vendor"),
     ("cycle = 0.002", "cycles = 0.002", 2, "unknown key 'cycles'"),
+    # values the master cannot run with (issue 41): each refused by check, with its line
+    ("cycle = 0.002", "cycle = inf", 2, "cycle: seconds, a number above 0 and at most 1"),
+    ("cycle = 0.002", "cycle = 1e308", 2, "cycle: seconds, a number above 0 and at most 1"),
+    ("cycle = 0.002", "cycle = 3600000", 2, "cycle: seconds, a number above 0 and at most 1"),
+    ("cycle = 0.002", "cycle = nan", 2, "cycle: seconds, a number above 0 and at most 1"),
+    ("cycle = 0.002", "cycle = 0.002\ntimeout = inf", 3, "timeout: seconds, a number above 0"),
+    (
+        'type = "u16" }',
+        'type = "u16", publish = "every", every = 99999999999999999999 }',
+        11,
+        "every is at most 1000000 cycles",
+    ),
+    (
+        'type = "u16" }',
+        'type = "u16", publish = "every", every = 9999999 }',
+        11,
+        "every is at most 1000000 cycles",
+    ),
 ]
 
 
@@ -147,3 +165,14 @@ def test_a_value_packs_to_the_nearest_raw_in_range_or_says_it_was_clipped(
         low, high = _limits(kind)
         end = high if (value - offset) / scale > 0 else low
         assert back == end * scale + offset
+
+
+def test_a_cycles_working_counter_is_judged_as_docs_ethercat_says() -> None:
+    """No frame back (pysoem: EC_NOFRAME, -1) is a lost frame; any other wrong count, 0 too
+    (an answer no slave counted), is a working counter error (it was counted lost)."""
+    from ups.ethercat._cycle import judge
+
+    assert judge(3, 3) is None
+    assert judge(-1, 3) == "lost"
+    assert judge(0, 3) == "wkc_errors"
+    assert judge(2, 3) == judge(4, 3) == "wkc_errors"

@@ -271,23 +271,16 @@ class Catalog:
     @classmethod
     def load(cls, path: str | Path) -> Catalog:
         """Read a catalog file; a ConfigError names the file, the channel and what is wrong."""
-        try:
-            with open(path, encoding="utf-8") as f:
-                text = f.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            reason = getattr(exc, "strerror", None) or str(exc)
-            raise ConfigError(f"cannot read the catalog {path}: {reason}") from None
-        return cls.from_text(text, str(path))
+        from ._tomlfile import read_text
+
+        return cls.from_text(read_text(path, "the catalog"), str(path))
 
     @classmethod
     def from_text(cls, text: str, source: str = "<text>") -> Catalog:
         """A catalog from TOML text; ``source`` names it in errors."""
-        import tomllib  # only when a catalog is read: ups --help stays quick
+        from ._tomlfile import parse_toml
 
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"catalog {source}: {exc}") from None
+        doc = parse_toml(text, f"catalog {source}")
         unknown = set(doc) - {"channel"}
         if unknown:
             raise ConfigError(f"catalog {source}: unknown table {', '.join(sorted(unknown))}")

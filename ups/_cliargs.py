@@ -4,6 +4,7 @@ network, and running a command's coroutine until a signal."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from collections.abc import Coroutine
 from typing import TYPE_CHECKING, Any
@@ -144,15 +145,15 @@ def hex_arg(text: str) -> bytes:
 
 def positive_float(text: str) -> float:
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
     return value
 
 
 def nonnegative_float(text: str) -> float:
     value = float(text)
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a finite number, 0 or more, got {text}")
     return value
 
 

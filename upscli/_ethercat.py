@@ -51,11 +51,13 @@ def _run(args: argparse.Namespace) -> int:
         return _scan(args)
     if args.ifname is None or args.map is None:
         raise ConfigError("ups ethercat needs --ifname IF and --map FILE (or: scan, check)")
-    from ups.ethercat._map import MIN_CYCLE, load_map
+    from ups.ethercat._map import MAX_CYCLE, MIN_CYCLE, load_map
     from ups.ethercat._serve import serve
 
-    if args.cycle is not None and args.cycle / 1000 < MIN_CYCLE:
-        raise ConfigError(f"--cycle: at least {MIN_CYCLE * 1000:g} ms")
+    if args.cycle is not None and not MIN_CYCLE <= args.cycle / 1000 <= MAX_CYCLE:
+        raise ConfigError(
+            f"--cycle: at least {MIN_CYCLE * 1000:g} ms and at most {MAX_CYCLE * 1000:g} ms"
+        )
     return run_until_signal(serve(args, load_map(args.map)))
 
 
