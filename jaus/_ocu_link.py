@@ -170,38 +170,41 @@ def needs_control(payload: Any) -> bool:
 def controller(ocu: Ocu, to: JausId | None) -> str:
     """Who controls the component, as a reason: "nobody controls it", "200.1.1 (this OCU's
     --id) controls it from another address, ...", "42.1.2 controls it at authority 50"."""
+    return _controller(ocu, to)[0]
+
+
+def _controller(ocu: Ocu, to: JausId | None) -> tuple[str, bool]:
+    """:func:`controller`, and whether another OCU's id controls it."""
     _, report = ocu.ask(p.QueryControl(), p.ReportControl, to)
     holder = JausId(report.subsystem, report.node, report.component)
     if holder == NOBODY:
-        return "nobody controls it"
+        return "nobody controls it", False
     if holder != ocu.me:
-        return f"{holder} controls it at authority {report.authority}"
+        return f"{holder} controls it at authority {report.authority}", True
     _, timeout = ocu.ask(p.QueryTimeout(), p.ReportTimeout, to)
     lapse = f"{timeout.timeout} s after" if timeout.timeout else "when"
     return (
         f"{holder} (this OCU's --id) controls it from another address: the control an earlier "
         f"run took, which lapses {lapse} that run's last message"
-    )
+    ), False
 
 
 def control_refused(ocu: Ocu, to: JausId | None, source: JausId, reply: Any) -> str:
     """Why Request Control was not granted, in one line."""
+    if reply.response == p.ControlResponse.INSUFFICIENT_AUTHORITY:
+        return (
+            f"{source} grants no control to this OCU: its --authority is below the component's "
+            f"minimum, or its address may take no control"
+        )
     try:
-        if reply.response == p.ControlResponse.INSUFFICIENT_AUTHORITY:
-            return (
-                f"{source} does not grant control at this authority: it is below the "
-                f"component's own, or above what it grants this address"
-            )
         _, status = ocu.ask(p.QueryStatus(), p.ReportStatus, to)
         if status.status in (p.ManagementStatus.EMERGENCY, p.ManagementStatus.SHUTDOWN,
                              p.ManagementStatus.FAILURE):  # fmt: skip
             return f"{source} is in {status.status.name} and grants no control"
-        who = controller(ocu, to)
+        who, other = _controller(ocu, to)
     except ConfigError:  # it answers no question about it: the answer alone, then
         return f"{source} answered {reply.response.name}"
-    higher = (
-        ", and only a higher authority takes control from it" if " at authority " in who else ""
-    )
+    higher = ", and only a higher authority takes control from it" if other else ""
     return f"control of {source} is not available: {who}{higher}"
 
 

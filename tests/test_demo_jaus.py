@@ -200,6 +200,24 @@ def test_right_after_control_request_the_next_run_is_answered_or_told_why(demo: 
     wait_until_nobody_controls()
 
 
+def test_a_refusal_names_the_other_controller_or_nobody(demo: Proc) -> None:
+    """The reason a refusal gives is the component's own report: nobody controls it (a
+    command sent without control), or another OCU does, at an authority a request must
+    exceed."""
+    wrench = ("send", "SetWrenchEffort", "propulsive_linear_x=20")
+    code, _, errors = ocu_run(*wrench)
+    assert (code, errors) == (1, [
+        "ups jaus-ocu: Set Wrench Effort went without control, and 1.1.1 carries it out only "
+        "from the OCU that controls it: nobody controls it; give --control\n"])  # fmt: skip
+    (granted,) = ocu("--id", "42.1.2", "control", "request", "--authority", "50")
+    assert granted["fields"] == {"response": "CONTROL_ACCEPTED"}
+    code, _, errors = ocu_run(*wrench, "--control")
+    assert (code, errors) == (1, [
+        "ups jaus-ocu: control of 1.1.1 is not available: 42.1.2 controls it at authority 50, "
+        "and only a higher authority takes control from it\n"])  # fmt: skip
+    wait_until_nobody_controls()
+
+
 def wait_until_nobody_controls(within: float = 60) -> None:
     """Until the component reports no controller (a control left by a test lapses after 5 s
     of silence), so that the next test may take control."""
