@@ -17,6 +17,7 @@ import zenoh
 from ups import AccessDenied, Channel, ConfigError, Message, Node, Subscription, name_to_uid
 from ups import _tcpwire as w
 from ups._catalog import Catalog
+from ups._patterns import MAX_MATCHES
 from ups.broker._acl import Acl
 from ups.broker.tcp_ecb import TcpEcb
 
@@ -88,6 +89,68 @@ async def test_tcp_a_node_watches_at_most_64_patterns(tcp_ecb: TcpEcb) -> None:
             await a.subscribe("p64/*")
         assert refused.value.right == "watch"
         assert tcp_ecb.stats()["watch_limited"] == 1 and tcp_ecb.stats()["watches"] == 64
+
+
+async def _watch_answer(ecb: TcpEcb, pattern: str) -> list[w.Names]:
+    """Watch ``pattern`` from a node written by hand, and read the TCP-ECB's answer: its Names
+    frames, up to the one marked done (10 s at most)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", ecb.port)
+    writer.write(w.encode(w.Hello(0xA7, "raw", "127.0.0.1", 1)) + w.encode(w.Watch(pattern)))
+    decoder = w.Decoder(max_frame=w.MAX_BODY)
+    answer: list[w.Names] = []
+    try:
+        async with asyncio.timeout(10):
+            while not answer or not answer[-1].done:
+                data = await reader.read(1 << 16)
+                assert data, f"the TCP-ECB closed the link after {_sizes(answer)}"
+                answer += [f for f in decoder.feed(data) if isinstance(f, w.Names)]
+    except TimeoutError:
+        raise AssertionError(f"no final Names frame in 10 s, after {_sizes(answer)}") from None
+    finally:
+        writer.close()
+    return answer
+
+
+def _sizes(answer: list[w.Names]) -> list[tuple[int, bool]]:
+    """Each Names frame as (channels, done)."""
+    return [(len(frame.channels), frame.done) for frame in answer]
+
+
+@pytest.mark.parametrize("count", [255, 256, 257, 512])
+async def test_tcp_a_watch_is_answered_to_its_final_frame_whatever_the_count(
+    tcp_ecb: TcpEcb, count: int
+) -> None:
+    """The answer to a Watch is Names frames of ``NAMES_PER_FRAME`` (256) channels, the last
+    one done: also when the channels fill whole frames (mutation audit, issue 41: a Watch of
+    exactly 256·k channels never got its final frame, and the node waited out its timeout)."""
+    names_now = [f"w/{i:03}" for i in range(count)]
+    async with tcp_node(tcp_ecb, "b") as b, tcp_node(tcp_ecb, "a") as a:
+        for name in names_now:
+            await b.advertise(name)
+        answer = await _watch_answer(tcp_ecb, "w/*")
+        whole, rest = divmod(count, w.NAMES_PER_FRAME)  # whole frames, then the rest if any
+        sizes = [w.NAMES_PER_FRAME] * whole + ([rest] if rest else [])
+        assert _sizes(answer) == [(n, i == len(sizes) - 1) for i, n in enumerate(sizes)]
+        assert sorted(name for f in answer for _, name in f.channels) == names_now
+        sub = await a.subscribe("w/*")  # a real node's watch: answered, every channel joined
+        assert len(sub.channels) == count
+        assert not a.face._watches._pending  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("extra", [0, 1])
+async def test_tcp_a_pattern_joins_at_most_max_matches_channels(
+    tcp_ecb: TcpEcb, extra: int
+) -> None:
+    """A glob joins ``MAX_MATCHES`` channels (4096) and no more: exactly that many named, all
+    join and nothing is counted; one more, and that one is left out and counted, once
+    (mutation audit, issue 41: the bound was off by one unseen)."""
+    count = MAX_MATCHES + extra
+    async with tcp_node(tcp_ecb, "b") as b, tcp_node(tcp_ecb, "a") as a:
+        for i in range(count):
+            await b.advertise(f"m/{i:04}")
+        sub = await a.subscribe("m/*")
+        assert len(sub.channels) == MAX_MATCHES
+        assert a.stats()["pattern_limited"] == extra
 
 
 async def test_tcp_with_an_acl_a_pattern_names_only_what_the_identity_may_have(
