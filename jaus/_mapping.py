@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import math
 import re
 import typing
 from collections.abc import Mapping as MappingABC
@@ -58,6 +59,7 @@ MESSAGES: dict[str, type] = {
     and dataclasses.fields(cls)
     and getattr(cls, "MAPPABLE", True)
 }  # fmt: skip
+MAX_RATE = 1000.0  #: reports per second a mapped report may ask for, at most
 _NUMERIC = ("u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64")
 
 
@@ -244,8 +246,8 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
                        f"and {spec.channel}.{ups_name} ({ups_fields[ups_name].type})",
                        jaus_name)  # fmt: skip
         scale, offset = target.get("scale", 1.0), target.get("offset", 0.0)
-        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (scale, offset)):
-            raise fail(f"fields.{jaus_name}: scale and offset are numbers", jaus_name)
+        if not all(_finite(v) for v in (scale, offset)):
+            raise fail(f"fields.{jaus_name}: scale and offset are finite numbers", jaus_name)
         if scale == 0:
             raise fail(f"fields.{jaus_name}: scale 0 cannot be turned back", jaus_name)
         integer = _integer(jaus_fields[jaus_name])
@@ -259,8 +261,8 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
         if key not in side:
             raise fail(f"constant {key!r} is not a field of "
                        f"{spec.channel if command else name}", key)  # fmt: skip
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            raise fail(f"constant {key!r} must be a number", key)
+        if not _finite(value):
+            raise fail(f"constant {key!r} must be a finite number", key)
         if not command and _integer(jaus_fields[key]) and value != int(value):
             raise fail(f"constant {key!r}: {name}.{key} is an integer, not {value}", key)
     for key in ignored:
@@ -277,15 +279,19 @@ def _message(name: str, entry: Any, catalog: Catalog, where: _Where) -> MessageM
         what = f"field {missing[0]!r} of {spec.channel if command else name}"
         raise fail(f"{what} is neither mapped, constant{'' if command else ' nor ignored'}")
     rate = entry.get("rate")
-    if rate is not None and (not isinstance(rate, int | float) or isinstance(rate, bool)
-                             or not rate > 0):  # fmt: skip
-        raise fail("rate must be a number of reports per second above 0", "rate")
+    if rate is not None and (not _finite(rate) or not 0 < rate <= MAX_RATE):
+        raise fail(f"rate must be a number of reports per second above 0, at most {MAX_RATE:g}",
+                   "rate")  # fmt: skip
     if not command:  # an integer JAUS field's constant is given as one
         constants = {k: int(v) if _integer(jaus_fields[k]) else v for k, v in constants.items()}
     return MessageMap(
         name, command, spec, tuple(maps), dict(constants), frozenset(map(str, ignored)),
         None if rate is None else float(rate), where.line(name, None), bool(stamped),
     )  # fmt: skip
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _stamped(kind: Any, command: bool, jaus_fields: dict[str, Any], elsewhere: set[str],

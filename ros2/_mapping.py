@@ -47,6 +47,7 @@ _KEYS = {"channel", "type", "direction", "qos", "fields", "constants", "ups_cons
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 MAX_DOMAIN = 232
+MAX_DEPTH = 10_000  #: the deepest QoS history a topic may ask for (ROS's defaults: 5 and 10)
 
 
 class MapError(ConfigError):
@@ -155,7 +156,8 @@ class _Where:
 
 
 def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
+    """A finite number (inf and nan are no value a map can mean)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _topic(
@@ -327,6 +329,7 @@ def _qos(value: Any, fail: Any) -> Qos:
                                 ("history", history, HISTORY)):  # fmt: skip
         if given not in table:
             raise fail(f"qos: {label} is one of {', '.join(table)}, not {given!r}", label)
-    if isinstance(depth, bool) or not isinstance(depth, int) or not 1 <= depth <= 1 << 31:
-        raise fail(f"qos: depth is a number of samples from 1, not {depth!r}", "depth")
+    if isinstance(depth, bool) or not isinstance(depth, int) or not 1 <= depth <= MAX_DEPTH:
+        raise fail(f"qos: depth is a number of samples from 1 to {MAX_DEPTH}, not {depth!r}",
+                   "depth")  # fmt: skip
     return Qos(RELIABILITY[reliability], DURABILITY[durability], HISTORY[history], depth)

@@ -181,6 +181,36 @@ BAD += [
     ('[authority]\n"fd00::/8" = true\n' + COMMAND, 4, "an authority is 0-255, not True"),
     ("authority = 5\n" + COMMAND, 3, "give address ranges"),
     ("[authority]\n" + COMMAND, 3, "give address ranges"),
+    # values ups jaus cannot run with (issue 41)
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\nrate = inf\n"
+        "fields.propulsive_linear_x = 'limit'\n",
+        5,
+        "rate must be a number of reports per second above 0, at most 1000",
+    ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\nrate = 1e9\n"
+        "fields.propulsive_linear_x = 'limit'\n",
+        5,
+        "at most 1000",
+    ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n"
+        "fields.propulsive_linear_x = { field = 'limit', scale = inf }\n",
+        5,
+        "scale and offset are finite numbers",
+    ),
+    (
+        "[message.SetWrenchEffort]\nchannel = 'robot/max-speed'\n"
+        "fields.propulsive_linear_x = { field = 'limit', offset = nan }\n",
+        5,
+        "scale and offset are finite numbers",
+    ),
+    (
+        "[message.ReportAuthority]\nchannel = 'robot/level'\nconstants = { authority = inf }\n",
+        5,
+        "constant 'authority' must be a finite number",
+    ),
 ]
 
 

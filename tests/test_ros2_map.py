@@ -105,6 +105,16 @@ def test_a_good_map_is_listed_with_its_keys(
             10,
             "300 is out of range 0..255",
         ),
+        (  # values ups ros2 cannot run with (issue 41)
+            ("ups_constants = { level = 3 }", "ups_constants = { level = nan }"),
+            15,
+            "type mismatch: level is a number (uint8), not nan",
+        ),
+        (
+            ('direction = "from_ros"', 'direction = "from_ros"\nqos = { depth = 2147483648 }'),
+            14,
+            "qos: depth is a number of samples from 1 to 10000",
+        ),
     ],
 )
 def test_a_bad_map_exits_2_naming_the_line(
