@@ -110,7 +110,7 @@ void ups__drop_etag(ups_node_t *node, uint16_t etag)
 
 static void refill(ups_node_t *node)
 {
-    if (node->join == UPS__WAITING) {
+    if (node->join == UPS_JOIN_JOINING) {
         ups__join_refill(node);
     }
 #if UPS_WITH_TRANSFERS
@@ -271,7 +271,7 @@ int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_even
         }
     } else if (priority == 0u && config_ok(etag >> 12, etag & 0xFFFu, data, len)) {
         counter = NULL;
-        if (node->join == UPS__WAITING || joined(node)) {
+        if (node->join == UPS_JOIN_JOINING || joined(node)) {
             ups__config_frame(node, etag >> 12, etag & 0xFFFu, data, now);
         }
     }
@@ -287,7 +287,7 @@ int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_even
 void ups_tick(ups_node_t *node, uint32_t now_ms)
 {
     uint32_t now = now_ms;
-    if (node->join == UPS__WAITING) {
+    if (node->join == UPS_JOIN_JOINING) {
         ups__tick_join(node, now);
     } else if (joined(node)) {
         ups__tick_bind(node, now);

@@ -142,6 +142,20 @@ extern "C" {
 #define UPS_ERR_FAILED (-11)     /**< Failed: the CAN-ECB could not store it; ask again later */
 #define UPS_ERR_REFUSED (-12)    /**< Refuse: the declared stream was not admitted */
 
+/* ---- states (besides the UPS_ERR_ codes that end them) ------------------------------------- */
+
+#define UPS_JOIN_NOT_STARTED 0 /**< ups_join_state(): ups_start() not called yet */
+#define UPS_JOIN_JOINING 1     /**< knocking, answering the census, claiming */
+#define UPS_JOIN_JOINED 2      /**< the node holds a TxNode (ups_txnode()) */
+
+#define UPS_CHANNEL_FREE 0    /**< ups_channel_state(): no such channel (in use) */
+#define UPS_CHANNEL_WAITING 1 /**< asking for its etag, settling, or a publisher's pause */
+#define UPS_CHANNEL_BOUND 2   /**< bound: events go and come (ups_publish(), ups_rx()) */
+
+#define UPS_DECL_NONE 0    /**< ups_declaration_state(): the channel has no declaration */
+#define UPS_DECL_WAITING 1 /**< its DECLARE goes (again) until an answer stands */
+#define UPS_DECL_GRANTED 2 /**< admitted: the channel's priority is the granted one */
+
 /* ---- frames -------------------------------------------------------------------------------- */
 
 #define UPS_FRAME_EXT 0x01u /**< 29-bit identifier (UPS uses no other) */
@@ -215,7 +229,7 @@ typedef struct {
 #if UPS_DECLARATIONS
 typedef struct {
     uint8_t channel;  /* 0xFF: unused */
-    int8_t state;     /* 1 waiting for the answer, 2 granted, or a UPS_ERR_ code */
+    int8_t state;     /* UPS_DECL_WAITING, UPS_DECL_GRANTED, or a UPS_ERR_ code */
     uint8_t heard;    /* waiting: 0 DECLARE not sent yet, 1 sent, else the latest verdict since
                          (a granted priority, or 0x80: Refuse), the answer once it stood 0.5 s */
     uint8_t fallback; /* the channel's priority before the declaration (after a Refuse) */
@@ -242,7 +256,7 @@ typedef struct {
 typedef struct {
     uint8_t node_id[8];
     uint8_t txnode;       /* joined: its TxNode; joining: the one last offered to it */
-    int8_t join;          /* 0 not started, 1 joining, 2 joined, or a UPS_ERR_ code */
+    int8_t join;          /* UPS_JOIN_..., or a UPS_ERR_ code */
     uint8_t notes;
     uint8_t mode;         /* UPS__FD, UPS__OWE_CLAIM, UPS__ANNOUNCE_DUE, UPS__RECENT */
     uint8_t knock_step;
@@ -314,11 +328,12 @@ void ups_tx_pop(ups_node_t *node);
 /** What happened since the last call (UPS_NOTE_... bits), cleared by the call. */
 unsigned ups_notes(ups_node_t *node);
 
-/** The join: 0 not started, 1 joining, 2 joined, or UPS_ERR_TIMEOUT, UPS_ERR_TXNODES_FULL,
- *  UPS_ERR_FAILED when it ended. Anyone can send TxNodesFull or Failed: one naming this node's
- *  id ends the join only once it stood 3 s (the refusal wait, counted again from each Hello,
- *  Census or Query heard after it) with no Offer or Assign of the id; meanwhile the node does
- *  not knock. A join that reaches UPS_JOIN_GIVE_UP_MS with one open ends with its error. */
+/** The join: UPS_JOIN_NOT_STARTED, UPS_JOIN_JOINING, UPS_JOIN_JOINED, or UPS_ERR_TIMEOUT,
+ *  UPS_ERR_TXNODES_FULL, UPS_ERR_FAILED when it ended (call ups_start() again). Anyone can send
+ *  TxNodesFull or Failed: one naming this node's id ends the join only once it stood 3 s (the
+ *  refusal wait, counted again from each Hello, Census or Query heard after it) with no Offer
+ *  or Assign of the id; meanwhile the node does not knock. A join that reaches
+ *  UPS_JOIN_GIVE_UP_MS with one open ends with its error. */
 int ups_join_state(const ups_node_t *node);
 
 /** This node's TxNode (0..126), or -1 while it holds none. */
@@ -353,8 +368,9 @@ int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t siz
  *  UPS_ERR_ARGUMENT (no such channel). */
 int ups_set_priority(ups_node_t *node, int channel, uint8_t priority);
 
-/** A channel's state: 0 free, 1 waiting for its etag (or being bound again, or a publisher's
- *  150 ms pause on a larger size class), 2 bound, or a UPS_ERR_ code (the request ended:
+/** A channel's state: UPS_CHANNEL_FREE, UPS_CHANNEL_WAITING (for its etag, or being bound
+ *  again, or a publisher's 150 ms pause on a larger size class), UPS_CHANNEL_BOUND (events may
+ *  go: ups_publish()), or a UPS_ERR_ code (the request ended:
  *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE).
  *  EtagsFull, Limit and Failed are refusals, and anyone can send them: the node keeps asking,
  *  and one ends the request only once it stood 3 s with no Bind answering the request (or
@@ -380,7 +396,7 @@ int ups_filters(const ups_node_t *node, ups_filter_t *out, int max);
  *  count (its DECLARE sent, its answer not a Refuse); for one, a Grant sets the priority (also
  *  unasked) and a Refuse puts back the priority from before ups_declare(), until a Grant.
  *  Returns UPS_OK, UPS_ERR_ARGUMENT (no such published channel, a period or deadline of 0, a
- *  size out of range), UPS_ERR_UNBOUND (not in state 2) or UPS_ERR_FULL (UPS_DECLARATIONS
+ *  size out of range), UPS_ERR_UNBOUND (not bound) or UPS_ERR_FULL (UPS_DECLARATIONS
  *  streams declared already, or none compiled in). */
 int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, uint16_t deadline,
                 uint8_t jitter, uint32_t now_ms);

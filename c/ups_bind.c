@@ -73,10 +73,10 @@ static void follow(ups_node_t *node, ups_channel_t *ch, ups_declaration_t *decl,
 {
     if (verdict != HEARD_REFUSE) {
         ch->priority = (uint8_t)verdict;
-        decl->state = UPS__READY;
+        decl->state = UPS_DECL_GRANTED;
     } else {
         ch->priority = decl->fallback; /* best effort, until a Grant comes */
-        if (decl->state == UPS__WAITING) {
+        if (decl->state == UPS_DECL_WAITING) {
             decl->state = UPS_ERR_REFUSED; /* over: later verdicts for it are stray */
         }
     }
@@ -402,7 +402,7 @@ static void tick_channel(ups_node_t *node, unsigned i, uint32_t now)
             note(node, UPS_NOTE_CHANNELS);
         }
 #if UPS_DECLARATIONS
-    } else if ((flags & UPS__BOUND) && decl != NULL && decl->state == UPS__WAITING) {
+    } else if ((flags & UPS__BOUND) && decl != NULL && decl->state == UPS_DECL_WAITING) {
         if (decl->heard > HEARD_NONE) { /* no DECLARE after the first verdict: the latest */
             if (waited >= VERDICT_WAIT) { /* stood 0.5 s with no other: the answer */
                 follow(node, ch, decl, decl->heard);
@@ -439,7 +439,7 @@ void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t prior
             continue; /* not a stream it declared (its DECLARE sent, not ended in a Refuse) */
         }
         unsigned verdict = granted ? priority : HEARD_REFUSE;
-        if (decl->state != UPS__WAITING) {
+        if (decl->state != UPS_DECL_WAITING) {
             follow(node, ch, decl, verdict); /* also unasked: another declaration moved it */
         } else {
             decl->heard = (uint8_t)verdict; /* the answer, if it stands 0.5 s (tick_channel) */
@@ -547,14 +547,14 @@ int ups_set_priority(ups_node_t *node, int channel, uint8_t priority)
 int ups_channel_state(const ups_node_t *node, int channel)
 {
     if (!ups__valid_channel(node, channel)) {
-        return UPS__FREE;
+        return UPS_CHANNEL_FREE;
     }
     unsigned flags = node->channels[channel].flags;
     if (flags & (UPS__PEND | UPS__CAND | UPS__WAIT)) {
-        return UPS__WAITING;
+        return UPS_CHANNEL_WAITING;
     }
     if (flags & UPS__BOUND) {
-        return UPS__READY;
+        return UPS_CHANNEL_BOUND;
     }
     return -(int)(node->channels[channel].step & 0xFu); /* it failed: fail() */
 }
@@ -590,7 +590,7 @@ int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, ui
         decl->fallback = ch->priority; /* (not a granted one: declared again) */
     }
     decl->channel = (uint8_t)channel;
-    decl->state = UPS__WAITING;
+    decl->state = UPS_DECL_WAITING;
     decl->heard = HEARD_UNSENT;
     decl->data[2] = size;
     decl->data[3] = (uint8_t)(period >> 8);

@@ -76,11 +76,6 @@
 #define UPS__OWE_DECLARE 0x08u
 #define UPS__OWE_UNSUB 0x10u
 
-/* channel and join states (besides the UPS_ERR_ codes) */
-#define UPS__FREE 0
-#define UPS__WAITING 1
-#define UPS__READY 2
-
 static inline uint32_t ups__make_id(uint32_t priority, uint32_t txnode, uint32_t etag)
 {
     return (priority << UPS__PRIO_SHIFT) | (txnode << UPS__TXNODE_SHIFT) | etag;
@@ -106,7 +101,7 @@ static inline uint16_t now16(uint32_t now_ms)
 
 static inline int joined(const ups_node_t *node)
 {
-    return node->join == UPS__READY;
+    return node->join == UPS_JOIN_JOINED;
 }
 
 static inline void note(ups_node_t *node, unsigned bits)

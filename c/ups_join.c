@@ -105,7 +105,7 @@ static void end_join(ups_node_t *node, int8_t why)
 static void joined_as(ups_node_t *node, unsigned txnode)
 {
     node->txnode = (uint8_t)txnode;
-    node->join = UPS__READY;
+    node->join = UPS_JOIN_JOINED;
     node->mode = (uint8_t)(node->mode & ~(UPS__OWE_CLAIM | UPS__REFUSED | UPS__REFUSED_FAILED));
     node->burst[0][1] = node->burst[1][1] = 16u;
     node->tx_count = 0u; /* Knocks and Stages still queued are of no use now */
@@ -117,7 +117,7 @@ void ups_start(ups_node_t *node, uint32_t now_ms)
     if (joined(node)) {
         return;
     }
-    node->join = UPS__WAITING;
+    node->join = UPS_JOIN_JOINING;
     node->txnode = UPS__MGMT;
     node->mode = (uint8_t)(node->mode & ~(UPS__OWE_CLAIM | UPS__REFUSED | UPS__REFUSED_FAILED));
     node->t_join = now16(now_ms);
@@ -176,7 +176,7 @@ void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_
 {
     unsigned status = arg >> 8;
     unsigned low = arg & 0xFFu;
-    int joining = node->join == UPS__WAITING; /* else joined */
+    int joining = node->join == UPS_JOIN_JOINING; /* else joined */
     if (op == OP_ASSIGN) { /* Offer or Assign */
         if (!ups__same8(data, node->node_id)) {
             return;

@@ -8,6 +8,9 @@ before its fix.
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 from ups import _canproto as p
 from ups import _cantransfer as t
 from ups import name_to_uid
@@ -482,3 +485,34 @@ def test_a_transfer_begun_before_a_contradiction_is_not_finished_as_another_chan
     assert w.node.channel_etag(b) == 0x3000
     delivered = [w.feed_raw(can_id, data) for data in frames[2:]]
     assert delivered == [None, None, None]
+
+
+# --- what ups.h promises a port besides (issue 39) -------------------------------------------
+
+HEADER = (Path(__file__).resolve().parent.parent / "c" / "ups.h").read_text()
+
+
+def header_constant(name: str) -> int:
+    found = re.search(rf"^#define {name} (-?\d+)\b", HEADER, re.MULTILINE)
+    assert found, name
+    return int(found.group(1))
+
+
+def test_the_state_constants_are_the_numbers_the_calls_return() -> None:
+    for names in (
+        ("UPS_JOIN_NOT_STARTED", "UPS_JOIN_JOINING", "UPS_JOIN_JOINED"),
+        ("UPS_CHANNEL_FREE", "UPS_CHANNEL_WAITING", "UPS_CHANNEL_BOUND"),
+        ("UPS_DECL_NONE", "UPS_DECL_WAITING", "UPS_DECL_GRANTED"),
+    ):
+        assert [header_constant(name) for name in names] == [0, 1, 2]
+    w = Wire()
+    assert w.node.join_state == header_constant("UPS_JOIN_NOT_STARTED")
+    w.node.start(w.now)
+    assert w.node.join_state == header_constant("UPS_JOIN_JOINING")
+    w.join()
+    assert w.node.join_state == header_constant("UPS_JOIN_JOINED")
+    a = w.node.subscribe(A, w.now)
+    assert w.node.channel_state(a) == header_constant("UPS_CHANNEL_WAITING")
+    w.bind(a, 0x20, A)
+    assert w.node.channel_state(a) == header_constant("UPS_CHANNEL_BOUND")
+    assert w.node.channel_state(5) == header_constant("UPS_CHANNEL_FREE")

@@ -40,7 +40,7 @@ int main(int argc, char **argv)
                     ups_join_state(&node), ups_channel_state(&node, cmd));
             return 1;
         }
-        if (!ready && ups_channel_state(&node, cmd) == 2) {
+        if (!ready && ups_channel_state(&node, cmd) == UPS_CHANNEL_BOUND) {
             ready = 1;
             fprintf(stderr, "ups-actuator: TxNode 0x%02x, robot/cmd at etag 0x%04x\n",
                     ups_txnode(&node), ups_channel_etag(&node, cmd));

@@ -48,7 +48,7 @@ int main(int argc, char **argv)
             fprintf(stderr, "ups-sensor: joined as TxNode 0x%02x\n", ups_txnode(&node));
         }
         uint32_t now = socketcan_clock_ms();
-        if (ups_channel_state(&node, speed) == 2 && (int32_t)(now - next) >= 0) {
+        if (ups_channel_state(&node, speed) == UPS_CHANNEL_BOUND && (int32_t)(now - next) >= 0) {
             uint8_t reading[2] = {(uint8_t)(sent >> 8), (uint8_t)sent};
             if (ups_publish(&node, speed, reading, 2) == UPS_OK) {
                 ++sent;
