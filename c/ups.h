@@ -13,7 +13,10 @@
  *     identifier) first, whenever its controller has a free transmit mailbox;
  *   - calls ups_tick() with the time, at least every few milliseconds (every millisecond for
  *     the recommended 1 ms pacing of Hello answers);
- *   - reads what happened with ups_notes() (joined, filters changed, a channel's state changed).
+ *   - reads what happened with ups_notes() (joined, filters changed, a channel's state changed)
+ *     after ups_start() and after every ups_rx() and ups_tick(), and acts on it at once (the
+ *     first UPS_NOTE_FILTERS comes from ups_start(): a controller that accepts nothing after
+ *     reset gets the node's filters before its first frame goes).
  *
  * Time is a uint32_t count of milliseconds from any origin, wrapping freely. Internally only
  * differences of up to 32 s are taken, so the clock may wrap at any moment.
@@ -206,9 +209,11 @@ typedef struct {
 
 #define UPS_NOTE_JOINED 0x01u   /**< the node holds a TxNode now (or again, after a move) */
 #define UPS_NOTE_JOIN_FAILED 0x02u /**< the join ended: see ups_join_state() */
-#define UPS_NOTE_FILTERS 0x04u  /**< the acceptance filters changed: reprogram them with
-                                     ups_filters() before feeding the next frame (an etag relied
-                                     on is received from the Bind on) */
+#define UPS_NOTE_FILTERS 0x04u  /**< program the acceptance filters with ups_filters() now,
+                                     before feeding the next frame: raised by ups_start() (the
+                                     first programming: the CAN-ECB's frames) and whenever they
+                                     change (an etag relied on is received from its Bind on,
+                                     so its events may follow the Bind at once) */
 #define UPS_NOTE_CHANNELS 0x08u /**< a channel's state changed: see ups_channel_state() */
 #define UPS_NOTE_DECLARATIONS 0x10u /**< a declaration's answer stood (granted or refused),
                                          it was given up, or a verdict changed its priority */
@@ -300,12 +305,17 @@ typedef struct {
 int ups_init(ups_node_t *node, uint64_t node_id, unsigned bus_mode);
 
 /** Start joining (Knock) at @p now_ms; also after a join that failed. Channels may be added
- *  before or after: their etags are asked for once the node is joined. */
+ *  before or after: their etags are asked for once the node is joined. Raises UPS_NOTE_FILTERS:
+ *  program the filters (ups_filters(): the CAN-ECB's frames, and any etag already relied on)
+ *  before the Knock it queued goes out, or a controller that accepts nothing after reset never
+ *  hears the answer. A joined node stays joined (a move to another TxNode, or the CAN-ECB's
+ *  restart, is followed inside the library): calling it then does nothing. */
 void ups_start(ups_node_t *node, uint32_t now_ms);
 
 /** Feed one received frame (every frame the controller accepted, in order, own echoes
  *  included). Returns 1 when @p event holds an event for the application, else 0. Frames that
- *  are not UPS, malformed or not for this node are ignored and counted. */
+ *  are not UPS, malformed or not for this node are ignored and counted. Read ups_notes() before
+ *  feeding the next one (a Bind raises UPS_NOTE_FILTERS). */
 int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_event_t *event);
 
 /** Run the timers (knock retry, request retry, settling, Hello answers, transfer timeouts) and
@@ -325,7 +335,9 @@ const ups_frame_t *ups_tx_peek(const ups_node_t *node);
  *  only Binds fed after this call may answer it (docs/protocol.md, "Binding"). */
 void ups_tx_pop(ups_node_t *node);
 
-/** What happened since the last call (UPS_NOTE_... bits), cleared by the call. */
+/** What happened since the last call (UPS_NOTE_... bits), cleared by the call. Read it after
+ *  ups_start() and after each ups_rx() and ups_tick(): UPS_NOTE_FILTERS wants the filters
+ *  programmed before the next frame is fed. */
 unsigned ups_notes(ups_node_t *node);
 
 /** The join: UPS_JOIN_NOT_STARTED, UPS_JOIN_JOINING, UPS_JOIN_JOINED, or UPS_ERR_TIMEOUT,

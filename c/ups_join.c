@@ -123,6 +123,7 @@ void ups_start(ups_node_t *node, uint32_t now_ms)
     node->t_join = now16(now_ms);
     node->knock_step = 0u;
     knock(node, now16(now_ms));
+    note(node, UPS_NOTE_FILTERS); /* the first programming: before the Knock goes out */
 }
 
 /* ---- the answer to Hello, and moves -------------------------------------------------------- */

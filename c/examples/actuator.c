@@ -25,9 +25,7 @@ int main(int argc, char **argv)
         return 1;
     }
     ups_init(&node, strtoull(argv[2], NULL, 0), UPS_BUS_CLASSIC);
-    ups_filter_t management[1];
-    socketcan_filters(sock, management, ups_filters(&node, management, 1)); /* before joining */
-    ups_start(&node, socketcan_clock_ms());
+    ups_start(&node, socketcan_clock_ms()); /* its UPS_NOTE_FILTERS opens the socket */
     int cmd = ups_subscribe(&node, UPS_UID_ROBOT_CMD, socketcan_clock_ms());
     unsigned long got = 0;
     int ready = 0;

@@ -26,7 +26,7 @@ int main(int argc, char **argv)
         return 1;
     }
     ups_init(&node, strtoull(argv[2], NULL, 0), UPS_BUS_CLASSIC);
-    ups_start(&node, socketcan_clock_ms());
+    ups_start(&node, socketcan_clock_ms()); /* its UPS_NOTE_FILTERS opens the socket */
     int speed = ups_advertise(&node, UPS_UID_ROBOT_SPEED, 2, socketcan_clock_ms());
     uint32_t next = 0;
     unsigned long sent = 0;

@@ -23,7 +23,9 @@ int socketcan_open(const char *name, int fd)
     memset(&addr, 0, sizeof addr);
     addr.can_family = AF_CAN;
     addr.can_ifindex = (int)if_nametoindex(name);
-    if (addr.can_ifindex == 0 ||
+    /* no filter: the socket receives nothing until socketcan_filters(), as a CAN controller
+     * after reset (bxCAN with no filter bank active): the first UPS_NOTE_FILTERS opens it */
+    if (addr.can_ifindex == 0 || setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FILTER, NULL, 0) < 0 ||
         (fd && setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FD_FRAMES, &fd, sizeof fd) < 0) ||
         bind(sock, (struct sockaddr *)&addr, sizeof addr) < 0) {
         close(sock);

@@ -7,7 +7,9 @@
 
 #include "ups.h"
 
-/** Open a raw CAN socket on interface @p name (CAN FD frames too when @p fd). -1 on error. */
+/** Open a raw CAN socket on interface @p name (CAN FD frames too when @p fd). It receives nothing
+ *  until socketcan_filters() (as a controller after reset): socketcan_step() programs the
+ *  filters on UPS_NOTE_FILTERS, the first time after ups_start(). -1 on error. */
 int socketcan_open(const char *name, int fd);
 
 /** Program the kernel's acceptance filters from libups' list (accept every extended frame when
@@ -23,9 +25,10 @@ int socketcan_recv(int sock, ups_frame_t *frame, int timeout_ms);
 /** Milliseconds of a monotonic clock (wrapping). */
 uint32_t socketcan_clock_ms(void);
 
-/** Run @p node for one pass: receive into @p frame for up to @p wait_ms, tick, reprogram the
- *  filters when they changed, send. Returns 1 and fills @p event when an event came (its data
- *  may point into @p frame: keep both until the next pass), 0 otherwise, -1 on error. */
+/** Run @p node for one pass: receive into @p frame for up to @p wait_ms, tick, program the
+ *  filters on UPS_NOTE_FILTERS (before the next frame is received), send. Returns 1 and fills
+ *  @p event when an event came (its data may point into @p frame: keep both until the next
+ *  pass), 0 otherwise, -1 on error. */
 int socketcan_step(int sock, ups_node_t *node, int wait_ms, ups_frame_t *frame,
                    ups_event_t *event);
 
