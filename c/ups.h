@@ -354,13 +354,15 @@ int ups_txnode(const ups_node_t *node);
 /** Subscribe to channel @p uid. Returns the channel's index (the same for every role of one
  *  UID), or UPS_ERR_FULL. The node asks for the etag (SUB_BIND) at the next ups_tick() once
  *  joined (again, if the channel was waiting for an answer to another request: that answer
- *  would not tell the CAN-ECB of the subscription). @p now_ms is unused (kept for the API). */
+ *  would not tell the CAN-ECB of the subscription). @p now_ms is not read: the request's timers
+ *  start when ups_tick() queues it, so any value will do (pass the clock). */
 int ups_subscribe(ups_node_t *node, uint64_t uid, uint32_t now_ms);
 
 /** Publish on channel @p uid events of up to @p max_size bytes (its size class follows: PUB_BIND
  *  for 8 bytes or fewer, PUB_BIND(c) above; calling it again with larger events moves the
  *  channel to their class). Returns the channel's index, UPS_ERR_FULL, or UPS_ERR_TOO_LARGE
- *  (above UPS_MAX_EVENT). Asked, like ups_subscribe(), at the next ups_tick(). */
+ *  (above UPS_MAX_EVENT). Asked, like ups_subscribe(), at the next ups_tick(); @p now_ms is not
+ *  read either. */
 int ups_advertise(ups_node_t *node, uint64_t uid, uint16_t max_size, uint32_t now_ms);
 
 /** Stop receiving channel @p channel: UNSUB goes at a next ups_tick(). A channel nobody
@@ -380,6 +382,11 @@ int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t siz
  *  UPS_ERR_ARGUMENT (no such channel). */
 int ups_set_priority(ups_node_t *node, int channel, uint8_t priority);
 
+/** The priority this node's events on @p channel go at now (0x02..0xFF): the default 0x80,
+ *  ups_set_priority()'s, or the one a Grant gave (read it on UPS_NOTE_DECLARATIONS), or
+ *  UPS_ERR_ARGUMENT (no such channel). */
+int ups_channel_priority(const ups_node_t *node, int channel);
+
 /** A channel's state: UPS_CHANNEL_FREE, UPS_CHANNEL_WAITING (for its etag, or being bound
  *  again, or a publisher's 150 ms pause on a larger size class), UPS_CHANNEL_BOUND (events may
  *  go: ups_publish()), or a UPS_ERR_ code (the request ended:
@@ -398,25 +405,32 @@ uint16_t ups_channel_etag(const ups_node_t *node, int channel);
  *  @p max, accept every extended frame instead: the library filters in software. */
 int ups_filters(const ups_node_t *node, ups_filter_t *out, int max);
 
-/** Declare @p channel (published on, in state 2) a real-time stream: at most one event of
- *  @p size bytes (frames per event on a larger size class) every @p period, released up to
- *  @p jitter late, due within @p deadline; times in units of 100 us. Sends DECLARE (request
- *  retry, 5 s) until it hears Grant or Refuse for it, and again in every answer to Hello once
- *  granted. The answer is the latest verdict heard since the DECLARE went (ups_tx_pop), once
- *  it stood 0.5 s with no other (the verdict wait: the CAN-ECB corrects a forged one at once);
- *  until then the channel keeps its priority. Only verdicts for a stream the node declared
- *  count (its DECLARE sent, its answer not a Refuse); for one, a Grant sets the priority (also
- *  unasked) and a Refuse puts back the priority from before ups_declare(), until a Grant.
+/** Declare @p channel (published on, in state UPS_CHANNEL_BOUND) a real-time stream: at most
+ *  one event of @p size bytes (frames per event on a larger size class) every @p period,
+ *  released up to @p jitter late, due within @p deadline; times in units of 100 us. Sends
+ *  DECLARE (request retry, 5 s) until it hears Grant or Refuse for it. The answer is the
+ *  latest verdict heard since the DECLARE went (ups_tx_pop), once it stood 0.5 s with no other
+ *  (the verdict wait: the CAN-ECB corrects a forged one at once); until then the channel keeps
+ *  its priority. Only verdicts for a stream the node declared count (its DECLARE sent, its
+ *  answer not a Refuse); for one, a Grant sets the priority (also unasked: read it with
+ *  ups_channel_priority()) and a Refuse puts back the priority from before ups_declare(),
+ *  until a Grant.
+ *  A stream stays declared for the node's life: the node sends its DECLARE again by itself in
+ *  every answer to Hello (the CAN-ECB restarted, or it moved the node to another TxNode, or
+ *  assigned it its own again) while the state is UPS_DECL_WAITING or UPS_DECL_GRANTED and the
+ *  channel is bound. Call ups_declare() again only after ups_init() (a reset), to change the
+ *  stream, or once it ended (UPS_ERR_REFUSED, UPS_ERR_TIMEOUT).
  *  Returns UPS_OK, UPS_ERR_ARGUMENT (no such published channel, a period or deadline of 0, a
  *  size out of range), UPS_ERR_UNBOUND (not bound) or UPS_ERR_FULL (UPS_DECLARATIONS
  *  streams declared already, or none compiled in). */
 int ups_declare(ups_node_t *node, int channel, uint8_t size, uint16_t period, uint16_t deadline,
                 uint8_t jitter, uint32_t now_ms);
 
-/** The declaration of @p channel: 0 none, 1 waiting for its answer, 2 granted (its priority
- *  is the channel's; a later Refuse puts the channel back to its former priority until a
- *  Grant comes), UPS_ERR_REFUSED (the answer was Refuse: the declaration is over) or
- *  UPS_ERR_TIMEOUT (no verdict within 5 s; a later Grant still makes it 2). */
+/** The declaration of @p channel: UPS_DECL_NONE, UPS_DECL_WAITING (for its answer),
+ *  UPS_DECL_GRANTED (its priority is the channel's, ups_channel_priority(); a later Refuse puts
+ *  the channel back to its former priority until a Grant comes), UPS_ERR_REFUSED (the answer
+ *  was Refuse: the declaration is over) or UPS_ERR_TIMEOUT (no verdict within 5 s; a later
+ *  Grant still makes it UPS_DECL_GRANTED). */
 int ups_declaration_state(const ups_node_t *node, int channel);
 
 /** The counters (read-only; they saturate). */

@@ -544,6 +544,14 @@ int ups_set_priority(ups_node_t *node, int channel, uint8_t priority)
     return UPS_OK;
 }
 
+int ups_channel_priority(const ups_node_t *node, int channel)
+{
+    if (ups_channel_state(node, channel) == UPS_CHANNEL_FREE) { /* not a channel in use */
+        return UPS_ERR_ARGUMENT;
+    }
+    return node->channels[channel].priority;
+}
+
 int ups_channel_state(const ups_node_t *node, int channel)
 {
     if (!ups__valid_channel(node, channel)) {

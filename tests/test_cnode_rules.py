@@ -516,3 +516,21 @@ def test_the_state_constants_are_the_numbers_the_calls_return() -> None:
     w.bind(a, 0x20, A)
     assert w.node.channel_state(a) == header_constant("UPS_CHANNEL_BOUND")
     assert w.node.channel_state(5) == header_constant("UPS_CHANNEL_FREE")
+
+
+def test_a_grants_priority_is_read_with_ups_channel_priority() -> None:
+    w = Wire()
+    priority = w.node._lib.ups_channel_priority
+    w.join()
+    a = w.node.advertise(A, 8, w.now)
+    assert priority(w.node._node, a) == 0x80
+    w.bind(a, 0x20, A)
+    assert w.node.declare(a, 2, 100, 50, 0, w.now) == 0
+    w.tick(1)
+    w.feed(p.Grant(0x20, 5, 0x11))
+    w.tick(600)  # the answer once it stood 0.5 s
+    assert w.node.declaration_state(a) == header_constant("UPS_DECL_GRANTED")
+    assert priority(w.node._node, a) == 0x11
+    w.node.set_priority(a, 0x90)
+    assert priority(w.node._node, a) == 0x90
+    assert priority(w.node._node, 7) == -1  # UPS_ERR_ARGUMENT: no such channel
