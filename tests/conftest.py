@@ -79,6 +79,16 @@ def send_management(raw: can.BusABC | CanLink, msg: p.Management) -> None:
         raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
 
 
+async def handled(node: Node, raw: can.BusABC) -> None:
+    """Wait until ``node`` has handled every frame sent on ``raw`` so far (and every frame any
+    sender put on the bus before this call): a malformed frame goes after them (a Hello with
+    7 bytes), which the node counts (a virtual bus keeps each receiver's frames in order)."""
+    counted = node.stats()["malformed"]
+    hello, _ = p.encode(p.Hello(0))
+    raw.send(can.Message(arbitration_id=hello, data=bytes(7), is_extended_id=True))
+    await eventually(lambda: node.stats()["malformed"] > counted)
+
+
 @contextlib.asynccontextmanager
 async def joined_nodes(bus: str, ids: list[int]) -> AsyncIterator[list[Node]]:
     """CAN nodes with these ids, joined together (each given 15 s), closed on exit."""

@@ -29,7 +29,7 @@ from ups._canlink import CanLink
 from ups._errors import DecodeError
 from ups.broker.can_ecb import CanEcb
 
-from .conftest import HeldBus, eventually, running_ecb
+from .conftest import HeldBus, eventually, handled, running_ecb
 from .conftest import joined_nodes as nodes
 from .conftest import send_management as send
 
@@ -79,15 +79,6 @@ def can_face(node: Node) -> CanFace:
     face = node.face
     assert isinstance(face, CanFace)
     return face
-
-
-async def handled(node: Node, raw: can.BusABC) -> None:
-    """Wait until ``node`` has handled every frame sent on ``raw`` so far: a malformed frame
-    goes after them (a Hello with 7 bytes), which the node counts (the bus is FIFO)."""
-    counted = node.stats()["malformed"]
-    hello, _ = p.encode(p.Hello(0))
-    raw.send(can.Message(arbitration_id=hello, data=bytes(7), is_extended_id=True))
-    await eventually(lambda: node.stats()["malformed"] > counted)
 
 
 async def priority_on_the_wire(pub: Node, sub: Node, channel: str) -> int:
