@@ -119,7 +119,8 @@ static inline int ups__valid_channel(const ups_node_t *node, int channel)
 unsigned ups__class(unsigned etag);
 /** The largest event of a size class. */
 uint32_t ups__class_max(unsigned cls);
-/** Copy @p n bytes (the library calls no memcpy). */
+/** Copy @p n bytes (the buffers do not overlap), or zero them when @p from is NULL, in a loop
+ *  that no compiler makes a call of memcpy or memset of (ups.c). */
 void ups__copy(uint8_t *to, const uint8_t *from, unsigned n);
 /** Count one in a saturating counter. */
 void ups__count(UPS_COUNTER_T *counter);

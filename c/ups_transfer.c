@@ -95,9 +95,7 @@ int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *
         frame[1] = (uint8_t)(size >> 8);
         frame[2] = (uint8_t)size;
         ups__copy(frame + 3, data, size);
-        for (unsigned i = len; i < padded; ++i) {
-            frame[i] = 0u;
-        }
+        ups__copy(frame + len, NULL, padded - len);
         return ups__push(node, id, event_flags(node), frame, padded);
     }
     uint16_t crc = crc16(data, size);
@@ -136,9 +134,7 @@ void ups__transfer_refill(ups_node_t *node)
         }
         unsigned len = 1u + n;
         unsigned padded = node_mtu(node) > 8u ? fd_length(len) : len;
-        for (unsigned i = len; i < padded; ++i) {
-            frame[i] = 0u;
-        }
+        ups__copy(frame + len, NULL, padded - len);
         (void)ups__push(node, node->tx_id, event_flags(node), frame, padded);
         node->tx_left = (uint16_t)(node->tx_left - n);
         node->tx_header = (uint8_t)(node->tx_header ^ T_TOGGLE);

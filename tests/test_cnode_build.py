@@ -1,6 +1,7 @@
 """libups builds clean: gcc with -std=c99 -Wall -Wextra -Werror -pedantic -Wconversion
--Wsign-conversion in every configuration, gcc -fanalyzer and cppcheck (``make -C c check``); and
-the SocketCAN examples build (``make -C c examples``; tests/socketcan runs them)."""
+-Wsign-conversion in every configuration, gcc -fanalyzer and cppcheck (``make -C c check``); no
+compiler makes a C library call of it at any optimisation; and the SocketCAN examples build
+(``make -C c examples``; tests/socketcan runs them)."""
 
 from __future__ import annotations
 
@@ -53,6 +54,51 @@ def test_sizes_are_measured_and_the_minimal_node_fits_the_target() -> None:
         assert r["flash"] > 1000 and r["ram"] >= r["node"] > 0 and 0 < r["stack"] < 1024
     (minimal,) = [r for r in results if (r["cpu"], r["config"]) == ("cortex-m0plus", "minimal")]
     assert minimal["flash"] <= 4096 and minimal["ram"] <= 256, minimal
+
+
+CONFIGS = {
+    "minimal": ["-DUPS_CHANNELS=8", "-DUPS_TX_DEPTH=4", "-DUPS_DECLARATIONS=0",
+                "-DUPS_COUNTER_T=uint16_t"],
+    "default": [],
+    "full": ["-DUPS_CHANNELS=16", "-DUPS_TX_DEPTH=16", "-DUPS_WITH_TRANSFERS=1", "-DUPS_WITH_FD=1",
+             "-DUPS_MAX_EVENT=1024", "-DUPS_RX_TRANSFERS=4", "-DUPS_DECLARATIONS=2",
+             "-DUPS_HEARD_BINDS=8"],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("level", ["-Os", "-O2", "-O3"])
+def test_no_compiler_makes_a_c_library_call_of_the_library(tmp_path: Path, level: str) -> None:
+    """gcc turns a loop that stores contiguous bytes into a call of memset, memcpy or memmove
+    unless told not to (-ffreestanding, -fno-tree-loop-distribute-patterns); libups' loops are
+    written so that it cannot, and a -nostdlib link of it needs no flag. Every configuration, on
+    Cortex-M0+ and Cortex-M4 and with the host's cc, with no such flag: the objects need nothing
+    but each other."""
+    if shutil.which("arm-none-eabi-gcc") is None:
+        pytest.fail("arm-none-eabi-gcc is missing: scripts/setup --test installs it")
+    compilers = {
+        "cortex-m0plus": (
+            ["arm-none-eabi-gcc", "-mcpu=cortex-m0plus", "-mthumb"],
+            "arm-none-eabi-nm",
+        ),
+        "cortex-m4": (["arm-none-eabi-gcc", "-mcpu=cortex-m4", "-mthumb"], "arm-none-eabi-nm"),
+        "host": (["cc"], "nm"),
+    }
+    sources = [str(ROOT / "c" / s) for s in ("ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c")]
+    calls: dict[str, list[str]] = {}
+    for target, (cc, nm) in compilers.items():
+        for config, flags in CONFIGS.items():
+            out = tmp_path / target / config
+            out.mkdir(parents=True)
+            subprocess.run([*cc, level, "-std=c99", *flags, "-c", *sources], cwd=out, check=True)
+            needed = set()
+            for obj in out.glob("*.o"):
+                listing = subprocess.run([nm, "-u", str(obj)], capture_output=True, text=True,
+                                         check=True).stdout  # fmt: skip
+                needed |= {line.split()[-1] for line in listing.splitlines() if line.strip()}
+            outside = sorted(s for s in needed if not s.startswith("ups_"))
+            if outside:
+                calls[f"{target} {config}"] = outside
+    assert calls == {}
 
 
 def test_make_size_without_the_arm_toolchain_names_the_package(tmp_path: Path) -> None:
