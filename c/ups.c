@@ -353,6 +353,32 @@ unsigned ups_notes(ups_node_t *node)
     return notes;
 }
 
+int ups_idle(const ups_node_t *node)
+{
+    unsigned busy = node->tx_count | (node->mode & (UPS__OWE_CLAIM | UPS__ANNOUNCE_DUE |
+                                                     UPS__RECENT));
+    busy |= node->join == UPS_JOIN_JOINING;
+    for (unsigned i = 0; i < UPS_CHANNELS; ++i) { /* waiting, settling, pausing, owing */
+        busy |= node->channels[i].owe |
+                (node->channels[i].flags & (UPS__PEND | UPS__CAND | UPS__WAIT));
+    }
+#if UPS_DECLARATIONS
+    for (unsigned i = 0; i < UPS_DECLARATIONS; ++i) { /* its retry or verdict wait runs */
+        const ups_declaration_t *decl = &node->decl[i];
+        if (decl->channel < UPS_CHANNELS && decl->state == UPS_DECL_WAITING) {
+            busy |= node->channels[decl->channel].flags & UPS__BOUND;
+        }
+    }
+#endif
+#if UPS_WITH_TRANSFERS
+    busy |= node->tx_left;
+    for (unsigned i = 0; i < UPS_RX_TRANSFERS; ++i) {
+        busy |= node->rx[i].etag;
+    }
+#endif
+    return busy == 0u;
+}
+
 int ups_join_state(const ups_node_t *node)
 {
     return node->join;

@@ -18,14 +18,17 @@
  *     first UPS_NOTE_FILTERS comes from ups_start(): a controller that accepts nothing after
  *     reset gets the node's filters before its first frame goes).
  *
- * Time is a uint32_t count of milliseconds from any origin, wrapping freely. Internally only
- * differences of up to 32 s are taken, so the clock may wrap at any moment.
+ * Time is a uint32_t count of milliseconds from any origin, wrapping freely: the node keeps its
+ * times as the low 16 bits (a refusal's as the low 14), so the clock may wrap at any moment.
+ * How often ups_tick() must come, and when a node may sleep, is said at ups_tick().
  *
  * Every table is sized at compile time by the macros below (define them before including this
  * header, or with -D, identically for every file). ups_node_t is the whole state: place one
- * (static storage is fine) and pass it to every call. Nothing here is thread-safe: call the
- * library from one context (for instance the main loop, with the receive interrupt filling a
- * ring that the loop drains). See c/README.md for porting.
+ * (static storage is fine) and pass it to every call. Nothing here is thread-safe or
+ * reentrant: make every call on a node from one context, the main loop or the one task that
+ * owns the node. Interrupts only copy received frames into a ring and wake that context; a
+ * transmit-complete interrupt does not call ups_tx_peek()/ups_tx_pop() (it would race the
+ * loop's calls): it wakes the loop, which fills the free mailboxes. See c/README.md, Porting.
  *
  * Every call that can fail returns a negative UPS_ERR_... code; 0 or a positive value is
  * success. Nothing overflows: every table bound is checked, and what it turns away is counted
@@ -320,9 +323,17 @@ int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_even
 
 /** Run the timers (knock retry, request retry, settling, Hello answers, transfer timeouts) and
  *  queue the frames the node owes the CAN-ECB (requests, SUB_AT/PUB_AT, DECLARE, UNSUB: one at
- *  a time, so that none is lost to a full queue or sent before one it depends on). Call it at
- *  least every few milliseconds, ideally every millisecond (the 1 ms pacing of answers to
- *  Hello), and never less often than every 30 s (the timers count 16-bit milliseconds). */
+ *  a time, so that none is lost to a full queue or sent before one it depends on).
+ *
+ *  How often: every millisecond while the node is busy (ups_idle() is 0), at the latest every
+ *  few: each call queues at most one owed frame (the answer to Hello, paced at 1 ms), and a
+ *  timer runs at the first call after it fell due. Calls that come less often make timers late,
+ *  never early, and lose nothing; but the node keeps each timer's start in 16 bits (a
+ *  refusal's in 14), so a gap longer than 13.4 s (16384 - 3000 ms: a request's refusal wait)
+ *  or, while joining, than 65536 ms minus UPS_JOIN_GIVE_UP_MS (35.5 s by default) may make a
+ *  timer look just started and run it up to 65.5 s (16.4 s) later still. While ups_idle() is
+ *  1 nothing is due: a node that sleeps may stop calling it, for any time, until a frame
+ *  arrives or it calls the library again. */
 void ups_tick(ups_node_t *node, uint32_t now_ms);
 
 /** The frame to send next (the lowest identifier queued, the first queued among equals), or
@@ -339,6 +350,12 @@ void ups_tx_pop(ups_node_t *node);
  *  ups_start() and after each ups_rx() and ups_tick(): UPS_NOTE_FILTERS wants the filters
  *  programmed before the next frame is fed. */
 unsigned ups_notes(ups_node_t *node);
+
+/** Whether nothing is due: 1 when the node is not joining, has no frame queued or owed (an
+ *  answer to Hello, a request, SUB_AT, PUB_AT, DECLARE, UNSUB), no channel or declaration
+ *  waiting for an answer, no Hello answered within the last second and no transfer half sent
+ *  or half received; else 0. A node that sleeps ticks every millisecond while it is 0. */
+int ups_idle(const ups_node_t *node);
 
 /** The join: UPS_JOIN_NOT_STARTED, UPS_JOIN_JOINING, UPS_JOIN_JOINED, or UPS_ERR_TIMEOUT,
  *  UPS_ERR_TXNODES_FULL, UPS_ERR_FAILED when it ended (call ups_start() again). Anyone can send

@@ -534,3 +534,29 @@ def test_a_grants_priority_is_read_with_ups_channel_priority() -> None:
     w.node.set_priority(a, 0x90)
     assert priority(w.node._node, a) == 0x90
     assert priority(w.node._node, 7) == -1  # UPS_ERR_ARGUMENT: no such channel
+
+
+def test_ups_idle_says_when_a_node_may_stop_ticking() -> None:
+    w = Wire()
+
+    def idle() -> bool:
+        return bool(w.node._lib.ups_idle(w.node._node))
+
+    assert idle()  # not started
+    w.node.start(w.now)
+    assert not idle()  # joining
+    w.join()
+    assert idle()  # joined, nothing asked
+    a = w.node.subscribe(A, w.now)
+    assert not idle()  # the request is owed
+    w.bind(a, 0x20, A)
+    assert idle()
+    w.feed(p.Hello(1))
+    assert not idle()  # the answer to Hello is owed, then its second runs
+    w.tick(1100)
+    assert p.Holds(False, 5, 0x20, A) in w.mgmt()  # SUB_AT
+    assert idle()
+    w.node.unsubscribe(a)
+    assert not idle()  # UNSUB is owed
+    w.tick(1)
+    assert idle()
