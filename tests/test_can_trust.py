@@ -124,15 +124,25 @@ async def test_a_second_can_ecb_stands_by_and_the_first_keeps_the_bus(
 async def test_two_can_ecbs_started_together_leave_exactly_one_serving(
     bus: str, tmp_path: Path
 ) -> None:
+    """Exactly one serves once one stands by, past both recovery windows (awaited), and through
+    a join and a binding: the one standing by takes no part in them, nor corrects anything (a
+    fixed 0.5 s wait stood for this, and the test passed with a standing-by CAN-ECB handling
+    requests; issue 41)."""
     async with (
         running_ecb(bus, tmp_path / "a.db", recovery=0.3) as a,
         running_ecb(bus, tmp_path / "b.db", recovery=0.3) as b,
     ):
         await eventually(lambda: a.standby or b.standby)
-        await asyncio.sleep(0.5)  # past both recovery windows: still exactly one
+        await eventually(lambda: not a.recovering and not b.recovering)
         assert a.standby != b.standby
+        serving, standing = (b, a) if a.standby else (a, b)
         async with Node(can=bus, node_id=5) as node:
             await node.subscribe("y")
+            assert node.stats()["txnode"] == serving.txnodes[5]
+            assert name_to_uid("y") in serving.etags
+        assert standing.standby and not serving.standby
+        acted = {k: standing.counters[k] for k in ("joined", "bound", "conflicts")}
+        assert acted == dict.fromkeys(acted, 0), f"the one standing by acted: {acted}"
 
 
 async def test_forged_claims_and_requests_take_nothing(
