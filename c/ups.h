@@ -69,7 +69,12 @@ extern "C" {
 #define UPS_WITH_TRANSFERS 0
 #endif
 
-/** 1: CAN FD buses (64-byte frames) are supported; ups_init() says whether this bus is one. */
+/** 1: CAN FD buses (64-byte frames) are supported; ups_init() says whether this bus is one.
+ *  0 (classic only): ups_frame_t holds 8 data bytes and the node sends classic frames only.
+ *  Event frames may be either kind, so it takes a received CAN FD frame of up to 8 bytes like a
+ *  classic one (flag it UPS_FRAME_FD: FD management frames are foreign); a longer one does not
+ *  fit ups_frame_t and the port drops it, never cut to 8 bytes (the library could not tell):
+ *  such a node receives no transfer sent in 64-byte frames, which it could not take anyway. */
 #ifndef UPS_WITH_FD
 #define UPS_WITH_FD 0
 #endif
@@ -184,8 +189,12 @@ typedef struct {
     uint32_t mask;
 } ups_filter_t;
 
-/** One received event. data points into the frame given to ups_rx() (one-frame events) or into
- *  the node (transfers): valid until the next call into the library. */
+/** One received event. data points into the frame given to ups_rx() (an event of one frame)
+ *  or into the node (a transfer's last frame completed it), not into a copy: it is valid until
+ *  the next call into the library, and only while that frame is. A port that passes ups_rx() a
+ *  slot of the ring its receive interrupt fills must copy the size bytes (or use them) before
+ *  it frees the slot to the interrupt; one that pops each frame into a variable first (the
+ *  guide's loop) keeps that variable until it is done with the event. */
 typedef struct {
     const uint8_t *data;
     uint16_t size;

@@ -8,13 +8,14 @@ before its fix.
 
 from __future__ import annotations
 
+import ctypes
 import re
 from pathlib import Path
 
 from ups import _canproto as p
 from ups import _cantransfer as t
 from ups import name_to_uid
-from ups._cnode import ERRORS
+from ups._cnode import ERRORS, FRAME_EXT, FRAME_FD, Event
 
 from .cnode_helpers import CanEcb, Wire, c_nodes, now_ms
 
@@ -560,3 +561,28 @@ def test_ups_idle_says_when_a_node_may_stop_ticking() -> None:
     assert not idle()  # UNSUB is owed
     w.tick(1)
     assert idle()
+
+
+def test_a_classic_only_build_takes_fd_frames_of_up_to_8_bytes() -> None:
+    w = Wire(variant="min")
+    assert w.node.config["fd"] == 0 and w.node.config["mtu"] == 8
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.bind(a, 0x20, A)
+    event_id = (0x80 << 21) | (9 << 14) | 0x20
+    got = w.feed_raw(event_id, b"\x01\x02\x03", FRAME_EXT | FRAME_FD)
+    assert got == Event(a, b"\x01\x02\x03", 0x80, 9)
+    before = w.node.counters()["foreign"]
+    can_id, data = p.encode(p.Hello(1))
+    w.feed_raw(can_id, data, FRAME_EXT | FRAME_FD)  # management frames are classic frames
+    assert w.node.counters()["foreign"] == before + 1
+
+
+def test_event_data_points_into_the_frame_fed() -> None:
+    w = Wire()
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.bind(a, 0x20, A)
+    assert w.feed_raw((0x80 << 21) | (9 << 14) | 0x20, b"\xaa\xbb") is not None
+    pointer = ctypes.cast(w.node._event.data, ctypes.c_void_p).value
+    assert pointer == ctypes.addressof(w.node._frame.data)  # not a copy: copy before reuse

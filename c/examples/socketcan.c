@@ -75,12 +75,15 @@ int socketcan_recv(int sock, ups_frame_t *frame, int timeout_ms)
     if (got != CAN_MTU && got != CANFD_MTU) {
         return -1;
     }
+    if (in.len > UPS_MTU) {
+        return 0; /* an FD frame a build without UPS_WITH_FD has no room for: dropped, not cut */
+    }
     frame->id = in.can_id & (in.can_id & CAN_EFF_FLAG ? CAN_EFF_MASK : CAN_SFF_MASK);
     frame->flags = (uint8_t)(((in.can_id & CAN_EFF_FLAG) ? UPS_FRAME_EXT : 0u) |
                              ((in.can_id & CAN_RTR_FLAG) ? UPS_FRAME_RTR : 0u) |
                              ((in.can_id & CAN_ERR_FLAG) ? UPS_FRAME_ERR : 0u) |
                              (got == CANFD_MTU ? UPS_FRAME_FD : 0u));
-    frame->len = in.len <= UPS_MTU ? in.len : UPS_MTU;
+    frame->len = in.len;
     memcpy(frame->data, in.data, frame->len);
     return 1;
 }

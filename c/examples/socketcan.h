@@ -19,7 +19,8 @@ int socketcan_filters(int sock, const ups_filter_t *filters, int count);
 /** Send one frame. 0, 1 when the interface is busy (try again later), -1 on error. */
 int socketcan_send(int sock, const ups_frame_t *frame);
 
-/** Receive one frame, waiting at most @p timeout_ms. 1: a frame, 0: none, -1: error. */
+/** Receive one frame, waiting at most @p timeout_ms. 1: a frame, 0: none (or one longer than
+ *  UPS_MTU, dropped), -1: error. */
 int socketcan_recv(int sock, ups_frame_t *frame, int timeout_ms);
 
 /** Milliseconds of a monotonic clock (wrapping). */
