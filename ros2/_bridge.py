@@ -22,10 +22,13 @@ Forwarding follows the Zenoh face's rule, per topic:
   the bridge's own samples), and what came from UPS is not published on UPS.
 
 Every sample put carries rmw_zenoh's attachment (sequence number from 1 per publisher, source
-time, the publisher's GID). A sample received without one (a plain Zenoh program putting CDR
-on the key) is forwarded all the same and counted (``no_attachment``); numbers a ROS publisher
-skipped are counted (``ros_lost``). A value that does not fit the other side is dropped and
-counted (``out_of_range``), as is a payload that does not decode (``malformed``).
+time, the publisher's GID). What comes from ROS passes ``_admit`` first: at most the topic's
+``max_rate`` samples a second after a ``burst`` (``rate_limited``), each publisher's sequence
+numbers followed, a gap counted as loss (``ros_lost``) only within what that rate could have
+carried, a jump beyond it a restart or a forgery (``ros_jumps``). A sample without rmw_zenoh's
+attachment (a plain Zenoh program putting CDR on the key) is forwarded all the same and counted
+(``no_attachment``). A value that does not fit the other side is dropped and counted
+(``out_of_range``), as is a payload that does not decode (``malformed``).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from ups import BrokerUnavailable, Channel, ConfigError, DecodeError, UpsError
 from ups._message import Message
 from ups._zenohface import STATUS_PREFIX, zenoh_config
 
+from ._admit import Admission, Gate
 from ._mapping import Bridge
 from ._rmw import (
     PUBLISHER,
@@ -54,7 +58,6 @@ from ._rmw import (
     entity_token,
     gid,
     node_token,
-    read_attachment,
 )
 from ._topic import TopicMap, Unrepresentable
 
@@ -64,9 +67,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("ups.ros2")
 
 RX_PENDING = 65536  #: ROS samples handed to the event loop, not yet handled (then: rx_overflow)
-MAX_SOURCES = 4096  #: ROS publishers whose sequence numbers are followed (then: forgotten)
 COUNTERS = ("to_ros", "from_ros", "out_of_range", "malformed", "no_attachment", "ros_lost",
-            "unmatched", "reflected", "rx_overflow", "reconcile_errors")  # fmt: skip
+            "ros_jumps", "rate_limited", "unmatched", "reflected", "rx_overflow",
+            "reconcile_errors")  # fmt: skip
 
 
 @dataclass(slots=True)
@@ -84,8 +87,9 @@ class _Live:
     sequence: int = 0
     ros_sub: Any = None  #: the Zenoh subscriber (ROS -> UPS), while wanted
     ros_token: Any = None  #: its MS token
+    gate: Gate | None = None  #: its rate bound and loss credit (ROS -> UPS)
     counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
-        ("sent", "received", "out_of_range", "malformed"), 0))  # fmt: skip
+        ("sent", "received", "out_of_range", "malformed", "rate_limited"), 0))  # fmt: skip
 
     @property
     def publisher_id(self) -> int:
@@ -121,7 +125,11 @@ class RosBridge:
         self.join_timeout = join_timeout
         self._config = zenoh_config(ros, ros_config)  # says so when Zenoh is not installed
         self.counters = dict.fromkeys(COUNTERS, 0)
-        self.topics = [_Live(t, i + 1) for i, t in enumerate(bridge.topics)]
+        now = time.monotonic()
+        self.topics = [
+            _Live(t, i + 1, gate=Gate.new(t.max_rate, t.burst, now) if t.from_ros else None)
+            for i, t in enumerate(bridge.topics)
+        ]
         self._session: Any = None
         self._tokens: list[Any] = []
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -129,9 +137,9 @@ class RosBridge:
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._pending = 0
-        self._pending_lock = threading.Lock()
+        self._pending_lock = threading.Lock()  # admission and _pending, from Zenoh's threads
+        self._admission = Admission(self.counters)
         self._publishing: int | None = None  # the UID being published from ROS, this instant
-        self._expected: dict[bytes, int] = {}  # a ROS publisher's GID -> its next number
         self._status_queryable: Any = None
         self._tasks: set[asyncio.Task[None]] = set()
         self.zid = ""
@@ -340,25 +348,25 @@ class RosBridge:
     # --- ROS -> UPS --------------------------------------------------------------------------
 
     def _received(self, live: _Live, sample: Any) -> None:  # in a Zenoh thread
+        raw = sample.attachment
+        extra = None if raw is None else raw.to_bytes()
+        gate = live.gate
+        assert gate is not None  # a from_ros topic
         with self._pending_lock:
+            if not self._admission.admit(gate, extra, time.monotonic()):
+                live.counts["rate_limited"] += 1
+                return
             if self._pending >= RX_PENDING:
                 self.counters["rx_overflow"] += 1
                 return
             self._pending += 1
-        raw = sample.attachment
-        self._threadsafe(self._from_ros, live, sample.payload.to_bytes(),
-                         None if raw is None else raw.to_bytes())  # fmt: skip
+        self._threadsafe(self._from_ros, live, sample.payload.to_bytes())
 
-    def _from_ros(self, live: _Live, payload: bytes, extra: bytes | None) -> None:
+    def _from_ros(self, live: _Live, payload: bytes) -> None:
         with self._pending_lock:
             self._pending -= 1
         if live.ros_sub is None:  # withdrawn meanwhile
             return
-        found = read_attachment(extra)
-        if found is None:
-            self.counters["no_attachment"] += 1
-        else:
-            self._follow(found.gid, found.sequence)
         try:
             data = live.map.ups_payload(payload)
         except Unrepresentable as exc:
@@ -392,14 +400,6 @@ class RosBridge:
             log.warning("could not publish a message of %s on UPS: %s", channel, exc)
         finally:
             self._publishing = None
-
-    def _follow(self, who: bytes, sequence: int) -> None:
-        expected = self._expected.get(who)
-        if expected is None and len(self._expected) >= MAX_SOURCES:
-            del self._expected[next(iter(self._expected))]
-        elif expected is not None and sequence > expected:
-            self.counters["ros_lost"] += sequence - expected
-        self._expected[who] = sequence + 1
 
     def _count(self, live: _Live, what: str, exc: Exception) -> None:
         live.counts[what] += 1

@@ -17,6 +17,8 @@ textual mapping of application messages, in TOML)::
     constants = { }                    # ROS fields given a fixed value
     ups_constants = { }                # catalog fields given a fixed value (towards UPS)
     stamp = "header.stamp"             # a builtin_interfaces/Time: the event's time (to ROS)
+    max_rate = 100                     # from ROS: samples a second at most (default 100)
+    burst = 20                         # from ROS: samples back to back after a silence (20)
 
 A ROS field left out is zero (an empty string, an empty sequence). Towards UPS every field of
 the channel must be mapped or in ``ups_constants``. :func:`load_map` checks all of it once, at
@@ -37,13 +39,15 @@ from ups import ConfigError, parse_channel
 from ups._catalog import Catalog
 from ups._tomlfile import read_toml
 
+from ._admit import DEFAULT_BURST, DEFAULT_RATE, MAX_BURST, MAX_RATE
 from ._rmw import DURABILITY, HISTORY, PROFILES, RELIABILITY, Qos
 from ._topic import NUMERIC, FieldMap, TopicMap, build_topic
 from ._types import PRIMITIVES, STRING, Types, Value, ros_name
 
 DIRECTIONS = ("to_ros", "from_ros", "both")
 _TOP = {"catalog", "node", "namespace", "domain", "distro", "types", "topic"}
-_KEYS = {"channel", "type", "direction", "qos", "fields", "constants", "ups_constants", "stamp"}
+_KEYS = {"channel", "type", "direction", "qos", "fields", "constants", "ups_constants", "stamp",
+         "max_rate", "burst"}  # fmt: skip
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 MAX_DOMAIN = 232
@@ -194,6 +198,7 @@ def _topic(
     if direction not in DIRECTIONS:
         raise fail(f"unknown direction {direction!r} ({', '.join(DIRECTIONS)})", "direction")
     qos = _qos(entry.get("qos", "default"), fail)
+    max_rate, burst = _bounds(entry, direction, fail)
     try:
         items = types.items(type_name)
         type_hash = types.type_hash(type_name)
@@ -263,7 +268,7 @@ def _topic(
     try:
         return build_topic(full, spec, type_name, type_hash, str(direction), qos, items,
                            tuple(maps), constants, ups_constants, stamp, domain,
-                           where.line(name, None))  # fmt: skip
+                           where.line(name, None), max_rate, burst)  # fmt: skip
     except ConfigError as exc:
         raise fail(str(exc)) from None
 
@@ -308,6 +313,24 @@ def _constants(
                        path.split(".")[-1])  # fmt: skip
         out[path] = constant
     return out
+
+
+def _bounds(entry: dict[str, Any], direction: str, fail: Any) -> tuple[float, int]:
+    """``max_rate`` and ``burst``: what the topic takes from ROS (``_admit``)."""
+    if direction == "to_ros":
+        given = sorted({"max_rate", "burst"} & set(entry))
+        if given:
+            raise fail(f"{given[0]} bounds what comes from ROS: this topic only goes to ROS "
+                       "(direction from_ros or both)", given[0])  # fmt: skip
+    rate = entry.get("max_rate", DEFAULT_RATE)
+    if not _number(rate) or not 0 < rate <= MAX_RATE:
+        raise fail(f"max_rate is samples a second, above 0 and at most {MAX_RATE:g}, not "
+                   f"{rate!r}", "max_rate")  # fmt: skip
+    burst = entry.get("burst", DEFAULT_BURST)
+    if isinstance(burst, bool) or not isinstance(burst, int) or not 1 <= burst <= MAX_BURST:
+        raise fail(f"burst is a number of samples from 1 to {MAX_BURST}, not {burst!r}",
+                   "burst")  # fmt: skip
+    return float(rate), burst
 
 
 def _qos(value: Any, fail: Any) -> Qos:

@@ -28,6 +28,9 @@ ROS2 = table(
         "topic's type",
         "no_attachment": "ROS 2 messages without rmw_zenoh's attachment (forwarded)",
         "ros_lost": "ROS 2 messages missed: sequence numbers their publishers skipped",
+        "ros_jumps": "ROS 2 sequence numbers that went back, or jumped further than their "
+        "topic's max_rate could carry (a restart or a forgery; not in ros_lost)",
+        "rate_limited": "ROS 2 messages dropped: above their topic's max_rate",
         "unmatched": "UPS events that came after the last ROS 2 subscriber left (dropped)",
         "reflected": "events not sent back to the network they came from",
         "rx_overflow": "ROS 2 messages dropped: too many waiting for the event loop",

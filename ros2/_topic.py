@@ -19,6 +19,7 @@ from typing import Any
 from ups import ConfigError, DecodeError, UpsError
 from ups._catalog import ChannelSpec
 
+from ._admit import DEFAULT_BURST, DEFAULT_RATE
 from ._cdr import Codec
 from ._rmw import Qos, topic_key
 from ._types import PRIMITIVES, STRING, Item, Value
@@ -115,6 +116,8 @@ class TopicMap:
     _to_ros: list[tuple[int, int, Callable[[Any], Any]]] = field(repr=False)
     _to_ups: list[tuple[int, int | None, Any]] = field(repr=False)
     _stamp: tuple[int, int] | None = field(repr=False)
+    max_rate: float = DEFAULT_RATE  #: samples a second taken from ROS (``_admit``)
+    burst: int = DEFAULT_BURST  #: samples taken back to back after a silence
 
     @property
     def to_ros(self) -> bool:
@@ -162,6 +165,7 @@ class TopicMap:
             "key": self.key,
             "qos": self.qos.chunk(),
             "fields": {f.ros: f.ups for f in self.fields},
+            **({"max_rate": self.max_rate, "burst": self.burst} if self.from_ros else {}),
         }
 
 
@@ -179,8 +183,10 @@ def build_topic(
     stamp: str | None,
     domain: int,
     line: int,
+    max_rate: float = DEFAULT_RATE,
+    burst: int = DEFAULT_BURST,
 ) -> TopicMap:
-    """Compile a checked topic (``_mapping`` checked names and types)."""
+    """Compile a checked topic (``_mapping`` checked names, types and bounds)."""
     codec = Codec(items)
     slots = {v.path: i for i, v in enumerate(codec.values)}
     kinds = {v.path: v for v in codec.values}
@@ -232,7 +238,7 @@ def build_topic(
     key = topic_key(domain, topic, type_name, type_hash)
     return TopicMap(
         topic, spec, type_name, type_hash, direction, qos, key, maps, line, codec, unpack, pack,
-        template, to_ros, to_ups, time_slots,
+        template, to_ros, to_ups, time_slots, max_rate, burst,
     )  # fmt: skip
 
 

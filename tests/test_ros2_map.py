@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from ups.ros2 import Unrepresentable, load_map
+from ups.ros2._admit import DEFAULT_BURST, DEFAULT_RATE
 from upscli import main
 
 from .procs import ROOT, Proc
@@ -65,6 +66,15 @@ def test_a_good_map_is_listed_with_its_keys(
     assert "key 0/robot/speed/std_msgs::msg::dds_::Float64_/RIHS01_705ba9c3" in text
 
 
+def test_a_topic_from_ros_takes_its_rate_bound_or_the_default(tmp_path: Path) -> None:
+    bounded = GOOD.replace('direction = "from_ros"', 'direction = "from_ros"\nmax_rate = 2.5\n'
+                           "burst = 1")  # fmt: skip
+    speed, label = load_map(write(tmp_path, bounded)).topics
+    assert (speed.max_rate, speed.burst) == (DEFAULT_RATE, DEFAULT_BURST) == (100.0, 20)
+    assert (label.max_rate, label.burst) == (2.5, 1)
+    assert label.describe()["max_rate"] == 2.5 and label.describe()["burst"] == 1
+
+
 @pytest.mark.parametrize(
     ("change", "line", "says"),
     [
@@ -114,6 +124,39 @@ def test_a_good_map_is_listed_with_its_keys(
             ('direction = "from_ros"', 'direction = "from_ros"\nqos = { depth = 2147483648 }'),
             14,
             "qos: depth is a number of samples from 1 to 10000",
+        ),
+        *(  # the rate bound from ROS: finite, above 0, at most 10000/s (issue 41)
+            (
+                ('direction = "from_ros"', f'direction = "from_ros"\nmax_rate = {rate}'),
+                14,
+                f"max_rate is samples a second, above 0 and at most 10000, not {said}",
+            )
+            for rate, said in (
+                ("inf", "inf"),
+                ("nan", "nan"),
+                ("0", "0"),
+                ("-5", "-5"),
+                ("1e9", "1000000000.0"),
+                ('"fast"', "'fast'"),
+            )
+        ),
+        *(
+            (
+                ('direction = "from_ros"', f'direction = "from_ros"\nburst = {burst}'),
+                14,
+                f"burst is a number of samples from 1 to 10000, not {said}",
+            )
+            for burst, said in (
+                ("0", "0"),
+                ("2.5", "2.5"),
+                ("100000", "100000"),
+                ("true", "True"),
+            )
+        ),
+        (
+            ('direction = "both"', 'direction = "to_ros"\nmax_rate = 10'),
+            8,
+            "max_rate bounds what comes from ROS: this topic only goes to ROS",
         ),
     ],
 )
