@@ -155,3 +155,31 @@ def test_every_command_of_the_page_is_one_the_cli_takes(
         assert re.fullmatch(r"(tcp|udp|tls|quic)/\S+:\d+", endpoint), (argv, endpoint)
     if args[:2] == ["ros2", "check"]:
         assert main(args) == 0
+
+
+def test_the_map_and_its_rate_bound_are_the_codes() -> None:
+    """Every key the map takes is in the page's example; the rate bound's defaults and limits
+    (and the loss credit's window) are the ones ``ros2/_admit.py`` has (issue 41)."""
+    from ups.ros2._admit import DEFAULT_BURST, DEFAULT_RATE, LOSS_WINDOW, MAX_BURST, MAX_RATE
+    from ups.ros2._mapping import _KEYS, _TOP
+
+    example = DOC[DOC.index("## The map") :].split("```toml\n")[1].split("```")[0]
+    keys = {line.split("=")[0].strip() for line in example.splitlines() if "=" in line}
+    assert {k.split(".")[0] for k in keys} >= _KEYS | (_TOP - {"topic"})
+    assert f"max_rate = {DEFAULT_RATE:g}" in example and f"burst = {DEFAULT_BURST}" in example
+    rate = DOC[DOC.index("- **Rate.**") :].split("\n- **")[0]
+    assert f"The default, {DEFAULT_RATE:g} a second" in rate
+    assert f"a `burst` of {DEFAULT_BURST}" in rate
+    assert f"at most {MAX_RATE:,.0f}, `burst` 1 to {MAX_BURST:,}" in rate
+    assert f"(at most {LOSS_WINDOW:g} s of them" in DOC
+
+
+def test_the_security_page_has_the_bridge() -> None:
+    """docs/security.md has a row and a section for ``ups ros2`` stating the bound (issue 41:
+    the bridge had none)."""
+    page = (ROOT / "docs" / "security.md").read_text()
+    row = next(line for line in page.splitlines() if line.startswith("| ROS 2 (`ups ros2`) |"))
+    assert "`max_rate`" in row and "`ros_lost`" in row
+    section = page[page.index("## ROS 2: `ups ros2`") :].split("\n## ")[0]
+    assert "`rate_limited`" in section and "`ros_jumps`" in section
+    assert "tests/test_ros2_flood.py" in section
