@@ -25,6 +25,20 @@ unless its candidacy is shorter than that answer's wait (at most ``SERVING_GAP``
 when the serving one has answered nothing in the last second).
 Why two never stay serving: each sends a Serving at least every ``BEAT`` s, and the higher
 instance stands by on hearing the lower one's.
+
+A Serving is only a claim, and anyone can send one. So a standing-by CAN-ECB also watches the
+requests it hears (``asked``: a Knock; a SUB_BIND or PUB_BIND of a UID) for their answers (a
+census frame; a Bind, EtagsFull, Failed or Limit of that UID), and when one has had none for
+``ANSWER`` s it takes over, whatever Servings say. ``ANSWER`` is longer than the 2 s a serving
+CAN-ECB may hold a request (its recovery), and short enough that the request's node, which asks
+for 5 s, has its answer after the takeover's own recovery: ``ANSWER`` + 2 s.
+
+From then on it is *wary*, for the rest of its run: as a candidate it stands by for nothing,
+and serving it stands by for a lower Serving only with an answer it did not send heard within
+``BACKING`` s of it (another CAN-ECB that serves answers what it answers), and not while it is
+busy (a census, a recovery); a lower Serving without that it does not answer. So claims alone
+silence a CAN-ECB once per run. Two wary CAN-ECBs that both serve (after lost frames) stay so
+until they both answer a request; then the higher instance stands by.
 """
 
 from __future__ import annotations
@@ -32,6 +46,7 @@ from __future__ import annotations
 import enum
 import math
 
+from ups import _canproto as p
 from ups._canproto import Hello, Management, Probe, Serving
 
 SERVING_GAP = 1.0  #: at most one Serving in answer per this many seconds (one due sooner waits)
@@ -39,6 +54,10 @@ PROBE = 2.0  #: a standing-by CAN-ECB sends Probe this often
 TAKEOVER = 4.0  #: ... and takes over after this long without a Hello or Serving of another
 BEAT = 10.0  #: a serving CAN-ECB sends Serving at least this often, asked or not
 MAX_CANDIDACY = 2.0  #: a candidate serves (and says Serving) at most this long after its Hello
+ANSWER = 2.5  #: a standing-by CAN-ECB takes over when a request it heard had no answer this long
+BACKING = 2.0  #: a wary CAN-ECB stands by only with another's answer this close to the Serving
+WATCHED = 1024  #: requests a standing-by CAN-ECB watches at once (more are not watched)
+KNOCK = -1  #: the key of joiners' Knocks among the watched requests (the others' are UIDs)
 
 Frame = Hello | Serving | Probe
 
@@ -58,13 +77,19 @@ class Election:
         self.instance = instance
         self.candidacy = min(max(recovery, 0.0), MAX_CANDIDACY)
         self.role = Role.STOPPED
-        self.reason = ""  #: why it stands by
+        self.reason = ""  #: why it stands by, or why it took over
         self._until = math.inf  # candidate: when the candidacy ends
         self._heard = -math.inf  # standing by: the last Hello or Serving of another
         self._next_probe = math.inf
         self._last_serving = -math.inf  # any Serving (the beat counts from it)
         self._last_answer = -math.inf  # a Serving in answer to another's frame
         self._due: float | None = None  # a Serving owed, to be sent at this time
+        self.wary = False  #: it caught another not answering: claims alone move it no more
+        #: standing by: the requests heard and not answered yet (KNOCK, or a UID) -> since when,
+        #: oldest first
+        self._asked: dict[int, float] = {}
+        self._answer = -math.inf  # the last answer to a node that another sent
+        self._lower = -math.inf  # serving, wary: the last Serving of a lower instance
 
     @property
     def active(self) -> bool:
@@ -80,22 +105,41 @@ class Election:
             beat = self._last_serving + BEAT
             return beat if self._due is None else min(self._due, beat)
         if self.role is Role.STANDBY:
-            return min(self._heard + TAKEOVER, self._next_probe)
+            due = min(self._heard + TAKEOVER, self._next_probe)
+            return min(due, next(iter(self._asked.values())) + ANSWER) if self._asked else due
         return None
 
     def start(self, now: float) -> list[Frame]:
         """The CAN-ECB starts: Hello, and a candidacy."""
         return self._candidate(now)
 
-    def heard(self, msg: Management, now: float) -> list[Frame]:
-        """A CAN-ECB frame that this one did not send (any kind, also Bind, Assign, ...)."""
+    def asked(self, msg: Management, now: float) -> list[Frame]:
+        """A node's frame heard while this CAN-ECB stands by: a request that the one serving
+        must answer is watched until its answer comes (``tick`` takes over ``ANSWER`` s after
+        it if none has)."""
+        key = _request(msg)
+        watched = self._asked
+        if self.role is Role.STANDBY and key is not None and len(watched) < WATCHED:
+            watched.setdefault(key, now)  # since when it is asked: its first time
+        return []
+
+    def heard(self, msg: Management, now: float, busy: bool = False) -> list[Frame]:
+        """A CAN-ECB frame that this one did not send (any kind, also Bind, Assign, ...);
+        ``busy``: this one has work under way that standing by would drop (a census, a
+        recovery)."""
         other = msg.instance if isinstance(msg, Hello | Serving | Probe) else None
         if other == self.instance:  # its own instance: an echo or a forger, not a rival
             return []
+        if other is None:  # an answer to a node (another CAN-ECB's, or a forger's)
+            self._answer = now
+            for key in _answers(msg):
+                self._asked.pop(key, None)
         if self.role is Role.STANDBY:
             if isinstance(msg, Hello | Serving):
                 self._heard = now  # one serves, or is about to
             return []
+        if self.role is Role.CANDIDATE and self.wary:
+            return []  # it serves its candidacy out: what it holds is answered then
         if self.role is Role.CANDIDATE:
             if isinstance(msg, Serving):
                 return self._stand_by(now, f"CAN-ECB {msg.instance:016x} already serves this bus")
@@ -105,10 +149,18 @@ class Election:
                 )
             return []  # a higher Hello stands by on ours; a Probe asks the one that serves
         if self.role is Role.SERVING:
-            if isinstance(msg, Serving) and msg.instance < self.instance:
+            lower = isinstance(msg, Serving) and msg.instance < self.instance
+            if lower and not self.wary:
                 return self._stand_by(
-                    now, f"CAN-ECB {msg.instance:016x} serves this bus too, with a lower instance"
+                    now, f"CAN-ECB {other:016x} serves this bus too, with a lower instance"
                 )
+            if lower:
+                self._lower = now
+            if self.wary and not busy and self._backed(now):
+                return self._stand_by(now, "a CAN-ECB of a lower instance serves this bus too, "
+                                      "and answers what this one answers")  # fmt: skip
+            if lower:  # a claim with no answers behind it yet; a Serving would tell its sender
+                return []  # nothing (it does not stand by for a higher one)
             return self._serve(now)  # whoever sends CAN-ECB frames: this one serves
         return []
 
@@ -123,15 +175,24 @@ class Election:
             if now >= self._last_serving + BEAT:
                 return self._announce(now)
         elif self.role is Role.STANDBY:
+            if self._asked and now >= next(iter(self._asked.values())) + ANSWER:
+                self.wary = True  # a claim without answers: a forger's, or a broken CAN-ECB's
+                self.reason = f"a request had no answer for {ANSWER:g} s"
+                return self._candidate(now)
             if now >= self._heard + TAKEOVER:
-                self.reason = ""
+                self.reason = f"no other CAN-ECB said Serving for {TAKEOVER:g} s"
                 return self._candidate(now)
             if now >= self._next_probe:
                 self._next_probe = now + PROBE
                 return [Probe(self.instance)]
         return []
 
+    def _backed(self, now: float) -> bool:
+        """Wary: a lower Serving and an answer it did not send, both lately."""
+        return now - self._lower <= BACKING and now - self._answer <= BACKING
+
     def _candidate(self, now: float) -> list[Frame]:
+        self._asked.clear()
         self.role = Role.CANDIDATE
         self._until = now + self.candidacy
         return [Hello(self.instance)]
@@ -139,6 +200,7 @@ class Election:
     def _stand_by(self, now: float, reason: str) -> list[Frame]:
         self.role = Role.STANDBY
         self.reason = reason
+        self._asked.clear()
         self._heard = now
         self._next_probe = now + PROBE
         self._due = None
@@ -158,3 +220,23 @@ class Election:
     def _announce(self, now: float) -> list[Frame]:
         self._last_serving = now
         return [Serving(self.instance)]
+
+
+def _request(msg: Management) -> int | None:
+    """The key of a request that a serving CAN-ECB answers (None: not one)."""
+    if isinstance(msg, p.Knock):
+        return KNOCK
+    if isinstance(msg, p.Request) and msg.kind in (p.SUB_BIND, p.PUB_BIND):
+        return msg.value
+    return None
+
+
+def _answers(msg: Management) -> tuple[int, ...]:
+    """The keys of the requests that a CAN-ECB frame answers."""
+    if isinstance(msg, p.Census | p.Query | p.Offer | p.Assign | p.TxNodesFull):
+        return (KNOCK,)
+    if isinstance(msg, p.Failed):  # of a node id (a join) or of a UID
+        return (KNOCK, msg.value)
+    if isinstance(msg, p.Bind | p.EtagsFull | p.Limit):
+        return (msg.uid,)
+    return ()

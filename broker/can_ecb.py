@@ -15,7 +15,8 @@ that contradicts the tables is counted, logged and answered with the tables' own
 nodes re-bind on any contradiction (docs/protocol.md). A second CAN-ECB is detected by its
 frames; which one serves and which stands by is the election's (``_election``): the one that
 served first stays (of two candidates, the lower instance), and a standing-by one takes over
-when the one that serves goes silent.
+when the one that serves goes silent, or leaves a request it hears unanswered (a Serving alone
+is a claim anyone can forge).
 """
 
 from __future__ import annotations
@@ -290,8 +291,8 @@ class CanEcb:
     def _on_management(self, msg: p.Management) -> None:
         if isinstance(msg, p.ECB_FRAMES):
             self._on_foreign_ecb(msg)
-        elif self.standby:
-            return
+        elif self.standby:  # answers nothing, but watches that the one serving does
+            self._elect(self._election.asked(msg, asyncio.get_running_loop().time()))
         elif isinstance(msg, p.Stage):
             if not self.recovering:
                 self._census.on_stage(msg)
@@ -336,7 +337,8 @@ class CanEcb:
         self.counters["foreign_ecb_frames"] += 1
         if not self.standby:
             self._correct(msg)
-        self._elect(self._election.heard(msg, asyncio.get_running_loop().time()))
+        busy = self.recovering or self._census.running  # standing by would drop what it holds
+        self._elect(self._election.heard(msg, asyncio.get_running_loop().time(), busy))
 
     def _correct(self, msg: p.Management) -> None:
         if isinstance(msg, p.Hello | p.Serving | p.Probe):
@@ -358,7 +360,8 @@ class CanEcb:
             if self.on_standby is not None:
                 self.on_standby(reason)
         elif role is not Role.STANDBY and self.standby:
-            log.warning("the other CAN-ECB is silent: this one serves the bus again")
+            wary = ", and stands by only for one it hears answer" * self._election.wary
+            log.warning("%s: this one serves the bus again%s", self._election.reason, wary)
             self.standby = False
             self.started_up = False  # it heard nothing while standing by: learn the bus anew
         for frame in frames:

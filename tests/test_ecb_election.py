@@ -44,7 +44,28 @@ from hypothesis.stateful import (
     run_state_machine_as_test,
 )
 
-from ups._canproto import Hello, Management, Probe, Serving
+from ups._canproto import (
+    CLAIM,
+    PUB_BIND,
+    SUB_BIND,
+    UNSUB,
+    Assign,
+    Bind,
+    Census,
+    EtagsFull,
+    Failed,
+    Grant,
+    Hello,
+    Knock,
+    Limit,
+    Management,
+    Offer,
+    Probe,
+    Query,
+    Request,
+    Serving,
+    TxNodesFull,
+)
 from ups.broker import _election as e
 from ups.broker._election import Election, Frame, Role
 
@@ -412,3 +433,163 @@ def test_standing_by_it_probes_and_only_hello_or_serving_keeps_it_so() -> None:
     assert ecb.tick(3.0 + e.PROBE) == [Probe(5)]
     assert ecb.tick(3.0 + e.TAKEOVER) == [Hello(5)]  # silent for the takeover time
     assert ecb.role is Role.CANDIDATE
+
+
+# --- a standing-by CAN-ECB watches that the one serving answers (issue 41) ----------------------
+
+UID = 0x5EC0_0000_0000_0041
+
+
+def _standing_by(instance: int = 5, now: float = 1.0) -> Election:
+    ecb = Election(instance, recovery=e.MAX_CANDIDACY)
+    ecb.start(now - 0.5 - e.MAX_CANDIDACY)  # (a clock started before 0)
+    assert ecb.tick(now - 0.5) == [Serving(instance)]
+    ecb.heard(Serving(0), now)  # a lower instance claims to serve (or a forger)
+    assert ecb.role is Role.STANDBY and not ecb.wary
+    return ecb
+
+
+def _tick_until(ecb: Election, until: float) -> list[Frame]:
+    """Every timer up to ``until``, as the bus would call them; the frames they sent."""
+    frames: list[Frame] = []
+    while (deadline := ecb.deadline) is not None and deadline <= until:
+        frames += ecb.tick(deadline)
+    return frames
+
+
+def test_a_request_unanswered_for_the_answer_time_makes_it_serve_whatever_servings_say() -> None:
+    ecb = _standing_by()
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5)
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 2.5)  # asked again: the first time counts
+    for t in (2.0, 3.0, 3.9):  # a Serving every second keeps nobody standing by any more
+        ecb.heard(Serving(0), t)
+    assert Hello(5) not in _tick_until(ecb, 1.5 + e.ANSWER - 0.01)
+    assert _tick_until(ecb, 1.5 + e.ANSWER)[-1:] == [Hello(5)]
+    assert ecb.role is Role.CANDIDATE and ecb.wary
+    assert "no answer" in ecb.reason
+
+
+@pytest.mark.parametrize(
+    ("request_", "answer"),
+    [
+        (Knock(), Census(3)),
+        (Knock(), Query(3, (1, 2))),
+        (Knock(), Offer(4, 0xAB)),
+        (Knock(), Assign(4, 0xAB)),
+        (Knock(), TxNodesFull(0xAB)),
+        (Knock(), Failed(0xAB)),
+        (Request(SUB_BIND, 0x12, UID), Bind(0x20, UID)),
+        (Request(PUB_BIND, 0x12, UID, 2), Bind(0x3000, UID)),
+        (Request(PUB_BIND, 0x12, UID), EtagsFull(UID)),
+        (Request(SUB_BIND, 0x12, UID), Failed(UID)),
+        (Request(SUB_BIND, 0x12, UID), Limit(0x12, UID)),
+    ],
+)
+def test_an_answer_heard_stops_the_watch(request_: Management, answer: Management) -> None:
+    ecb = _standing_by()
+    ecb.asked(request_, 1.5)
+    ecb.heard(answer, 3.5)
+    for t in (2.0, 3.0, 4.0, 5.0):
+        ecb.heard(Serving(0), t)
+    assert Hello(5) not in _tick_until(ecb, 6.0)
+    assert ecb.role is Role.STANDBY and not ecb.wary
+
+
+def test_an_answer_to_another_request_or_a_frame_that_asks_nothing_does_not() -> None:
+    ecb = _standing_by()
+    ecb.asked(Request(UNSUB, 0x12, UID + 1), 1.2)  # no answer due: not watched
+    ecb.asked(Request(CLAIM, 0x12, 0xAB), 1.2)
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5)
+    ecb.heard(Bind(0x20, UID + 1), 2.0)  # another channel's
+    ecb.heard(Grant(0x20, 0x12, 0x02), 2.1)
+    ecb.heard(Serving(0), 3.0)
+    assert _tick_until(ecb, 1.5 + e.ANSWER)[-1:] == [Hello(5)]
+
+
+def test_only_requests_heard_while_standing_by_are_watched() -> None:
+    ecb = _serving()
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 0.5)  # it answers these itself
+    ecb.heard(Serving(0), 1.0)
+    ecb.heard(Serving(0), 3.0)
+    assert Hello(5) not in _tick_until(ecb, 4.9)
+
+
+def test_at_most_watched_requests_are_watched_the_oldest_first() -> None:
+    ecb = _standing_by()
+    for n in range(e.WATCHED + 10):
+        ecb.asked(Request(SUB_BIND, 0x12, n), 1.5 + n * 1e-4)
+    for n in range(1, e.WATCHED + 10):
+        ecb.heard(Bind(0x20, n), 2.0)
+    ecb.heard(Serving(0), 3.0)
+    assert _tick_until(ecb, 1.5 + e.ANSWER)[-1:] == [Hello(5)]  # UID 0, the first, had none
+
+
+def _wary(instance: int = 5) -> Election:
+    """A CAN-ECB that caught another not answering, and serves again."""
+    ecb = _standing_by(instance)
+    ecb.asked(Knock(), 1.5)
+    _tick_until(ecb, 1.5 + e.ANSWER)
+    assert ecb.wary and ecb.role is Role.CANDIDATE
+    return ecb
+
+
+def test_a_wary_candidate_stands_by_for_nothing_and_serves_its_candidacy_out() -> None:
+    ecb = _wary()
+    start = 1.5 + e.ANSWER
+    for frame in (Serving(0), Hello(0), Bind(0x20, UID), Serving(1)):
+        assert ecb.heard(frame, start + 0.01) == []
+        assert ecb.role is Role.CANDIDATE
+    assert ecb.tick(start + e.MAX_CANDIDACY) == [Serving(5)]
+
+
+def test_a_wary_serving_one_stands_by_only_for_a_lower_serving_backed_by_answers() -> None:
+    ecb = _wary()
+    now = 1.5 + e.ANSWER + e.MAX_CANDIDACY
+    ecb.tick(now)
+    assert ecb.role is Role.SERVING
+    for t in range(1, 30):  # a forger's Serving, every 3 s or every second: no effect
+        assert ecb.heard(Serving(0), now + t) == []  # not even an answer
+        ecb.tick(now + t)
+    now += 30
+    assert ecb.role is Role.SERVING
+    # another CAN-ECB's answer, but busy (a census): it serves on
+    assert ecb.heard(Bind(0x20, UID), now, busy=True) == [Serving(5)]
+    assert ecb.heard(Serving(0), now + 0.1, busy=True) == []
+    assert ecb.role is Role.SERVING
+    # an answer long before the Serving does not back it
+    assert ecb.heard(Serving(0), now + e.BACKING + 0.2) == []
+    assert ecb.role is Role.SERVING
+    # an answer within BACKING of a lower Serving: another CAN-ECB serves and answers
+    ecb.heard(Assign(3, 0xAB), now + e.BACKING + 0.5)
+    assert ecb.role is Role.STANDBY and ecb.wary
+    assert "answers what this one answers" in ecb.reason
+
+
+def test_a_wary_serving_one_does_not_stand_by_for_a_higher_serving_with_answers() -> None:
+    ecb = _wary()
+    now = 1.5 + e.ANSWER + e.MAX_CANDIDACY
+    ecb.tick(now)
+    ecb.heard(Bind(0x20, UID), now + 1.0)
+    assert ecb.heard(Serving(9), now + 1.5) == []  # owed: within the Serving gap of the last
+    assert ecb.role is Role.SERVING
+
+
+def test_a_wary_one_standing_by_catches_again() -> None:
+    ecb = _wary()
+    now = 1.5 + e.ANSWER + e.MAX_CANDIDACY
+    ecb.tick(now)
+    ecb.heard(Bind(0x20, UID), now + 0.5)
+    ecb.heard(Serving(0), now + 1.0)
+    assert ecb.role is Role.STANDBY
+    ecb.asked(Request(PUB_BIND, 0x12, UID + 2), now + 1.5)
+    ecb.heard(Serving(0), now + 2.5)
+    assert _tick_until(ecb, now + 1.5 + e.ANSWER)[-1:] == [Hello(5)]
+    assert ecb.role is Role.CANDIDATE and ecb.wary
+
+
+def test_the_process_tests_use_the_answer_time_of_the_code() -> None:
+    from . import test_forged_serving_processes as processes
+
+    assert processes.ANSWER == e.ANSWER
+    assert e.ANSWER > e.MAX_CANDIDACY  # longer than a serving CAN-ECB holds a request
+    assert e.ANSWER + e.MAX_CANDIDACY < 5.0  # the node's request limit (ups/_canbinding.py)
