@@ -160,3 +160,53 @@ async def test_a_standing_by_can_ecb_probes_and_probes_do_not_keep_it_standing_b
         raw.handlers.remove(answer)
     assert raw.log[i_hello].at - raw.log[since].at >= 3.99  # the takeover time, from Serving(0)
     assert not raw.find(Serving(instance), since=since, until=i_hello)  # it never claimed
+
+
+# --- a Serving is a claim: a standing-by CAN-ECB watches that requests are answered -------------
+
+ANSWER = 2.5  #: Timers: "answer"
+
+
+async def test_a_request_unanswered_while_it_stands_by_makes_it_serve_whatever_servings_say(
+    raw: Wire, can_ecb: CanEcb, instance: int
+) -> None:
+    """ "A standing-by CAN-ECB ... that has heard a SUB_BIND, PUB_BIND or Knock go without its
+    answer for the answer time (2.5 s) takes over, whatever Serving frames say ... and is
+    wary": a Serving alone no longer makes it stand by."""
+    node = await _joined(raw)
+    assert node.txnode is not None
+    raw.send(Serving(0))  # a forger's: ours stands by
+    asked = raw.send(sub_bind(node.txnode, UID))
+    raw.send(Serving(0))  # and again, before the takeover time
+    i_hello, _ = await raw.expect(Hello(instance), since=asked, timeout=ANSWER + 1.0)
+    assert raw.log[i_hello].at - raw.log[asked].at >= ANSWER - 0.01
+    answers = [f for f in raw.find(ECB_FRAMES, since=asked, until=i_hello) if f != Probe(instance)]
+    assert not answers  # it answered nothing meanwhile (it probed)
+    await raw.expect(Serving(instance), since=i_hello)  # its candidacy ends
+    since = raw.send(Serving(0))
+    await raw.expect_none(Serving, since=since + 1, window=0.3)  # a claim alone: not answered
+    assert (await node.ask(SUB_BIND, UID)).uid == UID  # it serves on
+
+
+async def test_a_standing_by_can_ecb_that_hears_the_answers_stays_standing_by(
+    raw: Wire, can_ecb: CanEcb, instance: int
+) -> None:
+    """The other CAN-ECB answers each request (here the test, as one would): ours stands by,
+    probing, past the answer time."""
+    node = await _joined(raw)
+    assert node.txnode is not None
+    since = raw.send(Serving(0))
+
+    def serve(frame: object) -> None:  # the other CAN-ECB: it answers the Probe and the request
+        if frame == Probe(instance):
+            raw.send(Serving(0))
+
+    raw.handlers.append(serve)
+    try:
+        asked = raw.send(sub_bind(node.txnode, UID), Bind(0x20, UID))
+        i_probe, _ = await raw.expect(Probe(instance), since=asked, timeout=3.0)
+        await raw.expect(Probe(instance), since=i_probe + 1, timeout=3.0)  # 2 s later
+    finally:
+        raw.handlers.remove(serve)
+    assert raw.log[-1].at - raw.log[asked].at >= ANSWER - 0.6
+    assert not raw.find(Hello(instance), since=since)
