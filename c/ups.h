@@ -19,7 +19,7 @@
  *     reset gets the node's filters before its first frame goes).
  *
  * Time is a uint32_t count of milliseconds from any origin, wrapping freely: the node keeps its
- * times as the low 16 bits (a refusal's as the low 14), so the clock may wrap at any moment.
+ * times as the low 16 bits (a refusal's as bits 2-13), so the clock may wrap at any moment.
  * How often ups_tick() must come, and when a node may sleep, is said at ups_tick().
  *
  * Every table is sized at compile time by the macros below (define them before including this
@@ -143,7 +143,8 @@ extern "C" {
 #define UPS_ERR_ARGUMENT (-1)    /**< an argument out of range (a channel index, a priority, ...) */
 #define UPS_ERR_FULL (-2)        /**< a table is full (channels, declarations, the TX queue) */
 #define UPS_ERR_UNBOUND (-3)     /**< the channel has no etag this node relies on (yet) */
-#define UPS_ERR_TOO_LARGE (-4)   /**< the event exceeds the channel's size class, or the node's */
+#define UPS_ERR_TOO_LARGE (-4)   /**< the event exceeds the channel's size class, or the node's;
+                                      the channel's events would not fit the node */
 #define UPS_ERR_BUSY (-5)        /**< a transfer is still being sent; try again after ups_tx_pop */
 #define UPS_ERR_NOT_JOINED (-6)  /**< the node holds no TxNode */
 #define UPS_ERR_TIMEOUT (-7)     /**< no answer in time (join: UPS_JOIN_GIVE_UP_MS; binding: 5 s) */
@@ -338,8 +339,8 @@ int ups_rx(ups_node_t *node, uint32_t now_ms, const ups_frame_t *frame, ups_even
  *  few: each call queues at most one owed frame (the answer to Hello, paced at 1 ms), and a
  *  timer runs at the first call after it fell due. Calls that come less often make timers late,
  *  never early, and lose nothing; but the node keeps each timer's start in 16 bits (a
- *  refusal's in 14), so a gap longer than 13.4 s (16384 - 3000 ms: a request's refusal wait)
- *  or, while joining, than 65536 ms minus UPS_JOIN_GIVE_UP_MS (35.5 s by default) may make a
+ *  refusal's in 12, of 4 ms), so a gap longer than 13.4 s (16384 - 3000 ms: a request's
+ *  refusal wait) or, while joining, than 65536 ms minus UPS_JOIN_GIVE_UP_MS (35.5 s by default) may make a
  *  timer look just started and run it up to 65.5 s (16.4 s) later still. While ups_idle() is
  *  1 nothing is due: a node that sleeps may stop calling it, for any time, until a frame
  *  arrives or it calls the library again. */
@@ -419,8 +420,15 @@ int ups_channel_priority(const ups_node_t *node, int channel);
  *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE).
  *  EtagsFull, Limit and Failed are refusals, and anyone can send them: the node keeps asking,
  *  and one ends the request only once it stood 3 s with no Bind answering the request (or
- *  when the request gives up after 5 s with one open). A channel being bound again after a
- *  contradiction keeps asking. */
+ *  when the request gives up after 5 s with one open). A Bind answering a subscription with an
+ *  etag of a size class whose events would not fit the node (UPS_MAX_EVENT; without transfers,
+ *  any class above 0) is taken the same way: anyone can send it too, and a Bind that fits, the
+ *  CAN-ECB's answer, wins; once it stood, the node sends UNSUB and the state is
+ *  UPS_ERR_TOO_LARGE, or, on a channel it also publishes on, it stops receiving it and asks
+ *  again as a publisher. A channel being bound again after a contradiction takes neither: it
+ *  keeps asking until a Bind binds it (forged frames cannot end a channel the node had bound;
+ *  nor can a real move of the channel to a class the node cannot receive: it keeps asking, and
+ *  counts the move; ups_unsubscribe() ends it). */
 int ups_channel_state(const ups_node_t *node, int channel);
 
 /** The etag @p channel is bound to and relied on, or 0 (also during its re-binding). */

@@ -10,7 +10,10 @@
  * 50 ms uncontradicted (settling), and, with UPS_HEARD_BINDS, an answer naming an etag last
  * heard bound to another UID is doubted until it comes again. A refusal (EtagsFull, Limit,
  * Failed: anyone can send one) ends a request only once it stood 3 s while the node kept
- * asking with no Bind answering it, or when the request gives up with one open.
+ * asking with no Bind answering it, or when the request gives up with one open; so does a Bind
+ * of a size class the node cannot receive (UPS_ERR_TOO_LARGE: anyone can send that too, and
+ * the CAN-ECB's answer wins). A channel being bound again after a contradiction takes neither:
+ * it keeps asking until a Bind binds it.
  *
  * A declaration takes a Grant or Refuse only once its DECLARE was sent and while its answer is
  * not a Refuse; the answer is the latest verdict once it stood 0.5 s with no other, and after a
@@ -143,27 +146,37 @@ void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid)
 }
 
 /** The channel's request ended with UPS_ERR_ code @p why, kept in the retry step's nibble (a
- *  channel in use that neither waits nor is bound has failed: see ups_channel_state). */
+ *  channel in use that neither waits nor is bound has failed: see ups_channel_state). The
+ *  channel's events would not fit the node (UPS_ERR_TOO_LARGE): it does not subscribe (UNSUB:
+ *  the CAN-ECB took its SUB_BIND), and one that publishes too asks again as a publisher. */
 static void fail(ups_node_t *node, ups_channel_t *ch, int why)
 {
+    if (why == UPS_ERR_TOO_LARGE) {
+        ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB);
+        if (ch->flags & UPS__PUB) {
+            ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
+            start_request(node, ch);
+            return;
+        }
+    }
     ch->flags = (uint8_t)(ch->flags & ~(UPS__PEND | UPS__ASKED | UPS__CAND | UPS__BOUND));
     ch->step = (uint8_t)((ch->step & 0xF0u) | (unsigned)-why);
     note(node, UPS_NOTE_CHANNELS);
 }
 
-/* A refusal of a channel's request (EtagsFull, Limit, Failed) is open while it waits for its
- * etag: its etag field, free then, holds the refusal (bits 14-15: -UPS_ERR_ - 8) and when the
- * first one came (bits 0-13: the clock's low 14 bits, up to 16 s: the request ends within
- * 5.6 s). No etag of a frame (14 bits) matches it; a Bind that answers the request overwrites
- * it (voids the refusal), and so does a new request. */
-#define REFUSAL_SHIFT 14u
-#define REFUSAL_TIME 0x3FFFu
+/* A refusal of a channel's request (EtagsFull, Limit, Failed, or a Bind of a size class the
+ * node cannot receive) is open while it waits for its etag: its etag field, free then, holds
+ * the latest refusal (bits 12-15: -UPS_ERR_, 4 or 9-11, so the field is at least 0x4000, which
+ * no etag of a frame is) and when the first one came (bits 0-11: bits 2-13 of the clock, in
+ * 4 ms steps up to 16 s: the request ends within 5.6 s). A Bind that answers the request
+ * overwrites it (voids the refusal), and so does a new request. */
+#define REFUSAL_SHIFT 12u
+#define REFUSAL_TIME 0xFFFu
 
 /** The error of the refusal open on @p ch, or 0. */
 static int refusal_of(const ups_channel_t *ch)
 {
-    unsigned kind = (unsigned)ch->etag >> REFUSAL_SHIFT;
-    return kind != 0u ? -(int)(kind + 8u) : 0;
+    return -(int)((unsigned)ch->etag >> REFUSAL_SHIFT);
 }
 
 void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now)
@@ -176,8 +189,8 @@ void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now)
     if ((ch->flags & (UPS__PEND | UPS__REBIND)) != UPS__PEND) {
         return; /* none waits; or maybe stray: a channel being bound again keeps asking */
     }
-    unsigned since = ch->etag != 0u ? ch->etag : now; /* the first one's time */
-    ch->etag = (uint16_t)(((unsigned)(-why - 8) << REFUSAL_SHIFT) | (since & REFUSAL_TIME));
+    unsigned since = ch->etag != 0u ? ch->etag : now >> 2u; /* the first one's time */
+    ch->etag = (uint16_t)((unsigned)-why << REFUSAL_SHIFT | (since & REFUSAL_TIME));
 }
 
 /** Queue frame @p bit that channel @p i owes; 0 when it is owed no more: a SUB_AT, PUB_AT or
@@ -244,7 +257,7 @@ static int fits(unsigned etag)
                               : etag < UPS__LARGE_ETAG;
 }
 
-/** Rely on @p etag for @p ch from now on. */
+/** Rely on @p etag for @p ch from now on (a subscriber's events fit: ups__on_bind saw to it). */
 static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint32_t now)
 {
     int asked_pub = request_kind(ch) != RQ_SUB_BIND;
@@ -253,15 +266,6 @@ static void adopt(ups_node_t *node, ups_channel_t *ch, uint16_t etag, uint32_t n
     ch->etag = etag;
     ch->step = (uint8_t)(ch->step & 0xF0u);
     note(node, UPS_NOTE_CHANNELS);
-    if ((ch->flags & UPS__SUB) && !fits(etag)) {
-        ch->owe = (uint8_t)(ch->owe | UPS__OWE_UNSUB); /* it would not fit: do not subscribe */
-        if (!(ch->flags & UPS__PUB)) { /* the entry stays, in error, until ups_unsubscribe */
-            ch->etag = 0u;
-            fail(node, ch, UPS_ERR_TOO_LARGE);
-            return;
-        }
-        ch->flags = (uint8_t)(ch->flags & ~UPS__SUB);
-    }
     if (ch->flags & UPS__SUB) {
         note(node, UPS_NOTE_FILTERS);
     }
@@ -348,6 +352,8 @@ void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint32_t 
     }
     if (doubt) {
         ups__count(&node->counters.rebinds); /* adopt it when it comes again */
+    } else if ((mine->flags & UPS__SUB) && !fits(etag)) {
+        ups__refused(node, uid, UPS_ERR_TOO_LARGE, now); /* its events would not fit: a refusal */
     } else if (mine->flags & UPS__REBIND) {
         mine->flags = (uint8_t)(mine->flags | UPS__CAND);
         mine->etag = etag;
@@ -392,7 +398,7 @@ static void tick_channel(ups_node_t *node, unsigned i, uint32_t now)
         /* a refusal ends the request once it stood 3 s while the node kept asking, or when
          * the request gives up (5 s) with it open */
         int why = refusal_of(ch);
-        if ((why != 0 && ((now - ch->etag) & REFUSAL_TIME) >= REFUSAL_WAIT) ||
+        if ((why != 0 && (((now >> 2u) - ch->etag) & REFUSAL_TIME) > REFUSAL_WAIT / 4u) ||
             retry(ch, now, UPS__OWE_REQUEST)) {
             fail(node, ch, why != 0 ? why : UPS_ERR_TIMEOUT);
         }

@@ -293,6 +293,84 @@ def test_a_request_reaching_its_timeout_with_a_refusal_open_ends_with_its_error(
     assert ERRORS[w.node.channel_state(a)] == "FAILED"
 
 
+def test_a_bind_of_a_size_class_the_node_cannot_hold_is_taken_as_a_refusal() -> None:
+    """A Bind answering a subscription with an etag whose events would not fit the node (class
+    1 in the minimal build) is a refusal (issue 41): the node keeps asking, the CAN-ECB's own
+    answer wins, and it ends the request (UPS_ERR_TOO_LARGE, UNSUB) only once it stood 3 s
+    with no Bind that fits answering the request. Before, it ended it at once."""
+    w = Wire(variant="min")
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.tick(1)
+    w.feed(p.Bind(0x3000, A))  # forged: the CAN-ECB's answer follows
+    mark = len(w.sent)
+    w.tick(500)
+    assert w.node.channel_state(a) == 1
+    assert w.mgmt(mark).count(p.Request(p.SUB_BIND, 5, A)) >= 2  # still asking
+    w.feed(p.Bind(0x20, A))
+    assert w.node.channel_etag(a) == 0x20
+    w.tick(3000)
+    assert w.node.channel_etag(a) == 0x20
+    assert p.Request(p.UNSUB, 5, A) not in w.mgmt()
+
+    w = Wire(variant="min")
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.tick(1)
+    w.feed(p.Bind(0x3000, A))  # the CAN-ECB's: the channel carries up to 64 bytes
+    mark = len(w.sent)
+    w.tick(2990)
+    assert w.node.channel_state(a) == 1
+    w.feed(p.Bind(0x3000, A))  # its answer to a repeated request: the same
+    w.tick(20)  # 3 s after the first, nothing that fits: it stands
+    assert ERRORS[w.node.channel_state(a)] == "TOO_LARGE"
+    assert p.Request(p.UNSUB, 5, A) in w.mgmt(mark)
+    assert w.node.filters() == [(0x7F << 14, 0x7F << 14)]
+
+
+def test_a_channel_being_bound_again_keeps_asking_whatever_class_a_bind_names() -> None:
+    """Forged frames cannot end a subscription (issue 41): once its binding is contradicted the
+    channel keeps asking, as it does through refusals; a Bind of a size class it cannot hold
+    does not end it either, and the CAN-ECB's answer, when it comes, binds it again."""
+    w = Wire(variant="min")
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.bind(a, 0x20, A)
+    w.feed(p.Bind(0x20, B))  # forged: the node asks again
+    w.tick(1)
+    assert w.mgmt()[-1] == p.Request(p.SUB_BIND, 5, A)
+    w.feed(p.Bind(0x3000, A))  # forged, of a class it cannot hold
+    w.feed(p.EtagsFull(A))
+    for _ in range(3):
+        w.tick(4000)  # the CAN-ECB stands by: nobody answers
+        assert w.node.channel_state(a) == 1
+    w.feed(p.Bind(0x20, A))  # it serves again: its answer to the request repeated meanwhile
+    w.tick(60)  # settled
+    assert w.node.channel_etag(a) == 0x20
+    assert p.Request(p.UNSUB, 5, A) not in w.mgmt()
+    assert w.feed_raw(p.make_id(0x80, 9, 0x20), b"\x01") == Event(a, b"\x01", 0x80, 9)
+
+
+def test_a_channel_that_publishes_and_cannot_receive_its_class_stays_a_publisher() -> None:
+    """A channel the node both publishes on and subscribes to, answered with an etag of a class
+    it cannot receive: once that stood 3 s the node gives up only the subscription (UNSUB), and
+    asks again as a publisher."""
+    w = Wire()  # events up to 4096 bytes: class 4 does not fit
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    assert w.node.advertise(A, 8, w.now) == a
+    w.tick(1)
+    w.feed(p.Bind(0x3C00, A))
+    mark = len(w.sent)
+    w.tick(3010)
+    assert p.Request(p.UNSUB, 5, A) in w.mgmt(mark)
+    assert p.Request(p.PUB_BIND, 5, A) in w.mgmt(mark)
+    assert w.node.channel_state(a) == 1
+    w.feed(p.Bind(0x3C00, A))
+    assert w.node.channel_etag(a) == 0x3C00
+    assert w.node.filters() == [(0x7F << 14, 0x7F << 14)]  # it receives nothing
+
+
 def test_events_never_crowd_the_frames_owed_to_the_can_ecb_out() -> None:
     """A node that publishes as fast as its queue drains still answers Hello (and sends its
     requests): events leave the queue's last place to management frames."""

@@ -69,8 +69,10 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
         "until interrupted)",
     )  # fmt: skip
     cmd.add_argument(
-        "--build", choices=("full", "min"), default="full",
-        help="the library's configuration: full (transfers, CAN FD) or min (8 channels, 8 bytes)",
+        "--build", choices=("full", "min", "asan"), default="full",
+        help="the library's configuration: full (transfers, CAN FD), min (8 channels, 8 bytes) "
+        "or asan (transfers and CAN FD with small tables, AddressSanitizer and "
+        "UndefinedBehaviorSanitizer: run with LD_PRELOAD=$(cc -print-file-name=libasan.so))",
     )  # fmt: skip
     cmd.set_defaults(run=_run_c_node)
 

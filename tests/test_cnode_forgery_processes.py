@@ -1,0 +1,152 @@
+"""Forged frames against ``ups c-node`` (libups, the ASan+UBSan build and the minimal one) beside
+a real ``ups can-broker``, over udp_multicast in a private network namespace; the forger is a
+python-can bus of the test, the publisher ``ups pub`` (issue 41).
+
+Three forged frames: ``Serving(0)`` (the CAN-ECB stands by for a while), ``Bind(the node's etag,
+another UID)`` (the node stops relying on its binding and asks again), then, once its request
+went, ``Bind(an etag of a size class the node cannot hold, the node's UID)``. Before, libups took
+that Bind as the answer and ended the subscription with ``UPS_ERR_TOO_LARGE`` at once, and for
+good: ``ups c-node`` exited 1. Now a Bind of a size class the node cannot hold is taken as a
+refusal: a channel being bound again keeps asking, and the CAN-ECB's answer, once it serves
+again, binds it.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import can
+import pytest
+
+from ups import _canproto as p
+from ups import name_to_uid
+from ups._canlink import open_bus
+from ups._errors import DecodeError
+
+from .procs import Proc, private_multicast_bus
+from .test_cnode_processes import can_broker, events
+from .test_tcp_processes import wait_until
+
+pytestmark = pytest.mark.netns
+
+CHANNEL = "robot/brake"
+OTHER = name_to_uid("robot/forged")
+#: an etag of a size class each build cannot hold: the ASan build takes events up to 1024 bytes
+#: (class 3 carries 4096), the minimal one up to 8 (class 1 carries 64)
+TOO_LARGE = {"asan": 0x3800, "min": 0x3000}
+
+
+class Forger:
+    """A python-can bus of the test on ``bus``: it sends frames as a forger would, and keeps
+    every management frame it hears, with when it heard it."""
+
+    def __init__(self, bus: str) -> None:
+        self.raw = open_bus(bus)
+        self.frames: list[tuple[float, p.Management]] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            frame = self.raw.recv(0.05)
+            if frame is None or not frame.is_extended_id:
+                continue
+            if not p.is_management(frame.arbitration_id):
+                continue
+            try:
+                msg = p.decode(frame.arbitration_id, bytes(frame.data))
+            except DecodeError:
+                continue
+            with self._lock:
+                self.frames.append((time.monotonic(), msg))
+
+    def send(self, msg: p.Management) -> float:
+        """Send ``msg``; when it was sent."""
+        can_id, data = p.encode(msg)
+        sent = time.monotonic()
+        self.raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
+        return sent
+
+    def heard(self, since: float, what: Callable[[p.Management], bool]) -> bool:
+        with self._lock:
+            return any(at >= since and what(msg) for at, msg in self.frames)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._reader.join(timeout=5)
+        self.raw.shutdown()
+
+
+@contextmanager
+def forger(bus: str) -> Iterator[Forger]:
+    wire = Forger(bus)
+    try:
+        yield wire
+    finally:
+        wire.close()
+
+
+def c_node_env(build: str) -> dict[str, str]:
+    if build != "asan":
+        return {}
+    libasan = subprocess.run(
+        ["cc", "-print-file-name=libasan.so"], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    return {  # Python's own allocations are no leaks of the library's: leaks are not checked
+        "LD_PRELOAD": libasan,
+        "ASAN_OPTIONS": "detect_leaks=0:abort_on_error=0:exitcode=99",
+        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1:exitcode=98",
+    }
+
+
+@pytest.mark.parametrize("build", ["asan", "min"])
+def test_three_forged_frames_leave_a_c_subscriber_bound(tmp_path: Path, build: str) -> None:
+    bus = private_multicast_bus()
+    uid = name_to_uid(CHANNEL)
+    with (
+        can_broker(bus, tmp_path / "ecb.db") as ecb,
+        forger(bus) as wire,
+        Proc("c-node", "--can", bus, "--node-id", "0xc41", "--build", build, "--sub", CHANNEL,
+             "--json", env=c_node_env(build)) as node,
+    ):  # fmt: skip
+        joined = node.wait_for_line("joined as TxNode 0x", timeout=60)
+        txnode = int(joined.rsplit("0x", 1)[1], 16)
+        bound = node.wait_for_line(f"subscribed: {CHANNEL} is etag 0x", timeout=30)
+        etag = int(bound.rsplit("0x", 1)[1], 16)
+
+        def alive() -> None:
+            if node.popen.poll() is not None:
+                raise AssertionError(f"ups c-node exited {node.popen.returncode}:\n"
+                                     + "".join(node.stderr_lines))  # fmt: skip
+
+        wire.send(p.Serving(0))  # the CAN-ECB stands by (it hears the lowest instance serve)
+        ecb.wait_for_line("stands by and answers nothing", timeout=10)
+        contradicted = wire.send(p.Bind(etag, OTHER))
+        asked = p.Request(p.SUB_BIND, txnode, uid)
+        wait_until(lambda: wire.heard(contradicted, lambda m: m == asked), timeout=10)
+        forged = wire.send(p.Bind(TOO_LARGE[build], uid))  # an answer the node cannot hold
+        # the CAN-ECB serves again (takes over, says Hello) and answers the node's request
+        wait_until(lambda: wire.heard(forged, lambda m: m == p.Bind(etag, uid)) or alive(),
+                   timeout=30)  # fmt: skip
+        alive()
+
+        def delivered() -> bool:  # one event through once the node relies on its etag again
+            alive()
+            with Proc("pub", CHANNEL, "00", "--can", bus, "--node-id", "0x71") as pub:
+                assert pub.finish(timeout=60)[0] == 0
+            return any(e["data"] == "00" for e in events(node))
+
+        wait_until(delivered, timeout=30)
+        with Proc("pub", CHANNEL, "14", "--can", bus, "--count", "20", "--rate", "50",
+                  "--node-id", "0x71") as pub:  # fmt: skip
+            assert pub.finish(timeout=60)[0] == 0
+        wait_until(lambda: [e["data"] for e in events(node)].count("14") == 20, timeout=30)
+        alive()
+        assert {e["channel"] for e in events(node)} == {CHANNEL}
