@@ -86,6 +86,29 @@ def test_a_refusal_ends_a_join_only_once_it_stood_3_s() -> None:
     assert ERRORS[w.node.join_state] == "FAILED"
 
 
+def test_a_joiner_takes_no_refusal_that_names_another_node() -> None:
+    """TxNodesFull and Failed name the joiner they refuse: one naming another node's id (that
+    node's answer, or a forger's) neither stops this joiner knocking nor ends its join (issue
+    41: with the id check taken out of ups_join.c, one such frame parked every C joiner, and
+    ended its join 3 s later)."""
+    w = Wire()
+    w.node.start(w.now)
+    w.drain()
+    other = w.node_id ^ 1
+    w.feed(p.TxNodesFull(other))
+    w.feed(p.Failed(other))
+    w.tick(3500)  # longer than the refusal wait
+    assert w.node.join_state == 1
+    assert w.mgmt().count(p.Knock()) == 4  # at 0, 0.3, 0.9 and 2.1 s: the knock retry runs
+    w.feed(p.Census(1))
+    w.drain()
+    w.feed(p.Offer(9, w.node_id))
+    w.drain()
+    assert p.Request(p.CLAIM, 9, w.node_id) in w.mgmt()
+    w.feed(p.Assign(9, w.node_id))
+    assert w.node.txnode == 9
+
+
 def test_a_join_reaching_its_give_up_with_a_refusal_open_ends_with_its_error() -> None:
     """A join that reaches its give-up time (30 s) while a refusal is open (Census frames keep
     coming, but no Offer) ends with that refusal's error, not a timeout."""
@@ -291,6 +314,34 @@ def test_a_request_reaching_its_timeout_with_a_refusal_open_ends_with_its_error(
     assert w.node.channel_state(a) == 1
     w.tick(300)  # past the 5 s (the ninth wait of the request retry ends at 5.55 s)
     assert ERRORS[w.node.channel_state(a)] == "FAILED"
+
+
+def test_a_forged_answer_to_a_re_binding_corrected_at_once_is_never_relied_on() -> None:
+    """Settling: a node re-binding after a contradiction relies on an answer only once it stood
+    50 ms with no Bind contradicting it. A forged answer that the CAN-ECB's true Bind follows at
+    once is spoilt: the node asks again and relies on the CAN-ECB's etag, never on the forged
+    one (issue 41: with UPS__CAND taken out of the contradiction test of ups__on_bind, the
+    forged etag was relied on 50 ms later and the true Bind ignored)."""
+    w = Wire()
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.bind(a, 0x20, A)
+    w.feed(p.Bind(0x20, B))  # a contradiction: the node asks again
+    w.tick(1)
+    assert w.mgmt()[-1] == p.Request(p.SUB_BIND, 5, A)
+    mark = len(w.sent)
+    w.feed(p.Bind(0x30, A))  # forged, the moment the request went
+    w.feed(p.Bind(0x20, A))  # the CAN-ECB's answer, right after it
+    etags = set()
+    for _ in range(200):
+        w.tick(1)
+        etags.add(w.node.channel_etag(a))
+        if p.Request(p.SUB_BIND, 5, A) in w.mgmt(mark):  # asked again: answered again
+            w.feed(p.Bind(0x20, A))
+            mark = len(w.sent)
+    assert etags == {0, 0x20}  # waiting, then the CAN-ECB's etag: never the forged one
+    assert w.feed_raw(p.make_id(0x80, 9, 0x30), b"\x01") is None
+    assert w.feed_raw(p.make_id(0x80, 9, 0x20), b"\x02") == Event(a, b"\x02", 0x80, 9)
 
 
 def test_a_bind_of_a_size_class_the_node_cannot_hold_is_taken_as_a_refusal() -> None:
