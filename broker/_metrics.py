@@ -110,9 +110,12 @@ CAN_ECB_UNEXPOSED = {
 STATUS_PORT = table(
     "ups_can_ecb",
     {
-        "status_refused_busy": "status connections refused: every slot was waiting for an answer",
-        "status_evicted": "idle status connections closed to make room for new ones",
-        "status_timed_out": "status connections that asked nothing, or were not answered, in time",
+        "status_refused_busy": "status connections closed unanswered: no slot came free in the "
+        "5 s they waited in line",
+        "status_evicted": "status connections closed because they held a slot past their turn "
+        "(not asked, or not taken their answer, 0.5 s after) while others waited",
+        "status_timed_out": "status connections that did not ask within 2 s of being let in, or "
+        "were not answered within 5 s",
         "status_bad_requests": "status connections that sent something else than a request",
         "status_builds": "status answers built",
         "status_answers": "status requests answered",

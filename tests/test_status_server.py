@@ -1,6 +1,7 @@
-"""The CAN-ECB's status port: it answers a StatusRequest, ends every other link, and holds at
-most MAX_LINKS links at once: a new one closes the oldest that has not asked yet, and is
-closed itself only when every link has asked. Its counters ride in the Status it serves."""
+"""The CAN-ECB's status port: it answers a StatusRequest, ends every other link, and serves
+MAX_LINKS links at once; newcomers wait in line, and a link that has not asked gives way
+after its turn (ups/_port.py's rules, in tests/test_port.py). Its counters ride in the
+Status it serves."""
 
 from __future__ import annotations
 
@@ -45,11 +46,11 @@ async def test_status_answers_asks_and_makes_room_for_a_real_request() -> None:
 
         idle = [await asyncio.open_connection("127.0.0.1", server.port)
                 for _ in range(_status.MAX_LINKS + 4)]  # fmt: skip
-        # the four beyond MAX_LINKS closed the four oldest idle links, not themselves
-        await eventually(lambda: server.counters["status_evicted"] == 4)
-        assert [await r.read() for r, _ in idle[:4]] == [b""] * 4
-        status = await asyncio.wait_for(_ask(server.port), 2)  # room for it: a fifth is closed
+        # the four beyond MAX_LINKS wait in line; a real request comes after them: after
+        # their turn, the five idle links let in first give way, and it is answered
+        status = await asyncio.wait_for(_ask(server.port), _status.PROMISE)
         assert isinstance(status, w.Status) and status.info["stats"]["status_evicted"] == 5
+        assert [await r.read() for r, _ in idle[:5]] == [b""] * 5
         assert server.counters["status_refused_busy"] == 0
         for _, idle_writer in idle:
             idle_writer.close()
@@ -58,23 +59,24 @@ async def test_status_answers_asks_and_makes_room_for_a_real_request() -> None:
         await server.close()
 
 
-async def test_a_newcomer_is_refused_only_when_every_link_waits_for_its_answer() -> None:
+async def test_a_newcomer_waits_in_line_while_every_link_waits_for_its_answer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(_status, "MAX_LINKS", 4)
     server = StatusServer("127.0.0.1:0", lambda: {"hello": 1})
     await server.start()
     try:
         assert isinstance(await _ask(server.port), w.Status)
-        server._pacer.gap = 60.0  # the next Status is a minute away: askers wait
-        asking = [asyncio.create_task(_ask(server.port)) for _ in range(_status.MAX_LINKS)]
-        await eventually(lambda: server.counters["status_paced"] == _status.MAX_LINKS)
+        server._pacer.gap = 1.0  # the next Status is a second away: askers wait
+        asking = [asyncio.create_task(_ask(server.port)) for _ in range(4)]
+        await eventually(lambda: server.counters["status_paced"] == 4)
         assert server.counters["status_builds"] == 1  # they wait for the next: none built yet
-        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
-        assert await reader.read() == b""  # no idle link to close: this one is
-        writer.close()
-        await eventually(lambda: server.counters["status_refused_busy"] == 1)
-        assert server.counters["status_evicted"] == 0
-        for task in asking:
-            task.cancel()
-        await asyncio.gather(*asking, return_exceptions=True)
+        newcomer = asyncio.create_task(_ask(server.port))  # no slot: it waits its turn
+        answers = await asyncio.gather(*asking, newcomer)
+        assert all(isinstance(answer, w.Status) for answer in answers)
+        counters = server.counters
+        assert counters["status_evicted"] == counters["status_refused_busy"] == 0
+        assert counters["status_builds"] == 3  # the four askers', then the newcomer's
     finally:
         await server.close()
 
