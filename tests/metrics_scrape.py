@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 
 from prometheus_client.parser import text_string_to_metric_families
 
-from ups._metrics import BUILD_INFO, CAN_LINK, NODE, Metric
+from ups._metrics import BUILD_INFO, CAN_LINK, METRICS_PORT, NODE, Metric
 from ups.broker._metrics import CAN_ECB, STATUS_PORT, TCP_ECB
 from ups.gateway._metrics import gateway_table
 from ups.jaus._metrics import JAUS
@@ -27,6 +27,7 @@ VERSION = version("ups-pubsub")  #: what ups_build_info says
 TABLES: list[tuple[list[Metric], tuple[str, ...]]] = [
     (NODE, ("network",)),
     (CAN_LINK, ()),
+    (METRICS_PORT, ()),
     (TCP_ECB, ()),
     (CAN_ECB, ()),
     (STATUS_PORT, ()),

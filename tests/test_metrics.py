@@ -8,10 +8,13 @@ share a udp_multicast bus, in a private network namespace.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import queue
 import socket
+import sys
 import threading
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -189,6 +192,59 @@ async def test_counters_are_read_on_the_event_loop_and_a_held_up_loop_is_a_503(
         counters["published"] = 8
         found = await asyncio.to_thread(scrape, server.url)  # the loop free again: answered
         assert found.value("ups_node_published_total", network="tcp") == 8
+
+
+def _threads_in(function: str) -> int:
+    """How many threads are in a call of ``function`` (a name) now."""
+    found = 0
+    for frame in sys._current_frames().values():
+        while frame is not None and frame.f_code.co_name != function:
+            frame = frame.f_back  # type: ignore[assignment]
+        found += frame is not None
+    return found
+
+
+async def test_scrapes_that_wait_together_share_one_read_of_the_counters() -> None:
+    """Scrapes that come while the loop is busy cost it one read between them, not one each."""
+    reads = 0
+
+    def read() -> ups_metrics.Reading:
+        nonlocal reads
+        reads += 1
+        return [(NODE, {"published": 7}, {"network": "tcp"})]
+
+    async with ups_metrics.serving_metrics("127.0.0.1:0", "test", read) as server:
+        assert server is not None
+        with concurrent.futures.ThreadPoolExecutor(4) as scrapers:
+            waiting = [scrapers.submit(scrape, server.url) for _ in range(4)]
+            deadline = time.monotonic() + 15
+            while _threads_in("_on_loop") < 4:  # the loop is held here until all four wait
+                assert time.monotonic() < deadline
+            found = await asyncio.gather(*map(asyncio.wrap_future, waiting))
+        assert [f.value("ups_node_published_total", network="tcp") for f in found] == [7] * 4
+        assert reads == 1
+        after = await asyncio.to_thread(scrape, server.url)
+        assert after.value("ups_metrics_answers_total") == 4
+
+
+async def test_what_is_not_a_scrape_is_answered_so_and_counted() -> None:
+    async with ups_metrics.serving_metrics("127.0.0.1:0", "test", lambda: []) as server:
+        assert server is not None
+        answers = []
+        for request in (b"hello\r\n\r\n", b"GET /metrics HTTP/1.1\r\nX: " + b"a" * 9000):
+            reader, writer = await asyncio.open_connection(server.host, server.port)
+            writer.write(request)
+            answers.append((await reader.read()).split(b"\r\n", 1)[0])
+            writer.close()
+        assert answers == [b"HTTP/1.1 400 Bad Request", b"HTTP/1.1 431 Request Header Fields "
+                           b"Too Large"]  # fmt: skip
+        post = urllib.request.Request(server.url, method="POST")
+        with pytest.raises(urllib.error.HTTPError) as error:
+            await asyncio.to_thread(urllib.request.urlopen, post, timeout=15)
+        assert error.value.code == 405
+        found = await asyncio.to_thread(scrape, server.url)
+        assert found.value("ups_metrics_bad_requests_total") == 2
+        assert found.value("ups_metrics_answers_total") == 1  # the 405
 
 
 async def test_a_zenoh_nodes_counters_are_all_served(zenoh_router: str) -> None:

@@ -12,11 +12,13 @@ and queues. Labels only from bounded sets fixed in the code (``network``, ``dire
 ``daemon``, ``version``): never a node id, channel, address or identity, whose number has no
 bound. Per-node and per-channel detail stays in ``ups status``.
 
-Threads: the HTTP server is prometheus-client's (WSGI, a thread per scrape, at most
-``MAX_SCRAPES`` at once, each given ``READ_TIMEOUT`` to send its request). A scrape asks the
-daemon's event loop to read the counters (one callback: a few dict lookups), so it never
-reads them while the loop changes them, and waits at most ``SCRAPE_TIMEOUT`` for the answer
-(else 503). The loop never waits for the server.
+Threads: the HTTP port is ``_metricsport.py``'s, in a thread of its own with its own event
+loop: at most ``MAX_SCRAPES`` answers made at once, and fair admission (the status port's,
+``ups/_port.py``): links that hold a slot past their turn give way to a newcomer, answered
+links are closed. A scrape asks the daemon's event loop to read the counters (one callback: a
+few dict lookups; scrapes that wait at once share one), so it never reads them while the loop
+changes them, and waits at most ``SCRAPE_TIMEOUT`` for the answer (else 503). The loop never
+waits for the server.
 
 Imported by the ``ups`` command line for ``add_metrics``: prometheus-client and the rest
 are imported only when a server starts.
@@ -34,14 +36,14 @@ from ._errors import ConfigError
 
 if TYPE_CHECKING:
     import asyncio
-    import wsgiref.simple_server
+    import concurrent.futures
+
+    from ._metricsport import HttpPort
 
 log = logging.getLogger("ups.metrics")
 
 COUNTER, GAUGE = "counter", "gauge"
 SCRAPE_TIMEOUT = 5.0  #: seconds a scrape waits for the event loop to read the counters
-READ_TIMEOUT = 10.0  #: seconds a scraper may take to send its request
-MAX_SCRAPES = 8  #: scrapes served at once; more connections are closed at once
 INSTALL = "--metrics needs prometheus-client: pip install 'ups-pubsub[metrics]'"
 
 
@@ -179,6 +181,23 @@ CAN_LINK = table(
     {"backlog": "frames of transfers waiting for room in the interface"},
 )
 
+#: every daemon's: the admission of its metrics port (``ups/_port.py``'s counters)
+METRICS_PORT = table(
+    "ups_metrics",
+    {
+        "answers": "scrapes answered (whatever the HTTP status)",
+        "evicted": "connections closed because they held a slot past their turn (not sent a "
+        "whole request, or not taken their answer, 0.5 s after) while others waited",
+        "timed_out": "connections that did not send a whole request within 2 s of being let "
+        "in, or were not answered within 10 s",
+        "refused_busy": "connections closed unanswered: no slot came free in the 5 s they "
+        "waited in line",
+        "bad_requests": "connections that sent something else than an HTTP request (answered "
+        "400 or 431)",
+    },
+    {},
+)
+
 
 # --- the server ----------------------------------------------------------------------------
 
@@ -241,7 +260,7 @@ class MetricsServer:
         self.host, self.port = parse_metrics_address(address)
         self.daemon = daemon
         self._read = read
-        self._httpd: wsgiref.simple_server.WSGIServer | None = None
+        self._http: HttpPort | None = None
 
     @property
     def url(self) -> str:
@@ -250,30 +269,36 @@ class MetricsServer:
 
     async def start(self) -> None:
         import asyncio
-        import threading
 
         from prometheus_client import CollectorRegistry, ProcessCollector
 
-        registry = CollectorRegistry(auto_describe=False)
-        registry.register(_Collector(asyncio.get_running_loop(), self._read, self.daemon))
-        ProcessCollector(registry=registry)
+        from ._metricsport import HttpPort
+        from ._port import listen
+
         try:
-            self._httpd = _make_server(self.host, self.port, registry)
+            sock = listen(self.host, self.port)
         except OSError as exc:
             raise ConfigError(
                 f"cannot serve metrics on {self.host}:{self.port}: {exc.strerror or exc}"
             ) from None
-        self.port = self._httpd.server_port
-        threading.Thread(target=self._httpd.serve_forever, name="ups-metrics", daemon=True).start()
+        self.port = sock.getsockname()[1]
+        registry = CollectorRegistry(auto_describe=False)
+        http = HttpPort(sock, _app(registry))
+        loop = asyncio.get_running_loop()
+        registry.register(_Collector(loop, self._read, self.daemon, lambda: http.counters))
+        ProcessCollector(registry=registry)
+        try:
+            await http.start()
+        except BaseException:
+            sock.close()
+            raise
+        self._http = http
         log.info("metrics on %s", self.url)
 
     async def close(self) -> None:
-        import asyncio
-
-        httpd, self._httpd = self._httpd, None
-        if httpd is not None:
-            await asyncio.to_thread(httpd.shutdown)  # its poll ends within half a second
-            httpd.server_close()
+        http, self._http = self._http, None
+        if http is not None:
+            await http.close()
 
 
 class _Unavailable(Exception):
@@ -281,26 +306,36 @@ class _Unavailable(Exception):
 
 
 class _Collector:
-    """Reads the daemon's counters on its event loop, once per scrape."""
+    """Reads the daemon's counters on its event loop, once for the scrapes waiting together,
+    and the metrics port's (``port()``) where it is."""
 
     def __init__(
-        self, loop: asyncio.AbstractEventLoop, read: Callable[[], Reading], daemon: str
+        self,
+        loop: asyncio.AbstractEventLoop,
+        read: Callable[[], Reading],
+        daemon: str,
+        port: Callable[[], Mapping[str, int]],
     ) -> None:
+        import threading
         from importlib.metadata import PackageNotFoundError, version
 
         self._loop = loop
         self._read = read
+        self._port = port
         try:
             release = version("ups-pubsub")
         except PackageNotFoundError:
             release = "unknown"
         self._info = Sample(*BUILD_INFO[:3], (("daemon", daemon), ("version", release)), 1.0)
+        self._lock = threading.Lock()
+        self._reading: concurrent.futures.Future[list[Sample]] | None = None  # not read yet
 
     def collect(self) -> Iterator[Any]:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
         families: dict[str, Any] = {}
-        for s in (self._info, *self._on_loop()):
+        port = samples([(METRICS_PORT, self._port(), {})])
+        for s in (self._info, *self._on_loop(), *port):
             family = families.get(s.name)
             if family is None:
                 kind = CounterMetricFamily if s.kind == COUNTER else GaugeMetricFamily
@@ -310,38 +345,39 @@ class _Collector:
         yield from families.values()
 
     def _on_loop(self) -> list[Sample]:
+        """The daemon's samples, read on its loop after this scrape asked: a read that is
+        asked for and not begun yet serves every scrape that comes meanwhile."""
         import concurrent.futures
 
-        future: concurrent.futures.Future[list[Sample]] = concurrent.futures.Future()
-
-        def read() -> None:
-            if future.set_running_or_notify_cancel():  # not given up on already
+        with self._lock:
+            future = self._reading
+            if future is None or future.done():
+                future = self._reading = concurrent.futures.Future()
                 try:
-                    future.set_result(samples(self._read()))
-                except BaseException as exc:
-                    future.set_exception(exc)
-
-        try:
-            self._loop.call_soon_threadsafe(read)
-        except RuntimeError:  # the loop is closed: the daemon is stopping
-            raise _Unavailable("the daemon is stopping") from None
+                    self._loop.call_soon_threadsafe(self._read_on_loop, future)
+                except RuntimeError:  # the loop is closed: the daemon is stopping
+                    raise _Unavailable("the daemon is stopping") from None
         try:
             return future.result(SCRAPE_TIMEOUT)
         except concurrent.futures.TimeoutError:
-            future.cancel()
             raise _Unavailable(
                 f"the daemon's event loop did not read its counters within {SCRAPE_TIMEOUT:g} s"
             ) from None
 
+    def _read_on_loop(self, future: concurrent.futures.Future[list[Sample]]) -> None:
+        with self._lock:  # begun: scrapes that come from now on ask for the next read
+            if self._reading is future:
+                self._reading = None
+        try:
+            future.set_result(samples(self._read()))
+        except BaseException as exc:
+            future.set_exception(exc)
 
-def _make_server(host: str, port: int, registry: Any) -> wsgiref.simple_server.WSGIServer:
-    """prometheus-client's WSGI app, served at /metrics by a thread per scrape (bounded)."""
-    import socket
-    import threading
-    from wsgiref.simple_server import WSGIRequestHandler, make_server
 
+def _app(registry: Any) -> Callable[[dict[str, Any], Callable[..., Any]], Iterable[bytes]]:
+    """prometheus-client's WSGI app for ``registry``, at /metrics only; 503 when the daemon
+    does not read its counters in time, 500 when its stats() fail."""
     from prometheus_client import make_wsgi_app
-    from prometheus_client.exposition import ThreadingWSGIServer
 
     metrics = make_wsgi_app(registry)
 
@@ -360,36 +396,4 @@ def _make_server(host: str, port: int, registry: Any) -> wsgiref.simple_server.W
             start_response("500 Internal Server Error", [("Content-Type", "text/plain")])
             return [b"could not read the counters (see the daemon's log)\n"]
 
-    class Handler(WSGIRequestHandler):
-        timeout = READ_TIMEOUT  # a scraper that does not send its request is let go
-
-        def log_message(self, format: str, *args: Any) -> None:
-            """Scrapes are not logged."""
-
-    class Server(ThreadingWSGIServer):
-        address_family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
-        slots = threading.BoundedSemaphore(MAX_SCRAPES)
-
-        def process_request(self, request: Any, client_address: Any) -> None:
-            if not self.slots.acquire(blocking=False):  # too many at once: closed
-                self.shutdown_request(request)
-                return
-            try:
-                super().process_request(request, client_address)
-            except BaseException:
-                self.slots.release()
-                raise
-
-        def process_request_thread(self, request: Any, client_address: Any) -> None:
-            try:
-                super().process_request_thread(request, client_address)
-            finally:
-                self.slots.release()
-
-        def handle_error(self, request: Any, client_address: Any) -> None:
-            log.debug("metrics: a scrape from %s failed", client_address, exc_info=True)
-
-    server: wsgiref.simple_server.WSGIServer = make_server(
-        host, port, app, Server, handler_class=Handler
-    )
-    return server
+    return app
