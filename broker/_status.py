@@ -22,7 +22,7 @@ from typing import Any
 
 from ups import _tcpwire as w
 from ups._address import parse_address
-from ups._errors import DecodeError
+from ups._errors import ConfigError, DecodeError
 from ups._port import BadRequest, Limits, Port, listen
 from ups._statuspacer import StatusPacer
 
@@ -67,7 +67,13 @@ class StatusServer:
         }
 
     async def start(self) -> None:
-        await self._port.start(listen(self.host, self.port))
+        try:
+            sock = listen(self.host, self.port)
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot serve the status on {self.host}:{self.port}: {exc.strerror or exc}"
+            ) from None
+        await self._port.start(sock)
         self.port = self._port.port
         log.info("status on %s:%d", self.host, self.port)
 

@@ -6,10 +6,12 @@ Status it serves."""
 from __future__ import annotations
 
 import asyncio
+import socket
 
 import pytest
 
 from ups import _tcpwire as w
+from ups._errors import ConfigError
 from ups.broker import _status
 from ups.broker._status import StatusServer
 
@@ -119,3 +121,15 @@ async def test_a_status_that_cannot_be_built_ends_the_asking_link_and_the_port_s
         assert status.info["stats"]["status_bad_requests"] == 1
     finally:
         await server.close()
+
+
+async def test_an_address_it_cannot_serve_on_is_said_in_one_line() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        server = StatusServer(f"127.0.0.1:{port}", lambda: {})
+        with pytest.raises(ConfigError) as error:
+            await server.start()
+    said = f"cannot serve the status on 127.0.0.1:{port}: Address already in use"
+    assert str(error.value) == said
