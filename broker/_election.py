@@ -28,7 +28,8 @@ instance stands by on hearing the lower one's.
 
 A Serving is only a claim, and anyone can send one. So a standing-by CAN-ECB also watches the
 requests it hears (``asked``: a Knock; a SUB_BIND or PUB_BIND of a UID) for their answers (a
-census frame; a Bind, EtagsFull, Failed or Limit of that UID), and when one has had none for
+census frame; a Bind, EtagsFull, Failed or Limit of that UID; one heard up to ``EARLY`` s
+before the request counts: frames of two senders may cross), and when one has had none for
 ``ANSWER`` s it takes over, whatever Servings say. ``ANSWER`` is longer than the 2 s a serving
 CAN-ECB may hold a request (its recovery), and short enough that the request's node, which asks
 for 5 s, has its answer after the takeover's own recovery: ``ANSWER`` + 2 s.
@@ -57,6 +58,7 @@ MAX_CANDIDACY = 2.0  #: a candidate serves (and says Serving) at most this long 
 ANSWER = 2.5  #: a standing-by CAN-ECB takes over when a request it heard had no answer this long
 BACKING = 2.0  #: a wary CAN-ECB stands by only with another's answer this close to the Serving
 WATCHED = 1024  #: requests a standing-by CAN-ECB watches at once (more are not watched)
+EARLY = 1.0  #: an answer heard up to this long before its request counts (frames may cross)
 KNOCK = -1  #: the key of joiners' Knocks among the watched requests (the others' are UIDs)
 
 Frame = Hello | Serving | Probe
@@ -89,6 +91,7 @@ class Election:
         #: oldest first
         self._asked: dict[int, float] = {}
         self._answer = -math.inf  # the last answer to a node that another sent
+        self._answered: dict[int, float] = {}  # request key -> when an answer to it was heard
         self._lower = -math.inf  # serving, wary: the last Serving of a lower instance
 
     @property
@@ -119,7 +122,9 @@ class Election:
         it if none has)."""
         key = _request(msg)
         watched = self._asked
-        if self.role is Role.STANDBY and key is not None and len(watched) < WATCHED:
+        if self.role is not Role.STANDBY or key is None or len(watched) >= WATCHED:
+            return []
+        if now - self._answered.get(key, -math.inf) > EARLY:  # its answer may come first
             watched.setdefault(key, now)  # since when it is asked: its first time
         return []
 
@@ -132,8 +137,15 @@ class Election:
             return []
         if other is None:  # an answer to a node (another CAN-ECB's, or a forger's)
             self._answer = now
+            answered = self._answered  # oldest first
             for key in _answers(msg):
                 self._asked.pop(key, None)
+                answered.pop(key, None)
+                answered[key] = now
+            while answered and (
+                len(answered) > WATCHED or next(iter(answered.values())) < now - EARLY
+            ):
+                del answered[next(iter(answered))]
         if self.role is Role.STANDBY:
             if isinstance(msg, Hello | Serving):
                 self._heard = now  # one serves, or is about to

@@ -30,7 +30,7 @@ import collections
 import heapq
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import pytest
@@ -122,7 +122,7 @@ class ElectionMachine(RuleBasedStateMachine):
         self.now = 0.0
         self.ecbs: list[Candidate | None] = [None] * self.slots
         self.lives = [0] * self.slots  # which run of each slot a frame is addressed to
-        self.queue: list[tuple[float, int, int, int, Frame]] = []  # (at, seq, slot, life, frame)
+        self.queue: list[tuple[float, int, int, int, Management]] = []  # (at, seq, slot, life, _)
         self.seq = itertools.count()
         self.lossy = False
         self.last_loss = -math.inf
@@ -137,7 +137,7 @@ class ElectionMachine(RuleBasedStateMachine):
 
     # --- the medium -------------------------------------------------------------------------
 
-    def _broadcast(self, sender: int, frames: list[Frame]) -> None:
+    def _broadcast(self, sender: int, frames: Sequence[Management]) -> None:
         for frame in frames:
             if isinstance(frame, Hello):  # a start, or a takeover
                 self.last_start = self.now
@@ -349,6 +349,93 @@ TestThreeCanEcbs = _machine(Election, 3).TestCase
 TestThreeCanEcbs.settings = settings(SETTINGS, max_examples=400)
 
 
+#: when a node sends a request again while it has no answer (ups/_canbinding.py: 50 ms,
+#: doubling to 1 s; it gives up after 5 s)
+RETRIES = (0.05, 0.1, 0.2, 0.4, 0.8, 1.0, 1.0, 1.0)
+
+
+class AnsweringMachine(ElectionMachine):
+    """The same bus with a node's requests (SUB_BIND), sent again as a node does until an answer
+    was sent: every CAN-ECB hears each one after its own delay; a serving one answers it at once
+    (a Bind), a candidate when its candidacy ends (it holds it, as in recovery), one that stands
+    by watches it. CAN-ECBs start at any time and none stops, and the medium loses nothing: then
+    a standing-by one never takes over for a request it heard unanswered (the answer time is
+    longer than a candidacy plus two delays), so none is ever wary."""
+
+    slots = 2
+    lossless = True
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.uids = itertools.count(1)
+        self.sends: list[tuple[float, int, int]] = []  # (at, uid, tries): the node's next send
+        self.held: dict[int, list[int]] = {}  # slot -> the requests a candidate holds
+        self.answered: set[int] = set()
+
+    def stop(self) -> None:  # not a rule here: nobody stops
+        raise AssertionError("not a rule of this machine")
+
+    @rule()
+    def request(self) -> None:
+        """A node asks for a channel's etag."""
+        heapq.heappush(self.sends, (self.now, next(self.uids), 0))
+
+    def _next_event(self) -> float:
+        return min(super()._next_event(), self.sends[0][0] if self.sends else math.inf)
+
+    def _send(self) -> None:
+        _, uid, tries = heapq.heappop(self.sends)
+        if uid in self.answered:
+            return
+        for slot, ecb in enumerate(self.ecbs):
+            if ecb is not None:
+                delay = float(self._draw(delays)) if self.draw else DELAY  # type: ignore[arg-type]
+                frame = Request(SUB_BIND, 1, uid)
+                item = (self.now + delay, next(self.seq), slot, self.lives[slot], frame)
+                heapq.heappush(self.queue, item)
+        if tries < len(RETRIES):
+            heapq.heappush(self.sends, (self.now + RETRIES[tries], uid, tries + 1))
+
+    def _broadcast(self, sender: int, frames: Sequence[Management]) -> None:
+        self.answered.update(f.uid for f in frames if isinstance(f, Bind))
+        super()._broadcast(sender, frames)
+
+    def _one_event(self) -> None:
+        if self.sends and self.sends[0][0] <= self.now:
+            self._send()
+            return
+        if self.queue and self.queue[0][0] <= self.now and isinstance(self.queue[0][4], Request):
+            _, _, slot, _, frame = heapq.heappop(self.queue)
+            assert isinstance(frame, Request)
+            ecb = self.ecbs[slot]
+            assert isinstance(ecb, Election)
+            self._note(f"{slot} ({ecb.role.value}) heard {frame}")
+            if ecb.role is Role.STANDBY:
+                ecb.asked(frame, self.now)
+            elif ecb.role is Role.SERVING:
+                self._broadcast(slot, [Bind(0x20, frame.value)])
+            else:
+                self.held.setdefault(slot, []).append(frame.value)
+            return
+        roles = [None if ecb is None else ecb.role for ecb in self.ecbs]
+        super()._one_event()
+        for slot, ecb in enumerate(self.ecbs):
+            if ecb is None or ecb.role is roles[slot]:
+                continue
+            held = self.held.pop(slot, [])
+            if ecb.role is Role.SERVING and roles[slot] is Role.CANDIDATE:
+                self._broadcast(slot, [Bind(0x20, uid) for uid in held])  # its recovery ended
+
+    def _check(self) -> None:
+        super()._check()
+        wary = [ecb for ecb in self.ecbs if isinstance(ecb, Election) and ecb.wary]
+        assert not wary, f"a CAN-ECB took over for an unanswered request: {self._roles()}"
+
+
+TestAnsweringCanEcbs = AnsweringMachine.TestCase
+TestAnsweringCanEcbs.settings = SETTINGS
+
+
 @pytest.mark.parametrize("slots", [2, 3])
 def test_the_machine_finds_the_old_deadlock(slots: int) -> None:
     """The old rules (a standby's probe was a Serving, which a serving CAN-ECB took as a
@@ -504,6 +591,19 @@ def test_an_answer_to_another_request_or_a_frame_that_asks_nothing_does_not() ->
     ecb.heard(Grant(0x20, 0x12, 0x02), 2.1)
     ecb.heard(Serving(0), 3.0)
     assert _tick_until(ecb, 1.5 + e.ANSWER)[-1:] == [Hello(5)]
+
+
+def test_an_answer_heard_just_before_its_request_counts_frames_may_cross() -> None:
+    ecb = _standing_by()
+    ecb.heard(Bind(0x20, UID), 1.5)
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5 + e.EARLY)  # the answer came first
+    ecb.heard(Census(1), 1.5)
+    ecb.asked(Knock(), 1.5 + e.EARLY + 0.01)  # a later Knock: its own answer is due
+    ecb.heard(Serving(0), 3.0)
+    ecb.heard(Serving(0), 4.5)
+    frames = _tick_until(ecb, 1.5 + e.EARLY + e.ANSWER)
+    assert Hello(5) not in frames and ecb.role is Role.STANDBY
+    assert _tick_until(ecb, 1.5 + e.EARLY + 0.01 + e.ANSWER)[-1:] == [Hello(5)]
 
 
 def test_only_requests_heard_while_standing_by_are_watched() -> None:
