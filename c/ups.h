@@ -419,8 +419,9 @@ int ups_channel_priority(const ups_node_t *node, int channel);
  *  go: ups_publish()), or a UPS_ERR_ code (the request ended:
  *  UPS_ERR_TIMEOUT, UPS_ERR_ETAGS_FULL, UPS_ERR_LIMIT, UPS_ERR_FAILED, UPS_ERR_TOO_LARGE).
  *  EtagsFull, Limit and Failed are refusals, and anyone can send them: the node keeps asking,
- *  and one ends the request only once it stood 3 s with no Bind answering the request (or
- *  when the request gives up after 5 s with one open). A Bind answering a subscription with an
+ *  and one ends the request only once it stood 3 s with no Bind answering the request while
+ *  the node kept asking (or when the request gives up after 5 s with one open); one heard
+ *  before the request went answers nothing. A Bind answering a subscription with an
  *  etag of a size class whose events would not fit the node (UPS_MAX_EVENT; without transfers,
  *  any class above 0) is taken the same way: anyone can send it too, and a Bind that fits, the
  *  CAN-ECB's answer, wins; once it stood, the node sends UNSUB and the state is

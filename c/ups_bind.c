@@ -186,8 +186,9 @@ void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now)
         return;
     }
     ups_channel_t *ch = &node->channels[i];
-    if ((ch->flags & (UPS__PEND | UPS__REBIND)) != UPS__PEND) {
-        return; /* none waits; or maybe stray: a channel being bound again keeps asking */
+    if ((ch->flags & (UPS__PEND | UPS__ASKED | UPS__REBIND)) != (UPS__PEND | UPS__ASKED)) {
+        return; /* none asked (yet: no answer to it); or maybe stray: a channel being bound
+                   again keeps asking */
     }
     unsigned since = ch->etag != 0u ? ch->etag : now >> 2u; /* the first one's time */
     ch->etag = (uint16_t)((unsigned)-why << REFUSAL_SHIFT | (since & REFUSAL_TIME));
@@ -395,11 +396,13 @@ static void tick_channel(ups_node_t *node, unsigned i, uint32_t now)
             adopt(node, ch, ch->etag, now); /* it stood 50 ms with nothing contradicting it */
         }
     } else if (flags & UPS__PEND) {
-        /* a refusal ends the request once it stood 3 s while the node kept asking, or when
+        /* a refusal ends the request once it stood 3 s while the node kept asking (a repeat
+         * that fell due goes first: after a late tick, the answer to it may void it), or when
          * the request gives up (5 s) with it open */
         int why = refusal_of(ch);
-        if ((why != 0 && (((now >> 2u) - ch->etag) & REFUSAL_TIME) > REFUSAL_WAIT / 4u) ||
-            retry(ch, now, UPS__OWE_REQUEST)) {
+        if (retry(ch, now, UPS__OWE_REQUEST) ||
+            (why != 0 && !(ch->owe & UPS__OWE_REQUEST) &&
+             (((now >> 2u) - ch->etag) & REFUSAL_TIME) > REFUSAL_WAIT / 4u)) {
             fail(node, ch, why != 0 ? why : UPS_ERR_TIMEOUT);
         }
     } else if (UPS_WITH_TRANSFERS && (flags & UPS__WAIT)) {

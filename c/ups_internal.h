@@ -154,8 +154,10 @@ void ups__tick_hello(ups_node_t *node, uint32_t now);
 /** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
  *  may answer it (a Bind received before the request went does not count). */
 void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
-/** EtagsFull, Failed or Limit (UPS_ERR_ code @p why) for @p uid: the request of its channel,
- *  if one waits, ends with it once it stood 3 s with no Bind answering the request. */
+/** EtagsFull, Failed or Limit (UPS_ERR_ code @p why) for @p uid, or a Bind of a size class
+ *  the node cannot receive (UPS_ERR_TOO_LARGE): the request of its channel, if one was sent and
+ *  waits (not a re-binding's), ends with it once it stood 3 s with no Bind answering the
+ *  request while the node kept asking. */
 void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now);
 /** Queue the next frame a channel owes, if any; 1 when it queued one. */
 int ups__queue_owed(ups_node_t *node, uint32_t now);

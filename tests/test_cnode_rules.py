@@ -302,6 +302,38 @@ def test_a_refusal_ends_a_binding_request_only_once_it_stood_3_s() -> None:
     assert w.node.channel_etag(b) == 0x21
 
 
+def test_a_refusal_heard_before_the_request_went_is_no_answer_to_it() -> None:
+    """A refusal, like a Bind, answers a request only once the request was sent: one heard
+    before (anyone's, or a forger's) does not end it 3 s later (found by the state machine,
+    issue 41)."""
+    w = Wire()
+    w.join()
+    a = w.node.subscribe(A, w.now)  # its SUB_BIND goes at the next tick
+    w.feed(p.EtagsFull(A))
+    w.tick(3100)
+    assert w.node.channel_state(a) == 1
+    w.feed(p.Bind(0x20, A))
+    assert w.node.channel_etag(a) == 0x20
+
+
+def test_a_late_tick_repeats_the_request_before_a_refusal_stands() -> None:
+    """A refusal stands once it stood 3 s while the node kept asking: a tick that comes 4 s
+    late sends the repeat that fell due meanwhile, and the answer to it voids the refusal
+    (found by the state machine, issue 41: the refusal stood at that tick, before the repeat
+    went)."""
+    w = Wire()
+    w.join()
+    a = w.node.subscribe(A, w.now)
+    w.tick(1)
+    w.feed(p.EtagsFull(A))  # forged
+    w.now += 4000  # the next tick comes 4 s late
+    w.node.tick(w.now)
+    assert p.Request(p.SUB_BIND, 5, A) in [p.decode(i, d) for i, _, d in w.drain()]
+    assert w.node.channel_state(a) == 1
+    w.feed(p.Bind(0x20, A))  # the CAN-ECB's answer to it
+    assert w.node.channel_etag(a) == 0x20
+
+
 def test_a_request_reaching_its_timeout_with_a_refusal_open_ends_with_its_error() -> None:
     """A request that reaches its 5 s timeout with a refusal open ends with that refusal's
     error, not a timeout."""
