@@ -87,6 +87,7 @@ class Election:
         self._last_answer = -math.inf  # a Serving in answer to another's frame
         self._due: float | None = None  # a Serving owed, to be sent at this time
         self.wary = False  #: it caught another not answering: claims alone move it no more
+        self.unanswered = 0  #: takeovers because a request it heard had no answer
         #: standing by: the requests heard and not answered yet (KNOCK, or a UID) -> since when,
         #: oldest first
         self._asked: dict[int, float] = {}
@@ -189,6 +190,7 @@ class Election:
         elif self.role is Role.STANDBY:
             if self._asked and now >= next(iter(self._asked.values())) + ANSWER:
                 self.wary = True  # a claim without answers: a forger's, or a broken CAN-ECB's
+                self.unanswered += 1
                 self.reason = f"a request had no answer for {ANSWER:g} s"
                 return self._candidate(now)
             if now >= self._heard + TAKEOVER:

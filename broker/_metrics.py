@@ -68,6 +68,8 @@ CAN_ECB = table(
         "adopted": "TxNodes and bindings learned from the bus after a restart",
         "conflicts": "frames that contradicted the tables (answered with the tables' own)",
         "foreign_ecb_frames": "frames only a CAN-ECB sends, sent by another",
+        "unanswered_takeovers": "times it stood by for another and took over because a request "
+        "it heard had no answer (a forged Serving, or a broken CAN-ECB)",
         "unassigned": "requests from TxNodes that no node holds",
         "deferred": "binding requests deferred to the end of a recovery",
         "limited": "requests refused by a limit: channels per node, declarations per second",

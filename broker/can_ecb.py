@@ -176,6 +176,7 @@ class CanEcb:
     def stats(self) -> dict[str, object]:
         return {
             **self.counters,
+            "unanswered_takeovers": self._election.unanswered,
             **{f"census_{k}": v for k, v in self._census.counters.items()},
             "txnodes": len(self._store.txnodes),
             "etags": len(self._store.etags),

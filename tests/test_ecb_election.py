@@ -532,7 +532,7 @@ def _standing_by(instance: int = 5, now: float = 1.0) -> Election:
     ecb.start(now - 0.5 - e.MAX_CANDIDACY)  # (a clock started before 0)
     assert ecb.tick(now - 0.5) == [Serving(instance)]
     ecb.heard(Serving(0), now)  # a lower instance claims to serve (or a forger)
-    assert ecb.role is Role.STANDBY and not ecb.wary
+    assert ecb.role is Role.STANDBY and not ecb.wary and ecb.unanswered == 0
     return ecb
 
 
@@ -552,7 +552,7 @@ def test_a_request_unanswered_for_the_answer_time_makes_it_serve_whatever_servin
         ecb.heard(Serving(0), t)
     assert Hello(5) not in _tick_until(ecb, 1.5 + e.ANSWER - 0.01)
     assert _tick_until(ecb, 1.5 + e.ANSWER)[-1:] == [Hello(5)]
-    assert ecb.role is Role.CANDIDATE and ecb.wary
+    assert ecb.role is Role.CANDIDATE and ecb.wary and ecb.unanswered == 1
     assert "no answer" in ecb.reason
 
 

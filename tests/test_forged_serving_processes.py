@@ -226,6 +226,8 @@ async def test_two_real_can_ecbs_never_both_answer(order: str, tmp_path: Path) -
             assert loop.time() < deadline, "the standing-by CAN-ECB stopped probing"
             await asyncio.sleep(0.1)  # polling the listener's record for the third Probe
         assert await _standby(statuses[standby])
+        for status in statuses:  # neither caught the other leaving a request unanswered
+            assert (await query_status(status, 5.0))["stats"]["unanswered_takeovers"] == 0
         heard = listener.heard(since)
         logs = a.stderr_lines + b.stderr_lines
     assert not [m for m in heard if isinstance(m, p.Hello)], "a CAN-ECB took over"
