@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import difflib
 import importlib
 import os
 import re
@@ -36,6 +35,8 @@ from ups._cliargs import (
 from ups._errors import ConfigError, UpsError
 from ups._metrics import add_metrics, check_metrics
 
+from ._argparsing import Unbuilt, Version, unrecognized
+
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
 DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus", "ros2")
@@ -47,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = _parser(only=chosen)
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # the command's own usage, not the top level's, and the option meant
-        _unrecognized(parser, args, unknown)
+        unrecognized(parser, args, unknown)
     import logging  # after parsing: --help does without it
 
     quiet = args.command not in DAEMONS  # a daemon logs what it does; a command says it
@@ -74,51 +75,6 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
-def _unrecognized(
-    parser: argparse.ArgumentParser, args: argparse.Namespace, unknown: list[str]
-) -> None:
-    """Exit with the usage of the (sub)command that was given ``unknown`` arguments, and the
-    option a misspelt one most likely meant."""
-    while True:  # down to the deepest subcommand chosen: its usage is the one to show
-        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
-        chosen = getattr(args, sub.dest, None) if sub is not None else None
-        if sub is None or chosen not in sub.choices:
-            break
-        parser = sub.choices[chosen]
-    message = f"unrecognized arguments: {' '.join(unknown)}"
-    options = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
-    meant = difflib.get_close_matches(unknown[0].split("=", 1)[0], options, n=1, cutoff=0.8)
-    if unknown[0].startswith("--") and meant:
-        message += f" (did you mean {meant[0]}?)"
-    parser.error(message)
-
-
-class _Version(argparse.Action):
-    """``--version``, looked up only when asked for (importlib.metadata is not cheap)."""
-
-    def __init__(self, option_strings: list[str], dest: str, **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, nargs=0, help="print the version and exit")
-
-    def __call__(self, parser: argparse.ArgumentParser, *args: Any) -> None:
-        from importlib.metadata import PackageNotFoundError, version
-
-        try:
-            text = version("ups-pubsub")
-        except PackageNotFoundError:
-            text = "(not installed)"
-        print(f"ups {text}")
-        parser.exit()
-
-
-class _Unbuilt:
-    """Stands in for the parser of a command that is not being run: whatever is asked of it
-    (arguments, groups, subcommands, defaults) is not built, so ``ups --help`` and every
-    command pay only for their own options."""
-
-    def __getattr__(self, name: str) -> Any:
-        return lambda *args, **kwargs: self
-
-
 def _parser(only: str | None = None) -> argparse.ArgumentParser:
     """The command line; with ``only``, every command is listed but only that one's options
     are built (the others are not needed to parse, and ``ups analyze``'s need the real-time
@@ -127,7 +83,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         prog="ups", description=__doc__.splitlines()[0].replace("``", "")
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug detail")
-    parser.add_argument("--version", action=_Version)
+    parser.add_argument("--version", action=Version)
     common = argparse.ArgumentParser(add_help=False)  # -v after the command works too
     common.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                         help="log debug detail")  # fmt: skip
@@ -136,7 +92,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     def command(name: str, **kwargs: Any) -> argparse.ArgumentParser:
         if only is not None and name != only:
             commands.add_parser(name, help=kwargs.get("help"))
-            return _Unbuilt()  # type: ignore[return-value]
+            return Unbuilt()  # type: ignore[return-value]
         return commands.add_parser(name, parents=[common], **kwargs)
 
     cmd = command("can-broker", help="run the CAN-ECB of one bus")
