@@ -5,12 +5,21 @@ requests at once, and corrects every forged Bind and Assign at once, as ours doe
 other node on the bus, and throws at the C node: honest events and transfers on the etags the
 CAN-ECB bound, broken transfers (a frame dropped, repeated, swapped, a header bit flipped),
 forged Binds, Assigns, Hellos, refusals and verdicts, random frames of any identifier, length
-and flags, and time jumps (from just before the 32-bit millisecond clock wraps). It checks:
+and flags, and time jumps (from just before the 32-bit millisecond clock wraps). Semi-valid
+management frames too (issue 41): Binds of every size class naming the node's channels and
+etags, refusals, forged answers put right after the node's request (before the CAN-ECB's), and
+forged Servings, after which the CAN-ECB stands by (answers and corrects nothing) until it
+takes over 4 s after the last one, with a Hello. It checks:
 
 - every event delivered is on a channel the application subscribes to, and the etag it came on
   is bound to that channel's UID (never another channel's event), with the data that was sent;
 - every event the node sends is on the etag the CAN-ECB bound to a channel it publishes on;
 - every etag the node relies on (``ups_channel_etag``) is the CAN-ECB's for that UID;
+- no channel ends failed (``ups_channel_state`` < 0) while the CAN-ECB answers: only a request
+  the application made (subscribe, advertise, unsubscribe) that was not bound before the
+  CAN-ECB stood by or the controller stalled may end with an error (a refusal, or a Bind of a
+  class the node cannot hold, forged while nobody answers stands after 3 s); one the node had
+  bound never ends;
 - counters never go back.
 
 ``test_machine_under_sanitizers`` runs the machine in a child process on ``libups-asan.so``
@@ -32,14 +41,18 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, ru
 
 from ups import _canproto as p
 from ups import _cantransfer as t
-from ups._cnode import FRAME_EXT, FRAME_FD, CNode, Event, build
+from ups._cnode import ERRORS, FRAME_EXT, FRAME_FD, CNode, Event, build
 from ups._errors import ConfigError
 
 VARIANT = os.environ.get("UPS_CNODE_FUZZ", "full")
 NODE_ID = 0x0123_4567_89AB_CDEF
 UIDS = [0x1111_0000_0000_0000 + i for i in range(6)]
+OTHER = 0x2222_0000_0000_0000  # a channel nobody here uses
 SIZES = [0, 8, 64, 1000, 1024, 4096]
 ETAGS = [0x10, 0x11, 0x12, 0x13, 0x3000, 0x3001, 0x3400, 0x3401, 0x3800, 0x3FFF, 0x2FFF]
+TAKEOVER = 4000  #: ms a CAN-ECB stands by after a Serving of a lower instance (docs/protocol.md)
+#: an etag of each size class, anywhere in its range
+any_etag = st.one_of(*(st.integers(c.start, c.stop - 1) for c in map(t.class_etags, range(5))))
 
 frames = st.tuples(
     st.integers(0, 0x1FFFFFFF) | st.sampled_from([p.make_id(0, 0x7F, e) for e in range(0x4000)]),
@@ -57,6 +70,14 @@ class Model:
         self.stages: dict[int, set[int]] = {}
         self.etags: dict[int, int] = {}  # uid -> etag
         self.epoch = 0
+        self.standby_until: int | None = None  # standing by (a forged Serving) until then
+        self.stood_by = False  # ever: a forged Assign may have moved the node meanwhile
+        #: the (etag, uid) pairs the node reported (SUB_AT, PUB_AT) since it last stood by
+        self.announced: set[tuple[int, int]] = set()
+
+    @property
+    def standby(self) -> bool:
+        return self.standby_until is not None
 
     def uid_at(self, etag: int) -> int | None:
         return next((u for u, e in self.etags.items() if e == etag), None)
@@ -72,6 +93,8 @@ class Model:
     def corrections(self, msg: p.Management) -> list[p.Management]:
         """What the CAN-ECB sends when it hears a frame it did not send."""
         out: list[p.Management] = []
+        if self.standby:
+            return out  # it only counts them
         if isinstance(msg, p.Bind):
             if (other := self.uid_at(msg.etag)) is not None and other != msg.uid:
                 out.append(p.Bind(msg.etag, other))
@@ -88,6 +111,8 @@ class Model:
 
     def answer(self, msg: p.Management) -> list[p.Management]:
         """The CAN-ECB's answer to one frame of the node."""
+        if self.standby:
+            return []
         if isinstance(msg, p.Knock) and self.txnode is None:
             self.epoch = (self.epoch + 1) % 16
             self.stages[self.epoch] = set()
@@ -104,9 +129,14 @@ class Model:
             if msg.txnode != self.txnode:
                 return [p.Assign(self.txnode, NODE_ID)] if self.txnode is not None else []
         if isinstance(msg, p.Request) and msg.kind in (p.SUB_BIND, p.PUB_BIND):
-            assert msg.txnode == self.txnode, f"request from TxNode {msg.txnode}"
+            if msg.txnode != self.txnode:  # moved by an Assign forged while it stood by
+                assert self.stood_by, f"request from TxNode {msg.txnode}"
+                return [p.Hello(1)]  # an unknown TxNode asks: nodes claim again
             return [p.Bind(self.bind(msg.value, msg.size_class), msg.value)]
         if isinstance(msg, p.Holds):
+            self.announced.add((msg.etag, msg.uid))
+            if msg.uid not in self.etags and self.uid_at(msg.etag) is None:
+                self.etags[msg.uid] = msg.etag  # a pair in no table: adopted, as ours does
             return self.corrections(p.Bind(msg.etag, msg.uid))
         if isinstance(msg, p.Declare):
             return [p.Grant(msg.etag, msg.txnode, 0x02)]
@@ -125,6 +155,10 @@ class CNodeMachine(RuleBasedStateMachine):
         self.tids: dict[tuple[int, int], int] = {}
         self.stalled = False  # the controller's mailboxes are busy: nothing is sent
         self.last_counters = self.node.counters()
+        #: forged: a Bind or a refusal of a UID, to go right after the node's next request for it
+        self.ambush: p.Bind | p.EtagsFull | p.Failed | p.Limit | None = None
+        self.fresh: set[int] = set()  # channels asked by the application, not bound since
+        self.excused: set[int] = set()  # ... of which nobody answered for a while
 
     # --- plumbing --------------------------------------------------------------------------
 
@@ -135,7 +169,7 @@ class CNodeMachine(RuleBasedStateMachine):
             uid = self.channels.get(event.channel)
             assert uid is not None and uid in self.subscribed, f"event on channel {event}"
             etag = can_id & p.ETAG_MASK
-            assert self.model.uid_at(etag) == uid, f"{event} came on etag {etag:#x}"
+            assert self.vouched(uid, etag), f"{event} came on etag {etag:#x}"
         self.drain()
         return event
 
@@ -158,9 +192,23 @@ class CNodeMachine(RuleBasedStateMachine):
             priority, txnode, etag = p.split_id(can_id)
             assert priority >= 2 and txnode == self.model.txnode
             uid = self.model.uid_at(etag)
-            assert uid in self.published, f"event on etag {etag:#x}, bound to {uid}"
+            if uid not in self.published:  # a Bind forged while the CAN-ECB stood by?
+                mine = [u for c, u in self.channels.items()
+                        if u in self.published and self.node.channel_etag(c) == etag]  # fmt: skip
+                assert mine and all(self.vouched(u, etag) for u in mine), (
+                    f"event on etag {etag:#x}, bound to {uid}"
+                )
             return
         msg = p.decode(can_id, data)  # raises on a malformed frame of the node
+        forged = self.ambush
+        if (
+            isinstance(msg, p.Request)
+            and msg.kind in (p.SUB_BIND, p.PUB_BIND)
+            and forged is not None
+            and msg.value == (forged.value if isinstance(forged, p.Failed) else forged.uid)
+        ):
+            self.ambush = None
+            self.forged_management(forged)  # before the CAN-ECB's answer
         for reply in self.model.answer(msg):
             self.feed_msg(reply)
 
@@ -168,6 +216,34 @@ class CNodeMachine(RuleBasedStateMachine):
         self.now = (self.now + dt) & 0xFFFFFFFF
         self.node.tick(self.now)
         self.drain()
+        until = self.model.standby_until
+        if until is not None and (self.now - until) & 0xFFFFFFFF < 1 << 31:
+            self.model.standby_until = None  # it takes over: Hello, and it answers again
+            self.feed_msg(p.Hello(1))
+
+    def vouched(self, uid: int, etag: int) -> bool:
+        """Whether the node may rely on ``etag`` for ``uid``: the CAN-ECB bound it, or a Bind
+        forged while it stood by told the node so, and the node has not reported the pair since
+        (its answer to the Hello of the takeover does, and the CAN-ECB corrects it or adopts
+        it): docs/security.md, a forged Bind misleads the asker until that correction."""
+        model = self.model
+        return model.etags.get(uid) == etag or (
+            model.stood_by and (etag, uid) not in model.announced
+        )
+
+    def asked(self, channel: int, forged: int | None = None) -> None:
+        """The application asked for ``channel``: it may fail only if nobody answers.
+        ``forged``: a Bind of that etag answers its request before the CAN-ECB does."""
+        if forged is not None:
+            self.ambush = p.Bind(forged, self.channels[channel])
+        self.fresh.add(channel)
+        self.excused.discard(channel)
+        if self.model.standby or self.stalled:
+            self.excused.add(channel)
+
+    def nobody_answers(self) -> None:
+        """The CAN-ECB stands by, or the controller stalls: the requests out may fail."""
+        self.excused |= self.fresh
 
     # --- rules -----------------------------------------------------------------------------
 
@@ -186,26 +262,31 @@ class CNodeMachine(RuleBasedStateMachine):
     @rule(stalled=st.booleans())
     def stall(self, stalled: bool) -> None:
         self.stalled = stalled
+        if stalled:
+            self.nobody_answers()
         self.drain()
 
-    @rule(i=st.integers(0, len(UIDS) - 1))
-    def subscribe(self, i: int) -> None:
+    @rule(i=st.integers(0, len(UIDS) - 1), forged=st.none() | any_etag)
+    def subscribe(self, i: int, forged: int | None) -> None:
+        """Subscribe; ``forged``: a Bind of that etag answers the request before the CAN-ECB."""
         try:
             channel = self.node.subscribe(UIDS[i], self.now)
         except ConfigError:  # every channel is in use
             return
         self.channels[channel] = UIDS[i]
         self.subscribed.add(UIDS[i])
+        self.asked(channel, forged)
         self.drain()
 
-    @rule(i=st.integers(0, len(UIDS) - 1), size=st.sampled_from(SIZES))
-    def advertise(self, i: int, size: int) -> None:
+    @rule(i=st.integers(0, len(UIDS) - 1), size=st.sampled_from(SIZES), forged=st.none() | any_etag)
+    def advertise(self, i: int, size: int, forged: int | None) -> None:
         try:
             channel = self.node.advertise(UIDS[i], size, self.now)
         except ConfigError:  # every channel is in use, or larger than the node's events
             return
         self.channels[channel] = UIDS[i]
         self.published.add(UIDS[i])
+        self.asked(channel, forged)
         self.drain()
 
     @rule(i=st.integers(0, len(UIDS) - 1))
@@ -218,6 +299,8 @@ class CNodeMachine(RuleBasedStateMachine):
         self.subscribed.discard(uid)
         if uid not in self.published:
             del self.channels[channel]
+        else:
+            self.asked(channel)
         self.drain()
 
     @rule(i=st.integers(0, len(UIDS) - 1), data=st.binary(max_size=1100))
@@ -300,6 +383,56 @@ class CNodeMachine(RuleBasedStateMachine):
         for correction in self.model.corrections(msg):
             self.feed_msg(correction)
 
+    @rule(instance=st.integers(0, 2**64 - 1))
+    def forged_serving(self, instance: int) -> None:
+        """A Serving of a lower instance: the CAN-ECB stands by until TAKEOVER ms after it."""
+        self.feed_msg(p.Serving(instance))  # nodes ignore it
+        self.model.standby_until = (self.now + TAKEOVER) & 0xFFFFFFFF
+        self.model.stood_by = True
+        self.model.announced.clear()
+        self.nobody_answers()
+
+    @rule(
+        k=st.integers(0, 7),
+        other=st.integers(0, len(UIDS) - 1),
+        etag=any_etag,
+        how=st.sampled_from(["its etag, another uid", "its uid, any etag", "ambush"]),
+        answer=st.booleans(),
+    )
+    def semi_valid_bind(self, k: int, other: int, etag: int, how: str, answer: bool) -> None:
+        """A Bind aimed at one of the node's channels: its etag to another UID (a
+        contradiction: with ``answer``, Bind(etag, its UID) then answers the request it makes
+        again, before the CAN-ECB), its UID to an etag of any size class, now or as the answer
+        to its next request (before the CAN-ECB's)."""
+        if not self.channels:
+            return
+        channel, uid = sorted(self.channels.items())[k % len(self.channels)]
+        own = self.node.channel_etag(channel) or self.model.etags.get(uid, etag)
+        if how == "its etag, another uid":
+            self.forged_management(p.Bind(own, UIDS[other] if UIDS[other] != uid else OTHER))
+            if answer:
+                self.ambush = p.Bind(etag, uid)
+        elif how == "its uid, any etag":
+            self.forged_management(p.Bind(etag, uid))
+        else:
+            self.ambush = p.Bind(etag, uid)
+
+    @rule(
+        msg=st.one_of(
+            st.builds(p.EtagsFull, st.sampled_from(UIDS)),
+            st.builds(p.Failed, st.sampled_from(UIDS)),
+            st.builds(p.Limit, st.just(0x42), st.sampled_from(UIDS)),
+        ),
+        ambush=st.booleans(),
+    )
+    def semi_valid_refusal(self, msg: p.EtagsFull | p.Failed | p.Limit, ambush: bool) -> None:
+        """A refusal of one of the node's channels (its TxNode's, for Limit), now or as the
+        answer to its next request."""
+        if ambush:
+            self.ambush = msg
+        else:
+            self.forged_management(msg)
+
     @rule(frame=frames)
     def random_frame(self, frame: tuple[int, bytes, int]) -> None:
         can_id, data, flags = frame
@@ -333,7 +466,21 @@ class CNodeMachine(RuleBasedStateMachine):
     def relies_only_on_the_ecbs_bindings(self) -> None:
         for channel, uid in self.channels.items():
             etag = self.node.channel_etag(channel)
-            assert etag == 0 or self.model.etags.get(uid) == etag
+            assert etag == 0 or self.vouched(uid, etag)
+
+    @invariant()
+    def no_channel_fails_while_the_ecb_answers(self) -> None:
+        for channel in list(self.channels):
+            state = self.node.channel_state(channel)
+            if state == 2:
+                self.fresh.discard(channel)
+                self.excused.discard(channel)
+            elif state < 0:
+                assert channel in self.excused, (
+                    f"channel {channel} ({self.channels[channel]:#x}) ended {ERRORS[state]}, "
+                    f"though the CAN-ECB answered (the application asked it since: "
+                    f"{channel in self.fresh})"
+                )
 
     @invariant()
     def counters_never_go_back(self) -> None:
@@ -363,7 +510,7 @@ def _mangle(parts: list[bytes], how: str, at: int) -> list[bytes]:
 
 CNodeMachine.TestCase.settings = settings(
     max_examples=int(
-        os.environ.get("UPS_CNODE_FUZZ_EXAMPLES", "200" if VARIANT == "asan" else "60")
+        os.environ.get("UPS_CNODE_FUZZ_EXAMPLES", "600" if VARIANT == "asan" else "200")
     ),
     stateful_step_count=40,
     deadline=None,
