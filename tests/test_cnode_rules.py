@@ -682,28 +682,24 @@ def test_the_state_constants_are_the_numbers_the_calls_return() -> None:
 
 def test_a_grants_priority_is_read_with_ups_channel_priority() -> None:
     w = Wire()
-    priority = w.node._lib.ups_channel_priority
     w.join()
     a = w.node.advertise(A, 8, w.now)
-    assert priority(w.node._node, a) == 0x80
+    assert w.node.channel_priority(a) == 0x80
     w.bind(a, 0x20, A)
     assert w.node.declare(a, 2, 100, 50, 0, w.now) == 0
     w.tick(1)
     w.feed(p.Grant(0x20, 5, 0x11))
     w.tick(600)  # the answer once it stood 0.5 s
     assert w.node.declaration_state(a) == header_constant("UPS_DECL_GRANTED")
-    assert priority(w.node._node, a) == 0x11
+    assert w.node.channel_priority(a) == 0x11
     w.node.set_priority(a, 0x90)
-    assert priority(w.node._node, a) == 0x90
-    assert priority(w.node._node, 7) == -1  # UPS_ERR_ARGUMENT: no such channel
+    assert w.node.channel_priority(a) == 0x90
+    assert w.node.channel_priority(7) == -1  # UPS_ERR_ARGUMENT: no such channel
 
 
 def test_ups_idle_says_when_a_node_may_stop_ticking() -> None:
     w = Wire()
-
-    def idle() -> bool:
-        return bool(w.node._lib.ups_idle(w.node._node))
-
+    idle = w.node.idle
     assert idle()  # not started
     w.node.start(w.now)
     assert not idle()  # joining

@@ -127,6 +127,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "ups_tx_peek": (f, [p]),
         "ups_tx_pop": (None, [p]),
         "ups_notes": (ctypes.c_uint, [p]),
+        "ups_idle": (i, [p]),
         "ups_join_state": (i, [p]),
         "ups_txnode": (i, [p]),
         "ups_subscribe": (i, [p, u64, u32]),
@@ -134,6 +135,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "ups_unsubscribe": (i, [p, i]),
         "ups_publish": (i, [p, i, ctypes.c_char_p, u16]),
         "ups_set_priority": (i, [p, i, u8]),
+        "ups_channel_priority": (i, [p, i]),
         "ups_channel_state": (i, [p, i]),
         "ups_channel_etag": (u16, [p, i]),
         "ups_filters": (i, [p, ctypes.POINTER(_Filter), i]),
@@ -227,6 +229,11 @@ class CNode:
     def notes(self) -> int:
         return int(self._lib.ups_notes(self._node))
 
+    def idle(self) -> bool:
+        """``ups_idle``: nothing is due, so the node may stop ticking until a frame comes or it
+        calls the library again."""
+        return bool(self._lib.ups_idle(self._node))
+
     @property
     def join_state(self) -> int:
         return int(self._lib.ups_join_state(self._node))
@@ -262,6 +269,12 @@ class CNode:
 
     def set_priority(self, channel: int, priority: int) -> None:
         self._check(self._lib.ups_set_priority(self._node, channel, priority), "set_priority")
+
+    def channel_priority(self, channel: int) -> int:
+        """``ups_channel_priority``: the priority the node's events on ``channel`` go at now
+        (0x02..0xFF: the default, ``set_priority``'s, or a Grant's), or a negative
+        ``UPS_ERR_...`` (no such channel)."""
+        return int(self._lib.ups_channel_priority(self._node, channel))
 
     def channel_state(self, channel: int) -> int:
         return int(self._lib.ups_channel_state(self._node, channel))
