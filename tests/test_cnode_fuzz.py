@@ -231,15 +231,22 @@ class CNodeMachine(RuleBasedStateMachine):
             model.stood_by and (etag, uid) not in model.announced
         )
 
-    def asked(self, channel: int, forged: int | None = None) -> None:
+    def asked(self, channel: int, waiting: bool, forged: int | None = None) -> None:
         """The application asked for ``channel``: it may fail only if nobody answers.
-        ``forged``: a Bind of that etag answers its request before the CAN-ECB does."""
+        ``waiting``: it was waiting already (the request out may go on: what made it fail
+        stays); ``forged``: a Bind of that etag answers its request before the CAN-ECB does."""
         if forged is not None:
             self.ambush = p.Bind(forged, self.channels[channel])
         self.fresh.add(channel)
-        self.excused.discard(channel)
+        if not waiting:
+            self.excused.discard(channel)
         if self.model.standby or self.stalled:
             self.excused.add(channel)
+
+    def waiting(self, uid: int) -> bool:
+        """Whether the node's channel of ``uid`` waits for its etag."""
+        channel = next((c for c, u in self.channels.items() if u == uid), None)
+        return channel is not None and self.node.channel_state(channel) == 1
 
     def nobody_answers(self) -> None:
         """The CAN-ECB stands by, or the controller stalls: the requests out may fail."""
@@ -269,24 +276,26 @@ class CNodeMachine(RuleBasedStateMachine):
     @rule(i=st.integers(0, len(UIDS) - 1), forged=st.none() | any_etag)
     def subscribe(self, i: int, forged: int | None) -> None:
         """Subscribe; ``forged``: a Bind of that etag answers the request before the CAN-ECB."""
+        waiting = self.waiting(UIDS[i])
         try:
             channel = self.node.subscribe(UIDS[i], self.now)
         except ConfigError:  # every channel is in use
             return
         self.channels[channel] = UIDS[i]
         self.subscribed.add(UIDS[i])
-        self.asked(channel, forged)
+        self.asked(channel, waiting, forged)
         self.drain()
 
     @rule(i=st.integers(0, len(UIDS) - 1), size=st.sampled_from(SIZES), forged=st.none() | any_etag)
     def advertise(self, i: int, size: int, forged: int | None) -> None:
+        waiting = self.waiting(UIDS[i])
         try:
             channel = self.node.advertise(UIDS[i], size, self.now)
         except ConfigError:  # every channel is in use, or larger than the node's events
             return
         self.channels[channel] = UIDS[i]
         self.published.add(UIDS[i])
-        self.asked(channel, forged)
+        self.asked(channel, waiting, forged)
         self.drain()
 
     @rule(i=st.integers(0, len(UIDS) - 1))
@@ -295,12 +304,13 @@ class CNodeMachine(RuleBasedStateMachine):
         channel = next((c for c, u in self.channels.items() if u == uid), None)
         if channel is None or uid not in self.subscribed:
             return
+        waiting = self.waiting(uid)
         self.node.unsubscribe(channel)
         self.subscribed.discard(uid)
         if uid not in self.published:
             del self.channels[channel]
         else:
-            self.asked(channel)
+            self.asked(channel, waiting)
         self.drain()
 
     @rule(i=st.integers(0, len(UIDS) - 1), data=st.binary(max_size=1100))
