@@ -6,6 +6,9 @@ their receive buffers hold together: each link reads into a base buffer of its o
 (``BASE_BUFFER``); a frame larger than that is read into a buffer grown for it, and that growth
 is taken from the budget (``RECEIVE_BUDGET`` by default), only for links that were admitted.
 docs/protocol.md (*Bounds on every listening socket*, *Receive buffers*) says it for people.
+
+Both see a link only as ``Bounded``: the few things they read and call on it (``_tcplink.Link``
+is one), so that this module stands below the links it bounds.
 """
 
 from __future__ import annotations
@@ -16,10 +19,7 @@ import logging
 import math
 import resource
 import time
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from ._tcplink import Link
+from typing import Protocol
 
 log = logging.getLogger("ups.tcp")
 
@@ -30,12 +30,36 @@ _SWEEP = 1.0  # seconds between two looks for links that hold a grown buffer and
 _LOG_GAP = 1.0  # seconds between two logs of the same bound
 
 
+class Bounded(Protocol):
+    """A link as the bounds see it (``_tcplink.Link``)."""
+
+    budget: ReceiveBudget | None  #: where it grows its receive buffer from (a Doorman sets it)
+    may_grow: bool  #: False until a Doorman admits it
+    max_frame: int  #: the longest frame it accepts now
+    full_frame: int  #: what ``max_frame`` becomes once a Doorman lets it in
+    progress: int  #: reads that completed a frame
+    lost: asyncio.Future[str | None]  #: done once it ended
+
+    @property
+    def name(self) -> str: ...
+    def partial(self) -> bool:
+        """Whether part of a frame waits in its receive buffer for the rest of it."""
+
+    def shrink(self) -> None:
+        """Give a grown receive buffer back, if it holds no partial frame."""
+
+    def admitted(self) -> None:
+        """A Doorman admitted it: it may grow its buffer from now on."""
+
+    def abort(self, reason: str) -> None: ...
+
+
 class ReceiveBudget:
     """The memory by which a daemon's links may grow their receive buffers, in all.
 
     A link asks (``take``) for the size its grown buffer will have beyond its base before it
     reads the body of a frame that does not fit its base buffer. When the budget cannot give it
-    (after taking back the grown buffers that hold no partial frame: ``Link.shrink``), the
+    (after taking back the grown buffers that hold no partial frame: ``Bounded.shrink``), the
     frame is refused and the link closed (``receive_refused``). A link holding a grown buffer
     with a partial frame in it must complete a frame at least every ``frame_time`` seconds, or
     it is closed (``receive_stalled``): nobody holds the budget by sending slowly. ``counters``
@@ -55,12 +79,12 @@ class ReceiveBudget:
         for key in ("receive_refused", "receive_stalled", "receive_held"):
             counters.setdefault(key, 0)
         self.held = 0  #: bytes given out now
-        self._holders: dict[Link, int] = {}  # link -> bytes it holds beyond its base
-        self._seen: dict[Link, tuple[int, float]] = {}  # link -> (its progress, since when)
+        self._holders: dict[Bounded, int] = {}  # link -> bytes it holds beyond its base
+        self._seen: dict[Bounded, tuple[int, float]] = {}  # link -> (its progress, since when)
         self._timer: asyncio.TimerHandle | None = None
         self._logged_at = -math.inf
 
-    def take(self, link: Link, size: int) -> bool:
+    def take(self, link: Bounded, size: int) -> bool:
         """``link`` grows its buffer to ``size`` bytes beyond its base: whether it may."""
         more = size - self._holders.get(link, 0)
         if self.held + more > self.total:
@@ -79,7 +103,7 @@ class ReceiveBudget:
             self._timer = asyncio.get_running_loop().call_later(_SWEEP, self._sweep)
         return True
 
-    def release(self, link: Link) -> None:
+    def release(self, link: Bounded) -> None:
         """``link`` is back to its base buffer (or gone): what it held is free again."""
         size = self._holders.pop(link, 0)
         self._seen.pop(link, None)
@@ -95,7 +119,7 @@ class ReceiveBudget:
         self.held = held
         self.counters["receive_held"] = held
 
-    def _reclaim(self, keep: Link) -> None:
+    def _reclaim(self, keep: Bounded) -> None:
         """Take back every grown buffer that holds no partial frame (a publisher's link keeps
         one between large events), but ``keep``'s."""
         for link in list(self._holders):
@@ -163,12 +187,12 @@ class Doorman:
         self.hello_timeout = hello_timeout
         self.first_frame = first_frame
         self.links = 0
-        self._waiting: dict[Link, asyncio.TimerHandle] = {}  # oldest first
-        self._asked: set[Link] = set()  # waiting, and owed an answer: evicted last
+        self._waiting: dict[Bounded, asyncio.TimerHandle] = {}  # oldest first
+        self._asked: set[Bounded] = set()  # waiting, and owed an answer: evicted last
         self.counters = dict.fromkeys(("refused", "evicted", "timed_out"), 0)
         self.budget = ReceiveBudget(receive_budget, self.counters if counters is None else counters)
 
-    def admit(self, link: Link) -> None:
+    def admit(self, link: Bounded) -> None:
         """A new connection (call from the protocol factory)."""
         self.links += 1
         link.budget = self.budget
@@ -187,20 +211,20 @@ class Doorman:
         loop = asyncio.get_running_loop()
         self._waiting[link] = loop.call_later(self.hello_timeout, self._time_out, link)
 
-    def asked(self, link: Link) -> None:
+    def asked(self, link: Bounded) -> None:
         """``link`` asked what the daemon answers (a StatusRequest): while it waits to be
         admitted, it is evicted only after every waiting link that did not ask."""
         if link in self._waiting:
             self._asked.add(link)
 
-    def _evictee(self) -> Link:
+    def _evictee(self) -> Bounded:
         """The oldest waiting link that asked nothing, else the oldest waiting one."""
         for link in self._waiting:
             if link not in self._asked:
                 return link
         return next(iter(self._waiting))
 
-    def greeted(self, link: Link) -> None:
+    def greeted(self, link: Bounded) -> None:
         """``link`` said Hello (and is admitted): it may stay, send full-sized frames, and grow
         its receive buffer to read them."""
         self.lift(link)
@@ -210,13 +234,13 @@ class Doorman:
             timer.cancel()
         link.admitted()
 
-    def lift(self, link: Link) -> None:
+    def lift(self, link: Bounded) -> None:
         """``link`` may send full-sized frames, but still counts as waiting to be admitted
         (``greeted``): it is still timed out, and evicted first; a frame larger than its base
         buffer waits, unread, until it is admitted."""
         link.max_frame = link.full_frame
 
-    def gone(self, link: Link) -> None:
+    def gone(self, link: Bounded) -> None:
         """``link`` ended (call from its on_lost)."""
         self.links -= 1
         self._asked.discard(link)
@@ -224,7 +248,7 @@ class Doorman:
         if timer is not None:
             timer.cancel()
 
-    def _time_out(self, link: Link) -> None:
+    def _time_out(self, link: Bounded) -> None:
         if link in self._waiting:
             self.counters["timed_out"] += 1
             link.abort(f"not admitted (no Hello, or none vouched for) within "
