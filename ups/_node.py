@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib
 import logging
 import sys
 import time
@@ -22,15 +21,13 @@ from ._channel import Channel, ChannelLike, as_channel, as_literal, check_patter
 from ._errors import Closed, ConfigError
 from ._face import DEFAULT_PRIORITY, OVERFLOWS, ChannelState, Face, FaceContext, Overflow, Sink
 from ._message import Message
+from ._network import build_face, choose
 from ._nodeid import claim_node_id
 from ._patterns import Watching
 from ._subscription import DEFAULT_QUEUE, YIELD_EVERY, Subscription, wait
 from ._tls import Tls
 
 log = logging.getLogger("ups")
-
-#: the module of each kind of network's face; each has ``OPTIONS`` and ``build()``
-_FACES = {"can": "._canface", "broker": "._tcpface", "zenoh": "._zenohface"}
 
 _new_message: Final = tuple.__new__  # Message(...) without NamedTuple's Python-level __new__
 
@@ -94,21 +91,9 @@ class Node:
         zenoh_config: str | Path | None = None,
         catalog: str | Path | None = None,
     ) -> None:
-        networks = {
-            kind: where
-            for kind, where in (("can", can), ("broker", broker), ("zenoh", zenoh))
-            if where is not None
-        }
-        if zenoh_config is not None:
-            networks.setdefault("zenoh", "")  # the config file names where to connect
-        if len(networks) != 1:
-            raise ConfigError(
-                "a node needs one network: Node(can='INTERFACE:CHANNEL'), "
-                "Node(broker='HOST:PORT') or Node(zenoh='tcp/HOST:PORT')"
-            )
+        self._network, self._where = choose(can, broker, zenoh, zenoh_config)
         if node_id is not None and not 0 <= node_id < 1 << 64:
             raise ConfigError(f"node_id must fit in 64 bits, got {node_id!r}")
-        ((self._network, self._where),) = networks.items()
         options: dict[str, Any] = dict(
             filter_limit=filter_limit, max_event=max_event, listen=listen, peer_queue=peer_queue,
             peer_overflow=peer_overflow, tls=tls, config=zenoh_config, catalog=catalog,
@@ -163,7 +148,9 @@ class Node:
             # machine gets two ids (the TCP-ECB binds each id to one identity).
             key = self.name if self._tls is None else f"{self.name}\0{self._tls.identity()}"
             self._node_id, self._id_lock = claim_node_id(key)
-        face = self._build_face(self._node_id)
+        context = FaceContext(self._node_id, self.name, self._deliver, self._states, self.stats,
+                              self._join_timeout)  # fmt: skip
+        face = build_face(self._network, self._where, context, self._options)
         bound = "" if self._join_timeout is None else f" (up to {self._join_timeout:g} s)"
         waiting = asyncio.get_running_loop().call_later(
             1.0, log.warning, "waiting for %s%s", face.where, bound if self._join_timeout else ""
@@ -177,18 +164,6 @@ class Node:
         finally:
             waiting.cancel()
         self._face = face
-
-    def _build_face(self, node_id: int) -> Face:
-        """The face of this node's network, handed what it needs (its module is imported only
-        when used: a TCP/IP node does not load python-can)."""
-        module = importlib.import_module(_FACES[self._network], __package__)
-        stray = set(self._options) - module.OPTIONS
-        if stray:
-            raise ConfigError(f"{', '.join(sorted(stray))}: not an option of {self._network} nodes")
-        context = FaceContext(node_id, self.name, self._deliver, self._states, self.stats,
-                              self._join_timeout)  # fmt: skip
-        face: Face = module.build(self._where, context, **self._options)
-        return face
 
     async def close(self) -> None:
         """Close every subscription and the network. Safe to call twice."""
@@ -311,7 +286,7 @@ class Node:
             raise ConfigError(f"overflow must be one of {OVERFLOWS}, got {overflow!r}")
         patterns = tuple(dict.fromkeys(check_pattern(c) for c in channels if is_pattern(c)))
         chans = tuple(dict.fromkeys(as_channel(c) for c in channels if not is_pattern(c)))
-        sub = Subscription(self, chans, maxlen, overflow, callback, patterns)
+        sub = Subscription(self.unsubscribe, chans, maxlen, overflow, callback, patterns)
         attached: list[Channel] = []
         try:
             for chan in chans:

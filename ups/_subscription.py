@@ -7,16 +7,12 @@ import asyncio
 import collections
 import logging
 import time
-from collections.abc import AsyncIterator, Callable
-from typing import TYPE_CHECKING
+from collections.abc import AsyncIterator, Awaitable, Callable
 
 from ._channel import Channel
 from ._errors import Closed, ConfigError
 from ._face import Overflow
 from ._message import Message
-
-if TYPE_CHECKING:
-    from ._node import Node
 
 log = logging.getLogger("ups")
 
@@ -43,11 +39,13 @@ class Subscription:
     ``patterns`` are the globs it was made with (``subscribe("robot/*")``); ``channels`` holds
     its channels, those the globs matched included, and grows as the network names more. Each
     message says its channel.
+
+    ``unsubscribe`` is what ``close`` awaits: the node's ``unsubscribe``, which made it.
     """
 
     def __init__(
         self,
-        node: Node,
+        unsubscribe: Callable[[Subscription], Awaitable[None]],
         channels: tuple[Channel, ...],
         maxlen: int,
         overflow: Overflow,
@@ -62,7 +60,7 @@ class Subscription:
         self.dropped = 0
         self.errors = 0
         self._logged = -_LOG_GAP
-        self._node = node
+        self._unsubscribe = unsubscribe
         self._queue: collections.deque[Message] = collections.deque()
         self._loop = asyncio.get_running_loop()
         self._waiter: asyncio.Future[None] | None = None
@@ -140,7 +138,7 @@ class Subscription:
 
     async def close(self) -> None:
         """Unsubscribe. Events already queued can still be taken."""
-        await self._node.unsubscribe(self)
+        await self._unsubscribe(self)
 
     def _close(self) -> None:
         self._closed = True
