@@ -177,6 +177,18 @@ def test_each_command_is_built_alone_as_it_is_in_the_whole_command_line() -> Non
     assert set(listed) == {"ups", *(f"ups {c}" for c in commands)}  # every command, no options
 
 
+def test_the_tools_lines_in_ups_help_are_their_modules_help() -> None:
+    """``ups --help`` lists the tools without importing them: its lines must be theirs."""
+    import importlib
+
+    from ups import tools
+    from upscli import TOOLS
+
+    assert tuple(TOOLS) == tools.COMMANDS
+    for name, line in TOOLS.items():
+        assert line == importlib.import_module(f"ups.tools.{name}").HELP, name
+
+
 def test_ups_sub_of_a_name_the_catalog_does_not_have_says_so() -> None:
     catalog = str(ROOT / "examples" / "robots.toml")
     broker, address = start_tcp_broker("--recovery", "0")

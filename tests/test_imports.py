@@ -11,10 +11,13 @@ import sys
 from .procs import ROOT
 
 HEAVY = ("can", "msgpack", "asyncio", "cryptography", "ups.rt._analysis", "prometheus_client")
+#: what ``ups --help`` did import before it knew no command runs (issue 43): the metrics (and
+#: with them logging), every tool's module (the console's web guard), JSON, difflib
+UNCHOSEN = ("ups._metrics", "logging", "ups.tools.console", "ups.tools.ls", "json", "difflib")
 
 
-def loaded_after(code: str) -> set[str]:
-    probe = f"{code}\nimport sys\nprint(' '.join(m for m in {HEAVY!r} if m in sys.modules))"
+def loaded_after(code: str, heavy: tuple[str, ...] = HEAVY) -> set[str]:
+    probe = f"{code}\nimport sys\nprint(' '.join(m for m in {heavy!r} if m in sys.modules))"
     done = subprocess.run(
         [sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=60,
         check=True,
@@ -26,6 +29,14 @@ def test_ups_help_loads_nothing_heavy() -> None:
     code = "import contextlib, io\nimport upscli\nwith contextlib.suppress(SystemExit), "
     code += "contextlib.redirect_stdout(io.StringIO()):\n    upscli.main(['--help'])"
     assert loaded_after(code) == set()
+
+
+def test_ups_help_imports_nothing_a_command_needs_only_when_it_runs() -> None:
+    code = "import contextlib, io\nimport upscli\nwith contextlib.suppress(SystemExit), "
+    code += "contextlib.redirect_stdout(io.StringIO()):\n    upscli.main(['--help'])"
+    assert loaded_after(code, UNCHOSEN) == set()
+    code = code.replace("['--help']", "['pub', '--help']")  # a command's own, not the others'
+    assert loaded_after(code, UNCHOSEN) == set()
 
 
 def test_a_daemons_help_loads_nothing_heavy() -> None:

@@ -16,7 +16,6 @@ import re
 import sys
 from typing import Any
 
-from ups import tools
 from ups._address import DEFAULT_PORT
 from ups._cliargs import (
     add_can,
@@ -33,13 +32,24 @@ from ups._cliargs import (
     warn_if_virtual,
 )
 from ups._errors import ConfigError, UpsError
-from ups._metrics import add_metrics, check_metrics
 
-from ._argparsing import Unbuilt, Version, unrecognized
+from ._argparsing import Unbuilt, Version, add_metrics, unrecognized
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
 DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus", "ros2")
+#: the operators' tools (``ups/tools/``, a module each) and their lines in ``ups --help``: a
+#: tool's module is imported only when it is the command (``console``'s loads its web guard
+#: and the metrics); tests/test_cli_behaves.py holds each line equal to its module's ``HELP``
+TOOLS = {
+    "ls": "list the nodes and channels of a network",
+    "monitor": "a live view of a network: channels, rates, last values, nodes, drops, bus load",
+    "record": "record a network's events to a python-can log file (.asc, .blf, .log)",
+    "decode": "print a recording or a candump/python-can log of a UPS bus in UPS terms",
+    "replay": "publish a recording's events again on a live network, by channel UID",
+    "dbc": "write a DBC that labels a UPS bus's frames (for cantools, SavvyCAN ...)",
+    "console": "a web page of the live network: channels, nodes, a plot, a form to publish",
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -232,11 +242,12 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
 
     _pubsub.add_commands(command)
 
-    for name in tools.COMMANDS:  # the operators' tools, one module each
-        module = importlib.import_module(f"ups.tools.{name}")
-        cmd = command(name, help=module.HELP)
-        module.add_arguments(cmd)
-        cmd.set_defaults(run=module.run)
+    for name, line in TOOLS.items():  # the operators' tools, one module each
+        cmd = command(name, help=line)
+        if only in (None, name):
+            module = importlib.import_module(f"ups.tools.{name}")
+            module.add_arguments(cmd)
+            cmd.set_defaults(run=module.run)
 
     from . import _ethercat, _jaus, _ros2
 
@@ -333,6 +344,7 @@ complete -F _ups ups"""
 
 
 def _run_can_broker(args: argparse.Namespace) -> int:
+    from ups._metrics import check_metrics
     from ups.broker._store import default_db
     from ups.broker.can_ecb import serve
 
@@ -369,6 +381,7 @@ def _run_broker(args: argparse.Namespace) -> int:
 
 def _run_gateway(args: argparse.Namespace) -> int:
     from ups._catalog import load_catalog
+    from ups._metrics import check_metrics
     from ups.gateway import Gateway, serve
 
     broker, zenoh = args.broker, args.zenoh

@@ -1,11 +1,11 @@
 """The parts of the ``ups`` command line that are about parsing itself: ``--version`` looked up
-only when asked, the stand-in for the parsers of commands not being run, and the usage and the
-option meant when an argument is not recognized."""
+only when asked, the stand-in for the parsers of commands not being run, ``--metrics`` built only
+for the command being run, and the usage and the option meant when an argument is not
+recognized."""
 
 from __future__ import annotations
 
 import argparse
-import difflib
 from typing import Any
 
 
@@ -20,6 +20,8 @@ def unrecognized(
         if sub is None or chosen not in sub.choices:
             break
         parser = sub.choices[chosen]
+    import difflib  # only for a mistake
+
     message = f"unrecognized arguments: {' '.join(unknown)}"
     options = [o for a in parser._actions for o in a.option_strings if o.startswith("--")]
     meant = difflib.get_close_matches(unknown[0].split("=", 1)[0], options, n=1, cutoff=0.8)
@@ -52,3 +54,12 @@ class Unbuilt:
 
     def __getattr__(self, name: str) -> Any:
         return lambda *args, **kwargs: self
+
+
+def add_metrics(cmd: argparse.ArgumentParser) -> None:
+    """A daemon's ``--metrics`` option, when its parser is built (``ups._metrics`` loads
+    ``logging``, which ``ups --help`` and the other commands' parsers do without)."""
+    if not isinstance(cmd, Unbuilt):
+        from ups._metrics import add_metrics as add
+
+        add(cmd)

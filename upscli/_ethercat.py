@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Callable
 
 from ups._cliargs import add_network, positive_float, run_until_signal
@@ -80,6 +79,8 @@ def _check(path: str) -> int:
 
 
 def _scan(args: argparse.Namespace) -> int:
+    import json
+
     from ups.ethercat import scan
 
     if args.ifname is None:

@@ -15,7 +15,8 @@ from ups._cliargs import (
     run_until_signal,
 )
 from ups._errors import ConfigError
-from ups._metrics import add_metrics
+
+from ._argparsing import add_metrics
 
 OCU_HELP = "a small JAUS operator control unit: discover, query, control, send, watch, waypoints"
 

@@ -8,7 +8,8 @@ from collections.abc import Callable
 
 from ups._cliargs import add_catalog, add_network, positive_float, run_until_signal
 from ups._errors import ConfigError
-from ups._metrics import add_metrics
+
+from ._argparsing import add_metrics
 
 HELP = "UPS channels as ROS 2 topics through rmw_zenoh (no ROS needed); or check a map"
 
