@@ -8,6 +8,7 @@
 - :class:`Spawned`: a measuring role, a function run in a spawned interpreter, that talks over
   a pipe (``(kind, value)`` messages);
 - :func:`cpu_hog`: one busy process per CPU, for measuring under load;
+- :func:`wall_time`: how long a short command takes, start to exit;
 - :func:`free_port`, :func:`free_ports`, :func:`set_affinity`.
 
 Every wait has a timeout, and every process is ended by its own PID: SIGTERM, then SIGKILL.
@@ -96,6 +97,22 @@ def _end(popen: subprocess.Popen[Any], grace: float) -> None:
         except subprocess.TimeoutExpired:
             popen.kill()
             popen.wait(timeout=grace)
+
+
+def wall_time(cmd: list[str], timeout: float = 30.0) -> float:
+    """Seconds from starting ``cmd`` (output discarded) to its exit, which must be 0. The wait
+    blocks in waitpid: ``subprocess.run(timeout=...)`` polls instead, sleeping 0.5, 1, 2 ... up
+    to 50 ms between looks, so every figure it gives is rounded up to 31.5, 63.5, 113.5 ms ..."""
+    started = time.perf_counter()
+    with subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL) as popen:
+        watchdog = threading.Timer(timeout, popen.kill)  # its own PID only
+        watchdog.start()
+        code = popen.wait()
+        elapsed = time.perf_counter() - started
+        watchdog.cancel()
+    if code != 0:
+        raise subprocess.CalledProcessError(code, cmd)
+    return elapsed
 
 
 @dataclass
