@@ -1,5 +1,6 @@
 """The CAN face of a node: joining the bus (``_canjoin``), binding channels to etags (its table
-in ``_canbinding``), sending, receiving and filtering.
+in ``_canbinding``; binding again after a contradiction in ``_canrebind``), sending, receiving
+and filtering (the filters and the reassembly of transfers in ``_canrx``).
 
 See docs/protocol.md for the frames. A node relies only on bindings the CAN-ECB gave in answer
 to its own request. Any Bind that contradicts one of them (another UID on the etag, or another
@@ -14,16 +15,17 @@ import contextlib
 import logging
 import time
 from pathlib import Path
-from typing import Any
 
 import can
 
 from . import _canproto as p
 from . import _cantransfer as t
 from ._canannounce import Announcer
-from ._canbinding import RETRY_FIRST, SETTLE, Bindings
+from ._canbinding import SETTLE, Bindings
 from ._canjoin import Joiner
 from ._canlink import CanLink
+from ._canrebind import Rebinding
+from ._canrx import MGMT_FILTER, Transfers, filters
 from ._canstreams import Streams, declaration
 from ._catalog import Catalog
 from ._errors import (
@@ -37,7 +39,6 @@ from ._face import ChannelState, Deliver, FaceContext, Found
 
 log = logging.getLogger("ups.can")
 
-_REBIND_MAX = 5.0  # a refused re-binding is asked again at most this far apart
 _LOG_GAP = 10.0
 #: a publisher waits this long before its first event on a channel of a larger size class (its
 #: binding may have just moved the channel there): the subscribers, who see their binding
@@ -45,11 +46,6 @@ _LOG_GAP = 10.0
 _GROW_PAUSE = 3 * SETTLE
 _STAGE_MASK = p.make_id(0xFF, 0x7F, 0x3000)
 _STAGE_ID = p.make_id(p.CONFIG_PRIORITY, p.MGMT_TXNODE, 0)
-_MGMT_FILTER = {
-    "can_id": p.MGMT_TXNODE << p.TXNODE_SHIFT,
-    "can_mask": p.TXNODE_MASK << p.TXNODE_SHIFT,
-    "extended": True,
-}
 
 
 #: the Node options a CAN face takes (see ``Node``)
@@ -115,25 +111,29 @@ class CanFace:
         self._joiner = Joiner(node_id, self._send, self.link.channel_info, join_timeout)
         self._filter_limit = filter_limit
         self._max_event = max_event  # the largest event this node buffers
-        self._reassembly = t.Reassembler()
-        self._expiry: asyncio.TimerHandle | None = None
         self._tids: dict[int, int] = {}  # etag -> transfer id of this node's next event
         self._growing: dict[int, asyncio.Future[None]] = {}  # uid -> its move to a larger class
         self._rx: dict[int, ChannelState] = {}  # etag -> channel with local subscribers
         self._suspended: set[int] = set()  # etags received but no longer relied on: counted
         self._wants_rx: dict[int, ChannelState] = {}  # uid -> subscribed channel being bound
-        self._rebinding: dict[int, asyncio.Task[None]] = {}
         self._logged: dict[str, float] = {}
+        self._transfers = Transfers(self._warn)  # events larger than a frame, reassembled
         self.counters = dict.fromkeys(
             ("sent", "foreign", "unknown", "filtered", "own_echo", "malformed", "tx_failed",
              "rebinds", "moves", "reassigned", "unbound_dropped", "task_errors", "too_large",
              "refused_large", "stray_verdicts", "refusals", "stray_refusals"),
             0,
         )  # fmt: skip
+        self._rebinding: dict[int, asyncio.Task[None]] = {}  # uid -> its task (_canrebind)
         self.bindings = Bindings(
             send=self._send, txnode=self._my_txnode, bus=str(self.link.channel_info),
             counters=self.counters, warn=self._warn, on_adopted=self._adopted,
             on_contradicted=self._suspend, rebinding=self._rebinding,
+        )  # fmt: skip
+        self._rebinder = Rebinding(
+            self._rebinding, bindings=self.bindings, wants_rx=self._wants_rx,
+            receive=self._accept, send=self._send, txnode=self._my_txnode,
+            counters=self.counters, warn=self._warn,
         )  # fmt: skip
         self.streams = Streams(
             send=self._send, txnode=self._my_txnode, uid_at=self.bindings.uid_at,
@@ -148,23 +148,22 @@ class CanFace:
     # --- life cycle ------------------------------------------------------------------------
 
     async def start(self) -> None:
-        self.link.add_handler(self._handler, [_MGMT_FILTER])
+        self.link.add_handler(self._handler, [MGMT_FILTER])
         self.link.start()
         self.txnode = await self._joiner.run()
         node_id, bus = self.node_id, self.link.channel_info
         log.info("node %016x joined %s as TxNode 0x%02x", node_id, bus, self.txnode)
 
     async def close(self) -> None:
-        tasks = [t for t in (self._announcer.task, *self._rebinding.values()) if t is not None]
-        for task in tasks:
+        task = self._announcer.task
+        if task is not None:
             task.cancel()
-        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        await self._rebinder.close()
         self.streams.close()
         self.bindings.close()
-        if self._expiry is not None:
-            self._expiry.cancel()
+        self._transfers.close()
         await self.link.flush()  # the frames of transfers still waiting for the interface
         self.link.remove_handler(self._handler)
         if self._owns_link:
@@ -175,8 +174,8 @@ class CanFace:
             **self.counters,
             "refusals": self.counters["refusals"] + self._joiner.refusals,
             "tx_failed": self.link.tx_failed,
-            "large_lost": self._reassembly.lost,
-            "large_frames_dropped": self._reassembly.frames_dropped,
+            "large_lost": self._transfers.reassembler.lost,
+            "large_frames_dropped": self._transfers.reassembler.frames_dropped,
             "bindings": len(self.bindings.bound),
             "txnode": -1 if self.txnode is None else self.txnode,
         }
@@ -203,8 +202,7 @@ class CanFace:
                     self._wants_rx.pop(uid, None)
             state.max_size = t.max_size(etag)
             if subscribe:
-                self._check_fits(state, etag)
-                self._receive(etag, state)
+                self._accept(etag, state)
                 return
             if etag < p.LARGE_FIRST_ETAG or state.published:
                 return
@@ -265,6 +263,11 @@ class CanFace:
         log.info("channel %s moved to etag %#x (events up to %d bytes)", state.channel, etag,
                  state.max_size)  # fmt: skip
         await asyncio.sleep(_GROW_PAUSE)
+
+    def _accept(self, etag: int, state: ChannelState) -> None:
+        """Receive ``state``'s channel, bound to ``etag``, if this node buffers its events."""
+        self._check_fits(state, etag)
+        self._receive(etag, state)
 
     def _check_fits(self, state: ChannelState, etag: int) -> None:
         """Refuse to receive a channel whose events this node would not buffer."""
@@ -379,23 +382,10 @@ class CanFace:
     def _on_transfer_frame(
         self, state: ChannelState, frame: can.Message, txnode: int, etag: int
     ) -> None:
-        reassembly = self._reassembly
-        event = reassembly.feed(
-            (txnode, etag), bytes(frame.data), frame.is_fd, t.max_size(etag), time.monotonic()
-        )
+        event = self._transfers.feed(frame, txnode, etag)
         if event is not None:
             self._deliver(state, event, frame.arbitration_id >> p.PRIORITY_SHIFT, txnode,
                           frame.timestamp)  # fmt: skip
-        elif reassembly.pending and self._expiry is None:
-            self._expiry = asyncio.get_running_loop().call_later(t.TRANSFER_TIMEOUT, self._expire)
-
-    def _expire(self) -> None:
-        """Give up (and count) transfers whose next frame is overdue."""
-        self._expiry = None
-        if self._reassembly.expire(time.monotonic()):
-            self._warn("transfer", "gave up CAN transfers whose frames stopped coming")
-        if self._reassembly.pending:
-            self._expiry = asyncio.get_running_loop().call_later(t.TRANSFER_TIMEOUT, self._expire)
 
     def _on_management(self, can_id: int, data: bytes) -> None:
         try:
@@ -456,63 +446,15 @@ class CanFace:
     # --- re-binding after a contradiction ---------------------------------------------------
 
     def _suspend(self, uid: int) -> None:
-        """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again.
-        Frames still arriving on its old etag are counted (``unbound_dropped``)."""
+        """Forget ``uid``'s binding: nothing is delivered or sent on it until it is bound again
+        (``_canrebind``). Frames still arriving on its old etag are counted
+        (``unbound_dropped``)."""
         etag = self.bindings.forget(uid)
         if etag is not None and self._rx.pop(etag, None) is not None:
             self._suspended.add(etag)
         state = self._channels.get(uid)
-        running = self._rebinding.get(uid)
-        if state is None or not (state.subs or state.published):
-            return
-        if running is not None and not running.done():  # it checks its answer before it ends
-            return
-        task = asyncio.get_running_loop().create_task(self._rebind(uid, state))
-        self._rebinding[uid] = task
-        task.add_done_callback(self._rebind_done)
-
-    async def _rebind(self, uid: int, state: ChannelState) -> None:
-        """Bind ``uid`` again until it holds: refusals may be stray or forged frames too, and
-        another contradiction may come right after the answer, or while this node tells the
-        CAN-ECB its role (a CAN-ECB on the same link answers a Holds at once, inside the send)."""
-        delay = RETRY_FIRST
-        while True:
-            if not (state.subs or state.published):
-                return  # nobody uses the channel any more
-            if state.subs:
-                self._wants_rx[uid] = state
-            try:
-                etag = await self.bindings.request(p.SUB_BIND if state.subs else p.PUB_BIND, uid)
-            except (BrokerUnavailable, Exhausted) as exc:
-                self._warn("rebind-wait", "still binding %016x again: %s", uid, exc)
-                await asyncio.sleep(delay)
-                delay = min(delay * 2, _REBIND_MAX)
-                continue
-            finally:
-                self._wants_rx.pop(uid, None)
-            if self.bindings.bound.get(uid) != etag:
-                continue  # contradicted before this task ran again
-            state.max_size = t.max_size(etag)
-            if state.subs:
-                try:
-                    self._check_fits(state, etag)
-                except PayloadTooLarge as exc:
-                    log.warning("not receiving %s any more: %s", state.channel, exc)
-                    return
-                self._receive(etag, state)
-                if state.published:
-                    self._send(p.Holds(True, self._my_txnode(), etag, uid))
-            if self.bindings.bound.get(uid) == etag:  # nothing contradicted it meanwhile
-                break
-        log.info("channel %s bound again, to etag %#x", state.channel, etag)
-
-    def _rebind_done(self, task: asyncio.Task[None]) -> None:
-        for uid, running in list(self._rebinding.items()):
-            if running is task:
-                del self._rebinding[uid]
-        if not task.cancelled() and task.exception() is not None:
-            self.counters["task_errors"] += 1
-            log.error("could not bind a channel again: %s", task.exception())
+        if state is not None:
+            self._rebinder.start(uid, state)
 
     # --- real-time declarations ------------------------------------------------------------
 
@@ -545,11 +487,5 @@ class CanFace:
             log.warning(text, *args)
 
     def _update_filters(self) -> None:
-        filters: list[dict[str, Any]] | None = None
         etags = self._rx.keys() | self._suspended
-        if len(etags) <= self._filter_limit:
-            filters = [_MGMT_FILTER]
-            filters += [
-                {"can_id": etag, "can_mask": p.ETAG_MASK, "extended": True} for etag in etags
-            ]
-        self.link.set_filters(self._handler, filters)
+        self.link.set_filters(self._handler, filters(etags, self._filter_limit))
