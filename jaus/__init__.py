@@ -16,34 +16,23 @@ every byte and where its layout comes from.
 
 from ._codec import AckNak, JausDecodeError, JausId, from_scaled, to_scaled
 from ._codes import MessageCode, message_name
-from ._core_payloads import (
-    CancelEvent,
-    ClearEmergency,
+from ._discovery_payloads import (
     ComponentEntry,
+    NodeEntry,
+    QueryConfiguration,
+    QueryServices,
+    ReportConfiguration,
+    ReportServices,
+    Service,
+)
+from ._event_payloads import (
+    CancelEvent,
     ConfirmEventRequest,
     CreateEvent,
     Event,
     EventRejection,
     EventType,
-    ManagementStatus,
-    NodeEntry,
-    QueryConfiguration,
-    QueryEventTimeout,
-    QueryServices,
-    QueryStatus,
-    QueryTimeout,
     RejectEventRequest,
-    ReportConfiguration,
-    ReportEventTimeout,
-    ReportServices,
-    ReportStatus,
-    ReportTimeout,
-    Reset,
-    Resume,
-    Service,
-    SetEmergency,
-    Shutdown,
-    Standby,
     UpdateEvent,
 )
 from ._judp import (
@@ -77,6 +66,21 @@ from ._lists import (
     ReportElementCount,
     ReportElementList,
     SetElement,
+)
+from ._management_payloads import (
+    ClearEmergency,
+    ManagementStatus,
+    QueryEventTimeout,
+    QueryStatus,
+    QueryTimeout,
+    ReportEventTimeout,
+    ReportStatus,
+    ReportTimeout,
+    Reset,
+    Resume,
+    SetEmergency,
+    Shutdown,
+    Standby,
 )
 from ._messages import decode_payload, encode_payload
 from ._mobility import (

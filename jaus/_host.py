@@ -43,12 +43,11 @@ from typing import TYPE_CHECKING, Any
 
 from ._codec import AckNak, JausDecodeError, JausId
 from ._component import Component, Unserved
-from ._core_payloads import (
+from ._event_payloads import (
     CancelEvent,
     CreateEvent,
     EventRejection,
     RejectEventRequest,
-    SetEmergency,
     UpdateEvent,
 )
 from ._events import EVENT_TIMEOUT
@@ -61,6 +60,7 @@ from ._judp import (
     encode_judp,
     split_message,
 )
+from ._management_payloads import SetEmergency
 from ._mapping import Bridge
 from ._messages import decode_payload, encode_payload
 from ._payloads import (

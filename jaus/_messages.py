@@ -6,14 +6,22 @@ from __future__ import annotations
 from types import SimpleNamespace
 from typing import Any
 
-from . import _core_payloads, _lists, _mobility, _payloads
+from . import (
+    _discovery_payloads,
+    _event_payloads,
+    _lists,
+    _management_payloads,
+    _mobility,
+    _payloads,
+)
 
-TYPES: tuple[type, ...] = (*_payloads.TYPES, *_core_payloads.TYPES, *_mobility.TYPES, *_lists.TYPES)
+MODULES = (_payloads, _management_payloads, _event_payloads, _discovery_payloads, _mobility, _lists)
+TYPES: tuple[type, ...] = tuple(kind for module in MODULES for kind in module.TYPES)
 PAYLOAD_TYPES: dict[int, type] = {kind.CODE: kind for kind in TYPES}  # type: ignore[attr-defined]
 payloads = SimpleNamespace(
     **{
         name: value
-        for module in (_payloads, _core_payloads, _mobility, _lists)
+        for module in MODULES
         for name, value in vars(module).items()
         if not name.startswith("_")
     }
