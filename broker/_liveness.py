@@ -13,10 +13,8 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from .tcp_ecb import _Member
+from ._tcpmember import Member
 
 log = logging.getLogger("ups.tcp_ecb")
 
@@ -24,9 +22,9 @@ HELD_UP = 0.25  #: seconds a liveness sweep may come late before the loop counts
 
 
 async def sweep(
-    members: Mapping[int, _Member],
+    members: Mapping[int, Member],
     liveness: float,
-    leave: Callable[[_Member, str], None],
+    leave: Callable[[Member, str], None],
     counters: dict[str, int],
 ) -> None:
     """Every quarter of ``liveness``, ``leave`` the members silent for ``liveness`` seconds

@@ -3,14 +3,10 @@ read from their ``stats()`` (see ``ups/_metrics.py``; every one in docs/metrics.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import Any
 
 from ups._metrics import CAN_LINK, Metric, Reading, table
-
-if TYPE_CHECKING:
-    from ._status import StatusServer
-    from .can_ecb import CanEcb
-    from .tcp_ecb import TcpEcb
 
 #: ``TcpEcb.stats()``
 TCP_ECB = table(
@@ -127,15 +123,20 @@ STATUS_PORT = table(
 )
 
 
-def tcp_ecb_reading(ecb: TcpEcb) -> Reading:
-    return [(TCP_ECB, ecb.stats(), {})]
+def tcp_ecb_reading(stats: dict[str, int]) -> Reading:
+    """``stats``: ``TcpEcb.stats()``."""
+    return [(TCP_ECB, stats, {})]
 
 
-def can_ecb_reading(ecb: CanEcb, status: StatusServer | None) -> Reading:
+def can_ecb_reading(
+    stats: dict[str, Any], link: Mapping[str, int], status: Mapping[str, int] | None
+) -> Reading:
+    """``stats``: ``CanEcb.stats()``; ``link``: its ``CanLink.stats()``; ``status``: its status
+    port's ``StatusServer.counters`` (None: it has none)."""
     reading: list[tuple[list[Metric], dict[str, object], dict[str, str]]] = [
-        (CAN_ECB, ecb.stats(), {}),
-        (CAN_LINK, dict(ecb.link.stats()), {}),
+        (CAN_ECB, stats, {}),
+        (CAN_LINK, dict(link), {}),
     ]
     if status is not None:
-        reading.append((STATUS_PORT, dict(status.counters), {}))
+        reading.append((STATUS_PORT, dict(status), {}))
     return reading

@@ -11,17 +11,16 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Collection, Iterable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from .tcp_ecb import _Member
+from ._tcpmember import Member
 
 STATUS_LIST = 1000  #: nodes and channels listed in a Status at most (the rest are counted)
 STATUS_INNER = 64  #: channels of a node, nodes of a channel, listed in a Status at most
 
 
 def registry_status(
-    members: Mapping[int, _Member],
+    members: Mapping[int, Member],
     subscribers: Mapping[int, Collection[int]],
     publishers: Mapping[int, Collection[int]],
     names: Mapping[int, str],

@@ -460,7 +460,7 @@ async def serve(
     Returns 1 if the database failed during the run, else 0. Standing by for another CAN-ECB
     is logged; it serves again when the other goes silent.
     """
-    from ups._metrics import serving_metrics
+    from ups._metrics import Reading, serving_metrics
 
     from ._metrics import can_ecb_reading
     from ._status import StatusServer
@@ -472,10 +472,15 @@ async def serve(
         link.close()
         raise
     server = None if status is None else StatusServer(status, ecb.status)
+
+    def reading() -> Reading:
+        counters = None if server is None else server.counters
+        return can_ecb_reading(ecb.stats(), ecb.link.stats(), counters)
+
     try:
         if server is not None:
             await server.start()
-        async with serving_metrics(metrics, "can-broker", lambda: can_ecb_reading(ecb, server)):
+        async with serving_metrics(metrics, "can-broker", reading):
             await ecb.start()
             await asyncio.Event().wait()
         return 0

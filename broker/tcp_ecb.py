@@ -44,6 +44,7 @@ from ups._tls import Tls, identity
 from ._acl import Acl
 from ._identities import Identities
 from ._liveness import sweep
+from ._tcpmember import Member
 from ._tcpstatus import registry_status
 from ._watches import Watches
 
@@ -54,28 +55,6 @@ DEFAULT_RECOVERY = 1.5  # > the nodes' longest reconnect backoff (1 s)
 _LINK_LIMIT = 1 << 16  # frames queued to a node that does not read: then it is cut off
 MAX_CHANNELS = 8192  #: channels one node may register (subscribe to and publish on)
 _REGISTERED_FRAME = 1 << 16  #: the longest frame a registered node sends the TCP-ECB
-
-
-class _Member:
-    """A registered node."""
-
-    __slots__ = (
-        "address", "heard", "identity", "link", "name", "node_id", "pubs", "stale", "subs",
-    )  # fmt: skip
-
-    def __init__(self, hello: w.Hello, link: Link) -> None:
-        self.node_id = hello.node_id
-        self.name = hello.name
-        self.identity = identity(link.transport)  # None without TLS
-        self.address = (hello.host, hello.port)
-        self.link: Link | None = link
-        self.subs: set[int] = set()
-        self.pubs: set[int] = set()
-        self.stale: set[tuple[bool, int]] | None = None  # registrations awaiting renewal
-        self.heard = time.monotonic()
-
-    def peer(self) -> w.Peer:
-        return w.Peer(self.node_id, *self.address, self.identity)
 
 
 class TcpEcb:
@@ -110,7 +89,7 @@ class TcpEcb:
         self.liveness = liveness
         self.recovery = recovery
         self._server: asyncio.AbstractServer | None = None
-        self._members: dict[int, _Member] = {}
+        self._members: dict[int, Member] = {}
         self._subscribers: dict[int, set[int]] = {}  # uid -> node ids
         self._publishers: dict[int, set[int]] = {}  # uid -> node ids
         self._channel_count = 0  # UIDs in _subscribers or _publishers (or both)
@@ -219,7 +198,7 @@ class TcpEcb:
     def _on_frame(self, link: Link, frame: w.Frame) -> None:
         if link.lost.done():  # the rest of a read after we closed the link: ignored
             return
-        member: _Member | None = link.peer
+        member: Member | None = link.peer
         if isinstance(frame, w.StatusRequest):
             if self._acl is None or self._acl.may_status(identity(link.transport)):
                 self._doorman.asked(link)  # evicted last while it waits for its answer
@@ -292,7 +271,7 @@ class TcpEcb:
         self._doorman.gone(link)
         if reason is not None and reason.startswith("bad frame"):
             self.counters["malformed"] += 1
-        member: _Member | None = link.peer
+        member: Member | None = link.peer
         if member is None or member.link is not link:
             return
         member.link = None
@@ -312,7 +291,7 @@ class TcpEcb:
     def _hello(self, link: Link, hello: w.Hello) -> None:
         member = self._members.get(hello.node_id)
         if member is None:
-            member = self._members[hello.node_id] = _Member(hello, link)
+            member = self._members[hello.node_id] = Member(hello, link)
             self.counters["joined"] += 1
             log.info(
                 "node %016x (%s) joined from %s:%d",
@@ -346,7 +325,7 @@ class TcpEcb:
             link.send_control(self._readers)
 
     def _register(
-        self, member: _Member, frame: w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise
+        self, member: Member, frame: w.Subscribe | w.Unsubscribe | w.Advertise | w.Unadvertise
     ) -> None:
         uid = frame.uid
         subscribe = isinstance(frame, w.Subscribe | w.Unsubscribe)
@@ -384,7 +363,7 @@ class TcpEcb:
                 self._vouch(uid, member)
 
     def _admitted(
-        self, member: _Member, frame: w.Subscribe | w.Advertise, sub: bool, new: bool
+        self, member: Member, frame: w.Subscribe | w.Advertise, sub: bool, new: bool
     ) -> bool:
         """Whether the node may make (or renew) this registration; if not, it is told why."""
         uid, right = frame.uid, "subscribe" if sub else "publish"
@@ -406,13 +385,13 @@ class TcpEcb:
             return False
         return True
 
-    def _forget_stale(self, member: _Member) -> None:
+    def _forget_stale(self, member: Member) -> None:
         stale, member.stale = member.stale or set(), None
         for subscribe, uid in stale:
             frame = w.Unsubscribe(uid) if subscribe else w.Unadvertise(uid)
             self._register(member, frame)
 
-    def _leave(self, member: _Member, why: str) -> None:
+    def _leave(self, member: Member, why: str) -> None:
         del self._members[member.node_id]
         self.counters["left"] += 1
         log.info("node %016x (%s) left: %s", member.node_id, member.name, why)
@@ -456,7 +435,7 @@ class TcpEcb:
         members = (self._members[n] for n in self._publishers.get(uid, ()))
         return tuple(sorted((m.node_id, m.identity) for m in members if m.identity is not None))
 
-    def _answer(self, member: _Member, uid: int, subscribe: bool) -> None:
+    def _answer(self, member: Member, uid: int, subscribe: bool) -> None:
         """Send a subscriber the channel's Publishers, a publisher its Subscribers."""
         if self._recovering:
             self._waiting.setdefault((uid, subscribe), set()).add(member.node_id)
@@ -476,7 +455,7 @@ class TcpEcb:
                 self._answer(self._members[node_id], uid, subscribe=False)
                 self.counters["pushes"] += 1
 
-    def _vouch(self, uid: int, publisher: _Member) -> None:
+    def _vouch(self, uid: int, publisher: Member) -> None:
         """``publisher`` came to or left ``uid``: tell the channel's subscribers its new
         Publishers (without TLS there are no identities to tell)."""
         if publisher.identity is None:
@@ -524,7 +503,7 @@ async def serve(
     host, port = parse_address(listen)
     ecb = TcpEcb(host, port, liveness=liveness, recovery=recovery, tls=tls, acl=acl,
                  identities=identities)  # fmt: skip
-    async with serving_metrics(metrics, "broker", lambda: tcp_ecb_reading(ecb)):
+    async with serving_metrics(metrics, "broker", lambda: tcp_ecb_reading(ecb.stats())):
         await ecb.start()
         try:
             await asyncio.Event().wait()
