@@ -43,9 +43,11 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from ups.benchmarks import _zenoh_roles as roles
+from ups.benchmarks import _zenoh_rtt as rtt_roles
+from ups.benchmarks import _zenoh_steps as step_roles
 from ups.benchmarks import tcp_compare
 from ups.benchmarks._procs import Spawned, free_port, process
+from ups.benchmarks._zenoh_clients import REPORT_LIMIT
 from ups.benchmarks.peers import PEERS, Link, PeerSpec
 
 HOST = "127.0.0.1"
@@ -60,12 +62,12 @@ WAIT = 60.0  # for a child's answer to one command
 
 @contextlib.contextmanager
 def children(*specs: tuple[str, dict[str, Any]]) -> Iterator[list[Spawned]]:
-    """Step roles (``_zenoh_roles.step_main``) started one after the other (each ready before
+    """Step roles (``_zenoh_steps.step_main``) started one after the other (each ready before
     the next), asked to quit after, and killed by PID if they have not after 5 s."""
     started: list[Spawned] = []
     try:
         for role, cfg in specs:
-            started.append(Spawned(roles.step_main, (role, cfg), role))
+            started.append(Spawned(step_roles.step_main, (role, cfg), role))
             started[-1].expect("ready", WAIT)
         yield started
     finally:
@@ -96,13 +98,13 @@ def tcp_ecb() -> Iterator[str]:
 
 
 def round_trip(label: str, args: argparse.Namespace) -> dict[str, Any]:
-    spec = PeerSpec(label, roles.__name__, OPTIONS[label])
+    spec = PeerSpec(label, rtt_roles.__name__, OPTIONS[label])
     started = time.monotonic()
-    times = tcp_compare.measure_rtt(spec, roles, args, args.roundtrips, args.warmup)
+    times = tcp_compare.measure_rtt(spec, rtt_roles, args, args.roundtrips, args.warmup)
     rtts = sorted(t * 1e6 for t in times)
     pct = tcp_compare.percentile
     return {"p50_us": pct(rtts, 0.5), "p99_us": pct(rtts, 0.99),
-            "roundtrips": len(rtts), "note": roles.describe(Link(HOST, (0,), OPTIONS[label])),
+            "roundtrips": len(rtts), "note": rtt_roles.describe(Link(HOST, (0,), OPTIONS[label])),
             "seconds": round(time.monotonic() - started, 1)}  # fmt: skip
 
 
@@ -135,7 +137,7 @@ def one_way(label: str, args: argparse.Namespace) -> dict[str, Any]:
                 nonlocal prev
                 n = len(steps) + 1 if keep else 0
                 done = source.ask(("run", n, rate, count), "done", WAIT + count / 1000)
-                got = sink.ask(("report", n, count), "result", roles.REPORT_LIMIT + 5)
+                got = sink.ask(("report", n, count), "result", REPORT_LIMIT + 5)
                 stats, was = got["stats"], prev
                 out = {"asked": rate, "sent": count, "send_rate": count / done["seconds"],
                        "received": got["received"], "lost": count - got["received"],
@@ -157,7 +159,7 @@ def one_way(label: str, args: argparse.Namespace) -> dict[str, Any]:
     counted = None if cfg["kind"] == "raw" else flat["counted_lost"] + flat["rx_overflow"]
     return {"rate": best, "flat_out": flat["rate"], "lost": flat["lost"],
             "counted_lost": counted, "steps": steps,
-            "note": roles.describe(Link(HOST, (0,), OPTIONS[label]))}  # fmt: skip
+            "note": rtt_roles.describe(Link(HOST, (0,), OPTIONS[label]))}  # fmt: skip
 
 
 def search(step: Any, flat: dict[str, Any], refine: int) -> None:
@@ -202,7 +204,7 @@ def blast_once(sink: Spawned, gw: Spawned, step: int, events: int, ip: str) -> d
     key = "to_tcp" if ip == "tcp" else "to_zenoh"
     before = gw.ask(("stats",), "stats")
     blast = gw.ask(("blast", step, events), "done", WAIT + events / 1000)
-    got = sink.ask(("report", step, events), "result", roles.REPORT_LIMIT + 5)
+    got = sink.ask(("report", step, events), "result", REPORT_LIMIT + 5)
     after, stats = gw.ask(("stats",), "stats"), got["stats"]
     time.sleep(0.2)
     return {
