@@ -520,17 +520,3 @@ class Gateway:
     def _can_face_txnode(self) -> int:
         assert self.can is not None
         return int(self.can.stats()["txnode"])
-
-
-async def serve(gateway: Gateway, metrics: str | None = None) -> None:
-    """Run ``gateway`` until cancelled; log its counters when it stops. With ``metrics``
-    (HOST:PORT), its counters are served there to Prometheus."""
-    from ups._metrics import serving_metrics
-
-    from ._metrics import gateway_reading
-
-    async with serving_metrics(metrics, "gateway", lambda: gateway_reading(gateway)), gateway:
-        try:
-            await asyncio.Event().wait()
-        finally:
-            log.info("gateway stopping: %s", gateway.stats())

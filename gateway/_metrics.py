@@ -4,13 +4,11 @@ docs/metrics.md)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from typing import Any
 
 from ups._metrics import CAN_LINK, COUNTER, GAUGE, NODE, Metric, Reading, table
 from ups.broker._metrics import CAN_ECB
-
-if TYPE_CHECKING:
-    from ._gateway import Gateway
 
 #: ``Gateway.stats()`` read the same on either IP side
 _COMMON = table(
@@ -55,17 +53,26 @@ GATEWAY_UNEXPOSED = {
 }
 
 
-def gateway_reading(gateway: Gateway) -> Reading:
+def gateway_reading(
+    side: str,
+    stats: Mapping[str, int],
+    *,
+    can: Mapping[str, Any] | None,
+    ip: Mapping[str, Any] | None,
+    link: Mapping[str, int] | None,
+    can_ecb: dict[str, Any] | None,
+) -> Reading:
+    """A gateway's reading, from the ``stats()`` of the gateway (whose IP side is ``side``),
+    its CAN and IP nodes, its CAN link and the CAN-ECB it hosts (None: it has not, or not yet)."""
     reading: list[tuple[list[Metric], dict[str, Any], dict[str, str]]] = [
-        (gateway_table(gateway.side), dict(gateway.stats()), {})
+        (gateway_table(side), dict(stats), {})
     ]
-    if gateway.can is not None:
-        reading.append((NODE, dict(gateway.can.stats()), {"network": "can"}))
-    if gateway.ip is not None:
-        reading.append((NODE, dict(gateway.ip.stats()), {"network": gateway.side}))
-    link, ecb = gateway.link, gateway.can_ecb
+    if can is not None:
+        reading.append((NODE, dict(can), {"network": "can"}))
+    if ip is not None:
+        reading.append((NODE, dict(ip), {"network": side}))
     if link is not None:
-        reading.append((CAN_LINK, dict(link.stats()), {}))
-    if ecb is not None:
-        reading.append((CAN_ECB, ecb.stats(), {}))
+        reading.append((CAN_LINK, dict(link), {}))
+    if can_ecb is not None:
+        reading.append((CAN_ECB, can_ecb, {}))
     return reading
