@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ups.benchmarks._plots import plots
+from ups.benchmarks._tables import Table, aligned
 from ups.benchmarks.tcp_compare import span
 
 #: the paper's section 6 (PERFORMANCE.md, table5.PAPER): Pentium III 800 MHz, RTLinux, C167
@@ -76,7 +77,6 @@ NOTES = [
     "veth pair, its cycle beside a bare pysoem loop of the same period; paths one at a time, "
     "10 ms apart, on one clock. Paper 000 proposes the JEBridge without figures for it.",
 ]
-Table = tuple[str, list[str], list[list[str]]]  # title, header, rows
 
 
 def missing_peers() -> list[str]:
@@ -312,19 +312,6 @@ def text(r: dict[str, Any]) -> str:
     """The tables, as the terminal shows them."""
     lines = [_machine_line(r), "", *aligned(tables(r))]
     return "\n".join(lines + _skips(r)).rstrip() + "\n"
-
-
-def aligned(tables: list[Table]) -> list[str]:
-    """Each table as the terminal shows it: its title, its columns aligned, a blank line."""
-    lines = []
-    for title, head, rows in tables:
-        every = [head, *rows]
-        widths = [max(len(row[i]) for row in every) for i in range(len(head))]
-        lines.append(title)
-        lines += ["  " + "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
-                  for row in every]  # fmt: skip
-        lines.append("")
-    return lines
 
 
 def markdown(r: dict[str, Any], images: list[str]) -> str:

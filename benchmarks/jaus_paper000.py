@@ -428,7 +428,7 @@ def tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def text(doc: dict[str, Any]) -> str:
-    from ups.benchmarks._report import aligned
+    from ups.benchmarks._tables import aligned
 
     return "\n".join(aligned(tables(doc)))
 

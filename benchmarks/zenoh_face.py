@@ -342,7 +342,7 @@ def tables(doc: dict[str, Any]) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def text(doc: dict[str, Any]) -> str:
-    from ups.benchmarks._report import aligned
+    from ups.benchmarks._tables import aligned
 
     lines = aligned(tables(doc))
     lines += [f"FAILED {k}: {v.splitlines()[0]}" for k, v in doc["errors"].items()]
