@@ -34,7 +34,6 @@ from typing import Any
 
 from ups import _tcpwire as w
 from ups._address import DEFAULT_PORT, parse_address
-from ups._channel import name_to_uid
 from ups._errors import ConfigError
 from ups._statuspacer import StatusPacer
 from ups._tcpface import HEARTBEAT
@@ -45,6 +44,7 @@ from ._acl import Acl
 from ._identities import Identities
 from ._liveness import sweep
 from ._tcpmember import Member
+from ._tcprights import refusal
 from ._tcpstatus import registry_status
 from ._watches import Watches
 
@@ -373,17 +373,10 @@ class TcpEcb:
             self._refuse(member.link, uid, right,
                          f"a node may register at most {MAX_CHANNELS} channels")  # fmt: skip
             return False
-        if frame.name is not None and (theirs := _uid_of(frame.name)) != uid:
-            why = "not a channel name" if theirs is None else f"the name of {_hex(theirs)}"
-            self._refuse(member.link, uid, right, f"{frame.name!r:.80} is {why}")
-            return False
-        name = frame.name if frame.name is not None else self._names.get(uid)
-        if self._acl is not None and not self._acl.allows(member.identity, right, uid, name):
-            channel = name[:255] if name is not None else _hex(uid)
-            self._refuse(member.link, uid, right,
-                         f"identity {member.identity!r} may not {right} {channel}")  # fmt: skip
-            return False
-        return True
+        why = refusal(member.identity, frame, right, self._names, self._acl)
+        if why is not None:
+            self._refuse(member.link, uid, right, why)
+        return why is None
 
     def _forget_stale(self, member: Member) -> None:
         stale, member.stale = member.stale or set(), None
@@ -477,17 +470,6 @@ class TcpEcb:
 
 
 _NONE: frozenset[int] = frozenset()
-
-
-def _hex(value: int) -> str:
-    return f"0x{value:016x}"
-
-
-def _uid_of(name: str) -> int | None:
-    try:
-        return name_to_uid(name)
-    except ConfigError:
-        return None
 
 
 async def serve(
