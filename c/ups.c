@@ -1,119 +1,18 @@
 /*
- * libups: the node's frame handling (see ups.h): the TX queue, receiving (every frame is
- * classified here, checked against the tables of docs/protocol.md and handed to the join, the
- * binding or the transfers), the timers' entry point, events, and the API's small calls.
+ * libups: the dispatcher (see ups.h): receiving (every frame is classified here, checked
+ * against the tables of docs/protocol.md and handed to the join, the binding or the transfers),
+ * the timers' entry point, sending from the TX queue, events, and the API's small calls.
  *
- * The join and the answer to Hello are in ups_join.c; binding, the contradiction rule and
- * real-time declarations in ups_bind.c; events larger than one frame in ups_transfer.c.
+ * It stands on the protocol's seams, which it calls: the join and the answer to Hello in
+ * ups_join.c; binding, the contradiction rule and real-time declarations in ups_bind.c; events
+ * larger than one frame in ups_transfer.c. They and this file stand on ups_util.c (size
+ * classes, byte helpers, counters, the TX queue), which calls none of them.
  */
 #include "ups_internal.h"
 
-/* ---- helpers of every source (ups_internal.h says what each does) -------------------------- */
+/* ---- the TX queue's refill ----------------------------------------------------------------- */
 
-unsigned ups__class(unsigned etag)
-{
-    return etag < UPS__LARGE_ETAG ? 0u : 1u + ((unsigned)(etag - UPS__LARGE_ETAG) >> 10);
-}
-
-uint32_t ups__class_max(unsigned cls)
-{
-    static const uint32_t largest[5] = {8u, 64u, 1024u, 4096u, 65535u};
-    return largest[cls < 5u ? cls : 4u];
-}
-
-/* The library calls no C library function, and a -nostdlib link has none. A loop that stores
- * contiguous bytes is what compilers turn into a call of memcpy or memset (gcc from -Os up
- * without -ffreestanding or -fno-tree-loop-distribute-patterns, clang without -ffreestanding):
- * this one stores every other byte in each of two passes, which neither call does. */
-void ups__copy(uint8_t *to, const uint8_t *from, unsigned n)
-{
-    for (unsigned start = 0; start < 2u; ++start) {
-        for (unsigned i = start; i < n; i += 2u) {
-            to[i] = from != NULL ? from[i] : 0u;
-        }
-    }
-}
-
-void ups__count(UPS_COUNTER_T *counter)
-{
-    if (*counter < (UPS_COUNTER_T)~(UPS_COUNTER_T)0u) {
-        ++*counter;
-    }
-}
-
-int ups__same8(const uint8_t *a, const uint8_t *b)
-{
-    unsigned diff = 0;
-    for (unsigned i = 0; i < 8u; ++i) {
-        diff |= (unsigned)(a[i] ^ b[i]);
-    }
-    return diff == 0u;
-}
-
-unsigned ups__nibble(const uint8_t *id, unsigned stage)
-{
-    unsigned byte = id[stage >> 1];
-    return (stage & 1u) ? (byte & 0xFu) : (byte >> 4);
-}
-
-void ups__put64(uint8_t *out, uint64_t value)
-{
-    for (unsigned i = 8u; i-- > 0u;) {
-        out[i] = (uint8_t)value;
-        value >>= 8;
-    }
-}
-
-/* ---- the TX queue -------------------------------------------------------------------------- */
-
-/** tx[to] = tx[from], byte by byte (a struct copy would call memcpy). */
-static void move_frame(ups_node_t *node, unsigned to, unsigned from)
-{
-    ups__copy((uint8_t *)&node->tx[to], (const uint8_t *)&node->tx[from], sizeof(ups_frame_t));
-}
-
-int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data, unsigned len)
-{
-    unsigned at = node->tx_count;
-    if (at >= (id >= UPS__FIRST_EVENT_ID ? UPS__EVENT_ROOM : UPS_TX_DEPTH)) {
-        ups__count(&node->counters.tx_dropped);
-        return UPS_ERR_FULL;
-    }
-    node->tx_count = (uint8_t)(at + 1u);
-    while (at > 0u && node->tx[at - 1u].id > id) {
-        move_frame(node, at, at - 1u);
-        --at;
-    }
-    node->tx[at].id = id; /* indexed, not through a pointer: -fsanitize=bounds checks it */
-    node->tx[at].flags = (uint8_t)(flags | UPS_FRAME_EXT);
-    node->tx[at].len = (uint8_t)len; /* at most UPS_MTU: every caller sees to it */
-    ups__copy(node->tx[at].data, data, len);
-    return UPS_OK;
-}
-
-/** A node frame from this node's TxNode: a request, SUB_AT or PUB_AT, with 8 bytes. */
-void ups__push_request(ups_node_t *node, unsigned priority, unsigned etag, const uint8_t *data)
-{
-    (void)ups__push(node, ups__make_id(priority, node->txnode, etag), 0u, data, 8u);
-}
-
-/** The node stops relying on @p etag: what is queued on it does not go out (by the time it
- *  would, the etag may be another channel's), nor does the rest of a transfer on it, and no
- *  transfer begun on it is finished (contradiction rule 1). */
-void ups__drop_etag(ups_node_t *node, uint16_t etag)
-{
-    unsigned kept = 0u;
-    for (unsigned i = 0; i < node->tx_count; ++i) {
-        if ((node->tx[i].id & UPS__ETAG_MASK) != etag) { /* requests: etags below 0x10 */
-            move_frame(node, kept++, i);
-        }
-    }
-    node->tx_count = (uint8_t)kept;
-#if UPS_WITH_TRANSFERS
-    ups__transfer_drop(node, etag);
-#endif
-}
-
+/** Queue what waits for room in the TX queue: the join's frames, a transfer's next frames. */
 static void refill(ups_node_t *node)
 {
     if (node->join == UPS_JOIN_JOINING) {
@@ -126,15 +25,17 @@ static void refill(ups_node_t *node)
 
 /* ---- receiving ----------------------------------------------------------------------------- */
 
-int ups__rx_channel(const ups_node_t *node, uint16_t etag)
+/** The index of the received channel bound to @p etag, or UPS_CHANNELS. */
+static unsigned rx_channel(const ups_node_t *node, uint16_t etag)
 {
-    for (int i = 0; i < UPS_CHANNELS; ++i) {
+    unsigned i = 0;
+    for (; i < UPS_CHANNELS; ++i) {
         const ups_channel_t *ch = &node->channels[i];
         if ((ch->flags & (UPS__SUB | UPS__BOUND)) == (UPS__SUB | UPS__BOUND) && ch->etag == etag) {
-            return i;
+            break;
         }
     }
-    return -1;
+    return i;
 }
 
 /** Whether @p etag (big-endian) is one the CAN-ECB binds, and @p txnode one it gives out. */
@@ -221,8 +122,8 @@ static int on_event(ups_node_t *node, const ups_frame_t *frame, uint32_t now, up
         ups__count(&node->counters.own_echo);
         return 0;
     }
-    int i = ups__rx_channel(node, etag);
-    if (i < 0) {
+    unsigned i = rx_channel(node, etag);
+    if (i >= UPS_CHANNELS) {
         ups__count(ups__etag_known(node, etag) ? &node->counters.filtered
                                                : &node->counters.unknown);
         return 0;
@@ -235,7 +136,7 @@ static int on_event(ups_node_t *node, const ups_frame_t *frame, uint32_t now, up
         return ups__transfer_rx(node, now, frame, txnode, etag, event);
 #else
         (void)now;
-        return 0; /* never bound: ups__rx_channel() found nothing */
+        return 0; /* never bound: rx_channel() found nothing */
 #endif
     }
     if (frame->len > 8u) {
@@ -339,10 +240,7 @@ void ups_tx_pop(ups_node_t *node)
     if ((sent->id >> UPS__TXNODE_SHIFT) == node->txnode && joined(node)) { /* priority 0 */
         ups__sent_request(node, sent->id & UPS__ETAG_MASK, sent->data);
     }
-    node->tx_count = (uint8_t)(node->tx_count - 1u);
-    for (unsigned i = 0; i < node->tx_count; ++i) {
-        move_frame(node, i, i + 1u);
-    }
+    ups__tx_drop(node, 1u, UPS__NO_ETAG);
     refill(node);
 }
 
@@ -406,17 +304,13 @@ int ups_publish(ups_node_t *node, int channel, const uint8_t *data, uint16_t siz
     }
     uint32_t id = ups__make_id(ch->priority, node->txnode, ch->etag); /* 0x02 or more */
 #if UPS_WITH_TRANSFERS
-    if (size > ups__class_max(ups__class(ch->etag)) || size > UPS_MAX_EVENT) {
-        return UPS_ERR_TOO_LARGE;
-    }
     if (ch->etag >= UPS__LARGE_ETAG) {
         return ups__transfer_tx(node, channel, id, data, size);
     }
-#else
-    if (size > 8u || ch->etag >= UPS__LARGE_ETAG) {
-        return UPS_ERR_TOO_LARGE; /* (the channel moved to a larger class: no transfers here) */
-    }
 #endif
+    if (size > 8u || ch->etag >= UPS__LARGE_ETAG) {
+        return UPS_ERR_TOO_LARGE; /* (moved to a larger class: no transfers in this build) */
+    }
     uint8_t flags = (UPS_WITH_FD && (node->mode & UPS__FD)) ? UPS_FRAME_FD | UPS_FRAME_BRS : 0u;
     return ups__push(node, id, flags, data, size);
 }

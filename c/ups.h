@@ -34,10 +34,11 @@
  * success. Nothing overflows: every table bound is checked, and what it turns away is counted
  * in ups_counters_t.
  *
- * The sources follow the protocol's seams: ups.c (the TX queue, receiving and its checks, the
- * timers' entry, events), ups_join.c (the join, moves, the answer to Hello), ups_bind.c
- * (binding, the contradiction rule, declarations), ups_transfer.c (events larger than one
- * frame); ups_internal.h holds what they share. Compile all four.
+ * The sources stand in floors: ups.c on top (receiving and its checks, the timers' entry,
+ * sending, events), the protocol's seams under it, ups_join.c (the join, moves, the answer to
+ * Hello), ups_bind.c (binding, the contradiction rule, declarations) and ups_transfer.c (events
+ * larger than one frame), and at the bottom ups_util.c (size classes, byte helpers, counters,
+ * the TX queue); ups_internal.h holds what they share. Compile all five.
  */
 #ifndef UPS_H
 #define UPS_H

@@ -112,7 +112,10 @@ static unsigned request_kind(const ups_channel_t *ch)
 static void start_request(ups_node_t *node, ups_channel_t *ch)
 {
     if (ch->flags & UPS__BOUND) {
-        ups__drop_etag(node, ch->etag);
+        ups__tx_drop(node, 0u, ch->etag);
+#if UPS_WITH_TRANSFERS
+        ups__transfer_drop(node, ch->etag);
+#endif
         note(node, (ch->flags & UPS__SUB) ? UPS_NOTE_FILTERS | UPS_NOTE_CHANNELS
                                           : UPS_NOTE_CHANNELS); /* the old filter goes first */
     }

@@ -1,7 +1,12 @@
 /*
- * libups internals shared by its sources (ups.c, ups_join.c, ups_bind.c, ups_transfer.c): the
- * identifier layout, the frames' codes, flags, small helpers, and the calls between the
- * sources. Not part of the API.
+ * libups internals shared by its sources: the identifier layout, the frames' codes, flags,
+ * small helpers, and the calls between the sources. Not part of the API.
+ *
+ * The sources stand in floors: ups.c (the dispatcher: receiving, the timers, the API's small
+ * calls) calls the protocol's seams, ups_join.c, ups_bind.c (which ups_join.c calls too) and
+ * ups_transfer.c (which ups_bind.c calls to give up a contradicted etag's transfers); all of
+ * them stand on ups_util.c (size classes, byte helpers, counters, the TX queue), which calls
+ * none of them.
  */
 #ifndef UPS_INTERNAL_H
 #define UPS_INTERNAL_H
@@ -19,6 +24,7 @@
 /* events may fill the TX queue but for its last place, which stays for management frames: a
  * node that publishes as fast as its queue drains still asks, claims and answers Hello */
 #define UPS__EVENT_ROOM (UPS_TX_DEPTH - 1u)
+#define UPS__NO_ETAG 0xFFFFu /* beyond UPS__ETAG_MASK: no frame's etag field */
 
 /* management frames (docs/protocol.md, "Management frames"): the two high bits of the etag
  * field of TxNode 0x7F at priority 0 (op), and in status frames its bits 8-11 (status) */
@@ -114,13 +120,13 @@ static inline int ups__valid_channel(const ups_node_t *node, int channel)
     return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
 }
 
-/* ups.c */
+/* ups_util.c: what every source stands on; it calls no other source */
 /** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
 unsigned ups__class(unsigned etag);
 /** The largest event of a size class. */
 uint32_t ups__class_max(unsigned cls);
 /** Copy @p n bytes (the buffers do not overlap), or zero them when @p from is NULL, in a loop
- *  that no compiler makes a call of memcpy or memset of (ups.c). */
+ *  that no compiler makes a call of memcpy or memset of. */
 void ups__copy(uint8_t *to, const uint8_t *from, unsigned n);
 /** Count one in a saturating counter. */
 void ups__count(UPS_COUNTER_T *counter);
@@ -135,10 +141,11 @@ int ups__push(ups_node_t *node, uint32_t id, uint8_t flags, const uint8_t *data,
 /** Queue a frame of 8 bytes from this node's TxNode: a request, SUB_AT (priority 0) or PUB_AT
  *  (priority 1). */
 void ups__push_request(ups_node_t *node, unsigned priority, unsigned etag, const uint8_t *data);
-/** The node stops relying on @p etag: nothing queued on it goes out any more. */
-void ups__drop_etag(ups_node_t *node, uint16_t etag);
-/** The index of the received channel bound to @p etag, or -1. */
-int ups__rx_channel(const ups_node_t *node, uint16_t etag);
+/** Take the first @p first frames out of the TX queue, and every frame on @p etag
+ *  (UPS__NO_ETAG: none): ups_tx_pop() takes the frame sent; a node that stops relying on an
+ *  etag drops what is queued on it (by the time it would go, the etag may be another
+ *  channel's), and gives up the transfers on it too (ups__transfer_drop). */
+void ups__tx_drop(ups_node_t *node, unsigned first, unsigned etag);
 
 /* ups_join.c */
 /** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), heard while
@@ -179,6 +186,8 @@ void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t prior
 /* ups_transfer.c */
 int ups__transfer_rx(ups_node_t *node, uint32_t now, const ups_frame_t *frame, uint8_t txnode,
                      uint16_t etag, ups_event_t *event);
+/** ups_publish() of an event on a large etag (@p id): UPS_ERR_TOO_LARGE beyond its size class
+ *  or UPS_MAX_EVENT, UPS_ERR_BUSY while another transfer is sent, else as ups__push(). */
 int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
                      uint16_t size);
 void ups__transfer_refill(ups_node_t *node);

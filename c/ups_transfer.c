@@ -81,6 +81,9 @@ static int must_wait(const ups_node_t *node, uint32_t id, int several)
 int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
                      uint16_t size)
 {
+    if (size > ups__class_max(ups__class(id & UPS__ETAG_MASK)) || size > UPS_MAX_EVENT) {
+        return UPS_ERR_TOO_LARGE;
+    }
     unsigned chunk = node_mtu(node) - 1u;
     if (must_wait(node, id, 2u + size > chunk)) {
         return UPS_ERR_BUSY;

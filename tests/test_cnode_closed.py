@@ -42,6 +42,7 @@ from upscli import main
 
 from .cnode_helpers import CanEcb, Wire
 from .conftest import eventually
+from .test_cnode_build import C_SOURCES
 
 SPEED, CMD, OTHER = (name_to_uid(n) for n in ("robot/speed", "robot/cmd", "robot/other"))
 MGMT = (0x7F << 14, 0x7F << 14)  # the CAN-ECB's frames: TxNode 0x7F
@@ -239,8 +240,7 @@ def build_readme_example(tmp_path: Path) -> ctypes.CDLL:
     (tmp_path / "harness.h").write_text(HARNESS_H)
     (tmp_path / "harness.c").write_text(HARNESS_C)
     (tmp_path / "example.c").write_text(readme_example())
-    sources = ["example.c", "harness.c", *(str(root / "c" / s) for s in
-               ("ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c"))]  # fmt: skip
+    sources = ["example.c", "harness.c", *(str(root / "c" / s) for s in C_SOURCES)]
     subprocess.run(
         ["cc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O1", "-fPIC", "-shared",
          *MIN, f"-I{root / 'c'}", f"-I{tmp_path}", "-include", "harness.h", "-o", "example.so",
