@@ -32,7 +32,7 @@ from typing import IO, Any
 
 from ups._canlink import CanLink
 from ups._catalog import Catalog
-from ups._errors import AccessDenied, ConfigError, UpsError
+from ups._errors import AccessDenied, ConfigError
 from ups._face import ChannelState
 from ups._message import Message
 from ups._node import Node
@@ -41,6 +41,7 @@ from ups._tls import Tls
 from ups.broker._store import default_db
 from ups.broker.can_ecb import RECOVERY, CanEcb
 
+from ._backlog import RECONCILERS, Backlog
 from ._pacer import Pacer
 from ._tables import Tables
 from ._tap import Tap
@@ -48,9 +49,6 @@ from ._tap import Tap
 log = logging.getLogger("ups.gateway")
 
 CLOSE_TRIES = 5  # times close() cancels a task (a second apart) before it gives up on it
-#: channels whose forwarding is brought in line at once (each waits for the CAN-ECB and the IP
-#: side); a flood of forged channels then delays a real one by its share of the backlog only
-RECONCILERS = 8
 
 
 class _Forward:
@@ -144,11 +142,7 @@ class Gateway:
         self.ip: Node | None = None  #: the IP side's node (TCP/IP or Zenoh)
         self._to_ip_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the CAN side
         self._to_can_sinks: dict[int, _Forward] = {}  # uid -> forwarder on the IP side
-        self._dirty: dict[int, None] = {}  # channels to reconcile, first changed first
         self._unwanted_since: dict[int, float] = {}  # uid -> when its IP subscribers went
-        self._settled: dict[int, list[asyncio.Future[None]]] = {}  # uid -> awaiting its reconcile
-        self._running: set[int] = set()  # the channels being reconciled
-        self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self.counters = dict.fromkeys(
             (
@@ -162,6 +156,8 @@ class Gateway:
             ),
             0,
         )
+        self._backlog = Backlog(self._reconcile, self.counters)  #: channels to bring in line
+        self._dirty = self._backlog.dirty  # its channels waiting (benchmarks/can_fuzz.py)
 
     # --- life cycle ------------------------------------------------------------------------
 
@@ -227,19 +223,18 @@ class Gateway:
         )
         await self.ip.start()
         ip_face = self._ip_face()
-        ip_face.on_targets = self._changed
+        ip_face.on_targets = self._backlog.changed
         ip_face.extra_status = self.status
-        self._learnt.on_change = self._changed
+        self._learnt.on_change = self._backlog.changed
         if self._ecb is not None:
-            self._ecb.on_change = self._changed
+            self._ecb.on_change = self._backlog.changed
             self._ecb.bind_gate = self._until_settled
         self._all_dirty()
         loop = asyncio.get_running_loop()
-        self._tasks = [loop.create_task(self._reconciler()) for _ in range(RECONCILERS)]
+        self._tasks = [loop.create_task(self._backlog.work()) for _ in range(RECONCILERS)]
         self._pacer = Pacer(self.can.face, bitrate=self.bitrate, fd=self._link.fd,
                             limit=self._can_queue, counters=self.counters)  # fmt: skip
         self._tasks.append(loop.create_task(self._pacer.run()))
-        self._wake.set()
         address = getattr(ip_face, "address", None)  # where TCP publishers reach us
         log.info(
             "gateway %016x between %s (TxNode %s) and %s%s",
@@ -339,11 +334,13 @@ class Gateway:
 
     def _all_dirty(self) -> None:
         """Every channel either table knows is brought in line (the tables changed roles)."""
-        for tables in (self._ecb, self._learnt):
-            if tables is not None:
-                self._dirty.update(dict.fromkeys(tables.subscribers))
-                self._dirty.update(dict.fromkeys(tables.publishers))
-        self._wake.set()
+        self._backlog.changed_all(
+            uid
+            for tables in (self._ecb, self._learnt)
+            if tables is not None
+            for uids in (tables.subscribers, tables.publishers)
+            for uid in uids
+        )
 
     def _stood_by(self, reason: str) -> None:
         """The hosted CAN-ECB stands by for another: forward by what that one says."""
@@ -361,58 +358,13 @@ class Gateway:
             self._tap.wide(False)
         self._all_dirty()
 
-    def _changed(self, uid: int) -> None:
-        self._dirty[uid] = None
-        self._wake.set()
-
-    def _next_dirty(self) -> int | None:
-        """The channel changed first that nobody reconciles now (None: none)."""
-        uid = next((u for u in self._dirty if u not in self._running), None)
-        if uid is not None:
-            del self._dirty[uid]
-            self._running.add(uid)
-        return uid
-
-    async def _reconciler(self) -> None:
-        """Bring changed channels' forwarding in line with the tables, first changed first.
-        ``RECONCILERS`` of these run at once, each on another channel: a channel's reconcile
-        waits for the CAN-ECB and the IP side, and hundreds of channels changed at once (a
-        flood of forged requests) must not hold a real one back for long."""
-        while True:
-            uid = self._next_dirty()
-            if uid is None:
-                self._wake.clear()
-                await self._wake.wait()
-                continue
-            try:
-                await self._reconcile(uid)
-            except Exception as exc:  # e.g. the CAN-ECB did not answer: try again later
-                self.counters["reconcile_errors"] += 1
-                if isinstance(exc, UpsError):
-                    log.warning("could not update forwarding of %016x: %s", uid, exc)
-                else:
-                    log.exception("could not update forwarding of %016x", uid)
-                asyncio.get_running_loop().call_later(1.0, self._changed, uid)
-            finally:
-                self._running.discard(uid)
-            if uid in self._dirty:  # changed again meanwhile: another reconciler may take it
-                self._wake.set()
-            else:
-                for fut in self._settled.pop(uid, ()):
-                    if not fut.done():
-                        fut.set_result(None)
-
     async def _until_settled(self, uid: int, txnode: int) -> None:
         """Wait until the forwarding of ``uid`` follows the tables (the CAN-ECB's bind gate: a
         new publisher's first events are then forwarded to subscribers already on TCP). Not
         for the gateway's own binding: its reconcile waits for that one (it used to wait out
         the gate's timeout, a second per channel forwarded to CAN)."""
-        busy = uid in self._dirty or uid in self._running
-        if not busy or txnode == self._can_face_txnode():
-            return
-        fut = asyncio.get_running_loop().create_future()
-        self._settled.setdefault(uid, []).append(fut)
-        await fut
+        if self._backlog.busy(uid) and txnode != self._can_face_txnode():
+            await self._backlog.settled(uid)
 
     async def _reconcile(self, uid: int) -> None:
         assert self.can is not None and self.ip is not None
@@ -476,7 +428,7 @@ class Gateway:
         if left <= 0:
             del self._unwanted_since[uid]
             return False
-        loop.call_later(left, self._changed, uid)  # look again then
+        loop.call_later(left, self._backlog.changed, uid)  # look again then
         return True
 
     def _denied(self, uid: int, exc: AccessDenied) -> None:

@@ -354,13 +354,13 @@ async def test_the_gateways_own_binding_passes_its_bind_gate(
     one, and waited out the gate's timeout, a second for every channel forwarded to CAN."""
     async with gateway(bus, tcp_ecb, tmp_path / "gw.db") as gw:
         uid, own = name_to_uid("cmd"), gw.stats()["txnode"]
-        gw._running.add(uid)  # as while reconciling it
+        gw._backlog.running.add(uid)  # as while reconciling it
         mine = asyncio.ensure_future(gw._until_settled(uid, own))
         other = asyncio.ensure_future(gw._until_settled(uid, own + 1))
         await asyncio.sleep(0)
         assert mine.done() and not other.done()
         other.cancel()
-        gw._running.discard(uid)
+        gw._backlog.running.discard(uid)
 
 
 async def test_close_ends_a_task_that_swallowed_its_cancel(
