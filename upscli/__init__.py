@@ -16,6 +16,7 @@ import re
 import sys
 from typing import Any
 
+from ups import tools
 from ups._address import DEFAULT_PORT
 from ups._cliargs import (
     add_can,
@@ -38,20 +39,11 @@ from ._argparsing import Unbuilt, Version, add_metrics, unrecognized
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
 DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus", "ros2")
+
+
 #: the operators' tools (``ups/tools/``, a module each) and their lines in ``ups --help``: a
 #: tool's module is imported only when it is the command (``console``'s loads its web guard
 #: and the metrics); tests/test_cli_behaves.py holds each line equal to its module's ``HELP``
-TOOLS = {
-    "ls": "list the nodes and channels of a network",
-    "monitor": "a live view of a network: channels, rates, last values, nodes, drops, bus load",
-    "record": "record a network's events to a python-can log file (.asc, .blf, .log)",
-    "decode": "print a recording or a candump/python-can log of a UPS bus in UPS terms",
-    "replay": "publish a recording's events again on a live network, by channel UID",
-    "dbc": "write a DBC that labels a UPS bus's frames (for cantools, SavvyCAN ...)",
-    "console": "a web page of the live network: channels, nodes, a plot, a form to publish",
-}
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     chosen = next((a for a in argv if not a.startswith("-")), "")  # the command, if any
@@ -242,7 +234,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
 
     _pubsub.add_commands(command)
 
-    for name, line in TOOLS.items():  # the operators' tools, one module each
+    for name, line in tools.COMMANDS.items():  # the operators' tools, one module each
         cmd = command(name, help=line)
         if only in (None, name):
             module = importlib.import_module(f"ups.tools.{name}")
