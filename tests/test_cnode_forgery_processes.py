@@ -14,20 +14,14 @@ again, binds it.
 from __future__ import annotations
 
 import subprocess
-import threading
-import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
-import can
 import pytest
 
 from ups import _canproto as p
 from ups import name_to_uid
-from ups._canlink import open_bus
-from ups._errors import DecodeError
 
+from .can_wire import wire
 from .procs import Proc, private_multicast_bus
 from .test_cnode_processes import can_broker, events
 from .test_tcp_processes import wait_until
@@ -39,58 +33,6 @@ OTHER = name_to_uid("robot/forged")
 #: an etag of a size class each build cannot hold: the ASan build takes events up to 1024 bytes
 #: (class 3 carries 4096), the minimal one up to 8 (class 1 carries 64)
 TOO_LARGE = {"asan": 0x3800, "min": 0x3000}
-
-
-class Forger:
-    """A python-can bus of the test on ``bus``: it sends frames as a forger would, and keeps
-    every management frame it hears, with when it heard it."""
-
-    def __init__(self, bus: str) -> None:
-        self.raw = open_bus(bus)
-        self.frames: list[tuple[float, p.Management]] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        while not self._stop.is_set():
-            frame = self.raw.recv(0.05)
-            if frame is None or not frame.is_extended_id:
-                continue
-            if not p.is_management(frame.arbitration_id):
-                continue
-            try:
-                msg = p.decode(frame.arbitration_id, bytes(frame.data))
-            except DecodeError:
-                continue
-            with self._lock:
-                self.frames.append((time.monotonic(), msg))
-
-    def send(self, msg: p.Management) -> float:
-        """Send ``msg``; when it was sent."""
-        can_id, data = p.encode(msg)
-        sent = time.monotonic()
-        self.raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
-        return sent
-
-    def heard(self, since: float, what: Callable[[p.Management], bool]) -> bool:
-        with self._lock:
-            return any(at >= since and what(msg) for at, msg in self.frames)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._reader.join(timeout=5)
-        self.raw.shutdown()
-
-
-@contextmanager
-def forger(bus: str) -> Iterator[Forger]:
-    wire = Forger(bus)
-    try:
-        yield wire
-    finally:
-        wire.close()
 
 
 def c_node_env(build: str) -> dict[str, str]:
@@ -112,7 +54,7 @@ def test_three_forged_frames_leave_a_c_subscriber_bound(tmp_path: Path, build: s
     uid = name_to_uid(CHANNEL)
     with (
         can_broker(bus, tmp_path / "ecb.db") as ecb,
-        forger(bus) as wire,
+        wire(bus) as forger,
         Proc("c-node", "--can", bus, "--node-id", "0xc41", "--build", build, "--sub", CHANNEL,
              "--json", env=c_node_env(build)) as node,
     ):  # fmt: skip
@@ -126,15 +68,19 @@ def test_three_forged_frames_leave_a_c_subscriber_bound(tmp_path: Path, build: s
                 raise AssertionError(f"ups c-node exited {node.popen.returncode}:\n"
                                      + "".join(node.stderr_lines))  # fmt: skip
 
-        wire.send(p.Serving(0))  # the CAN-ECB stands by (it hears the lowest instance serve)
+        forger.send(p.Serving(0))  # the CAN-ECB stands by (it hears the lowest instance serve)
         ecb.wait_for_line("stands by and answers nothing", timeout=10)
-        contradicted = wire.send(p.Bind(etag, OTHER))
+        contradicted = forger.send(p.Bind(etag, OTHER))
         asked = p.Request(p.SUB_BIND, txnode, uid)
-        wait_until(lambda: wire.heard(contradicted, lambda m: m == asked), timeout=10)
-        forged = wire.send(p.Bind(TOO_LARGE[build], uid))  # an answer the node cannot hold
+        wait_until(lambda: asked in forger.heard(contradicted), timeout=10)
+        forged = forger.send(p.Bind(TOO_LARGE[build], uid))  # an answer the node cannot hold
+
         # the CAN-ECB serves again (takes over, says Hello) and answers the node's request
-        wait_until(lambda: wire.heard(forged, lambda m: m == p.Bind(etag, uid)) or alive(),
-                   timeout=30)  # fmt: skip
+        def answered() -> bool:
+            alive()
+            return p.Bind(etag, uid) in forger.heard(forged)
+
+        wait_until(answered, timeout=30)
         alive()
 
         def delivered() -> bool:  # one event through once the node relies on its etag again

@@ -14,22 +14,19 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
-import threading
 import time
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager, contextmanager
 from pathlib import Path
 
-import can
 import pytest
 
 from ups import Node
 from ups import _canproto as p
-from ups._canlink import open_bus
-from ups._errors import DecodeError
 from ups._tcpface import query_status
 from ups.broker import _election as e
 
+from .can_wire import Wire, wire
 from .procs import Proc, private_multicast_bus
 
 pytestmark = pytest.mark.netns
@@ -43,55 +40,6 @@ FORGE_FOR = 30.0  #: the attack's length
 FORGE_EVERY = 3.0  #: one forged Serving per this long: 0.33 frames/s (issue 41)
 JOIN = 10.0  #: a node's join limit (``ups sub``'s default): it failed before
 BIND = 5.0  #: a node's own limit on a request (ups/_canbinding.py, BIND_TIMEOUT)
-
-
-class Wire:
-    """A python-can bus of the test's on ``bus``: every management frame heard, with its time;
-    ``send`` puts a frame on the bus as a forger would."""
-
-    def __init__(self, bus: str) -> None:
-        self.raw = open_bus(bus)
-        self.frames: list[tuple[float, p.Management]] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        while not self._stop.is_set():
-            frame = self.raw.recv(0.05)
-            if frame is None or not frame.is_extended_id:
-                continue
-            if not p.is_management(frame.arbitration_id):
-                continue
-            try:
-                msg = p.decode(frame.arbitration_id, bytes(frame.data))
-            except DecodeError:
-                continue
-            with self._lock:
-                self.frames.append((time.monotonic(), msg))
-
-    def send(self, msg: p.Management) -> None:
-        can_id, data = p.encode(msg)
-        self.raw.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=True))
-
-    def heard(self, since: float = 0.0) -> list[p.Management]:
-        with self._lock:
-            return [msg for at, msg in self.frames if at >= since]
-
-    def close(self) -> None:
-        self._stop.set()
-        self._reader.join(timeout=5)
-        self.raw.shutdown()
-
-
-@contextmanager
-def wire(bus: str) -> Iterator[Wire]:
-    listener = Wire(bus)
-    try:
-        yield listener
-    finally:
-        listener.close()
 
 
 @asynccontextmanager
