@@ -144,7 +144,7 @@ void ups__push_request(ups_node_t *node, unsigned priority, unsigned etag, const
 /** Take the first @p first frames out of the TX queue, and every frame on @p etag
  *  (UPS__NO_ETAG: none): ups_tx_pop() takes the frame sent; a node that stops relying on an
  *  etag drops what is queued on it (by the time it would go, the etag may be another
- *  channel's), and gives up the transfers on it too (ups__transfer_drop). */
+ *  channel's); the transfers on it are the caller's to give up (ups__transfer_drop). */
 void ups__tx_drop(ups_node_t *node, unsigned first, unsigned etag);
 
 /* ups_join.c */

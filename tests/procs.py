@@ -234,3 +234,17 @@ def vcan_bus() -> str:
             pytest.fail(reason)
         pytest.skip(reason)
     return "socketcan:vcan0"
+
+
+def sanitizer_env() -> dict[str, str]:
+    """The environment a Python process needs to load the ASan+UBSan build of libups: the ASan
+    runtime first, and sanitizer errors as exit codes (99, 98). Python's own allocations are no
+    leaks of the library's: leaks are not checked."""
+    libasan = subprocess.run(
+        ["cc", "-print-file-name=libasan.so"], capture_output=True, text=True, check=True
+    ).stdout.strip()
+    return {
+        "LD_PRELOAD": libasan,
+        "ASAN_OPTIONS": "detect_leaks=0:abort_on_error=0:exitcode=99",
+        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1:exitcode=98",
+    }

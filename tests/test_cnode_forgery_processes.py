@@ -13,7 +13,6 @@ again, binds it.
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -22,7 +21,7 @@ from ups import _canproto as p
 from ups import name_to_uid
 
 from .can_wire import wire
-from .procs import Proc, private_multicast_bus
+from .procs import Proc, private_multicast_bus, sanitizer_env
 from .test_cnode_processes import can_broker, events
 from .test_tcp_processes import wait_until
 
@@ -36,16 +35,7 @@ TOO_LARGE = {"asan": 0x3800, "min": 0x3000}
 
 
 def c_node_env(build: str) -> dict[str, str]:
-    if build != "asan":
-        return {}
-    libasan = subprocess.run(
-        ["cc", "-print-file-name=libasan.so"], capture_output=True, text=True, check=True
-    ).stdout.strip()
-    return {  # Python's own allocations are no leaks of the library's: leaks are not checked
-        "LD_PRELOAD": libasan,
-        "ASAN_OPTIONS": "detect_leaks=0:abort_on_error=0:exitcode=99",
-        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1:exitcode=98",
-    }
+    return sanitizer_env() if build == "asan" else {}
 
 
 @pytest.mark.parametrize("build", ["asan", "min"])
@@ -86,13 +76,13 @@ def test_three_forged_frames_leave_a_c_subscriber_bound(tmp_path: Path, build: s
         def delivered() -> bool:  # one event through once the node relies on its etag again
             alive()
             with Proc("pub", CHANNEL, "00", "--can", bus, "--node-id", "0x71") as pub:
-                assert pub.finish(timeout=60)[0] == 0
+                assert pub.finish(timeout=20)[0] == 0
             return any(e["data"] == "00" for e in events(node))
 
         wait_until(delivered, timeout=30)
         with Proc("pub", CHANNEL, "14", "--can", bus, "--count", "20", "--rate", "50",
                   "--node-id", "0x71") as pub:  # fmt: skip
-            assert pub.finish(timeout=60)[0] == 0
+            assert pub.finish(timeout=20)[0] == 0
         wait_until(lambda: [e["data"] for e in events(node)].count("14") == 20, timeout=30)
         alive()
         assert {e["channel"] for e in events(node)} == {CHANNEL}

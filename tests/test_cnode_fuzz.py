@@ -44,6 +44,8 @@ from ups import _cantransfer as t
 from ups._cnode import ERRORS, FRAME_EXT, FRAME_FD, CNode, Event, build
 from ups._errors import ConfigError
 
+from .procs import sanitizer_env
+
 VARIANT = os.environ.get("UPS_CNODE_FUZZ", "full")
 NODE_ID = 0x0123_4567_89AB_CDEF
 UIDS = [0x1111_0000_0000_0000 + i for i in range(6)]
@@ -541,16 +543,7 @@ def test_machine_under_sanitizers() -> None:
     if VARIANT == "asan":
         pytest.skip("this is the child")
     lib = build("asan")
-    libasan = subprocess.run(
-        ["cc", "-print-file-name=libasan.so"], capture_output=True, text=True, check=True
-    ).stdout.strip()
-    env = {
-        **os.environ,
-        "UPS_CNODE_FUZZ": "asan",
-        "LD_PRELOAD": libasan,
-        "ASAN_OPTIONS": "detect_leaks=0:abort_on_error=0:exitcode=99",
-        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1:exitcode=98",
-    }
+    env = {**os.environ, "UPS_CNODE_FUZZ": "asan", **sanitizer_env()}
     done = subprocess.run(
         [
             sys.executable,
