@@ -199,7 +199,7 @@ def _gateway_sizes(gw: Gateway, tcp_ecb: TcpEcb) -> dict[str, int]:
         "gateway_can_channels": len(gw.can._states) if gw.can else 0,
         "gateway_tcp_channels": len(gw.ip._states) if gw.ip else 0,
         "tcp_ecb_subscribed_channels": len(tcp_ecb._subscribers),
-        "gateway_reconcile_backlog": len(gw._dirty),
+        "gateway_reconcile_backlog": len(gw._backlog.dirty),
     }
 
 

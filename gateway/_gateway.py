@@ -157,7 +157,6 @@ class Gateway:
             0,
         )
         self._backlog = Backlog(self._reconcile, self.counters)  #: channels to bring in line
-        self._dirty = self._backlog.dirty  # its channels waiting (benchmarks/can_fuzz.py)
 
     # --- life cycle ------------------------------------------------------------------------
 

@@ -69,7 +69,9 @@ async def _refused_certificate(host: str, port: int, tls: Tls, what: str) -> str
         )
     except ssl.SSLError:
         return None  # no TLS 1.2 there, or another disagreement: the caller's own reason
-    except (OSError, TimeoutError):  # cut inside the handshake, after ours was sent
+    except (ConnectionRefusedError, TimeoutError):
+        return None  # gone, or too busy to shake hands: no verdict on a certificate
+    except OSError:  # cut inside the handshake, after ours was sent
         return (
             f"{what} at {host}:{port} refused this side's certificate {tls.cert} (--tls-cert) "
             f"in the TLS handshake: {_signer(tls)}"

@@ -149,12 +149,14 @@ def _run_c_node(args: argparse.Namespace) -> int:
                     f"from=0x{event.txnode:02x}")  # fmt: skip
         print(line, flush=True)
 
-    def failed() -> str | None:
+    channels = [*subs.items(), *((c, ch) for c, ch, _ in pubs)]
+
+    def failed(state: dict[int, int]) -> str | None:
         if node.join_state < 0:
             return f"the join failed: {ERRORS[node.join_state]}"
-        for channel, ch in [*subs.items(), *((c, ch) for c, ch, _ in pubs)]:
-            if node.channel_state(channel) < 0:
-                return f"{ch}: {ERRORS[node.channel_state(channel)]}"
+        for channel, ch in channels:
+            if state[channel] < 0:
+                return f"{ch}: {ERRORS[state[channel]]}"
         return None
 
     async def run() -> int:
@@ -168,21 +170,22 @@ def _run_c_node(args: argparse.Namespace) -> int:
         try:
             while True:
                 runner.step()
-                if (why := failed()) is not None:
+                state = {channel: node.channel_state(channel) for channel, _ in channels}
+                if (why := failed(state)) is not None:
                     print(f"ups c-node: {why}", file=sys.stderr)
                     return EXIT_FAILED
                 if not announced and node.txnode is not None:
                     announced = True
                     say(args, f"node {node_id:016x} joined as TxNode 0x{node.txnode:02x}")
-                for channel, ch in [*subs.items(), *((c, ch) for c, ch, _ in pubs)]:
-                    if channel not in bound and node.channel_state(channel) == BOUND:
+                for channel, ch in channels:
+                    if channel not in bound and state[channel] == BOUND:
                         bound.add(channel)
                         etag = node.channel_etag(channel)
                         use = "subscribed" if channel in subs else "publishing"
                         say(args, f"{use}: {ch} is etag 0x{etag:04x}")
                 clock = time.monotonic()
                 for k, (channel, _, data) in enumerate(pubs):
-                    if sent[k] >= args.count or node.channel_state(channel) != BOUND:
+                    if sent[k] >= args.count or state[channel] != BOUND:
                         continue
                     first = clock if first is None else first
                     if clock >= first + sent[k] / args.rate and node.publish(channel, data) == 0:
