@@ -1,0 +1,76 @@
+/*
+ * libups-ecb: what every source stands on (byte helpers, counters, the TX queue). It calls no
+ * other source of the library.
+ */
+#include "ups_ecb_internal.h"
+
+void ups_ecb__count(UPS_ECB_COUNTER_T *counter)
+{
+    if (*counter < (UPS_ECB_COUNTER_T)~(UPS_ECB_COUNTER_T)0u) {
+        ++*counter;
+    }
+}
+
+void ups_ecb__note(ups_ecb_t *ecb, unsigned bits)
+{
+    ecb->notes = (uint8_t)(ecb->notes | bits);
+}
+
+int ups_ecb__same8(const uint8_t *a, const uint8_t *b)
+{
+    unsigned diff = 0;
+    for (unsigned i = 0; i < 8u; i++) {
+        diff |= (unsigned)(a[i] ^ b[i]);
+    }
+    return diff == 0u;
+}
+
+void ups_ecb__copy(uint8_t *to, const uint8_t *from, unsigned n)
+{
+    for (unsigned i = 0; i < n; i++) {
+        to[i] = from != NULL ? from[i] : 0u;
+    }
+}
+
+uint64_t ups_ecb__get64(const uint8_t *in)
+{
+    uint64_t value = 0;
+    for (unsigned i = 0; i < 8u; i++) {
+        value = (value << 8) | in[i];
+    }
+    return value;
+}
+
+void ups_ecb__put64(uint8_t *out, uint64_t value)
+{
+    for (unsigned i = 8u; i-- > 0u;) {
+        out[i] = (uint8_t)value;
+        value >>= 8;
+    }
+}
+
+void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len)
+{
+    if (ecb->tx_count >= UPS_ECB_TX_DEPTH) {
+        ups_ecb__count(&ecb->counters.tx_dropped);
+        return;
+    }
+    unsigned at = ecb->tx_count;
+    while (at > 0u && ecb->tx[at - 1u].id > id) { /* after its equals: FIFO among them */
+        ecb->tx[at] = ecb->tx[at - 1u];
+        at--;
+    }
+    ups_frame_t *frame = &ecb->tx[at];
+    frame->id = id;
+    frame->flags = UPS_FRAME_EXT;
+    frame->len = (uint8_t)len;
+    ups_ecb__copy(frame->data, data, len);
+    ecb->tx_count++;
+}
+
+void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data)
+{
+    uint8_t data[8];
+    ups_ecb__put64(data, value);
+    ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, field), data, with_data ? 8u : 0u);
+}
