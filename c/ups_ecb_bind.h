@@ -1,23 +1,66 @@
 /*
  * libups-ecb, private: the state of ups_ecb_bind.c (etags by UID, who uses them, quotas, held
  * requests, rosters, declared streams). Included by ups_ecb.h; not part of the API.
+ *
+ * Who uses a channel and who created its binding are kept per node entry (the index into
+ * ups_ecb_join_t.nodes), not per TxNode: a bitmap of node entries for the subscribers and one
+ * for the publishers. A channel's age counts sixteenths of the lease since its last event
+ * (ups_ecb__bind_tick ages every channel), so leases need no timestamps and survive the clock's
+ * wraps. With the small bus's tables (16 nodes, 64 channels, 4 streams, 8 held requests) this
+ * state is 1312 bytes, of which the channels take 1024.
  */
 #ifndef UPS_ECB_BIND_H
 #define UPS_ECB_BIND_H
 
 #include <stdint.h>
 
+#include "ups_ecb_rt.h" /* ups_ecb_stream_t */
+
+/** Bytes of a bitmap of node entries. */
+#define UPS_ECB_NODE_BYTES ((UPS_ECB_NODES + 7) / 8)
+
 typedef struct {
     uint8_t uid[8];   /* big-endian */
     uint16_t etag;    /* 0: unused entry */
     uint8_t creator;  /* the node entry (ups_ecb_join_t.nodes) that created it; 0xFF: nobody */
-    uint8_t pad;
+    uint8_t age;      /* sixteenths of the lease since its last event (saturating) */
+    uint8_t sub[UPS_ECB_NODE_BYTES]; /* node entries that subscribe to it */
+    uint8_t pub[UPS_ECB_NODE_BYTES]; /* node entries that publish on it */
 } ups_ecb_channel_t;
+
+/** A binding request held in a recovery window. */
+typedef struct {
+    uint8_t uid[8];
+    uint8_t txnode;
+    uint8_t kind; /* 0: none; the request's etag field (1 PUB_BIND, 2 SUB_BIND, 9-12 PUB_BIND(c)) */
+} ups_ecb_held_t;
 
 typedef struct {
     ups_ecb_channel_t channels[UPS_ECB_CHANNELS];
-    /* to be filled in by ups_ecb_bind.c */
-    uint8_t unused;
+    ups_ecb_held_t held[UPS_ECB_HELD];
+    ups_ecb_stream_t streams[UPS_ECB_STREAMS > 0 ? UPS_ECB_STREAMS : 1]; /* admitted, sorted
+                                                                  by (etag, TxNode) */
+    uint8_t stream_count;
+    uint8_t refused_valid;  /* the refusal below answers its declaration again */
+    uint8_t refused_decl[8]; /* the DECLARE data last refused (its TxNode: refuse[2]) */
+    uint8_t refuse[8];       /* the Refuse data last sent; refuse[0..1] == 0: none */
+    uint8_t tokens[UPS_ECB_NODES]; /* DECLARE analyses each node entry may ask now (<= 20) */
+    /* the roster: Rosters waiting (one per node entry, oldest first) and the answer sent */
+    uint8_t r_cursor[UPS_ECB_NODES][8];
+    uint8_t r_queue[UPS_ECB_NODES]; /* node entries, oldest first */
+    uint8_t r_waiting;       /* entries of r_queue */
+    uint8_t r_active;        /* an answer is being sent */
+    uint8_t r_asker;         /* its TxNode */
+    uint8_t r_started;       /* r_uid is the channel being listed (else: the cursor) */
+    uint8_t r_role;          /* 0: subscribers, 1: publishers of r_uid */
+    uint8_t r_last;          /* the last TxNode listed in that role; 0xFF: none */
+    uint8_t r_tokens;        /* roster frames that may be sent back to back now (<= 48) */
+    uint8_t r_uid[8];
+    uint16_t r_count;        /* Uses frames of this page */
+    uint32_t t_roster;       /* the roster's tokens were counted up to then */
+    uint32_t t_decl;         /* the DECLARE tokens were counted up to then */
+    uint32_t t_aged;         /* the channels were aged up to then */
+    uint8_t timed;           /* the three times above are set (the first tick) */
 } ups_ecb_bind_t;
 
 #endif /* UPS_ECB_BIND_H */

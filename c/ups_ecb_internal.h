@@ -85,8 +85,12 @@ void ups_ecb__bind_request(ups_ecb_t *ecb, int slot, uint32_t id, const uint8_t 
 /** An event frame on @p etag (the channel is in use: its lease starts again). */
 void ups_ecb__bind_event(ups_ecb_t *ecb, unsigned etag);
 /** Node entry @p slot was given to another node id or reclaimed: forget what its TxNode used
- *  and declared, and the bindings it created count against nobody. */
+ *  and declared, and the bindings it created count against nobody. Call it (and the next)
+ *  while the entry still has its old TxNode. */
 void ups_ecb__bind_forget(ups_ecb_t *ecb, int slot);
+/** Node entry @p slot was assigned again to the node id it held (a join again): forget what
+ *  its TxNode used and declared; the bindings it created still count against it. */
+void ups_ecb__bind_rejoined(ups_ecb_t *ecb, int slot);
 /** A CAN-ECB frame this one did not send (Bind, EtagsFull, Limit, Grant, Refuse, Failed,
  *  Uses, RosterEnd), heard while serving: correct what contradicts the tables. */
 void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
