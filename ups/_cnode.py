@@ -17,7 +17,7 @@ import ctypes
 import fcntl
 import subprocess
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,20 +49,31 @@ _CONFIG = ("channels", "tx_depth", "transfers", "fd", "max_event", "rx_transfers
            "declarations", "heard_binds", "counter_bytes", "mtu")  # fmt: skip
 
 
-def build(variant: str = "full") -> Path:
+def build(
+    variant: str = "full",
+    *,
+    targets: Mapping[str, str] = VARIANTS,
+    sources: Sequence[str] = SOURCES,
+    c_dir: Path | None = None,
+) -> Path:
     """The compiled library of ``variant``, built (``make -C c``) if missing or older than its
-    sources. Concurrent callers wait for one build (a lock file)."""
-    name = VARIANTS[variant]
-    target = C_DIR / "build" / name
-    if not (C_DIR / "ups.c").exists():
-        raise ConfigError(f"the C sources are not here ({C_DIR}): libups is built from a checkout")
-    (C_DIR / "build").mkdir(exist_ok=True)
-    with open(C_DIR / "build" / ".lock", "w") as lock:
+    sources. Concurrent callers wait for one build (a lock file). ``targets`` (variant -> file
+    under ``c/build``) and ``sources`` (what it is built from) name another library of ``c/``
+    (libups-ecb: ``ups.broker.c_ecb``); ``c_dir``, another copy of ``c/``."""
+    c_dir = C_DIR if c_dir is None else c_dir
+    if variant not in targets:
+        raise ConfigError(f"no variant {variant!r} (there are: {', '.join(targets)})")
+    name = targets[variant]
+    target = c_dir / "build" / name
+    if not all((c_dir / s).exists() for s in sources):
+        raise ConfigError(f"the C sources are not here ({c_dir}): {name} is built from a checkout")
+    (c_dir / "build").mkdir(exist_ok=True)
+    with open(c_dir / "build" / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        newest = max((C_DIR / s).stat().st_mtime for s in SOURCES)
+        newest = max((c_dir / s).stat().st_mtime for s in sources)
         if not target.exists() or target.stat().st_mtime < newest:
             done = subprocess.run(
-                ["make", "-s", "-C", str(C_DIR), f"build/{name}"],
+                ["make", "-s", "-C", str(c_dir), f"build/{name}"],
                 capture_output=True,
                 text=True,
                 check=False,

@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 import can
 
 from ups._canlink import CanLink
+from ups.broker.c_ecb import CEcb
 from ups.broker.can_ecb import CanEcb
 
 from ._frames import (
@@ -38,6 +39,10 @@ from ._frames import (
 )
 
 Match = Frame | type | tuple[type, ...] | Callable[[Frame], bool]
+#: the CAN-ECBs the suite runs against: ours in Python (broker/can_ecb.py) and in C
+#: (libups-ecb, c/ups_ecb.h, through broker/c_ecb.py); the tests use only what both have
+ECBS = ("python", "c")
+Ecb = CanEcb | CEcb
 REFUSAL_WAIT = 3.0  #: Timers: a refusal ends a join or request once it stood this long
 
 
@@ -310,10 +315,21 @@ async def bound_etag(wire: Wire, request: Request, *, since: int = 0) -> int:
 
 
 @contextlib.asynccontextmanager
-async def serving_ecb(channel: str, db: Path, *, recovery: float = 0.2) -> AsyncIterator[CanEcb]:
-    """Our real CAN-ECB on its own link to the virtual ``channel``."""
+async def serving_ecb(
+    channel: str, state: Path, kind: str, *, recovery: float = 0.2
+) -> AsyncIterator[Ecb]:
+    """Our real CAN-ECB of ``kind`` (one of ``ECBS``) on its own link to the virtual
+    ``channel``, its durable state in ``state`` (the SQLite file, or libups-ecb's blob)."""
     link = CanLink.open(f"virtual:{channel}")
-    ecb = CanEcb(link, db, recovery=recovery)
+    try:
+        ecb: Ecb = (
+            CanEcb(link, state, recovery=recovery)
+            if kind == "python"
+            else CEcb(link, state, recovery=recovery)
+        )
+    except BaseException:
+        link.close()
+        raise
     try:
         await ecb.start()
         yield ecb

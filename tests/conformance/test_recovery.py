@@ -13,7 +13,7 @@ U1, U2, U3, U_NEW = (name_to_uid(f"conformance/recovery/{n}") for n in ("1", "2"
 
 
 async def test_empty_ecb_adopts_what_joined_nodes_report(
-    raw: Wire, channel: str, tmp_path: Path
+    raw: Wire, channel: str, tmp_path: Path, ecb_kind: str
 ) -> None:
     # two joined nodes from a previous run of the bus; they answer Hello as the document says
     a = RawNode(raw, 0xA1, txnode=0x00)
@@ -24,7 +24,7 @@ async def test_empty_ecb_adopts_what_joined_nodes_report(
     b.pubs = {U1: 0x10}
     reported = {0x10, 0x11, 0x13}
 
-    async with serving_ecb(channel, tmp_path / "ecb.db"):
+    async with serving_ecb(channel, tmp_path / "ecb.db", ecb_kind):
         i_hello, _ = await raw.expect(Hello)
         # a new UID is held until recovery ends, then bound to an etag nobody reported
         new = await b.ask(SUB_BIND, U_NEW, timeout=3.0)
@@ -46,11 +46,11 @@ async def test_empty_ecb_adopts_what_joined_nodes_report(
 
 
 async def test_restarted_ecb_keeps_its_table_and_corrects_contradictions(
-    raw: Wire, channel: str, tmp_path: Path
+    raw: Wire, channel: str, tmp_path: Path, ecb_kind: str
 ) -> None:
     db = tmp_path / "ecb.db"
     a = RawNode(raw, 0xA1)
-    async with serving_ecb(channel, db):
+    async with serving_ecb(channel, db, ecb_kind):
         ta = await a.join()
         etag = (await a.ask(SUB_BIND, U1)).etag
         other_etag = (await a.ask(PUB_BIND, U2)).etag
@@ -59,7 +59,7 @@ async def test_restarted_ecb_keeps_its_table_and_corrects_contradictions(
     stray = RawNode(raw, 0xC3, txnode=ta)
     stray.subs = {U3: etag}
     restart = raw.mark()
-    async with serving_ecb(channel, db):
+    async with serving_ecb(channel, db, ecb_kind):
         i_hello, _ = await raw.expect(Hello, since=restart)
         # "otherwise sends Assign(t', id), t' being id's TxNode in its table or a free one"
         _, moved = await raw.expect(

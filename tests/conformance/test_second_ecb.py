@@ -64,18 +64,18 @@ async def test_serving_of_a_lower_instance_makes_it_stand_by(
 
 
 async def test_serving_heard_during_recovery_makes_it_stand_by(
-    raw: Wire, channel: str, tmp_path: Path
+    raw: Wire, channel: str, tmp_path: Path, ecb_kind: str
 ) -> None:
-    async with serving_ecb(channel, tmp_path / "ecb.db"):
+    async with serving_ecb(channel, tmp_path / "ecb.db", ecb_kind):
         await raw.expect(Hello)
         since = raw.send(Serving(HIGHEST), Knock())  # the other was first
         await raw.expect_none(ECB_FRAMES, since=since, window=0.6)
 
 
 async def test_hello_of_a_lower_instance_during_recovery_makes_it_stand_by(
-    raw: Wire, channel: str, tmp_path: Path
+    raw: Wire, channel: str, tmp_path: Path, ecb_kind: str
 ) -> None:
-    async with serving_ecb(channel, tmp_path / "ecb.db"):
+    async with serving_ecb(channel, tmp_path / "ecb.db", ecb_kind):
         await raw.expect(Hello)
         since = raw.send(Hello(0), Knock())
         await raw.expect_none(ECB_FRAMES, since=since, window=0.6)
@@ -126,10 +126,10 @@ async def test_a_probe_is_answered_with_serving_and_never_makes_it_stand_by(
 
 
 async def test_a_probe_during_the_candidacy_changes_nothing(
-    raw: Wire, channel: str, tmp_path: Path
+    raw: Wire, channel: str, tmp_path: Path, ecb_kind: str
 ) -> None:
     """A candidate sends nothing for a Probe, and serves when its candidacy ends."""
-    async with serving_ecb(channel, tmp_path / "ecb.db", recovery=1.0):
+    async with serving_ecb(channel, tmp_path / "ecb.db", ecb_kind, recovery=1.0):
         i_hello, hello = await raw.expect(Hello)
         since = raw.send(Probe(0), Knock())
         i_serving, _ = await raw.expect(Serving(hello.instance), since=since)
