@@ -7,7 +7,8 @@
 /** sizeof(ups_ecb_t), so that the caller can place one. */
 size_t ups_ecb_host_size(void);
 /** The configuration: 0 nodes, 1 channels, 2 streams, 3 queries, 4 TX depth, 5 held requests,
- *  6 watched requests, 7 bytes per counter, 8 UPS_ECB_BLOB_MAX; else -1. */
+ *  6 watched requests, 7 bytes per counter, 8 UPS_ECB_BLOB_MAX, 9 UPS_MTU (the data bytes of
+ *  ups_frame_t); else -1. */
 long ups_ecb_host_config(int what);
 
 size_t ups_ecb_host_size(void)
@@ -27,6 +28,7 @@ long ups_ecb_host_config(int what)
     case 6: return UPS_ECB_WATCHED;
     case 7: return (long)sizeof(UPS_ECB_COUNTER_T);
     case 8: return (long)UPS_ECB_BLOB_MAX;
+    case 9: return UPS_MTU;
     default: return -1;
     }
 }
