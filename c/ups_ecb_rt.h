@@ -8,6 +8,17 @@
 
 #include <stdint.h>
 
+/** The most streams ups_ecb_rt_admit analyses (its two work arrays on the stack hold one byte
+ *  per stream each): 127, one more than the priorities 0x02..0x7F, so that every count the
+ *  Python CAN-ECB can be asked about gets its answer. 1..255; a board may set it to
+ *  UPS_ECB_STREAMS + 1 (the declared streams and the one being declared). */
+#ifndef UPS_ECB_RT_MAX
+#define UPS_ECB_RT_MAX 127
+#endif
+#if UPS_ECB_RT_MAX < 1 || UPS_ECB_RT_MAX > 255
+#error "UPS_ECB_RT_MAX must be 1..255"
+#endif
+
 /** One declared stream, as DECLARE carries it (times in units of 100 us). */
 typedef struct {
     uint16_t etag;     /* etags from 0x3000 carry transfers: size is then frames per event */
@@ -19,14 +30,39 @@ typedef struct {
     uint8_t priority;  /* out: the priority granted, 0x02..0x7F */
 } ups_ecb_stream_t;
 
+/** The first etag whose streams are transfers of full frames (p.LARGE_FIRST_ETAG). */
+#define UPS_ECB_RT_LARGE_ETAG 0x3000u
+
 /** Decide whether the @p count streams (sorted by (etag, txnode), as the Python CAN-ECB sorts
  *  them) are schedulable on a bus of @p bitrate bit/s (@p fd: CAN FD frames) by Audsley's
  *  assignment with the revised response-time analysis (Davis et al. 2007), as ups/rt's
  *  assign_priorities(first=0x02, last=0x7F) does. Returns 1 and writes every stream's priority
  *  when it is; 0 when not, with @p miss the index of the stream that would miss its deadline
- *  and @p response_10us its worst-case response in units of 10 us (0xFFFF: unbounded or
- *  larger; 0 and @p miss = count - 1 when there are more streams than priorities). */
+ *  and @p response_10us its worst-case response in units of 10 us, rounded up (0xFFFF:
+ *  unbounded or larger; never 0). Writes no priority when it returns 0.
+ *
+ *  @p response_10us 0 is Python's ValueError: more streams than priorities (Audsley found an
+ *  ordering of more than 126 streams), or a declaration Python's decoder never lets through
+ *  (period or deadline 0, size 0 from 0x3000, more than 8 bytes below it, count 0 or above
+ *  UPS_ECB_RT_MAX, bitrate 0); @p miss is then count - 1 (0 when count is 0), and the Python
+ *  CAN-ECB's Refuse names the stream being declared. */
 int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate, unsigned fd,
                      unsigned *miss, uint16_t *response_10us);
+
+/* Flags of ups_ecb_rt_response. */
+#define UPS_ECB_RT_DAVIS2007 0u   /**< the revised analysis (Davis et al. 2007), the default */
+#define UPS_ECB_RT_TINDELL1994 1u /**< paper 000's Table 1 (classic frames only) */
+#define UPS_ECB_RT_FD 2u          /**< CAN FD frames (davis2007 only) */
+#define UPS_ECB_RT_ID11 4u        /**< 11-bit identifiers (else 29-bit, as UPS uses) */
+
+/** Analyse @p count (1..255) streams in the given priority order (index 0 highest), blocking by
+ *  the longest frame of the format, as ups/rt's analyze(specs, bitrate, method, id_bits, fd=)
+ *  does: @p response[i] is stream i's worst-case response time in units of 1/N ms, where N is
+ *  the return value, or UINT64_MAX when unbounded (Python's None; also a response beyond the
+ *  horizon of ups_ecb_rt.c, 2^55 units). Returns 0 (and writes nothing) for invalid input: as
+ *  ups_ecb_rt_admit's, or tindell1994 with CAN FD or more than 8 bytes. The priority fields
+ *  are not used. */
+uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate,
+                             unsigned flags, uint64_t *response);
 
 #endif /* UPS_ECB_RT_H */

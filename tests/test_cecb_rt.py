@@ -1,0 +1,253 @@
+"""libups-ecb's admission analysis (c/ups_ecb_rt.c) against the Python one (ups/rt, used by
+broker/_admission.py): paper 000's Table 1 cell by cell, and the same verdicts, priorities, miss
+and response as ``Admission.decide`` on random declarations, also under ASan and UBSan.
+
+``test_admission_under_sanitizers`` runs the property in a child process on
+``libups-ecb-asan.so`` (``UPS_CECB_RT=asan``): ASan's runtime must be preloaded into Python.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import subprocess
+import sys
+from fractions import Fraction
+from functools import cache
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from broker._admission import RT_FIRST, Admission
+from ups import _canproto as p
+from ups._cnode import build
+from ups.rt import analyze, load_csv
+
+from .procs import sanitizer_env
+from .rt.conftest import SAE_CSV
+from .rt.test_rt_analysis import BITRATES, _table_1
+
+VARIANT = os.environ.get("UPS_CECB_RT", "full")
+TARGETS = {"full": "libups-ecb.so", "asan": "libups-ecb-asan.so"}
+SOURCES = ("ups.h", "ups_ecb.h", "ups_ecb_internal.h", "ups_ecb_rt.h", "ups_ecb_join.h",
+           "ups_ecb_bind.h", "ups_ecb_elect.h", "ups_ecb_util.c", "ups_ecb_rt.c", "ups_ecb.c",
+           "ups_ecb_join.c", "ups_ecb_bind.c", "ups_ecb_elect.c", "host/ups_ecb_host.c",
+           "Makefile")  # fmt: skip
+TINDELL1994, FD, ID11 = 1, 2, 4  # ups_ecb_rt.h's UPS_ECB_RT_* flags
+UNBOUNDED = 2**64 - 1
+RT_MAX = 127  # UPS_ECB_RT_MAX
+
+
+class Stream(ctypes.Structure):
+    """ups_ecb_stream_t."""
+
+    _fields_ = [
+        ("etag", ctypes.c_uint16),
+        ("txnode", ctypes.c_uint8),
+        ("size", ctypes.c_uint8),
+        ("period", ctypes.c_uint16),
+        ("deadline", ctypes.c_uint16),
+        ("jitter", ctypes.c_uint8),
+        ("priority", ctypes.c_uint8),
+    ]
+
+
+@cache
+def _lib() -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(build(VARIANT, targets=TARGETS, sources=SOURCES)))
+    lib.ups_ecb_rt_admit.restype = ctypes.c_int
+    lib.ups_ecb_rt_admit.argtypes = [
+        ctypes.POINTER(Stream), ctypes.c_uint, ctypes.c_uint32, ctypes.c_uint,
+        ctypes.POINTER(ctypes.c_uint), ctypes.POINTER(ctypes.c_uint16),
+    ]  # fmt: skip
+    lib.ups_ecb_rt_response.restype = ctypes.c_uint64
+    lib.ups_ecb_rt_response.argtypes = [
+        ctypes.POINTER(Stream), ctypes.c_uint, ctypes.c_uint32, ctypes.c_uint,
+        ctypes.POINTER(ctypes.c_uint64),
+    ]  # fmt: skip
+    return lib
+
+
+def _tenths(ms: Fraction) -> int:
+    units = ms * 10
+    assert units.denominator == 1, ms
+    return int(units)
+
+
+def c_analyze(
+    rows: list[tuple[int, int, int, int]], bitrate: int, flags: int
+) -> list[Fraction | None]:
+    """ups_ecb_rt_response on (bytes, period, deadline, jitter) rows (x 100 us), highest first."""
+    streams = (Stream * len(rows))(
+        *(Stream(0x100 + i, 1, size, t, d, j, 0) for i, (size, t, d, j) in enumerate(rows))
+    )
+    out = (ctypes.c_uint64 * len(rows))()
+    per_ms = _lib().ups_ecb_rt_response(streams, len(rows), bitrate, flags, out)
+    assert per_ms > 0
+    return [None if r == UNBOUNDED else Fraction(r, per_ms) for r in out]
+
+
+def _sae_rows() -> list[tuple[int, int, int, int]]:
+    return [
+        (s.size_bytes, _tenths(s.period_ms), _tenths(s.deadline_ms), _tenths(s.jitter_ms))
+        for s in load_csv(SAE_CSV)
+    ]
+
+
+@pytest.mark.parametrize("column", range(4), ids=[f"{b // 1000}kbit" for b in BITRATES])
+def test_c_reproduces_table_1(column: int) -> None:
+    """Every cell of paper 000's Table 1 (53 messages, tindell1994, 11-bit identifiers): the
+    response time, or none, and the deadline mark, as tests/rt's check of ups/rt."""
+    rows = _sae_rows()
+    table = _table_1()
+    assert len(table) == len(rows) == 53
+    got = c_analyze(rows, BITRATES[column], TINDELL1994 | ID11)
+    for (name, cells), (_, _, deadline, _), r in zip(table, rows, got, strict=True):
+        met = r is not None and r <= Fraction(deadline, 10)
+        assert (r, met) == cells[column], name
+
+
+@pytest.mark.parametrize("bitrate", [50_000, 125_000, 333_333, 500_000, 1_000_000])
+@pytest.mark.parametrize("flags", [0, ID11, FD, FD | ID11, TINDELL1994])
+def test_c_analysis_is_python_analysis_on_sae(bitrate: int, flags: int) -> None:
+    """Both methods, both identifier lengths, classic and FD: every response of the SAE set."""
+    specs = load_csv(SAE_CSV)
+    method = "tindell1994" if flags & TINDELL1994 else "davis2007"
+    expected = analyze(specs, bitrate, method, 11 if flags & ID11 else 29, fd=bool(flags & FD))
+    assert c_analyze(_sae_rows(), bitrate, flags) == [r.response_time_ms for r in expected]
+
+
+def c_admit(
+    candidate: dict[tuple[int, int], p.Declare], bitrate: int, fd: bool
+) -> p.Refuse | dict[tuple[int, int], int] | tuple[int, int]:
+    """ups_ecb_rt_admit on the streams sorted by (etag, TxNode): the priorities, or a Refuse
+    naming the miss (its etag and txnode fields 0), or (miss index, 0) for Python's ValueError."""
+    keys = sorted(candidate)
+    streams = (Stream * len(keys))(
+        *(
+            Stream(m.etag, m.txnode, m.size_bytes, m.period, m.deadline, m.jitter, 0)
+            for m in (candidate[k] for k in keys)
+        )
+    )
+    miss, response = ctypes.c_uint(), ctypes.c_uint16()
+    admitted = _lib().ups_ecb_rt_admit(
+        streams, len(keys), bitrate, int(fd), ctypes.byref(miss), ctypes.byref(response)
+    )
+    if admitted:
+        return {k: s.priority for k, s in zip(keys, streams, strict=True)}
+    if response.value == 0:
+        return (miss.value, 0)
+    return p.Refuse(0, 0, *keys[miss.value], response.value)
+
+
+def check_declarations(
+    declarations: list[p.Declare], bitrate: int, fd: bool, *, events: bool = False
+) -> None:
+    """Declare one after the other on a Python Admission; before each, the C analysis of the
+    same candidate set must give Python's verdict (``events``: tell Hypothesis which)."""
+    python = Admission(bitrate, fd)
+    asked: dict[tuple[int, int], p.Declare] = {}
+    for msg in declarations:
+        key = (msg.etag, msg.txnode)
+        candidate = {**asked, key: msg}
+        got = c_admit(candidate, bitrate, fd)
+        verdict = python.decide(msg)
+        refused = verdict.frames[0] if not verdict.admitted else None
+        if events:
+            event(
+                "admitted" if refused is None
+                else f"refused: {'unbounded' if refused.response_10us == 0xFFFF else 'bounded'}"
+            )  # fmt: skip
+        if verdict.admitted:
+            assert got == python.granted, msg
+            asked = candidate
+        else:
+            [refuse] = verdict.frames
+            assert isinstance(refuse, p.Refuse)
+            if refuse.response_10us == 0:  # ValueError: more streams than priorities
+                assert got == (len(candidate) - 1, 0)
+            else:
+                assert got == p.Refuse(0, 0, refuse.miss_etag, refuse.miss_txnode,
+                                       refuse.response_10us), msg  # fmt: skip
+
+
+def _period() -> st.SearchStrategy[int]:
+    return st.one_of(st.integers(1, 200), st.integers(200, 5_000), st.integers(1, 65_535))
+
+
+@st.composite
+def declarations(draw: st.DrawFn) -> list[p.Declare]:
+    count = draw(st.integers(1, 32))
+    result = []
+    for _ in range(count):
+        large = draw(st.booleans())
+        etag = draw(st.integers(p.LARGE_FIRST_ETAG, p.LARGE_FIRST_ETAG + 40) if large
+                    else st.integers(0x0100, 0x0140))  # fmt: skip
+        size = draw(st.one_of(st.integers(1, 4), st.integers(1, 255)) if large
+                    else st.integers(0, 8))  # fmt: skip
+        period = draw(_period())
+        deadline = draw(st.one_of(st.just(period), _period()))
+        jitter = draw(st.one_of(st.just(0), st.integers(0, 255)))
+        txnode = draw(st.integers(1, 8))
+        result.append(p.Declare(txnode, etag, size, period, deadline, jitter))
+    return result
+
+
+BUS = st.tuples(
+    st.one_of(
+        st.sampled_from([10_000, 125_000, 250_000, 500_000, 1_000_000, 2_000_000, 8_000_000]),
+        st.integers(10_000, 8_000_000),
+    ),
+    st.booleans(),
+)
+EXAMPLES = int(os.environ.get("UPS_CECB_RT_EXAMPLES", "200" if VARIANT == "asan" else "300"))
+
+
+@settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
+@given(declarations(), BUS)
+def test_admission_is_pythons(declared: list[p.Declare], bus: tuple[int, bool]) -> None:
+    """Declarations one after the other: each verdict, every priority, the miss and the
+    response of ups_ecb_rt_admit are those of broker/_admission.py's Admission.decide."""
+    check_declarations(declared, *bus, events=True)
+
+
+def test_admission_of_classic_examples() -> None:
+    """Fixed cases: a lone stream, one that cannot fit (unbounded), a jittered pair, a
+    transfer of 255 frames on a slow bus, FD."""
+    check_declarations([p.Declare(1, 0x100, 8, 10, 10, 0)], 500_000, False)
+    check_declarations([p.Declare(1, 0x100, 8, 1, 1, 0)], 10_000, False)
+    check_declarations(
+        [p.Declare(1, 0x100, 8, 10, 5, 3), p.Declare(2, 0x101, 2, 10, 4, 255),
+         p.Declare(3, 0x3000, 255, 65_535, 65_535, 0), p.Declare(3, 0x3001, 20, 1000, 200, 0)],
+        125_000, False,
+    )  # fmt: skip
+    check_declarations(
+        [p.Declare(1, 0x3000, 3, 50, 20, 1), p.Declare(2, 0x100, 8, 5, 5, 0)], 2_000_000, True
+    )
+
+
+def test_more_streams_than_priorities() -> None:
+    """127 streams Audsley can order do not fit in 0x02..0x7F: Python's ValueError, a Refuse
+    with response 0; the C says response 0 (and its miss index is the last stream)."""
+    assert RT_FIRST + RT_MAX - 2 == 0x7F  # 126 priorities
+    declared = [p.Declare(1 + i % 100, 0x100 + i, 0, 65_535, 65_535, 0) for i in range(RT_MAX)]
+    check_declarations(declared, 1_000_000, False)
+
+
+def test_admission_under_sanitizers() -> None:
+    """The property in a child process on libups-ecb-asan.so (ASan and UBSan)."""
+    if VARIANT == "asan":
+        pytest.skip("this is the child")
+    lib = build("asan", targets=TARGETS, sources=SOURCES)
+    env = {**os.environ, "UPS_CECB_RT": "asan", **sanitizer_env()}
+    done = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-s", "-x", "-p", "no:cacheprovider",
+         "-p", "no:xdist", f"{Path(__file__)}::test_admission_is_pythons",
+         f"{Path(__file__)}::test_more_streams_than_priorities"],
+        env=env, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    output = done.stdout[-6000:] + done.stderr[-6000:]
+    assert done.returncode == 0, f"{lib}:\n{output}"
+    assert "2 passed" in done.stdout, output
