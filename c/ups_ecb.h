@@ -100,7 +100,9 @@ typedef struct {
     uint32_t bitrate;      /**< bit/s of the bus, for the admission analysis (500000) */
     uint8_t fd;            /**< 1: declared streams are analysed as CAN FD frames (0) */
     uint16_t recovery_ms;  /**< the recovery window after Hello, 100..10000 (2000) */
-    uint32_t lease_s;      /**< a TxNode or etag unused this long may be reclaimed (86400) */
+    uint32_t lease_s;      /**< a TxNode or etag unused this long may be reclaimed (86400),
+                                1..1000000: ages are kept below 2^30 ms so that the
+                                clock's wraps never make an old entry young */
     uint16_t max_channels; /**< channels one TxNode may use (UPS_ECB_CHANNELS) */
     uint16_t quota[5];     /**< bindings one node id may create, per size class
                                 (1024, 64, 64, 64, 64) */
@@ -113,8 +115,10 @@ typedef struct {
 #define UPS_ECB_SERVING 2   /**< answers the bus */
 #define UPS_ECB_STANDBY 3   /**< another CAN-ECB serves; this one watches and answers nothing */
 
-#define UPS_ECB_NOTE_STATE 0x01u    /**< the durable state changed: save the blob before
-                                         sending the frames queued since */
+#define UPS_ECB_NOTE_STATE 0x01u    /**< the durable state changed: save the blob
+                                         (ups_ecb_save) before sending any frame queued
+                                         since (the Assign or Bind that announces it): so a
+                                         reset never forgets what the bus was told */
 #define UPS_ECB_NOTE_ROLE 0x02u     /**< ups_ecb_role() changed */
 #define UPS_ECB_NOTE_CHANNELS 0x04u /**< who uses which channel changed (a gateway's) */
 
@@ -177,9 +181,18 @@ typedef struct ups_ecb {
     uint8_t knocked;      /* a Knock came in the recovery window */
     uint8_t started_up;   /* the first recovery is over */
     uint8_t tx_count;
+    uint8_t hello_gap;    /* a Hello for unknown TxNodes was sent at t_unknown_hello */
+    uint8_t echo_next;    /* the next entry of echo[] to write */
+    uint8_t pad;
     uint32_t now;         /* the latest time given */
     uint32_t t_recovery;  /* when the recovery window began */
     uint32_t t_unknown_hello; /* the last Hello for an unknown TxNode */
+    uint8_t strays[16];   /* TxNodes heard asking while unknown since the last Hello (bits) */
+    struct {              /* CAN-ECB frames sent lately: heard again, they are this one's own */
+        uint32_t id;      /* 0: none (no CAN-ECB frame has identifier 0) */
+        uint16_t sum;     /* a check of the data and length */
+        uint16_t t;       /* low 16 bits of the time it was sent */
+    } echo[8];
     ups_frame_t tx[UPS_ECB_TX_DEPTH];
     ups_ecb_counters_t counters;
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
@@ -220,11 +233,24 @@ void ups_ecb_tx_pop(ups_ecb_t *ecb);
 /** What changed since the last call (UPS_ECB_NOTE_...), cleared by reading. */
 unsigned ups_ecb_notes(ups_ecb_t *ecb);
 
-/** The largest blob ups_ecb_save() writes with these tables. */
-#define UPS_ECB_BLOB_MAX (16u + 12u * UPS_ECB_NODES + 12u * UPS_ECB_CHANNELS + 12u * UPS_ECB_STREAMS)
+/** The largest blob ups_ecb_save() writes with these tables (its format: ups_ecb.c). */
+#define UPS_ECB_BLOB_MAX \
+    (20u + 12u * UPS_ECB_NODES + 12u * UPS_ECB_CHANNELS + 12u * UPS_ECB_STREAMS)
 
 /** Write the durable state (TxNodes by node id, etags by UID and creator, admitted streams) to
- *  @p out as a self-checking blob; returns its size, or 0 when @p cap is too small. */
+ *  @p out as a self-checking blob (a header, the sections, a CRC-32); returns its size, or 0
+ *  when @p cap is below UPS_ECB_BLOB_MAX.
+ *
+ *  Write rate: the blob changes (UPS_ECB_NOTE_STATE) only when the durable state does: a node
+ *  joins for the first time or is moved (one change per Assign of a TxNode it did not hold),
+ *  a TxNode is adopted in a recovery window or reclaimed past the lease, a channel is bound
+ *  for the first time, moved to a larger size class or reclaimed, or a stream is admitted or
+ *  given up. A bus whose nodes and channels are known writes nothing, whatever it exchanges
+ *  and however often its nodes restart (a rejoin under the same id is no change); a bus of
+ *  N nodes and C channels that starts from nothing writes at most N + C times, and an
+ *  application that saves once per call of ups_ecb_rx()/ups_ecb_tick() that raised the note
+ *  (not once per change) writes fewer. With 10 000 erase cycles per flash sector and two
+ *  sectors used in turn, that is 20 000 such changes. */
 size_t ups_ecb_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap);
 
 /** UPS_ECB_STOPPED, UPS_ECB_CANDIDATE, UPS_ECB_SERVING or UPS_ECB_STANDBY. */

@@ -54,6 +54,29 @@ void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned le
 /** Queue a CAN-ECB frame of TxNode 0x7F at priority 0 with the etag field @p field and 8 data
  *  bytes @p value (big-endian), or none when @p with_data is 0. */
 void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data);
+/** Milliseconds from @p then to @p now on the low 16 bits of the clock (valid up to 65 s). */
+static inline uint32_t ups_ecb__since16(uint32_t now, uint16_t then)
+{
+    return (uint16_t)((uint16_t)now - then);
+}
+/** The oldest age a timestamp keeps (2^30 ms, 12.4 days): ups_ecb__age() pulls an older one up
+ *  to it, so that ages stay below 2^31 ms and a clock wrap never makes an old entry young. */
+#define UPS_ECB__AGE_MAX 0x40000000u
+/** The age of timestamp @p *then at @p now, at most UPS_ECB__AGE_MAX (@p *then is moved up to
+ *  now - UPS_ECB__AGE_MAX when older). Called at least every 2^30 ms on every timestamp that
+ *  lives longer (every tick does), it keeps each age exact up to that bound. */
+uint32_t ups_ecb__age(uint32_t now, uint32_t *then);
+/** CRC-32 (IEEE 802.3, reflected, as zlib's crc32) of @p n bytes, continuing from @p crc (0 to
+ *  start). */
+uint32_t ups_ecb__crc32(uint32_t crc, const uint8_t *data, size_t n);
+
+/* ---- ups_ecb.c: what the parts ask of the dispatcher --------------------------------------- */
+
+/** A request from TxNode @p txnode, which no node holds: counted (unassigned), remembered as a
+ *  stray, and Hello again (at most once per Hello gap, not in a recovery window). */
+void ups_ecb__unassigned(ups_ecb_t *ecb, unsigned txnode);
+/** Whether TxNode @p txnode asked while unknown since the last Hello (a stray). */
+int ups_ecb__stray(const ups_ecb_t *ecb, unsigned txnode);
 
 /* ---- ups_ecb_join.c ---------------------------------------------------------------------- */
 
@@ -64,7 +87,10 @@ int ups_ecb__holder(const ups_ecb_t *ecb, unsigned txnode);
  *  Offer, Assign, Census; op/arg as the etag field says), or CLAIM from @p txnode. */
 void ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 void ups_ecb__join_tick(ups_ecb_t *ecb);
-/** Stop the census and lapse open Offers (standing by). */
+/** A frame of the join's (Assign, TxNodesFull, Failed) that this CAN-ECB did not send, heard
+ *  while serving: its correction where it contradicts the table (counted in conflicts). */
+void ups_ecb__join_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data);
+/** Stop the census (standing by); Offers lapse as usual. */
 void ups_ecb__join_stop(ups_ecb_t *ecb);
 /** Whether a census runs (the election will not stand by while it does). */
 int ups_ecb__join_busy(const ups_ecb_t *ecb);

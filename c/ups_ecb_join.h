@@ -1,23 +1,83 @@
 /*
  * libups-ecb, private: the state of ups_ecb_join.c (TxNodes by node id, the census, Offers).
  * Included by ups_ecb.h after its configuration macros; not part of the API.
+ *
+ * RAM: 16 bytes per node entry, 40 per census query (UPS_ECB_QUERIES), 12 per waiting
+ * branch group (UPS_ECB__GROUPS) and about 24 more: 432 bytes for the small bus (16 nodes,
+ * 4 queries).
  */
 #ifndef UPS_ECB_JOIN_H
 #define UPS_ECB_JOIN_H
 
 #include <stdint.h>
 
+/* a node entry's flags */
+#define UPS_ECB__HELD 0x01u    /* the node holds txnode (durable: in the blob) */
+#define UPS_ECB__OFFERED 0x02u /* txnode is offered to it, since t_offer */
+#define UPS_ECB__LAPSED 0x04u  /* an Offer of txnode lapsed unclaimed (not held): a late claim
+                                  still gets it; the entry is given up first when none is free */
+
+/** One node id the CAN-ECB knows: it holds a TxNode, is offered one, or let an Offer lapse.
+ *  txnode is 0xFF in an unused entry. t_seen is its TxNode's last frame (held), or when its
+ *  Offer lapsed (lapsed); ages on this wrapping clock are kept below 2^30 ms by
+ *  ups_ecb__join_tick (ups_ecb__age), so that a wrap never makes an old entry young. */
 typedef struct {
     uint8_t node_id[8]; /* big-endian */
     uint8_t txnode;     /* 0xFF: unused entry */
-    uint8_t pad[3];
-    uint32_t t_seen;    /* the last frame of its TxNode */
+    uint8_t flags;      /* UPS_ECB__HELD, ... */
+    uint16_t t_offer;   /* low 16 bits of the time of its Offer */
+    uint32_t t_seen;
 } ups_ecb_node_t;
+
+/** A census query: open (collecting Stage frames), or closed and remembered for the late
+ *  answers of its epoch (until its slot is needed again). */
+typedef struct {
+    uint32_t sent;      /* when it was sent (or reopened) */
+    uint32_t last;      /* open: the latest Stage for it; closed: when it closed */
+    uint8_t prefix[8];  /* its prefix, left-aligned (the Query's data), the rest zero */
+    uint8_t nib[8];     /* the nibble heard at stage s (high half of nib[s / 2] for even s) */
+    uint16_t present;   /* stages at which a nibble was heard */
+    uint16_t many;      /* stages at which several were */
+    uint16_t set;       /* the nibbles of stage set_stage, the first with several */
+    uint16_t late;      /* closed: the stages of its late answers */
+    uint16_t seq;       /* open order (the order in which queries close and are read) */
+    uint8_t plen;       /* prefix length, 0 (Census) .. 15 */
+    uint8_t epoch;
+    uint8_t set_stage;  /* 16: none */
+    uint8_t state;      /* 0 free, 1 open, 2 closed */
+    uint8_t tries;      /* how often this prefix was asked again */
+    uint8_t pad;
+} ups_ecb_query_t;
+
+/** Census branches waiting for an epoch: the prefix itself (set 0), or its children, one per
+ *  nibble of set (a compact encoding: the branches of one stage share their prefix). */
+typedef struct {
+    uint8_t prefix[8];
+    uint8_t plen;
+    uint8_t tries;
+    uint16_t set;
+} ups_ecb_group_t;
+
+/** Waiting branch groups at once; past it a branch is cut (census_cut): its joiners knock
+ *  again and the next census finds them. */
+#define UPS_ECB__GROUPS (2 * UPS_ECB_QUERIES + 2)
 
 typedef struct {
     ups_ecb_node_t nodes[UPS_ECB_NODES];
-    /* the census's state: to be filled in by ups_ecb_join.c */
-    uint8_t unused;
+    ups_ecb_query_t queries[UPS_ECB_QUERIES];
+    ups_ecb_group_t groups[UPS_ECB__GROUPS]; /* a FIFO ring */
+    uint32_t late_at;   /* when the slack was last raised */
+    uint16_t rtt;       /* ms: the round trip from a query to its first Stage, averaged */
+    uint16_t slack0;    /* ms: the slack when it was last raised (0: none) */
+    uint16_t sent;      /* queries sent in this census */
+    uint16_t seq;       /* the next query's open order */
+    uint8_t retries;    /* queries asked again in this census */
+    uint8_t again;      /* a Knock came during the census: another one follows */
+    uint8_t next_epoch;
+    uint8_t g_head;
+    uint8_t g_count;
+    uint8_t g_counted;  /* waiting groups already counted in queries_waiting (from the head) */
+    uint8_t pad[2];
 } ups_ecb_join_t;
 
 #endif /* UPS_ECB_JOIN_H */

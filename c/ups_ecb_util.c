@@ -74,3 +74,25 @@ void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with
     ups_ecb__put64(data, value);
     ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, field), data, with_data ? 8u : 0u);
 }
+
+uint32_t ups_ecb__age(uint32_t now, uint32_t *then)
+{
+    uint32_t age = ups_ecb__since(now, *then);
+    if (age > UPS_ECB__AGE_MAX) {
+        *then = now - UPS_ECB__AGE_MAX;
+        age = UPS_ECB__AGE_MAX;
+    }
+    return age;
+}
+
+uint32_t ups_ecb__crc32(uint32_t crc, const uint8_t *data, size_t n)
+{
+    crc = ~crc;
+    for (size_t i = 0; i < n; i++) {
+        crc ^= data[i];
+        for (unsigned k = 0; k < 8u; k++) {
+            crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
+        }
+    }
+    return ~crc;
+}
