@@ -11,40 +11,47 @@
  * factor, so every comparison (r <= d, the least r - d) comes out the same.
  *
  * Bounds (bitrate 1 .. 2^32 - 1, anything uint32_t holds; P <= 65535, jitter <= 255, frames
- * <= 255, a frame <= 736 bits: 64 bytes, 29-bit identifier, CAN FD, worst stuffing):
+ * <= 255, a frame <= 736 bits: 64 bytes, 29-bit identifier, CAN FD, worst stuffing; at most
+ * 255 streams):
  *   T (period), D < 2^16 * 2^32 = 2^48;  J < 2^8 * 2^32 = 2^40;  tau <= 10000 < 2^14;
- *   C (all frames of an event) <= 255 * 736 * 10000 < 2^31;  B (longest frame) < 2^23.
- * The horizon H = 2^55: a busy period or queuing time whose iteration passes H counts as
- * unbounded. Each step of a recurrence computes x' = base + sum_k ceil((x + J_k + a) / T_k) C_k
- * with x <= H (a = tau or 0), only over a set whose utilisation sum C_k / T_k is below 1 (checked
- * first), so C_k < T_k and each term is < (x + J_k + a) + T_k < 2^55 + 2^40 + 2^14 + 2^48 <
- * 2^56; the sum stops as soon as it passes H, so every partial sum is < H + 2^56 < 2^57, and
- * base (B + q C_m + (frames - 1) C_frame, with q C_m < t + J_m since q < (t + J_m) / T_m and
- * C_m < T_m) is < 2^23 + 2^56 + 2^31 < 2^57: nothing passes 2^58. The responses are < 2^57,
- * and r * 100 (the rounding to 10 us) < 2^64; r + d (comparing r - d) < 2^58.
+ *   C (all frames of an event) <= 255 * 736 * 10000 < 2^31;  B (longest frame) < 2^23;
+ *   sum of the C_k < 255 * 2^31 < 2^39.
+ * The horizon H = 2^62: a busy period or queuing time whose iteration passes H counts as
+ * unbounded. A step of a recurrence computes x' = base + sum_k ceil((x + J_k + a) / T_k) C_k,
+ * always from x <= H (checked before the step; a = tau or 0), and only over a set whose
+ * utilisation sum C_k / T_k is below 1 (checked first), so C_k < T_k: the dividend x + J_k + a
+ * + T_k - 1 < 2^62 + 2^49, and each term is < x + J_k + a + T_k < 2^62 + 2^49. The sum stops
+ * adding as soon as it passes H, so it is at most H + one term < 2^63 + 2^49. Davis's instance
+ * q < ceil((t + J_m) / T_m) of a busy period t <= H has q C_m < t + J_m and q T_m < t + J_m,
+ * so its base B + q C_m + (frames - 1) C_frame and start (+ the C_k above) are < 2^62 + 2^42;
+ * a response (J_m + w + C_frame, w <= H) is < 2^62 + 2^41, so r + d (comparing r - d) < 2^63;
+ * the rounding to 10 us takes r / N first. Nothing passes 2^64.
  *
  * Utilisation. sum C_k / T_k >= 1 exactly when sum 10000 n_k / P_k >= bitrate (n_k the bits
  * of all frames of stream k). That sum is taken as integer parts (10000 n_k < 2^31: with 255
- * streams < 2^39) plus fractions to 47 bits (r_k < P_k < 2^16, so r_k * 2^47 < 2^63; their sum
- * < 255 * 2^47 < 2^55), which bounds it within 255 * 2^-47. When the bound does not decide,
- * |bitrate - sum| < 255 * 2^-47: either the utilisation is >= 1 (Python: None), or 1 - U <
- * 255 * 2^-47 / bitrate and every fixed point x >= B + U x is >= B / (1 - U) >= 130 * 10000 /
- * g * bitrate * 2^47 / 255 >= 5098 * 2^47 > 2^59 > H (10000 * bitrate / g >= 10000, B >= 130
- * bit times): unbounded here too. So the one difference from Python: a finite response whose
- * busy period or queuing time passes H counts as unbounded (with N <= 8 * 10^7 units a ms,
- * e.g. any bitrate up to 8 Mbit/s, H is more than 5 days; 142 years at 8 Mbit/s; Python would
- * iterate over more than 68000 instances to find it).
+ * streams < 2^39) plus fractions to 96 bits, in three 32-bit limbs (a remainder r_k < P_k <
+ * 2^16, so r_k * 2^32 < 2^48; a limb's sum < 255 * 2^32 < 2^40), which bounds it within
+ * 255 * 2^-96. When the bound does not decide, |bitrate - sum| < 255 * 2^-96: either the
+ * utilisation is >= 1 (Python: None), or 1 - U < 255 * 2^-96 / bitrate and every fixed point
+ * x >= B + U x is >= B / (1 - U) > 130 * 10000 / g * bitrate * 2^96 / 255 >= 5098 * 2^96 > H
+ * (10000 * bitrate / g >= 10000, B >= 130 bit times): unbounded here too.
+ *
+ * So the one difference from Python: a finite response time whose busy period or queuing time
+ * passes H is taken as unbounded. With N <= 8 * 10^7 units a ms (any bitrate up to 8 Mbit/s),
+ * H is more than 5.7 * 10^10 ms (1.8 years; 5.7 * 10^14 ms at 8 Mbit/s, where a unit is the bit
+ * time): beyond any deadline (6553.5 ms at most), and for Python to reach it, the busy period
+ * alone holds more than 8.7 million instances of the stream (periods are at most 6553.5 ms),
+ * each its own fixed-point iteration.
  *
  * No heap, no library call, no floating point; the stack holds two bytes per stream
  * (UPS_ECB_RT_MAX each) and a few scalars.
  */
 #include "ups_ecb_rt.h"
 
-#define RT_HORIZON ((uint64_t)1 << 55)
+#define RT_HORIZON ((uint64_t)1 << 62)
 #define RT_UNBOUNDED UINT64_MAX
 #define RT_FIRST 0x02u
 #define RT_LAST 0x7Fu
-#define RT_FRAC_BITS 47u
 
 typedef struct {
     uint64_t tau;   /* units a bit */
@@ -102,7 +109,8 @@ static unsigned rt_frame_bits(unsigned size, unsigned flags)
 
 static int rt_bus(rt_bus_t *bus, uint32_t bitrate, unsigned flags)
 {
-    if (bitrate == 0u || ((flags & UPS_ECB_RT_TINDELL1994) != 0u && (flags & UPS_ECB_RT_FD) != 0u)) {
+    unsigned tindell_fd = UPS_ECB_RT_TINDELL1994 | UPS_ECB_RT_FD;
+    if (bitrate == 0u || (flags & tindell_fd) == tindell_fd) {
         return 0;
     }
     uint32_t g = rt_gcd(bitrate, 10000u);
@@ -151,7 +159,7 @@ static int rt_below_one(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned
                         const uint8_t *placed, int with_m, uint32_t bitrate, uint64_t *hp_sum)
 {
     uint64_t whole = 0u;
-    uint64_t frac = 0u;
+    uint64_t limb[3] = {0u, 0u, 0u}; /* the fractions' bits 1..32, 33..64, 65..96 */
     uint64_t inexact = 0u;
     for (unsigned k = 0u; k < n; k++) {
         rt_msg_t x;
@@ -166,12 +174,18 @@ static int rt_below_one(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned
         uint64_t p = s[k].period;
         whole += a / p;
         uint64_t r = a % p;
-        frac += (r << RT_FRAC_BITS) / p;
-        inexact += ((r << RT_FRAC_BITS) % p) != 0u ? 1u : 0u;
+        for (unsigned i = 0u; i < 3u; i++) { /* long division, 32 bits at a time */
+            limb[i] += (r << 32) / p;
+            r = (r << 32) % p;
+        }
+        inexact += r != 0u ? 1u : 0u;
     }
-    /* the sum is at most whole + (frac + inexact) / 2^47, which is below the integer bitrate
+    /* the sum is at most whole + (limbs + inexact / 2^96), which is below the integer bitrate
      * exactly when its integer part is; else U >= 1, or undecided (past the horizon) */
-    return whole + ((frac + inexact) >> RT_FRAC_BITS) < bitrate;
+    limb[2] += inexact;
+    limb[1] += limb[2] >> 32;
+    limb[0] += limb[1] >> 32;
+    return whole + (limb[0] >> 32) < bitrate;
 }
 
 /* One step: base + sum over the streams above m (and m when @p with_m) of
@@ -328,8 +342,9 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
             uint64_t per_ms = 10u * bus.scale; /* N = 10 * bitrate / g units a ms */
             *miss = worst;
             *response_10us = 0xFFFFu;
-            if (worst_r != RT_UNBOUNDED) {
-                uint64_t tens = (worst_r * 100u + per_ms - 1u) / per_ms;
+            if (worst_r != RT_UNBOUNDED && worst_r / per_ms < 656u) { /* else > 655.35 ms */
+                uint64_t tens = worst_r / per_ms * 100u +
+                                (worst_r % per_ms * 100u + per_ms - 1u) / per_ms;
                 if (tens < 0xFFFFu) {
                     *response_10us = (uint16_t)tens;
                 }

@@ -59,7 +59,7 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
  *  the longest frame of the format, as ups/rt's analyze(specs, bitrate, method, id_bits, fd=)
  *  does: @p response[i] is stream i's worst-case response time in units of 1/N ms, where N is
  *  the return value, or UINT64_MAX when unbounded (Python's None; also a response beyond the
- *  horizon of ups_ecb_rt.c, 2^55 units). Returns 0 (and writes nothing) for invalid input: as
+ *  horizon of ups_ecb_rt.c, 2^62 units). Returns 0 (and writes nothing) for invalid input: as
  *  ups_ecb_rt_admit's, or tindell1994 with CAN FD or more than 8 bytes. The priority fields
  *  are not used. */
 uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate,

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from broker._admission import RT_FIRST, Admission
 from ups import _canproto as p
 from ups._cnode import build
-from ups.rt import analyze, load_csv
+from ups.rt import MessageSpec, analyze, load_csv
 
 from .procs import sanitizer_env
 from .rt.conftest import SAE_CSV
@@ -226,6 +226,34 @@ def test_admission_of_classic_examples() -> None:
     check_declarations(
         [p.Declare(1, 0x3000, 3, 50, 20, 1), p.Declare(2, 0x100, 8, 5, 5, 0)], 2_000_000, True
     )
+
+
+# At 10 kbit/s an 8-byte classic frame (29-bit identifier, worst stuffing) takes 160 bits, 16 ms:
+# 160 x 100 us. Periods of 160 per stream, 320 for two, 480 for three load the bus exactly fully.
+FULL_LOAD = [
+    [(8, 160, 65_535, 0)],
+    [(8, 320, 65_535, 0), (8, 320, 65_535, 0)],
+    [(8, 480, 65_535, 0), (8, 480, 65_535, 0), (8, 480, 65_535, 0)],
+    [(8, 161, 65_535, 0)],  # just below: a long busy period, a finite response
+    [(8, 321, 65_535, 0), (8, 321, 65_535, 255)],
+    [(8, 480, 65_535, 0), (8, 481, 65_535, 7), (8, 479, 65_535, 0)],  # just above
+    [(8, 961, 65_535, 3), (8, 479, 65_535, 0), (8, 65_535, 65_535, 255)],
+]
+
+
+@pytest.mark.parametrize("rows", FULL_LOAD)
+@pytest.mark.parametrize("bitrate", [10_000, 10_001])
+def test_utilisation_at_and_near_one(rows: list[tuple[int, int, int, int]], bitrate: int) -> None:
+    """Exactly full (Python: None), just below (finite, long busy periods) and just above, in
+    both entries: ups_ecb_rt_response against analyze, ups_ecb_rt_admit against decide."""
+    specs = [
+        MessageSpec(str(i), size, Fraction(t, 10), Fraction(d, 10), Fraction(j, 10))
+        for i, (size, t, d, j) in enumerate(rows)
+    ]
+    expected = [r.response_time_ms for r in analyze(specs, bitrate)]
+    assert c_analyze(rows, bitrate, 0) == expected
+    declared = [p.Declare(1, 0x100 + i, *row) for i, row in enumerate(rows)]
+    check_declarations(declared, bitrate, False)
 
 
 def test_more_streams_than_priorities() -> None:
