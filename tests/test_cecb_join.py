@@ -1,0 +1,382 @@
+"""libups-ecb's join half (c/ups_ecb_join.c) and its dispatcher (c/ups_ecb.c): censuses of many
+joiners at once, docs/protocol.md's worked example frame by frame, lapsed Offers and late
+claims, TxNodesFull and the lease, and restarts with the blob (kept, or corrupt and refused).
+
+The compiled library serves a python-can virtual bus (``broker/c_ecb.py``'s CEcb) against
+nodes written from the document (``tests/conformance/_wire``'s RawNode) or frames the test
+sends itself. A full node table and the lease are driven call by call with the time given
+explicitly (``Driver``), also in a child process under AddressSanitizer with the small tables
+of the asan build (6 nodes)."""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import subprocess
+import sys
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.conformance._frames import (
+    PUB_BIND,
+    SUB_BIND,
+    UNSUB,
+    Assign,
+    Bind,
+    Census,
+    Event,
+    Hello,
+    Knock,
+    Offer,
+    Query,
+    Request,
+    Serving,
+    Stage,
+    TxNodesFull,
+    claim,
+    decode_id,
+    encode,
+    nibbles,
+)
+from tests.conformance._wire import RawNode, Wire
+from tests.procs import sanitizer_env
+from ups._canlink import CanLink
+from ups._cnode import build
+from ups.broker.c_ecb import COUNTERS, SOURCES, VARIANTS, CEcb, default_config, load
+
+ROOT = Path(__file__).resolve().parent.parent
+SPEED = 0xBBCCB9C002D5ED59  #: the worked example's channel UID
+
+
+@asynccontextmanager
+async def c_ecb(channel: str, state: Path, **options: Any) -> AsyncIterator[CEcb]:
+    link = CanLink.open(f"virtual:{channel}")
+    try:
+        ecb = CEcb(link, state, **{"recovery": 0.2, **options})
+        await ecb.start()
+        try:
+            yield ecb
+        finally:
+            ecb.close()
+    finally:
+        link.close()
+
+
+@pytest.fixture
+async def wire(request: pytest.FixtureRequest) -> AsyncIterator[Wire]:
+    w = Wire(f"cecb-join-{request.node.name}-{id(request)}")
+    yield w
+    await w.close()
+
+
+async def until(check: Any, what: str, timeout: float = 10.0) -> None:
+    """Poll ``check()`` until it holds (an event of the CAN-ECB's, seen in its counters)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not check():
+        assert loop.time() < deadline, f"not within {timeout} s: {what}"
+        await asyncio.sleep(0.005)
+
+
+async def served(wire: Wire) -> None:
+    """Wait until the CAN-ECB's first recovery window is over (its Serving follows it)."""
+    await wire.expect(Serving, timeout=5.0)
+
+
+# --- censuses on the bus ----------------------------------------------------------------------
+
+
+def shared_prefix_ids(count: int) -> list[int]:
+    """``count`` ids sharing their first 12 nibbles, branching at several later stages."""
+    base = 0x0123456789AB0000
+    return [base | (k * 0x0111 + (k % 3) * 0x1000) & 0xFFFF for k in range(1, count + 1)]
+
+
+@pytest.mark.parametrize("count", [1, 3, 20])
+async def test_joiners_at_once_with_long_shared_prefixes(
+    wire: Wire, tmp_path: Path, count: int
+) -> None:
+    ids = shared_prefix_ids(count)
+    assert len(set(ids)) == count
+    async with c_ecb(wire.channel, tmp_path / "ecb.blob") as ecb:
+        await served(wire)
+        nodes = [RawNode(wire, i) for i in ids]
+        txnodes = await asyncio.gather(*(n.join() for n in nodes))
+        assert len(set(txnodes)) == count
+        assert ecb.txnodes == dict(zip(ids, txnodes, strict=True))
+        stats = ecb.stats()
+        assert stats["joined"] == count
+        assert stats["census_cut"] == 0
+        if count > 1:  # they share 12 nibbles: the census branched into queries
+            assert wire.find(Query)
+
+
+# --- the worked example of docs/protocol.md -----------------------------------------------------
+
+
+def hexed(frame: Any) -> tuple[str, str]:
+    can_id, data = encode(frame)
+    return f"{can_id:08X}", data.hex(" ")
+
+
+async def test_the_worked_example_frame_by_frame(wire: Wire, tmp_path: Path) -> None:
+    """The tables of *Worked example*: the identifiers and data the document gives are those
+    this CAN-ECB sends (0x9B holds TxNode 1 from the start: it claims it in the recovery
+    window, so that the joiners get TxNodes 0, 2 and 3 as in the document)."""
+    async with c_ecb(wire.channel, tmp_path / "ecb.blob", recovery=1.0):
+        _, hello = await wire.expect(Hello)
+        assert hexed(hello)[0] == "001FF300"
+        wire.send(claim(1, 0x9B))  # adopted in the recovery window
+        await served(wire)
+
+        since = wire.send(Knock())
+        _, census = await wire.expect(Census, since=since)
+        assert hexed(census) == ("001FF000", "")
+        since = wire.send(*(Stage(0, s, n) for s, n in enumerate(nibbles(0x5B))))
+        _, offer = await wire.expect(Offer, since=since)
+        assert hexed(offer) == ("001FE080", "00 00 00 00 00 00 00 5b")
+        since = wire.send(claim(0, 0x5B))
+        _, assign = await wire.expect(Assign, since=since)
+        assert hexed(assign) == ("001FE000", "00 00 00 00 00 00 00 5b")
+
+        since = wire.send(Request(SUB_BIND, 0, SPEED))
+        _, bind = await wire.expect(Bind, since=since)
+        assert hexed(bind) == ("003FC010", "bb cc b9 c0 02 d5 ed 59")
+        since = wire.send(Request(PUB_BIND, 1, SPEED))
+        _, bind = await wire.expect(Bind, since=since)
+        assert hexed(bind) == ("003FC010", "bb cc b9 c0 02 d5 ed 59")
+        wire.send(Event(0x20, 1, 0x10, b"\x01\x02"), Request(UNSUB, 0, SPEED))
+
+        # two nodes, 0x25 and 0x3A, power up together: identical stages 0-13 once each
+        since = wire.send(Knock())
+        _, census = await wire.expect(Census, since=since)
+        assert hexed(census) == ("001FF001", "")
+        frames = [Stage(1, s, 0) for s in range(14)]
+        frames += [Stage(1, 14, 2), Stage(1, 14, 3), Stage(1, 15, 5), Stage(1, 15, 10)]
+        since = wire.send(*frames)
+        _, q2 = await wire.expect(Query, since=since)
+        _, q3 = await wire.expect(lambda f: isinstance(f, Query) and f != q2, since=since)
+        assert (hexed(q2), hexed(q3)) == (
+            ("001FD2E2", "00 00 00 00 00 00 00 20"),
+            ("001FD3E3", "00 00 00 00 00 00 00 30"),
+        )
+        since = wire.send(Stage(2, 15, 5), Stage(3, 15, 10))
+        _, o2 = await wire.expect(Offer, since=since)
+        _, o3 = await wire.expect(lambda f: isinstance(f, Offer) and f != o2, since=since)
+        assert (hexed(o2), hexed(o3)) == (
+            ("001FE082", "00 00 00 00 00 00 00 25"),
+            ("001FE083", "00 00 00 00 00 00 00 3a"),
+        )
+        since = wire.send(claim(2, 0x25), claim(3, 0x3A))
+        _, a2 = await wire.expect(Assign, since=since)
+        _, a3 = await wire.expect(lambda f: isinstance(f, Assign) and f != a2, since=since)
+        assert (hexed(a2), hexed(a3)) == (
+            ("001FE002", "00 00 00 00 00 00 00 25"),
+            ("001FE003", "00 00 00 00 00 00 00 3a"),
+        )
+
+
+# --- Offers that lapse --------------------------------------------------------------------------
+
+
+async def test_a_lapsed_offer_is_kept_for_a_late_claim(wire: Wire, tmp_path: Path) -> None:
+    async with c_ecb(wire.channel, tmp_path / "ecb.blob") as ecb:
+        await served(wire)
+        slow = RawNode(wire, 0x51)
+        slow.claim_offers = False
+        since = wire.send(Knock())
+        _, offer = await wire.expect(lambda f: isinstance(f, Offer) and f.node_id == 0x51,
+                                     since=since)  # fmt: skip
+        slow.close()  # it answers no census from now on (else it is offered the same again)
+        await until(lambda: ecb.stats()["offers_withdrawn"] >= 1, "the Offer lapses")
+        # another joiner does not get the lapsed Offer's TxNode while others are free
+        other = RawNode(wire, 0x52)
+        assert await other.join() != offer.txnode
+        # the slow node's late claim still gets it
+        since = wire.send(claim(offer.txnode, 0x51))
+        await wire.expect(Assign(offer.txnode, 0x51), since=since)
+        assert ecb.stats()["late_claims"] == 1
+        assert ecb.txnodes[0x51] == offer.txnode
+        other.close()
+
+
+# --- restarts and the blob ------------------------------------------------------------------------
+
+
+async def test_a_restart_with_the_blob_keeps_every_txnode(wire: Wire, tmp_path: Path) -> None:
+    state = tmp_path / "ecb.blob"
+    ids = shared_prefix_ids(3)
+    async with c_ecb(wire.channel, state) as ecb:
+        await served(wire)
+        nodes = [RawNode(wire, i) for i in ids]
+        await asyncio.gather(*(n.join() for n in nodes))
+        before = ecb.txnodes
+    for node in nodes:
+        node.answer_hello = False  # the table alone brings them back
+    async with c_ecb(wire.channel, state) as ecb:
+        assert ecb.restored
+        assert ecb.txnodes == before
+        await served(wire)
+        late = RawNode(wire, 0x77)  # a new joiner gets a TxNode nobody holds
+        assert await late.join() not in before.values()
+        assert ecb.stats()["blob_refused"] == 0
+
+
+async def test_a_corrupt_blob_is_refused_and_the_nodes_claim_again(
+    wire: Wire, tmp_path: Path
+) -> None:
+    state = tmp_path / "ecb.blob"
+    ids = shared_prefix_ids(3)
+    async with c_ecb(wire.channel, state) as ecb:
+        await served(wire)
+        nodes = [RawNode(wire, i) for i in ids]
+        await asyncio.gather(*(n.join() for n in nodes))
+        before = ecb.txnodes
+    blob = bytearray(state.read_bytes())
+    blob[len(blob) // 2] ^= 0x40  # one bit flipped: the CRC no longer holds
+    state.write_bytes(bytes(blob))
+    async with c_ecb(wire.channel, state, recovery=1.0) as ecb:
+        assert not ecb.restored
+        assert ecb.stats()["blob_refused"] == 1
+        # the nodes answer the Hello with CLAIM, adopted in the recovery window
+        await until(lambda: ecb.txnodes == before, "the claims are adopted")
+        assert ecb.stats()["adopted"] == len(ids)
+
+
+# --- call by call: a full table, the lease, the blob, a clock that wraps --------------------------
+
+
+class Driver:
+    """One ups_ecb_t of ``variant``, its calls made with the time given explicitly."""
+
+    def __init__(self, variant: str, **cfg: Any) -> None:
+        self.lib = load(variant)
+        self.c = self.lib.lib
+        self.config = self.lib.config
+        self.state = ctypes.create_string_buffer(self.lib.size)
+        self.frame = self.lib.Frame()
+        conf = default_config(variant)
+        for name, value in cfg.items():
+            setattr(conf, name, value)
+        assert self.c.ups_ecb_init(self.state, ctypes.byref(conf), 0x1D) == 0
+        self.now = 0
+
+    def start(self, now: int) -> list[Any]:
+        self.now = now
+        self.c.ups_ecb_start(self.state, now)
+        return self.take()
+
+    def rx(self, *frames: Any) -> list[Any]:
+        out = []
+        for frame in frames:
+            can_id, data = encode(frame)
+            self.frame.id, self.frame.flags, self.frame.len = can_id, 0x01, len(data)
+            ctypes.memmove(self.frame.data, data, len(data))
+            self.c.ups_ecb_rx(self.state, self.now, ctypes.byref(self.frame))
+            out += self.take()
+        return out
+
+    def tick(self, ms: int) -> list[Any]:
+        """Pass ``ms`` milliseconds, ticking every 5."""
+        out = []
+        for _ in range(0, ms, 5):
+            self.now = (self.now + 5) & 0xFFFFFFFF
+            self.c.ups_ecb_tick(self.state, self.now)
+            out += self.take()
+        return out
+
+    def take(self) -> list[Any]:
+        out = []
+        while frame := self.c.ups_ecb_tx_peek(self.state):
+            f = frame.contents
+            out.append(decode_id(int(f.id), bytes(f.data[: f.len])))
+            self.c.ups_ecb_tx_pop(self.state)
+        return out
+
+    def counters(self) -> dict[str, int]:
+        raw = self.lib.Counters.from_address(self.c.ups_ecb_counters(self.state))
+        return dict(zip(COUNTERS, (int(v) for v in raw), strict=True))
+
+    def nodes(self) -> dict[int, int]:
+        node_id = ctypes.c_uint64()
+        out = {}
+        for i in range(self.config["nodes"]):
+            t = self.c.ups_ecb_node(self.state, i, ctypes.byref(node_id))
+            if t >= 0:
+                out[node_id.value] = t
+        return out
+
+    def save(self) -> bytes:
+        blob = ctypes.create_string_buffer(self.config["blob_max"])
+        n = self.c.ups_ecb_save(self.state, blob, len(blob))
+        return blob.raw[:n]
+
+    def census(self, node_id: int) -> list[Any]:
+        """A Knock, the Stages of ``node_id`` for the Census, and the time to read them."""
+        out = self.rx(Knock())
+        census = [f for f in out if isinstance(f, Census)]
+        assert census, out
+        stages = [Stage(census[0].epoch, s, n) for s, n in enumerate(nibbles(node_id))]
+        return out + self.rx(*stages) + self.tick(300)
+
+
+def scenario_full_table(variant: str) -> None:
+    """Fill the node table (claims adopted at start, then joins by census); TxNodesFull
+    (nodes_full) until the lease has passed for a TxNode silent longest, which is then
+    reclaimed and offered; the clock wraps meanwhile; the blob brings the table back, a
+    corrupt one is refused."""
+    ecb = Driver(variant, lease_s=2, recovery_ms=300)
+    n = ecb.config["nodes"]
+    ecb.start(0xFFFFF000)  # the clock wraps in 4 s
+    adopted = n // 2
+    assert ecb.rx(*(claim(t, 0xA000 + t) for t in range(adopted))) == []
+    ecb.tick(400)
+    for k in range(adopted, n):
+        out = ecb.census(0xB000 + k)
+        offers = [f for f in out if isinstance(f, Offer)]
+        assert offers == [Offer(offers[0].txnode, 0xB000 + k)], out
+        assert ecb.rx(claim(offers[0].txnode, 0xB000 + k)) == [Assign(offers[0].txnode,
+                                                                      0xB000 + k)]  # fmt: skip
+        ecb.rx(*(Event(0x80, t, 0x10, b"") for t in ecb.nodes().values()))  # all in use
+    table = ecb.nodes()
+    assert len(table) == n and len(set(table.values())) == n
+    out = ecb.census(0xCCCC)
+    assert TxNodesFull(0xCCCC) in out
+    assert ecb.counters()["nodes_full"] == 1
+    # every node but the first adopted one speaks; past the lease its TxNode is reclaimed
+    quiet = table[0xA000]
+    for _ in range(3):
+        ecb.tick(900)
+        ecb.rx(*(Event(0x80, t, 0x10, b"") for t in table.values() if t != quiet))
+    out = ecb.census(0xCCCC)
+    assert Offer(quiet, 0xCCCC) in out, out
+    assert ecb.counters()["reclaimed"] == 1
+    assert ecb.rx(claim(quiet, 0xCCCC)) == [Assign(quiet, 0xCCCC)]
+    table = ecb.nodes()
+    assert table[0xCCCC] == quiet and 0xA000 not in table
+    # the blob: the same table in another CAN-ECB; one flipped bit, and it is refused
+    blob = ecb.save()
+    other = Driver(variant)
+    assert other.c.ups_ecb_restore(other.state, blob, len(blob)) == 0
+    assert other.nodes() == table
+    for bad in (blob[:-1], blob[:5] + bytes([blob[5] ^ 1]) + blob[6:], blob + b"\0"):
+        third = Driver(variant)
+        assert third.c.ups_ecb_restore(third.state, bad, len(bad)) < 0
+        assert third.nodes() == {} and third.counters()["blob_refused"] == 1
+
+
+def test_a_full_table_the_lease_and_the_blob_call_by_call() -> None:
+    scenario_full_table("full")
+
+
+def test_a_full_table_the_lease_and_the_blob_under_asan() -> None:
+    build("asan", targets=VARIANTS, sources=SOURCES)  # built here, loaded in the child only
+    code = "from tests.test_cecb_join import *; scenario_full_table('asan')"
+    env = {**sanitizer_env(), "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=50)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
