@@ -60,7 +60,7 @@ static unsigned class_end(unsigned c)
 
 static int has(const uint8_t *map, int slot)
 {
-    return (map[(unsigned)slot >> 3] >> ((unsigned)slot & 7u)) & 1u;
+    return (int)(((unsigned)map[(unsigned)slot >> 3] >> ((unsigned)slot & 7u)) & 1u);
 }
 
 static void put_bit(uint8_t *map, int slot, int on)
@@ -216,7 +216,7 @@ static unsigned free_etag(ups_ecb_t *ecb, unsigned c)
             }
         }
         for (unsigned k = 0u; k < 64u && base + k < end; k++) {
-            if (((taken[k >> 3] >> (k & 7u)) & 1u) == 0u) {
+            if ((((unsigned)taken[k >> 3] >> (k & 7u)) & 1u) == 0u) {
                 return base + k;
             }
         }
@@ -515,13 +515,15 @@ static void bind(ups_ecb_t *ecb, int slot, unsigned txnode, unsigned kind, const
         if (!within_quota(ecb, slot, txnode, uid, c)) {
             return;
         }
-        unsigned etag = free_etag(ecb, c);
-        if (etag != 0u && i < 0) {
+        unsigned etag = 0u;
+        if (i < 0) { /* a new channel: an entry first (one reclaimed frees its etag too) */
             i = free_entry(ecb);
             if (i < 0) {
                 ups_ecb__count(&ecb->counters.channels_full);
-                etag = 0u;
             }
+        }
+        if (i >= 0) {
+            etag = free_etag(ecb, c);
         }
         if (etag == 0u) {
             ups_ecb__count(&ecb->counters.refused);
