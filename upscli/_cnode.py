@@ -74,6 +74,12 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
         "or asan (transfers and CAN FD with small tables, AddressSanitizer and "
         "UndefinedBehaviorSanitizer: run with LD_PRELOAD=$(cc -print-file-name=libasan.so))",
     )  # fmt: skip
+    cmd.add_argument(
+        "--target", choices=("host", "m0"), default="host",
+        help="host: the library compiled for this machine; m0: the Cortex-M0+ image a board "
+        "flashes (make -C c size's), run in an emulator (needs the emu extra: unicorn), "
+        "--build full or min",
+    )  # fmt: skip
     cmd.set_defaults(run=_run_c_node)
 
     cmd = command("uid", help="print channel UIDs as C constants")
@@ -124,7 +130,16 @@ def _run_c_node(args: argparse.Namespace) -> int:
         from ups._nodeid import claim_node_id
 
         node_id, args.id_lock = claim_node_id("ups-c-node")
-    node = CNode(node_id, fd=fd, variant=args.build)
+    if args.target == "m0":
+        from ups._armnode import ArmNode
+
+        if args.build == "asan":
+            print("ups c-node: --target m0 runs --build full or min (no sanitizer on the board)",
+                  file=sys.stderr)  # fmt: skip
+            return 2
+        node: CNode = ArmNode(node_id, fd=fd, config="full" if args.build == "full" else "minimal")
+    else:
+        node = CNode(node_id, fd=fd, variant=args.build)
     now = now_ms()
     subs = {node.subscribe(ch.uid, now): ch for ch in args.sub}
     pubs = [(node.advertise(ch.uid, len(data), now), ch, data) for ch, data in args.pub]
