@@ -201,3 +201,42 @@ def test_catalog_times_are_read_as_written(
     catalog.write_text('[channel."e"]\nrealtime = { period = 0.01 }\n')
     code, _, err = _run(capsys, str(catalog))
     assert code == 2 and "no fixed size" in err
+
+
+def _responses(capsys: pytest.CaptureFixture[str], *extra: str) -> dict[str, dict[str, object]]:
+    code, out, err = _run(capsys, str(SAE_CSV), "--bitrate", "500k", "--json", *extra)
+    assert code == 0 and err == ""
+    return {m["name"]: m for m in json.loads(out)["messages"]}
+
+
+def test_node_cycles_put_the_nodes_work_into_the_analysis(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """RECEIVE cycles lengthen every response by their time exactly; SEND cycles are queuing
+    jitter, which every message's own response includes (and may delay lower priorities);
+    0,0 changes nothing."""
+    plain = _responses(capsys)
+    assert _responses(capsys, "--node-cycles", "0,0") == plain
+    received = _responses(capsys, "--node-cycles", "0,4800", "--node-mhz", "48")  # 0.1 ms
+    for name, m in plain.items():
+        assert received[name]["response_time_ms"] == pytest.approx(m["response_time_ms"] + 0.1)
+        assert received[name]["deadline_ms"] == m["deadline_ms"]
+    sent = _responses(capsys, "--node-cycles", "9600")  # 0.2 ms at the default 48 MHz
+    for name, m in plain.items():
+        assert sent[name]["response_time_ms"] >= m["response_time_ms"] + 0.2 - 1e-9
+    slow = _responses(capsys, "--node-cycles", "0,220000")  # 4.58 ms: the 5 ms deadlines miss
+    assert not slow["9"]["schedulable"] and plain["9"]["schedulable"]
+    code, out, err = _run(capsys, str(SAE_CSV), "--node-cycles", "1652,2019")
+    assert code == 0 and "the nodes' own work: 34.4 us to send (in J), 42.1 us to receive" in out
+
+
+def test_node_cycles_that_leave_the_bus_no_time_are_an_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, _, err = _run(capsys, str(SAE_CSV), "--node-cycles", "0,480000")  # 10 ms > 5 ms
+    assert code == 2
+    assert "14: its deadline (5 ms) leaves the bus no time after the receiving node's work" in err
+    for bad in ("1,2,3", "x", "-1", ""):
+        with pytest.raises(SystemExit):
+            cli.main([str(SAE_CSV), "--node-cycles", bad])
+        assert "expected SEND or SEND,RECEIVE cycles" in capsys.readouterr().err

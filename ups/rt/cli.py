@@ -79,7 +79,67 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=_ASSIGN,
         help="assign priorities (mapped onto the 8-bit priority field) instead of using the file's",
     )
+    parser.add_argument(
+        "--node-cycles",
+        metavar="SEND[,RECEIVE]",
+        type=_node_cycles,
+        default=None,
+        help="the nodes' own work, in CPU cycles (c/README.md, 'Cycles on Cortex-M0+': SEND = "
+        "ups_publish + ups_tx_peek + ups_tx_pop, RECEIVE = ups_rx of the node's configuration): "
+        "SEND is added to every message's queuing jitter, RECEIVE to its response time, "
+        "which the deadline then bounds",
+    )
+    parser.add_argument(
+        "--node-mhz",
+        metavar="MHZ",
+        type=_positive_fraction,
+        default=Fraction(48),
+        help="the nodes' CPU clock for --node-cycles (default: 48)",
+    )
     parser.add_argument("--json", action="store_true", help="print a JSON object")
+
+
+def _positive_fraction(text: str) -> Fraction:
+    try:
+        value = Fraction(text)
+    except (ValueError, ZeroDivisionError):
+        raise argparse.ArgumentTypeError(f"expected a number, not {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}")
+    return value
+
+
+def _node_cycles(text: str) -> tuple[int, int]:
+    """``SEND`` or ``SEND,RECEIVE``: cycles (non-negative integers)."""
+    parts = text.split(",")
+    try:
+        values = [int(part) for part in parts]
+    except ValueError:
+        values = []
+    if len(parts) > 2 or not values or min(values) < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected SEND or SEND,RECEIVE cycles (integers >= 0), not {text!r}"
+        )
+    return values[0], values[1] if len(values) == 2 else 0
+
+
+def _with_nodes(
+    specs: list[MessageSpec], send_ms: Fraction, receive_ms: Fraction
+) -> list[MessageSpec]:
+    """The set the bus sees when every sender takes ``send_ms`` to queue a frame (its queuing
+    jitter grows by it) and every receiver ``receive_ms`` to take it (the deadline left for the
+    bus shrinks by it)."""
+    out = []
+    for spec in specs:
+        if spec.deadline_ms <= receive_ms:
+            raise ValueError(
+                f"{spec.name}: its deadline ({_ms(spec.deadline_ms)} ms) leaves the bus no time "
+                f"after the receiving node's work ({_ms(receive_ms)} ms)"
+            )
+        out.append(dataclasses.replace(
+            spec, jitter_ms=spec.jitter_ms + send_ms, deadline_ms=spec.deadline_ms - receive_ms
+        ))  # fmt: skip
+    return out
 
 
 def _load_catalog(path: str) -> list[MessageSpec]:
@@ -120,6 +180,15 @@ def _ms_of(seconds: float) -> Fraction:
     return Fraction(repr(seconds)) * 1000
 
 
+def _end_to_end(result: Result, receive_ms: Fraction) -> Result:
+    response = result.response_time_ms
+    if response is None:
+        return dataclasses.replace(result, deadline_ms=result.deadline_ms + receive_ms)
+    response += receive_ms
+    deadline = result.deadline_ms + receive_ms
+    return Result(result.name, response, deadline, response <= deadline)
+
+
 def _error(message: str, stream: TextIO) -> int:
     print(f"{_PROG}: error: {' '.join(message.split())}", file=stream)
     return 2
@@ -138,7 +207,13 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, UnicodeDecodeError) as error:
         return _error(str(error), err)
     priorities: dict[str, int] | None = None
+    send_ms = receive_ms = Fraction(0)
+    written = specs
     try:
+        if args.node_cycles is not None:
+            send, receive = args.node_cycles
+            send_ms, receive_ms = (Fraction(c) / (args.node_mhz * 1000) for c in (send, receive))
+            specs = _with_nodes(specs, send_ms, receive_ms)
         if args.assign:
             if args.assign == "audsley":
                 ordering = audsley(
@@ -160,6 +235,11 @@ def run(args: argparse.Namespace) -> int:
         return 1
     except ValueError as error:
         return _error(str(error), err)
+    if args.node_cycles is not None:  # back to the messages as written, end to end
+        results = [_end_to_end(r, receive_ms) for r in results]
+        specs = [
+            dataclasses.replace(w, priority=s.priority) for w, s in zip(written, specs, strict=True)
+        ]
     frame_ms = {msg.spec.name: msg.c for msg in msgs}
     if priorities is None:
         priorities = {
@@ -175,6 +255,8 @@ def run(args: argparse.Namespace) -> int:
         "blocking": blocking,
         "fd": bool(args.fd),
         "utilisation": float(utilisation),
+        "node_send_ms": float(send_ms),
+        "node_receive_ms": float(receive_ms),
         "schedulable": all(result.schedulable for result in results),
     }
     try:
@@ -229,6 +311,12 @@ def _print_table(
         f"{header['id_bits']}-bit identifiers{', CAN FD' if header['fd'] else ''}, "
         f"blocking {header['blocking']}, bus utilisation {utilisation:.1%}\n"
     )
+    send, receive = header["node_send_ms"], header["node_receive_ms"]
+    if send or receive:
+        out.write(
+            f"the nodes' own work: {float(send) * 1000:.1f} us to send (in J), "  # type: ignore[arg-type]
+            f"{float(receive) * 1000:.1f} us to receive (in R)\n"  # type: ignore[arg-type]
+        )
     columns = ("message", "prio", "bytes", "C ms", "J ms", "T ms", "D ms", "R ms", "")
     rows = [
         (
