@@ -38,7 +38,7 @@
 #define ROSTER_PAGE 32u
 #define ROSTER_BURST 48u
 #define ROSTER_GAP 5u    /* ms per roster frame: 200 a second */
-#define ROSTER_ROOM 2u   /* TX queue places roster frames leave to the other answers */
+#define ROOM 2u          /* TX queue places paced answers (rosters, held requests) leave free */
 #define UNBOUNDED 0xFFFFu
 
 /* ---- small helpers --------------------------------------------------------------------------- */
@@ -736,7 +736,7 @@ static void roster_pump(ups_ecb_t *ecb)
     if (ecb->recovering) {
         return;
     }
-    while (b->r_tokens > 0u && ecb->tx_count + ROSTER_ROOM < UPS_ECB_TX_DEPTH &&
+    while (b->r_tokens > 0u && ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH &&
            !roster_queued(ecb)) {
         if (!b->r_active) {
             if (b->r_waiting == 0u) {
@@ -905,20 +905,28 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
     }
 }
 
-void ups_ecb__bind_recovered(ups_ecb_t *ecb)
+/** Answer the requests held in the recovery window, oldest first, as far as the TX queue has
+ *  room (each answer is one frame); the rest at the next ticks. */
+static void replay(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    for (unsigned h = 0u; h < UPS_ECB_HELD && b->held[h].kind != 0u; h++) {
-        ups_ecb_held_t held = b->held[h];
-        b->held[h].kind = 0u;
+    while (!ecb->recovering && b->held[0].kind != 0u &&
+           ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH) {
+        ups_ecb_held_t held = b->held[0];
+        for (unsigned h = 1u; h < UPS_ECB_HELD; h++) {
+            b->held[h - 1u] = b->held[h];
+        }
+        b->held[UPS_ECB_HELD - 1u].kind = 0u;
         int slot = ups_ecb__holder(ecb, held.txnode);
         if (slot >= 0) {
             bind(ecb, slot, held.txnode, held.kind, held.uid);
         }
     }
-    for (unsigned h = 0u; h < UPS_ECB_HELD; h++) {
-        b->held[h].kind = 0u;
-    }
+}
+
+void ups_ecb__bind_recovered(ups_ecb_t *ecb)
+{
+    replay(ecb);
     roster_pump(ecb);
 }
 
@@ -955,6 +963,7 @@ void ups_ecb__bind_tick(ups_ecb_t *ecb)
         b->r_tokens++;
         b->t_roster += ROSTER_GAP;
     }
+    replay(ecb);
     roster_pump(ecb);
 }
 
