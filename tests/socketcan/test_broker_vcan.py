@@ -130,3 +130,40 @@ def test_c_can_ecb_board_takes_its_state_back_from_its_blob(tmp_path: Path) -> N
         held = re.search(r"TxNode (0x\w+)", first)
         assert held is not None and held[1] != newcomer, (newcomer, first)
         assert ecb.stop() == 0, "".join(ecb.stderr_lines)
+
+
+def line_with(proc: Proc, text: str) -> str:
+    """The first stderr line that holds text, waiting for it if none came yet."""
+    found = [line for line in proc.stderr_lines if text in line]
+    return found[0] if found else proc.wait_for_line(re.escape(text), timeout=WAIT)
+
+
+def test_two_boards_one_serves_the_other_takes_over(tmp_path: Path) -> None:
+    """Two boards carry the CAN-ECB: the one started second stands by (its node joins through
+    the first); the first stops, and the second takes over and serves new nodes."""
+    bus = vcan_bus()
+    build_examples()
+    with board(tmp_path / "a.blob", "0xB0") as first:
+        first.wait_for_line("board/uptime at etag", timeout=WAIT)
+        with board(tmp_path / "b.blob", "0xB1") as second:
+            second.wait_for_line("board/uptime at etag", timeout=WAIT)
+            assert line_with(second, "CAN-ECB standing by")
+            assert not [x for x in second.stderr_lines if "CAN-ECB serving" in x]
+            assert first.stop() == 0, "".join(first.stderr_lines)
+            assert "CAN-ECB serving" in first.stderr_lines[-1]
+            line_with(second, "CAN-ECB serving")  # took over
+            with example("actuator", "0xA1", "2") as actuator:
+                actuator.wait_for_line("robot/cmd at etag", timeout=WAIT)
+                with Proc("pub", "robot/cmd", "0a0b", "--can", bus, "--count", "2", "--rate",
+                          "10", "--node-id", "0x52") as pub:  # fmt: skip
+                    assert pub.finish(timeout=WAIT)[0] == 0
+                code, out = actuator.finish(timeout=WAIT)
+            lines = out.splitlines()
+            assert code == 0 and len(lines) == 2, "".join(actuator.stderr_lines)
+            assert all(x.startswith("robot/cmd 0a0b from 0x") for x in lines)
+            with Proc("sub", "board/uptime", "--can", bus, "--json", "--count", "2", "--timeout",
+                      str(int(WAIT)), "--node-id", "0x53") as sub:  # fmt: skip
+                code, out = sub.finish(timeout=WAIT)
+            assert code == 0 and len(uptimes(out)) == 2  # the second board's own node
+            assert second.stop() == 0, "".join(second.stderr_lines)
+        assert "CAN-ECB serving" in second.stderr_lines[-1]
