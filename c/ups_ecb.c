@@ -449,7 +449,12 @@ void ups_ecb_tick(ups_ecb_t *ecb, uint32_t now_ms)
         return;
     }
     (void)ups_ecb__age(now_ms, &ecb->t_unknown_hello);
-    if (ecb->recovering && ups_ecb__since(now_ms, ecb->t_recovery) >= ecb->cfg.recovery_ms) {
+    /* the election first: a candidacy that ends with the recovery window serves (Serving)
+       before it answers what the window held (the Python CAN-ECB's timers fire in that
+       order); the queue sends the lowest identifier first, so the window ends a tick later */
+    int role = ecb->elect.role;
+    elected(ecb, ups_ecb__elect_tick(ecb));
+    if (role == ecb->elect.role && ecb->recovering && ups_ecb__since(now_ms, ecb->t_recovery) >= ecb->cfg.recovery_ms) {
         ecb->recovering = 0u;
         ups_ecb__copy(ecb->strays, NULL, (unsigned)sizeof(ecb->strays));
         if (ecb->elect.role != UPS_ECB_STANDBY) {
@@ -460,7 +465,6 @@ void ups_ecb_tick(ups_ecb_t *ecb, uint32_t now_ms)
     }
     ups_ecb__join_tick(ecb);
     ups_ecb__bind_tick(ecb);
-    elected(ecb, ups_ecb__elect_tick(ecb));
 }
 
 /* ---- sending ------------------------------------------------------------------------------- */
