@@ -89,6 +89,24 @@ static unsigned get16(const uint8_t *in)
     return ((unsigned)in[0] << 8) | in[1];
 }
 
+static void put16(uint8_t *out, unsigned value)
+{
+    out[0] = (uint8_t)(value >> 8);
+    out[1] = (uint8_t)value;
+}
+
+/* struct copies and shifts through ups_ecb__copy, so that no compiler makes memcpy or memmove
+ * calls of them (no C library) */
+static void copy_stream(ups_ecb_stream_t *to, const ups_ecb_stream_t *from)
+{
+    ups_ecb__copy((uint8_t *)to, (const uint8_t *)from, (unsigned)sizeof(*to));
+}
+
+static void copy_held(ups_ecb_held_t *to, const ups_ecb_held_t *from)
+{
+    ups_ecb__copy((uint8_t *)to, (const uint8_t *)from, (unsigned)sizeof(*to));
+}
+
 /** -1, 0, 1 as UID @p a is below, equal to or above @p b. */
 static int uid_cmp(const uint8_t *a, const uint8_t *b)
 {
@@ -207,7 +225,8 @@ static unsigned free_etag(ups_ecb_t *ecb, unsigned c)
 {
     unsigned end = class_end(c);
     for (unsigned base = class_first(c); base < end; base += 64u) {
-        uint8_t taken[8] = {0};
+        uint8_t taken[8];
+        ups_ecb__copy(taken, NULL, 8u);
         for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
             unsigned e = ecb->bind.channels[i].etag;
             if (e >= base && e < base + 64u) {
@@ -269,7 +288,7 @@ static void drop_stream(ups_ecb_t *ecb, int k)
     ups_ecb_bind_t *b = &ecb->bind;
     unsigned room = (unsigned)(sizeof b->streams / sizeof b->streams[0]);
     for (unsigned j = (unsigned)k; j + 1u < b->stream_count && j + 1u < room; j++) {
-        b->streams[j] = b->streams[j + 1u];
+        copy_stream(&b->streams[j], &b->streams[j + 1u]);
     }
     b->stream_count--;
     b->refused_valid = 0u;
@@ -293,8 +312,11 @@ static void forget_etag(ups_ecb_t *ecb, unsigned etag)
 
 static void send_grant(ups_ecb_t *ecb, const ups_ecb_stream_t *s)
 {
-    uint8_t data[8] = {(uint8_t)(s->etag >> 8), (uint8_t)s->etag, s->txnode, s->priority,
-                       0u, 0u, 0u, 0u};
+    uint8_t data[8];
+    ups_ecb__copy(data, NULL, 8u);
+    put16(data, s->etag);
+    data[2] = s->txnode;
+    data[3] = s->priority;
     ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, F_GRANT), data, 8u);
 }
 
@@ -339,13 +361,13 @@ static void decide(ups_ecb_t *ecb, const ups_ecb_stream_t *new_stream, const uin
             continue; /* declared again: replaced */
         }
         if (!placed && key > new_key) {
-            work[count++] = *new_stream;
+            copy_stream(&work[count++], new_stream);
             placed = 1;
         }
-        work[count++] = *s;
+        copy_stream(&work[count++], s);
     }
     if (!placed) {
-        work[count++] = *new_stream;
+        copy_stream(&work[count++], new_stream);
     }
     unsigned txnode = new_stream->txnode;
     if (count > (unsigned)UPS_ECB_STREAMS) {
@@ -371,7 +393,7 @@ static void decide(ups_ecb_t *ecb, const ups_ecb_stream_t *new_stream, const uin
         }
     }
     for (unsigned j = 0u; j < count; j++) {
-        b->streams[j] = work[j];
+        copy_stream(&b->streams[j], &work[j]);
     }
     b->stream_count = (uint8_t)count;
     b->refused_valid = 0u;
@@ -418,11 +440,11 @@ static void declare(ups_ecb_t *ecb, int slot, unsigned txnode, const uint8_t *da
         send_refuse(ecb, b->refuse);
         return;
     }
-    if (b->tokens[slot] == 0u) {
+    if (b->spent[slot] >= DECLARE_BURST) {
         ups_ecb__count(&ecb->counters.limited);
         return;
     }
-    b->tokens[slot]--;
+    b->spent[slot]++;
     decide(ecb, &s, data);
 }
 
@@ -611,7 +633,10 @@ static void unsubscribe(ups_ecb_t *ecb, int slot, unsigned txnode, const uint8_t
         if (held->kind == SUB_BIND && held->txnode == txnode && ups_ecb__same8(held->uid, uid)) {
             continue;
         }
-        b->held[to++] = *held;
+        if (to != h) {
+            copy_held(&b->held[to], held);
+        }
+        to++;
     }
     for (; to < UPS_ECB_HELD; to++) {
         b->held[to].kind = 0u;
@@ -658,8 +683,8 @@ static int next_user(const ups_ecb_t *ecb, const uint8_t *map, int last)
 
 static void roster_end(ups_ecb_t *ecb, const uint8_t *next)
 {
+    static const uint8_t zero[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
     unsigned done = next == NULL;
-    uint8_t zero[8] = {0};
     send_uid(ecb, 0u, F_ROSTER_END | (done << 7) | ecb->bind.r_asker, done ? zero : next);
     ecb->bind.r_active = 0u;
 }
@@ -744,9 +769,7 @@ static void roster_pump(ups_ecb_t *ecb)
             }
             unsigned slot = b->r_queue[0];
             b->r_waiting--;
-            for (unsigned q = 0u; q < b->r_waiting; q++) {
-                b->r_queue[q] = b->r_queue[q + 1u];
-            }
+            ups_ecb__copy(b->r_queue, b->r_queue + 1, b->r_waiting);
             if (ecb->join.nodes[slot].txnode == 0xFFu) {
                 continue;
             }
@@ -788,9 +811,6 @@ void ups_ecb__bind_init(ups_ecb_t *ecb)
     ups_ecb_bind_t *b = &ecb->bind;
     for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
         b->channels[i].creator = NOBODY;
-    }
-    for (unsigned j = 0u; j < UPS_ECB_NODES; j++) {
-        b->tokens[j] = DECLARE_BURST;
     }
     b->r_tokens = ROSTER_BURST;
 }
@@ -858,7 +878,7 @@ static void forget_slot(ups_ecb_t *ecb, int slot, int creations)
         b->refused_valid = 0u;
     }
     roster_unqueue(b, slot);
-    b->tokens[slot] = DECLARE_BURST;
+    b->spent[slot] = 0u;
 }
 
 void ups_ecb__bind_forget(ups_ecb_t *ecb, int slot)
@@ -899,7 +919,11 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
         }
     } else if (field == F_GRANT) { /* a stream it has not admitted */
         const uint8_t *r = ecb->bind.refuse;
-        uint8_t own[8] = {data[0], data[1], data[2], data[2], data[0], data[1], 0xFFu, 0xFFu};
+        uint8_t own[8]; /* naming the stream itself, unbounded */
+        ups_ecb__copy(own, data, 3u);
+        own[3] = data[2];
+        put16(own + 4, etag);
+        put16(own + 6, UNBOUNDED);
         ups_ecb__count(&ecb->counters.conflicts);
         send_refuse(ecb, get16(r) == etag && r[2] == txnode ? r : own);
     }
@@ -912,10 +936,10 @@ static void replay(ups_ecb_t *ecb)
     ups_ecb_bind_t *b = &ecb->bind;
     while (!ecb->recovering && b->held[0].kind != 0u &&
            ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH) {
-        ups_ecb_held_t held = b->held[0];
-        for (unsigned h = 1u; h < UPS_ECB_HELD; h++) {
-            b->held[h - 1u] = b->held[h];
-        }
+        ups_ecb_held_t held;
+        copy_held(&held, &b->held[0]);
+        ups_ecb__copy((uint8_t *)&b->held[0], (const uint8_t *)&b->held[1],
+                      (unsigned)((UPS_ECB_HELD - 1u) * sizeof(b->held[0])));
         b->held[UPS_ECB_HELD - 1u].kind = 0u;
         int slot = ups_ecb__holder(ecb, held.txnode);
         if (slot >= 0) {
@@ -950,8 +974,8 @@ void ups_ecb__bind_tick(ups_ecb_t *ecb)
             b->t_decl = ecb->now;
         }
         for (unsigned j = 0u; j < UPS_ECB_NODES; j++) {
-            if (b->tokens[j] < DECLARE_BURST) {
-                b->tokens[j]++;
+            if (b->spent[j] > 0u) {
+                b->spent[j]--;
             }
         }
     }
@@ -1001,11 +1025,13 @@ size_t ups_ecb__bind_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
     }
     for (unsigned k = 0u; k < b->stream_count; k++) {
         const ups_ecb_stream_t *s = &b->streams[k];
-        uint8_t rec[STREAM] = {(uint8_t)(s->etag >> 8), (uint8_t)s->etag, s->txnode, s->size,
-                               (uint8_t)(s->period >> 8), (uint8_t)s->period,
-                               (uint8_t)(s->deadline >> 8), (uint8_t)s->deadline, s->jitter,
-                               s->priority};
-        ups_ecb__copy(at, rec, STREAM);
+        put16(at, s->etag);
+        at[2] = s->txnode;
+        at[3] = s->size;
+        put16(at + 4, s->period);
+        put16(at + 6, s->deadline);
+        at[8] = s->jitter;
+        at[9] = s->priority;
         at += STREAM;
     }
     return size;

@@ -7,7 +7,7 @@
  * for the publishers. A channel's age counts sixteenths of the lease since its last event
  * (ups_ecb__bind_tick ages every channel), so leases need no timestamps and survive the clock's
  * wraps. With the small bus's tables (16 nodes, 64 channels, 4 streams, 8 held requests) this
- * state is 1312 bytes, of which the channels take 1024.
+ * state is 1356 bytes (Cortex-M0+ and host alike), of which the channels take 1024.
  */
 #ifndef UPS_ECB_BIND_H
 #define UPS_ECB_BIND_H
@@ -44,7 +44,7 @@ typedef struct {
     uint8_t refused_valid;  /* the refusal below answers its declaration again */
     uint8_t refused_decl[8]; /* the DECLARE data last refused (its TxNode: refuse[2]) */
     uint8_t refuse[8];       /* the Refuse data last sent; refuse[0..1] == 0: none */
-    uint8_t tokens[UPS_ECB_NODES]; /* DECLARE analyses each node entry may ask now (<= 20) */
+    uint8_t spent[UPS_ECB_NODES]; /* DECLARE analyses each node entry asked lately (<= 20) */
     /* the roster: Rosters waiting (one per node entry, oldest first) and the answer sent */
     uint8_t r_cursor[UPS_ECB_NODES][8];
     uint8_t r_queue[UPS_ECB_NODES]; /* node entries, oldest first */
