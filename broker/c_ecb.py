@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
+import fcntl
 import logging
 import os
 import secrets
@@ -209,12 +210,14 @@ class CEcb:
         self._started = False
         self._closed = False
         self._role = 0
+        self._lock_fd = -1
 
     # --- life cycle ------------------------------------------------------------------------
 
     async def start(self) -> None:
         """Take the saved blob back, then listen on the bus and say Hello (ups_ecb_start).
         ConfigError when the state file can be neither read nor written."""
+        self._lock()
         self._restore()
         self._save(initial=True)  # an unwritable state file is an error now, not on a join
         self.link.add_handler(self._handler, None)
@@ -240,6 +243,24 @@ class CEcb:
         self.link.remove_handler(self._handler)
         if self._started:
             self._save()
+        if self._lock_fd >= 0:
+            os.close(self._lock_fd)
+            self._lock_fd = -1
+
+    def _lock(self) -> None:
+        """Hold ``STATE.lock`` (one CAN-ECB per state file), or fail naming the file."""
+        path = self.state_path
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(f"{path}.lock", os.O_RDONLY | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ConfigError(f"cannot use the state file {path}: {exc.strerror or exc}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise ConfigError(f"the state file {path} is in use by another CAN-ECB") from None
+        self._lock_fd = fd
 
     def _restore(self) -> None:
         path = self.state_path
@@ -263,9 +284,8 @@ class CEcb:
 
     def _save(self, *, initial: bool = False) -> bool:
         """Write the blob if it changed; False (counted, logged) when the write failed."""
-        n = int(self._c.ups_ecb_save(self._ecb, self._blob, len(self._blob)))
-        blob = self._blob.raw[:n]
-        if n == 0:
+        blob = self.blob()
+        if not blob:
             error = f"ups_ecb_save wrote nothing (into {len(self._blob)} bytes)"
         elif blob == self._saved and not initial:
             return True
@@ -376,6 +396,11 @@ class CEcb:
             if etag >= 0:
                 out.append((i, uid.value, etag))
         return out
+
+    def blob(self) -> bytes:
+        """What ups_ecb_save() writes now (empty: it wrote nothing)."""
+        n = int(self._c.ups_ecb_save(self._ecb, self._blob, len(self._blob)))
+        return self._blob.raw[:n]
 
     def counters(self) -> dict[str, int]:
         """ups_ecb_counters(), by name."""

@@ -38,7 +38,7 @@ from ._argparsing import Unbuilt, Version, add_metrics, unrecognized
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
-DAEMONS = ("can-broker", "broker", "gateway", "zenoh-router", "jaus", "ros2")
+DAEMONS = ("can-broker", "c-ecb", "broker", "gateway", "zenoh-router", "jaus", "ros2")
 
 
 #: the operators' tools (``ups/tools/``, a module each) and their lines in ``ups --help``: a
@@ -247,9 +247,10 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
     _ros2.add_commands(command)
     _ethercat.add_commands(command)
 
-    from . import _cnode
+    from . import _cecb, _cnode
 
     _cnode.add_commands(command)
+    _cecb.add_commands(command)
 
     cmd = command("analyze", help="CAN response-time analysis of a message set")
     if only in (None, "analyze"):

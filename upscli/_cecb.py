@@ -1,0 +1,80 @@
+"""``ups c-ecb``: libups-ecb, the CAN-ECB in C (c/ups_ecb.h), run as the CAN-ECB of any
+python-can bus, as a microcontroller would run it (``ups.broker.c_ecb``). Arguments here (cheap
+to build), the work in ``ups.broker.c_ecb.serve``."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+from ups._cliargs import add_can, positive_int
+
+from ._argparsing import add_metrics
+
+
+def _recovery_arg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, not {text!r}") from None
+    if not 0.1 <= value <= 10.0:  # ups_ecb_config_t's recovery_ms: 100..10000
+        raise argparse.ArgumentTypeError(f"the recovery window is 0.1 to 10 s, not {text}")
+    return value
+
+
+def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
+    cmd = command("c-ecb", help="run the C CAN-ECB (c/, libups-ecb) as the CAN-ECB of one bus")
+    add_can(cmd)
+    cmd.add_argument(
+        "--state", default=None, metavar="FILE",
+        help="the file of its durable state (TxNodes, etags: the blob ups_ecb_save writes; "
+        "default: the bus's own file beside can-broker's database, ending in .c-ecb)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--recovery", type=_recovery_arg, default=2.0, metavar="S",
+        help="seconds after start spent relearning the bus before answering, 0.1 to 10 "
+        "(default 2)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--bitrate", type=positive_int, default=500_000,
+        help="the bus's bit rate, for admitting real-time channels (default 500000)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--status", metavar="HOST:PORT", default=None,
+        help="also serve the tables (nodes, etags, who publishes and subscribes) there, for "
+        "'ups status' and 'ups ls --can BUS --ecb HOST:PORT' (default: not served)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--build", choices=("full", "asan"), default="full",
+        help="the library's configuration: full (127 nodes, 512 channels) or asan (small "
+        "tables, AddressSanitizer and UndefinedBehaviorSanitizer: run with "
+        "LD_PRELOAD=$(cc -print-file-name=libasan.so))",
+    )  # fmt: skip
+    add_metrics(cmd)
+    cmd.set_defaults(run=_run_c_ecb)
+
+
+def default_state(bus: str) -> str:
+    """The state file of bus ``bus``: can-broker's database's name, ending in ``.c-ecb``."""
+    from ups.broker._store import default_db
+
+    return str(default_db(bus).with_suffix(".c-ecb"))
+
+
+def _run_c_ecb(args: argparse.Namespace) -> int:
+    from ups._cliargs import run_until_signal, warn_if_virtual
+    from ups._metrics import check_metrics
+    from ups.broker.c_ecb import load, serve
+
+    state = args.state if args.state is not None else default_state(args.can)
+    check_metrics(args.metrics)  # before anything starts, or says anything
+    load(args.build)  # built (or its build error said) before the bus is opened
+    warn_if_virtual(args.can)
+
+    async def run() -> int:
+        return await serve(
+            args.can, state, args.bitrate, status=args.status, metrics=args.metrics,
+            recovery=args.recovery, variant=args.build,
+        )  # fmt: skip
+
+    return run_until_signal(run())
