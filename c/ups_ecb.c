@@ -343,7 +343,7 @@ static int own(ups_ecb_t *ecb, const ups_frame_t *frame)
         }
     }
     uint16_t sum = check16(frame->data, frame->len);
-    for (unsigned i = 0; i < 8u; i++) {
+    for (unsigned i = 0; i < 4u; i++) {
         if (ecb->echo[i].id == frame->id && ecb->echo[i].sum == sum &&
             ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
             ecb->echo[i].id = 0u; /* heard once */
@@ -376,6 +376,9 @@ static void on_ecb_frame(ups_ecb_t *ecb, uint32_t id, const uint8_t *d, unsigned
 void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
 {
     ecb->now = now_ms;
+    if (ecb->elect.role == UPS_ECB_STOPPED) {
+        return; /* not started: it listens from its Hello on */
+    }
     uint32_t id = frame->id;
     if ((frame->flags & (UPS_FRAME_RTR | UPS_FRAME_ERR)) != 0u ||
         (frame->flags & UPS_FRAME_EXT) == 0u || id > 0x1FFFFFFFu || frame->len > UPS_MTU) {
@@ -418,9 +421,6 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
     }
     if (ecb->elect.role == UPS_ECB_STANDBY) { /* answers nothing; watches the one serving */
         elected(ecb, ups_ecb__elect_asked(ecb, id, d, len));
-        return;
-    }
-    if (ecb->elect.role == UPS_ECB_STOPPED) {
         return;
     }
     if (kind == K_STAGE || kind == K_KNOCK) {
@@ -484,7 +484,7 @@ void ups_ecb_tx_pop(ups_ecb_t *ecb)
     ecb->echo[at].id = sent->id;
     ecb->echo[at].sum = check16(sent->data, sent->len);
     ecb->echo[at].t = (uint16_t)ecb->now;
-    ecb->echo_next = (uint8_t)((at + 1u) % 8u);
+    ecb->echo_next = (uint8_t)((at + 1u) % 4u);
     for (unsigned i = 1u; i < ecb->tx_count; i++) {
         ecb->tx[i - 1u] = ecb->tx[i];
     }

@@ -192,7 +192,7 @@ typedef struct ups_ecb {
         uint32_t id;      /* 0: none (no CAN-ECB frame has identifier 0) */
         uint16_t sum;     /* a check of the data and length */
         uint16_t t;       /* low 16 bits of the time it was sent */
-    } echo[8];
+    } echo[4];
     ups_frame_t tx[UPS_ECB_TX_DEPTH];
     ups_ecb_counters_t counters;
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */

@@ -3,8 +3,9 @@
  * Included by ups_ecb.h after its configuration macros; not part of the API.
  *
  * RAM: 16 bytes per node entry, 40 per census query (UPS_ECB_QUERIES), 12 per waiting
- * branch group (UPS_ECB__GROUPS) and about 24 more: 432 bytes for the small bus (16 nodes,
- * 4 queries).
+ * branch group (UPS_ECB__GROUPS) and 20 more: 508 bytes for the small bus (16 nodes, 4
+ * queries). A group holds every branch of one stage, so a census's waiting branches take few
+ * groups: one per branching of the ids found and not yet queried.
  */
 #ifndef UPS_ECB_JOIN_H
 #define UPS_ECB_JOIN_H
@@ -60,7 +61,7 @@ typedef struct {
 
 /** Waiting branch groups at once; past it a branch is cut (census_cut): its joiners knock
  *  again and the next census finds them. */
-#define UPS_ECB__GROUPS (2 * UPS_ECB_QUERIES + 2)
+#define UPS_ECB__GROUPS (UPS_ECB_QUERIES + 2)
 
 typedef struct {
     ups_ecb_node_t nodes[UPS_ECB_NODES];
