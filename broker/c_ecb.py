@@ -227,8 +227,8 @@ class CEcb:
         self._after()
         self._timer = asyncio.get_running_loop().call_later(TICK, self._tick)
         log.info(
-            "C CAN-ECB (%s) on %s: %d TxNodes, %d etags bound (%s), instance %016x",
-            self._lib.path.name, self.link.channel_info, len(self.txnodes), len(self.etags),
+            "CAN-ECB on %s (%s, in C): %d TxNodes, %d etags bound (%s), instance %016x",
+            self.link.channel_info, self._lib.path.name, len(self.txnodes), len(self.etags),
             self.state_path, self.instance,
         )  # fmt: skip
 
@@ -352,9 +352,11 @@ class CEcb:
         role = int(self._c.ups_ecb_role(self._ecb))
         before, self._role = self._role, role
         if ROLES[role] == "standby":
-            log.error("another CAN-ECB serves the bus: this CAN-ECB stands by and answers nothing")
+            log.error("another CAN-ECB already serves this bus: this CAN-ECB stands by and "
+                      "answers nothing")  # fmt: skip
         elif ROLES[before] == "standby":
-            log.warning("the other CAN-ECB went silent: this one serves the bus again")
+            log.warning("the CAN-ECB that served went silent or left a request unanswered: "
+                        "this one serves the bus again")  # fmt: skip
 
     # --- tables and statistics -------------------------------------------------------------
 

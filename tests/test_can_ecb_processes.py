@@ -15,6 +15,7 @@ import pytest
 
 from ups import BrokerUnavailable, Node
 
+from .can_ecbs import KINDS, READY, can_ecb_proc
 from .procs import Proc, private_multicast_bus, start_tcp_broker
 
 pytestmark = pytest.mark.netns
@@ -100,16 +101,18 @@ async def test_two_buses_served_from_one_directory_keep_their_own_files(tmp_path
     assert len(list((tmp_path / "state").glob("can-ecb-*.db"))) == 2
 
 
+@pytest.mark.parametrize("second", KINDS)
 async def test_a_second_can_ecb_stands_by_and_takes_over_when_the_first_goes(
-    tmp_path: Path,
+    tmp_path: Path, second: str
 ) -> None:
+    """The second CAN-ECB is ``ups can-broker`` or ``ups c-ecb`` (the first, can-broker)."""
     bus = private_multicast_bus()
     db_a, db_b = str(tmp_path / "a.db"), str(tmp_path / "b.db")
     with Proc("can-broker", "--can", bus, "--db", db_a, "--recovery", "0.2") as a:
-        a.wait_for_line("CAN-ECB on")
+        a.wait_for_line(READY)
         async with Node(can=bus, node_id=0x81, join_timeout=20) as node:
             sub = await node.subscribe("kept")
-            with Proc("can-broker", "--can", bus, "--db", db_b, "--recovery", "1.5") as b:
+            with can_ecb_proc(second, bus, db_b, "--recovery", "1.5") as b:
                 await asyncio.to_thread(b.wait_for_line, "already serves this bus")
                 await node.publish("kept", b"1")  # the first CAN-ECB and its bindings carry on
                 assert (await sub.get_msg(timeout=5)).data == b"1"

@@ -184,7 +184,7 @@ def test_errors_are_said(args: tuple[str, ...], error: str) -> None:
 def test_ctrl_c_ends_it_and_leaves_the_state_file(tmp_path: Path) -> None:
     state = tmp_path / "ecb.state"
     with Proc("c-ecb", "--can", "virtual:cecb-ctrl-c", "--state", str(state)) as proc:
-        proc.wait_for_line(r"C CAN-ECB .* instance [0-9a-f]{16}")
+        proc.wait_for_line(r"CAN-ECB on .*in C.* instance [0-9a-f]{16}")
         proc.interrupt()
         code, _ = proc.finish()
     assert code == 130

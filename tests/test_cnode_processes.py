@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from .can_ecbs import KINDS, READY, can_ecb_proc
 from .procs import Proc, private_multicast_bus, start_tcp_broker
 from .test_gateway_processes import start_gateway
 from .test_tcp_processes import wait_until
@@ -27,16 +28,18 @@ def c_node(bus: str, node_id: int, *args: str) -> Proc:
     return Proc("c-node", "--can", bus, "--node-id", hex(node_id), *args)
 
 
-def can_broker(bus: str, db: Path) -> Proc:
-    ecb = Proc("can-broker", "--can", bus, "--db", str(db), "--recovery", "0.3")
-    ecb.wait_for_line("CAN-ECB", timeout=30)
+def can_broker(bus: str, db: Path, kind: str = "python") -> Proc:
+    """The bus's CAN-ECB: ``ups can-broker``, or with ``kind`` "c" ``ups c-ecb``."""
+    ecb = can_ecb_proc(kind, bus, db, "--recovery", "0.3")
+    ecb.wait_for_line(READY, timeout=30)
     return ecb
 
 
-def test_c_node_and_python_tools_on_can(tmp_path: Path) -> None:
+@pytest.mark.parametrize("ecb", KINDS)
+def test_c_node_and_python_tools_on_can(tmp_path: Path, ecb: str) -> None:
     bus = private_multicast_bus()
     with (
-        can_broker(bus, tmp_path / "ecb.db"),
+        can_broker(bus, tmp_path / "ecb.db", ecb),
         c_node(bus, 0xC1, "--sub", "robot/cmd", "--json") as c_sub,
         Proc("sub", "robot/speed", "--can", bus, "--json", "--count", "3",
              "--timeout", "60", "--node-id", "0x51") as py_sub,
@@ -142,10 +145,14 @@ def test_join_storm_of_c_and_python_nodes(tmp_path: Path) -> None:
                 proc.stop()
 
 
-@pytest.mark.parametrize("keep_db", [True, False], ids=["with-db", "lost-db"])
-def test_can_broker_restarts_no_wrong_delivery(tmp_path: Path, keep_db: bool) -> None:
+@pytest.mark.parametrize(
+    ("keep_db", "ecb"),
+    [(True, "python"), (False, "python"), (True, "c")],
+    ids=["with-db-python", "lost-db-python", "with-db-c"],
+)
+def test_can_broker_restarts_no_wrong_delivery(tmp_path: Path, keep_db: bool, ecb: str) -> None:
     bus = private_multicast_bus()
-    first = can_broker(bus, tmp_path / "one.db")
+    first = can_broker(bus, tmp_path / "one.db", ecb)
     with c_node(bus, 0xC7, "--sub", "speed", "--json") as c_sub:
         try:
             c_sub.wait_for_line("joined as TxNode", timeout=30)
@@ -156,7 +163,7 @@ def test_can_broker_restarts_no_wrong_delivery(tmp_path: Path, keep_db: bool) ->
                     assert pub.finish(timeout=60)[0] == 0
                 wait_until(lambda d=data: d in [e["data"] for e in events(c_sub)], timeout=30)
                 first.stop()
-                first = can_broker(bus, tmp_path / ("one.db" if keep_db else f"{data}.db"))
+                first = can_broker(bus, tmp_path / ("one.db" if keep_db else f"{data}.db"), ecb)
             assert [e["data"] for e in events(c_sub)] == ["01", "02"]
         finally:
             first.stop()
