@@ -744,6 +744,12 @@ static void census_tick(ups_ecb_t *ecb)
     first = first > s ? first : s;
     uint32_t quiet = s / 4u > QUIET ? s / 4u : QUIET;
     int closed_any = 0;
+    for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) { /* closed ones may stay for weeks */
+        if (join->queries[i].state == Q_CLOSED) {
+            (void)ups_ecb__age(ecb->now, &join->queries[i].sent);
+            (void)ups_ecb__age(ecb->now, &join->queries[i].last);
+        }
+    }
     for (;;) { /* the due queries, in the order they were opened */
         ups_ecb_query_t *next = NULL;
         for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {

@@ -369,6 +369,30 @@ def scenario_full_table(variant: str) -> None:
         assert third.nodes() == {} and third.counters()["blob_refused"] == 1
 
 
+def test_incomplete_answers_are_asked_again_and_late_ones_reopen_their_query() -> None:
+    ecb = Driver("full", recovery_ms=100)
+    ecb.start(0xFFFFFF00)
+    ecb.tick(200)
+    x, y = 0x0123456789ABCDEF, 0x0FEDCBA987654321
+    # stage 9 of x is lost: the prefix certain (stages 0-8) is queried again
+    (census,) = [f for f in ecb.rx(Knock()) if isinstance(f, Census)]
+    ecb.rx(*(Stage(census.epoch, s, n) for s, n in enumerate(nibbles(x)) if s != 9))
+    (query,) = [f for f in ecb.tick(300) if isinstance(f, Query)]
+    assert query.prefix == nibbles(x, 9)
+    counters = ecb.counters()
+    assert (counters["census_incomplete"], counters["census_retries"]) == (1, 1)
+    ecb.rx(*(Stage(query.epoch, s, n) for s, n in enumerate(nibbles(x)) if s >= 9))
+    # the retry closed unanswered before them: reopened, and the slack makes it wait longer
+    assert [f for f in ecb.tick(1000) if isinstance(f, Offer)] == [Offer(0, x)]
+    assert ecb.counters()["census_reopened"] == 1
+    # a census nobody answered in time is reopened by its late answers
+    (census,) = [f for f in ecb.rx(Knock()) if isinstance(f, Census)]
+    assert [f for f in ecb.tick(3000) if not isinstance(f, Serving)] == []
+    ecb.rx(*(Stage(census.epoch, s, n) for s, n in enumerate(nibbles(y))))
+    assert [f for f in ecb.tick(5000) if isinstance(f, Offer)] == [Offer(1, y)]  # slack 4 s
+    assert ecb.counters()["census_reopened"] == 2
+
+
 def test_a_full_table_the_lease_and_the_blob_call_by_call() -> None:
     scenario_full_table("full")
 
