@@ -162,6 +162,11 @@ typedef struct {
     UPS_ECB_COUNTER_T watched_full;  /**< requests not watched: UPS_ECB_WATCHED reached */
     UPS_ECB_COUNTER_T queries_waiting; /**< census branches that waited for a free epoch */
     UPS_ECB_COUNTER_T blob_refused;  /**< ups_ecb_restore() of a corrupt or truncated blob */
+    /* the Roster's answers (the Python CAN-ECB's names) */
+    UPS_ECB_COUNTER_T rosters;         /**< Rosters answered */
+    UPS_ECB_COUNTER_T roster_frames;   /**< Uses and RosterEnd frames sent in answer */
+    UPS_ECB_COUNTER_T roster_replaced; /**< Rosters replaced by a newer one of the same node
+                                            while waiting */
 } ups_ecb_counters_t;
 
 /* ---- the CAN-ECB --------------------------------------------------------------------------- */
