@@ -11,6 +11,7 @@ import pytest
 from ups import Node, name_to_uid
 from ups.tools.ls import can_listing, render_can
 
+from .can_ecbs import KINDS, READY, can_ecb_proc
 from .procs import Proc
 from .test_tcp_processes import start_tcp_broker, wait_until
 
@@ -105,17 +106,19 @@ def test_ls_rates_counts_events_on_tcp() -> None:
 
 
 @pytest.mark.netns
-def test_ls_of_a_can_bus_asks_the_can_ecb_for_who_subscribes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("kind", KINDS)
+def test_ls_of_a_can_bus_asks_the_can_ecb_for_who_subscribes(tmp_path: Path, kind: str) -> None:
+    """Of ``ups can-broker --status`` and of ``ups c-ecb --status``."""
     from .procs import private_multicast_bus
 
     bus = private_multicast_bus()
     catalog = tmp_path / "c.toml"
     catalog.write_text('[channel."robot/speed"]\n')
-    with Proc("can-broker", "--can", bus, "--db", str(tmp_path / "ecb.db"), "--recovery",
-              "0.2", "--status", "127.0.0.1:0") as ecb:  # fmt: skip
+    with can_ecb_proc(kind, bus, tmp_path / "ecb.db", "--recovery", "0.2",
+                      "--status", "127.0.0.1:0") as ecb:  # fmt: skip
         line = ecb.wait_for_line(r"status on 127\.0\.0\.1:\d+")
         status = line.split("status on ")[1].strip()
-        ecb.wait_for_line("CAN-ECB on")
+        ecb.wait_for_line(READY)
         with (
             Proc("sub", "robot/speed", "--can", bus, "--node-id", "0x5b") as sub,
             Proc(
