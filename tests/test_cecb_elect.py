@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import fcntl
 import re
 import subprocess
-from collections.abc import Iterator
+import sys
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,12 +30,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.procs import sanitizer_env
 from ups import _canproto as p
+from ups._cnode import build
 from ups.broker import _election as e
 from ups.broker._election import Election, Role
+from ups.broker.c_ecb import SOURCES, VARIANTS
 
-C_DIR = Path(__file__).resolve().parent.parent / "c"
-LIB = "libups-ecb.so"
+ROOT = Path(__file__).resolve().parent.parent
+C_DIR = ROOT / "c"
 ROLES = (Role.STOPPED, Role.CANDIDATE, Role.SERVING, Role.STANDBY)  # UPS_ECB_STOPPED, ...
 NOTE_ROLE = 0x02
 SAY_HELLO = 0x01  # UPS_ECB__SAY_HELLO
@@ -70,16 +73,10 @@ def _counter_names() -> list[str]:
     return re.findall(r"UPS_ECB_COUNTER_T (\w+);", body)
 
 
-@pytest.fixture(scope="module")
-def lib() -> ctypes.CDLL:
-    (C_DIR / "build").mkdir(exist_ok=True)
-    with open(C_DIR / "build" / ".lock", "w") as lock:  # as ups._cnode.build
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        done = subprocess.run(
-            ["make", "-s", "-C", str(C_DIR), f"build/{LIB}"], capture_output=True, text=True
-        )
-    assert done.returncode == 0, done.stderr
-    lib = ctypes.CDLL(str(C_DIR / "build" / LIB))
+def load_lib(variant: str) -> ctypes.CDLL:
+    """libups-ecb of ``variant`` (broker/c_ecb.py's: "full", or "asan" in a process that has
+    the ASan runtime), built if needed, its calls declared."""
+    lib = ctypes.CDLL(str(build(variant, targets=VARIANTS, sources=SOURCES)))
     vp, u32 = ctypes.c_void_p, ctypes.c_uint32
     lib.ups_ecb_host_size.restype = ctypes.c_size_t
     lib.ups_ecb_host_config.restype = ctypes.c_long
@@ -98,6 +95,11 @@ def lib() -> ctypes.CDLL:
     lib.ups_ecb_counters.restype = ctypes.c_void_p
     lib.ups_ecb_counters.argtypes = [vp]
     return lib
+
+
+@pytest.fixture(scope="module")
+def lib() -> ctypes.CDLL:
+    return load_lib("full")
 
 
 @contextlib.contextmanager
@@ -315,12 +317,19 @@ def sequences(draw: st.DrawFn) -> list[Step]:
     return steps
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(steps=sequences(), recovery=st.sampled_from([100, 999, 1000, 2000, 3000]), base=bases)
-def test_the_c_election_does_what_the_python_one_does(
-    lib: ctypes.CDLL, steps: list[Step], recovery: int, base: int
-) -> None:
-    run(lib, steps, recovery, base)
+def comparison(examples: int) -> Callable[[ctypes.CDLL], None]:
+    """The comparison over ``examples`` drawn sequences, of the library given."""
+
+    @settings(max_examples=examples, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @given(steps=sequences(), recovery=st.sampled_from([100, 999, 1000, 2000, 3000]), base=bases)
+    def compare(lib: ctypes.CDLL, steps: list[Step], recovery: int, base: int) -> None:
+        run(lib, steps, recovery, base)
+
+    return compare
+
+
+def test_the_c_election_does_what_the_python_one_does(lib: ctypes.CDLL) -> None:
+    comparison(200)(lib)
 
 
 # --- the rules, one by one (each also compared step by step) ---------------------------------
@@ -468,3 +477,20 @@ def test_what_answers_what(
     steps += [asked(1000 + 100 * i, msg) for i, msg in enumerate(requests)]
     steps += [heard(1900, answer)] + [heard(at, p.Serving(LOWER)) for at in (3000, 5000, 7000)]
     assert run(lib, steps, after=0).c.counter("unanswered_takeovers") == unanswered
+
+
+def test_the_same_under_asan_with_the_smallest_tables() -> None:
+    """The comparison and the bounds, in a child with the ASan runtime, on the asan build
+    (UPS_ECB_WATCHED 2: every table fills)."""
+    build("asan", targets=VARIANTS, sources=SOURCES)  # built here; loaded by the child only
+    code = (
+        "from tests.test_cecb_elect import *; lib = load_lib('asan'); "
+        "assert lib.ups_ecb_host_config(6) == 2; "
+        "comparison(100)(lib); "
+        "test_watched_requests_are_bounded_and_counted(lib); "
+        "test_the_answers_of_the_last_second_are_bounded(lib)"
+    )
+    env = {**sanitizer_env(), "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=50)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
