@@ -1,0 +1,387 @@
+"""The bus of tests/test_cecb_fuzz.py's machine: libups-ecb (``cecb_driver.Ecb``), the honest
+nodes (``cecb_nodes.Honest``) and a forger, with every check that a call to the CAN-ECB must
+pass (the module docstring of test_cecb_fuzz.py lists them). ``Bus.call`` makes one call and
+checks what it left; ``pump`` delivers the frames on the bus until it is quiet: the CAN-ECB's
+to the honest nodes (and back to itself, with ``echo``), everyone else's to the CAN-ECB.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+
+from ups import _canproto as p
+from ups import _cantransfer as t
+from ups._errors import DecodeError
+from ups.broker.c_ecb import Config
+
+from .cecb_driver import (
+    CANDIDATE,
+    FRAME_ERR,
+    FRAME_EXT,
+    FRAME_FD,
+    FRAME_RTR,
+    NOTE_STATE,
+    STANDBY,
+    Ecb,
+    tables_of,
+)
+from .cecb_nodes import Honest, Ledger
+
+TRACE = bool(os.environ.get("UPS_CECB_FUZZ_TRACE"))  #: print every call and its frames
+WRAP = 1 << 32
+TAKEOVER = 4000  #: ms a standing-by CAN-ECB waits for another's Hello or Serving
+SLACK = 5  #: ms a timer may end late (the CAN-ECB compares at its ticks)
+IDS = [
+    0x1234_5678_9ABC_DEF0, 0x1234_5678_9ABC_DEF1, 0x1234_5678_0000_0001, 0x1234_0000_0000_0002,
+    0xFEDC_BA98_7654_3210, 0x0000_0000_0000_0007, 0x8000_0000_0000_0000,
+]  # fmt: skip
+FORGED_IDS = [0xBAD0_0000_0000_0001, 0xBAD0_0000_0000_0002, 0x1234_5678_9ABC_DEF2]
+UIDS = [0x5555_0000_0000_0000 + i for i in range(10)]
+ECB, FORGER = -1, -2  #: senders besides the honest nodes (their index)
+
+
+def is_foreign(can_id: int, flags: int) -> bool:
+    return (
+        not flags & FRAME_EXT
+        or bool(flags & (FRAME_RTR | FRAME_ERR))
+        or bool(flags & FRAME_FD and p.is_management(can_id))
+    )
+
+
+class Bus:
+    """The C CAN-ECB (started at ``t0`` on its clock), honest nodes and a forger on one bus,
+    every call to the CAN-ECB checked (see tests/test_cecb_fuzz.py)."""
+
+    def __init__(self, variant: str, cfg: Config, t0: int, echo: bool) -> None:
+        self.variant, self.cfg, self.t0, self.echo = variant, cfg, t0, echo
+        self.ecb: Ecb | None = None
+        self.honest = [Honest(i) for i in IDS]
+        self.queue: deque[tuple[int, int, int, bytes]] = deque()
+        self.txl, self.etl = Ledger("TxNode"), Ledger("etag")
+        self.flash: bytes | None = None  #: the latest blob the application saved
+        self.flash_tables: tuple[dict[int, int], dict[int, int]] = ({}, {})
+        self.abs = 0  #: ms since the machine started (the CAN-ECB's clock is t0 + abs mod 2^32)
+        self.active: dict[int, int] = {}  #: TxNode -> when a frame of it came last
+        self.started = 0  #: when the CAN-ECB last started
+        self.foreign_claim = 0  #: when a Hello or Serving of another instance came last
+        self.own_hello = 0  #: when the CAN-ECB last said Hello
+        self.last: dict[str, int] = {}
+        self.roles: set[int] = set()  #: every role it had (the statistics)
+        self.reclaims = 0  #: ``reclaimed`` before the call under way
+
+    def close(self) -> None:
+        if self.ecb is not None:
+            self.ecb.close()
+            self.ecb = None
+
+    @property
+    def now(self) -> int:
+        return (self.t0 + self.abs) % WRAP
+
+    # --- the CAN-ECB's calls and what every call must leave --------------------------------
+
+    def new_ecb(self, instance: int) -> Ecb:
+        if self.ecb is not None:
+            self.ecb.close()
+        self.ecb = Ecb(self.variant, self.cfg, instance)
+        self.last = self.ecb.counters()
+        return self.ecb
+
+    def call(
+        self, what: str, fn: object, frame: tuple[int, int, bytes] | None = None
+    ) -> list[p.Management]:
+        ecb = self.ecb
+        assert ecb is not None
+        role = ecb.role()
+        before = self.last
+        tables = (ecb.nodes(), ecb.channels()) if frame is not None else None
+        self.reclaims = before["reclaimed"]
+        fn()  # type: ignore[operator]
+        if ecb.notes() & NOTE_STATE:
+            self.persist()
+        sent = ecb.take()
+        counters = ecb.counters()
+        for name, value in counters.items():
+            assert value >= before[name], f"{what}: counter {name} went back"
+        self.last = counters
+        msgs = [self.check_frame(what, f) for f in sent]
+        if TRACE:
+            print(f"{self.abs:>8} {what} -> {msgs} role {ecb.role()}")
+        assert [f[0] for f in sent] == sorted(f[0] for f in sent), f"{what}: not lowest first"
+        self.roles.add(ecb.role())
+        if role == STANDBY and ecb.role() == STANDBY:
+            assert all(isinstance(m, p.Probe) for m in msgs), f"{what}: standing by, sent {msgs}"
+        moved = {k for k in counters if counters[k] != before[k]}
+        if any(isinstance(m, p.TxNodesFull) for m in msgs):
+            assert "nodes_full" in moved, f"{what}: TxNodesFull, nodes_full did not move"
+        if any(isinstance(m, p.EtagsFull) for m in msgs):
+            assert "channels_full" in moved, f"{what}: EtagsFull, channels_full did not move"
+        if any(isinstance(m, p.Limit) for m in msgs):
+            assert moved & {"limited", "quota_hit"}, f"{what}: Limit, nothing counted"
+        if frame is not None:
+            self.check_rejected(what, frame, msgs, moved, tables)
+        self.see(what, msgs)
+        for m, (can_id, _, data) in zip(msgs, sent, strict=True):
+            if isinstance(m, p.Hello):
+                self.own_hello = self.abs
+            self.queue.append((ECB, can_id, FRAME_EXT, data))
+        return msgs
+
+    def persist(self) -> None:
+        """UPS_ECB_NOTE_STATE: the application writes the blob before it sends anything."""
+        assert self.ecb is not None
+        blob = self.ecb.save()
+        assert 0 < len(blob) <= self.ecb.config["blob_max"], f"blob of {len(blob)} bytes"
+        assert self.ecb.save(len(blob) - 1) == b"", "a blob written into too small a buffer"
+        self.flash = blob
+        self.flash_tables = tables_of(self.variant, self.cfg, blob)
+
+    def check_frame(self, what: str, frame: tuple[int, int, bytes]) -> p.Management:
+        can_id, flags, data = frame
+        assert flags == FRAME_EXT, f"{what}: a frame with flags {flags:#x}"
+        assert can_id <= 0x1FFFFFFF and len(data) <= 8
+        assert p.is_management(can_id), f"{what}: an event {can_id:#x} from the CAN-ECB"
+        assert p.split_id(can_id)[1] == p.MGMT_TXNODE, f"{what}: {can_id:#x} of a node"
+        try:
+            msg = p.decode(can_id, data)
+        except DecodeError as exc:
+            raise AssertionError(
+                f"{what}: sent a malformed frame {can_id:#x} {data.hex()}"
+            ) from exc
+        assert isinstance(msg, p.ECB_FRAMES), f"{what}: sent a node's frame {msg}"
+        return msg
+
+    def check_rejected(self, what: str, frame: tuple[int, int, bytes], msgs: list[p.Management],
+                       moved: set[str], tables: object) -> None:  # fmt: skip
+        """A foreign or malformed frame changes nothing and is counted."""
+        can_id, flags, data = frame
+        if is_foreign(can_id, flags):
+            kind = "foreign"
+        elif p.is_management(can_id) and len(data) <= 8:
+            try:
+                p.decode(can_id, data)
+                return
+            except DecodeError:
+                kind = "malformed"
+        else:
+            return
+        assert self.ecb is not None
+        assert not msgs, f"{what}: a {kind} frame {can_id:#x} {data.hex()} answered with {msgs}"
+        assert kind in moved, f"{what}: a {kind} frame {can_id:#x} {data.hex()} not counted"
+        assert (self.ecb.nodes(), self.ecb.channels()) == tables, (
+            f"{what}: a {kind} frame changed the tables"
+        )
+
+    # --- who holds what -------------------------------------------------------------------
+
+    def reclaimed(self) -> bool:
+        return self.last["reclaimed"] > self.reclaims
+
+    def txnode_excuse(self, txnode: int, prior: int, holder: int) -> str | None:
+        return None  # a reclaimed TxNode left the ledger when it left the table (see)
+
+    def release(self, nodes: dict[int, int], chans: dict[int, int]) -> None:
+        """TxNodes and etags reclaimed past the lease leave the ledger: TxNodes silent that long
+        (their honest nodes forget them, and join anew when told to), etags whose entries the
+        call reclaimed (their users are contradicted by the next Bind of the etag)."""
+        self.etl.drop(lambda etag, uid: chans.get(etag) == uid)
+        lease = self.cfg.lease_s * 1000
+        for txnode, node_id in list(self.txl.holder.items()):
+            silent = self.abs - max(self.active.get(txnode, 0), self.started)
+            if nodes.get(txnode) != node_id and silent >= lease - 1000:
+                del self.txl.holder[txnode]
+                for h in self.honest:
+                    if h.txnode == txnode and h.node_id == node_id:
+                        h.forget()
+
+    def etag_excuse(self, etag: int, prior: int, holder: int) -> str | None:
+        return None  # a reclaimed etag left the ledger when it left the table (see)
+
+    def see(self, what: str, msgs: list[p.Management]) -> None:
+        """Assign and Bind sent, then the tables: nothing handed to two holders."""
+        assert self.ecb is not None
+        nodes, chans = self.ecb.nodes(), {e: u for e, (u, _) in self.ecb.channels().items()}
+        if self.reclaimed():
+            self.release(nodes, chans)
+        assigns = [(m.txnode, m.node_id, f"{what}: {m}") for m in msgs if isinstance(m, p.Assign)]
+        binds = [(m.etag, m.uid, f"{what}: {m}") for m in msgs if isinstance(m, p.Bind)]
+        for txnode, _, _ in assigns:
+            self.active[txnode] = self.abs
+        self.txl.see(assigns + [(k, h, f"{what}: table {k:#x}") for k, h in nodes.items()],
+                     self.txnode_excuse)  # fmt: skip
+        binds += [(k, h, f"{what}: table {k:#x}") for k, h in chans.items()]
+        for etag, uid, where in binds:  # never to a smaller class while the table lives
+            for had in [e for e, u in self.etl.holder.items() if u == uid and e != etag]:
+                assert (
+                    t.size_class(etag) >= t.size_class(had)
+                    or {(had, uid), (etag, uid)} & self.etl.forged
+                    or self.reclaimed()
+                ), f"{where}: moved from {had:#x} to a smaller class"
+        self.etl.see(binds, self.etag_excuse)
+        last: dict[object, p.Management] = {}
+        for m in msgs:
+            if isinstance(m, p.Assign):
+                last[("t", m.txnode)] = last[("n", m.node_id)] = m
+            elif isinstance(m, p.Bind):
+                last[("e", m.etag)] = last[("u", m.uid)] = m
+        for m in {id(m): m for m in last.values()}.values():  # the latest of each in the batch
+            if isinstance(m, p.Assign) and m in (last[("t", m.txnode)], last[("n", m.node_id)]):
+                assert nodes.get(m.txnode) == m.node_id, f"{what}: sent {m}, not in its table"
+                assert self.flash_tables[0].get(m.txnode) == m.node_id, f"{what}: {m} not saved"
+            if isinstance(m, p.Bind) and m in (last[("e", m.etag)], last[("u", m.uid)]):
+                assert chans.get(m.etag) == m.uid, f"{what}: sent {m}, not in its table"
+                assert self.flash_tables[1].get(m.etag) == m.uid, f"{what}: {m} not saved"
+
+    def lost(self) -> None:
+        """The table is gone: only what honest nodes still use must be theirs again."""
+        held = {(h.txnode, h.node_id) for h in self.honest}
+        used = {(ch.etag, uid) for h in self.honest for uid, ch in h.chans.items()}
+        self.txl.drop(lambda txnode, node_id: (txnode, node_id) in held)
+        self.etl.drop(lambda etag, uid: (etag, uid) in used)
+        self.flash, self.flash_tables = None, ({}, {})
+
+    # --- the bus --------------------------------------------------------------------------
+
+    def send(self, sender: int, msg: p.Management) -> None:
+        can_id, data = p.encode(msg)
+        self.queue.append((sender, can_id, FRAME_EXT, data))
+        if sender == FORGER:
+            self.note_forged(msg)
+
+    def note_forged(self, msg: p.Management) -> None:
+        if isinstance(msg, p.Request) and msg.kind == p.CLAIM:
+            self.txl.forged.add((msg.txnode, msg.value))
+        elif isinstance(msg, p.Holds):
+            self.etl.forged.add((msg.etag, msg.uid))
+
+    def pump(self, limit: int = 4000) -> None:
+        """Deliver every frame on the bus, and what they make anyone send, until it is quiet."""
+        for _ in range(limit):
+            if not self.queue:
+                return
+            sender, can_id, flags, data = self.queue.popleft()
+            if sender != ECB or self.echo:
+                self.deliver(sender, can_id, flags, data)
+            if sender == ECB:
+                msg = p.decode(can_id, data)
+                for i, h in enumerate(self.honest):
+                    for out in h.hear(msg):
+                        self.send(i, out)
+        raise AssertionError(f"the bus never went quiet: {list(self.queue)[:8]}")
+
+    def deliver(self, sender: int, can_id: int, flags: int, data: bytes) -> None:
+        assert self.ecb is not None
+        ecb, now = self.ecb, self.now
+        if flags & FRAME_EXT and not flags & (FRAME_RTR | FRAME_ERR):
+            self.active[p.split_id(can_id)[1]] = self.abs
+            if p.is_management(can_id) and sender != ECB:
+                try:
+                    msg = p.decode(can_id, data)
+                except DecodeError:
+                    msg = None
+                if isinstance(msg, p.Hello | p.Serving) and msg.instance != ecb.instance:
+                    self.foreign_claim = self.abs
+                if sender == FORGER and msg is not None:
+                    self.note_forged(msg)
+        what = f"rx {can_id:#010x} {flags:#x} {data.hex()}"
+        msgs = self.call(what, lambda: ecb.rx(now, can_id, flags, data), (can_id, flags, data))
+        if sender != ECB:
+            self.check_answer(what, can_id, data, msgs)
+
+    def check_answer(self, what: str, can_id: int, data: bytes, msgs: list[p.Management]) -> None:
+        """A PUB_BIND(c) answered with a Bind gets an etag of class c or larger."""
+        if not p.is_management(can_id) or p.split_id(can_id)[1] == p.MGMT_TXNODE:
+            return
+        try:
+            msg = p.decode(can_id, data)
+        except DecodeError:
+            return
+        if not isinstance(msg, p.Request) or msg.kind != p.PUB_BIND or not msg.size_class:
+            return
+        binds = [m for m in msgs if isinstance(m, p.Bind) and m.uid == msg.value]
+        if binds:
+            assert t.size_class(binds[-1].etag) >= msg.size_class, f"{what}: {msg} got {binds[-1]}"
+
+    def ms(self, dt: int) -> None:
+        assert self.ecb is not None
+        self.abs += dt
+        ecb, now = self.ecb, self.now
+        self.call(f"tick +{dt} ms", lambda: ecb.tick(now))
+        role = ecb.role()
+        candidacy = min(self.cfg.recovery_ms, 2000)
+        if role == CANDIDATE:
+            assert self.abs - self.own_hello <= candidacy + SLACK, (
+                f"a candidate {self.abs - self.own_hello} ms after its Hello"
+            )
+        if role == STANDBY:
+            assert self.abs - self.foreign_claim <= TAKEOVER + SLACK, (
+                f"standing by {self.abs - self.foreign_claim} ms after another's last claim"
+            )
+        self.pump()
+
+    # --- what the machine's rules do --------------------------------------------------------
+
+    def start(self, instance: int) -> None:
+        ecb = self.new_ecb(instance)
+        self.call("start", lambda: ecb.start(self.now))
+        self.pump()
+
+    def reset(self, instance: int, how: str, at: int, junk: bytes) -> None:
+        """The CAN-ECB starts again (a power cycle): from its latest blob (``latest``), none
+        (``none``), one with a bit flipped or cut short at ``at``, or ``junk``."""
+        self.pump()
+        ecb = self.new_ecb(instance)
+        blob = self.flash
+        if how == "latest" and blob is not None:
+            assert ecb.restore(blob) == 0, f"its own blob refused: {blob.hex()}"
+            tables = ecb.nodes(), {e: u for e, (u, _) in ecb.channels().items()}
+            assert tables == self.flash_tables, "the blob restored other tables"
+        elif how in ("flip", "truncate") and blob is not None:
+            bad = bytearray(blob)
+            if how == "flip":
+                bad[at // 8 % len(bad)] ^= 1 << (at % 8)
+            else:
+                bad = bad[: at % len(bad)]
+            assert ecb.restore(bytes(bad)) < 0, f"a blob ({how}) taken: {bytes(bad).hex()}"
+            assert ecb.counters()["blob_refused"] == 1, "a refused blob not counted"
+            assert ecb.nodes() == {} and ecb.channels() == {}, "a refused blob left tables"
+            self.lost()
+        elif how == "garbage" and ecb.restore(junk) == 0:  # a valid blob: what it knows now
+            self.lost()
+            self.flash = junk
+            self.flash_tables = ecb.nodes(), {e: u for e, (u, _) in ecb.channels().items()}
+        else:
+            assert ecb.nodes() == {} and ecb.channels() == {}, "a refused blob left tables"
+            self.lost()
+        self.last = ecb.counters()
+        self.started = self.abs
+        self.call("start", lambda: ecb.start(self.now))
+        self.pump()
+
+    def node_says(self, i: int, frames: list[p.Management]) -> None:
+        for f in frames:
+            self.send(i, f)
+        self.pump()
+
+    def retry(self) -> None:
+        for i, h in enumerate(self.honest):
+            for f in h.retry():
+                self.send(i, f)
+        self.pump()
+
+    def settle(self, seconds: int) -> None:
+        """Time passes in 25 ms ticks; the nodes repeat their requests every 200 ms."""
+        for k in range(seconds * 40):
+            self.ms(25)
+            if k % 8 == 7:
+                self.retry()
+
+    def populate(self, joins: list[int], uses: list[tuple[int, int, int]]) -> None:
+        """Honest nodes join and use channels (-1: subscribe, else publish in that class)."""
+        for i in joins:
+            self.node_says(i, self.honest[i].join())
+        self.settle(3)
+        for i, u, cls in uses:
+            self.node_says(i, self.honest[i].use(UIDS[u], sub=cls < 0, cls=max(cls, 0)))
+        self.settle(1)
