@@ -23,6 +23,7 @@ import fcntl
 import logging
 import os
 import secrets
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -204,7 +205,7 @@ class CEcb:
         self.storage_errors = 0
         self.storage_error: str | None = None
         self.restored = False  #: the state file's blob was taken back at start
-        self.on_sent: Any = None
+        self.on_sent: Callable[[int, bytes], None] | None = None
         self._saved: bytes | None = None
         self._timer: asyncio.TimerHandle | None = None
         self._started = False

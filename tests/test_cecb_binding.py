@@ -5,12 +5,14 @@ What the C CAN-ECB does on the wire is the conformance suite's (tests/conformanc
 
 from __future__ import annotations
 
+import asyncio
 import re
 import shutil
 from pathlib import Path
 
 import pytest
 
+from ups import Node
 from ups._canlink import CanLink
 from ups._cnode import build
 from ups._errors import ConfigError
@@ -18,7 +20,7 @@ from ups.broker import c_ecb
 from ups.broker.c_ecb import CEcb
 
 from .conformance._wire import RawNode, Wire
-from .procs import ROOT, Proc
+from .procs import ROOT, Proc, private_multicast_bus, sanitizer_env
 
 C = ROOT / "c"
 
@@ -189,3 +191,21 @@ def test_ctrl_c_ends_it_and_leaves_the_state_file(tmp_path: Path) -> None:
         code, _ = proc.finish()
     assert code == 130
     assert state.exists() and not Path(f"{state}.tmp").exists()
+
+
+@pytest.mark.netns
+async def test_the_sanitizer_build_serves_a_node(tmp_path: Path) -> None:
+    """``ups c-ecb --build asan`` (AddressSanitizer, UndefinedBehaviorSanitizer: an error
+    ends it with 99 or 98): a node joins, binds, publishes to itself; Ctrl-C saves the blob."""
+    bus, state = private_multicast_bus(), tmp_path / "ecb.state"
+    with Proc("c-ecb", "--can", bus, "--state", str(state), "--recovery", "0.2", "--build",
+              "asan", env=sanitizer_env()) as ecb:  # fmt: skip
+        await asyncio.to_thread(ecb.wait_for_line, "CAN-ECB on .*libups-ecb-asan", 60)
+        async with Node(can=bus, node_id=0xA5A, join_timeout=20) as node:
+            sub = await node.subscribe("asan/echo")
+            await node.publish("asan/echo", b"\x01")
+            assert (await sub.get_msg(timeout=5)).data == b"\x01"
+        ecb.interrupt()
+        code, _ = await asyncio.to_thread(ecb.finish)
+    assert code == 130, "".join(ecb.stderr_lines[-20:])
+    assert state.stat().st_size > 0
