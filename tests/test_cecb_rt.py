@@ -20,10 +20,10 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from broker._admission import RT_FIRST, Admission
+from broker._admission import RT_FIRST, RT_LAST, Admission
 from ups import _canproto as p
 from ups._cnode import build
-from ups.rt import MessageSpec, analyze, load_csv
+from ups.rt import MessageSpec, analyze, assign_priorities, load_csv
 
 from .procs import sanitizer_env
 from .rt.conftest import SAE_CSV
@@ -114,8 +114,11 @@ def test_c_reproduces_table_1(column: int) -> None:
 def test_c_analysis_is_python_analysis_on_sae(bitrate: int, flags: int) -> None:
     """Both methods, both identifier lengths, classic and FD: every response of the SAE set."""
     specs = load_csv(SAE_CSV)
-    method = "tindell1994" if flags & TINDELL1994 else "davis2007"
-    expected = analyze(specs, bitrate, method, 11 if flags & ID11 else 29, fd=bool(flags & FD))
+    id_bits, fd = 11 if flags & ID11 else 29, bool(flags & FD)
+    if flags & TINDELL1994:
+        expected = analyze(specs, bitrate, "tindell1994", id_bits, fd=fd)
+    else:
+        expected = analyze(specs, bitrate, "davis2007", id_bits, fd=fd)
     assert c_analyze(_sae_rows(), bitrate, flags) == [r.response_time_ms for r in expected]
 
 
@@ -154,10 +157,10 @@ def check_declarations(
         candidate = {**asked, key: msg}
         got = c_admit(candidate, bitrate, fd)
         verdict = python.decide(msg)
-        refused = verdict.frames[0] if not verdict.admitted else None
         if events:
+            refused = verdict.frames[0]
             event(
-                "admitted" if refused is None
+                "admitted" if not isinstance(refused, p.Refuse)
                 else f"refused: {'unbounded' if refused.response_10us == 0xFFFF else 'bounded'}"
             )  # fmt: skip
         if verdict.admitted:
@@ -177,22 +180,31 @@ def _period() -> st.SearchStrategy[int]:
     return st.one_of(st.integers(1, 200), st.integers(200, 5_000), st.integers(1, 65_535))
 
 
-@st.composite
-def declarations(draw: st.DrawFn) -> list[p.Declare]:
-    count = draw(st.integers(1, 32))
-    result = []
-    for _ in range(count):
-        large = draw(st.booleans())
-        etag = draw(st.integers(p.LARGE_FIRST_ETAG, p.LARGE_FIRST_ETAG + 40) if large
-                    else st.integers(0x0100, 0x0140))  # fmt: skip
-        size = draw(st.one_of(st.integers(1, 4), st.integers(1, 255)) if large
-                    else st.integers(0, 8))  # fmt: skip
-        period = draw(_period())
-        deadline = draw(st.one_of(st.just(period), _period()))
-        jitter = draw(st.one_of(st.just(0), st.integers(0, 255)))
-        txnode = draw(st.integers(1, 8))
-        result.append(p.Declare(txnode, etag, size, period, deadline, jitter))
-    return result
+def _declare(
+    etag: int, size: int, period: int, deadline: int | None, jitter: int, txnode: int
+) -> p.Declare:
+    return p.Declare(txnode, etag, size, period, period if deadline is None else deadline, jitter)
+
+
+def _stream(
+    etags: st.SearchStrategy[int], sizes: st.SearchStrategy[int]
+) -> st.SearchStrategy[p.Declare]:
+    """Deadlines equal to the period (None) or drawn; jitter mostly 0."""
+    return st.builds(
+        _declare, etags, sizes, _period(), st.one_of(st.none(), _period()),
+        st.one_of(st.just(0), st.integers(0, 255)), st.integers(1, 8),
+    )  # fmt: skip
+
+
+_any_stream = st.one_of(
+    _stream(st.integers(0x0100, 0x0140), st.integers(0, 8)),
+    _stream(
+        st.integers(p.LARGE_FIRST_ETAG, p.LARGE_FIRST_ETAG + 40),
+        st.one_of(st.integers(1, 4), st.integers(1, 255)),
+    ),
+)
+#: 1..32 declarations, as many of each count
+declarations = st.integers(1, 32).flatmap(lambda n: st.lists(_any_stream, min_size=n, max_size=n))
 
 
 BUS = st.tuples(
@@ -206,7 +218,7 @@ EXAMPLES = int(os.environ.get("UPS_CECB_RT_EXAMPLES", "200" if VARIANT == "asan"
 
 
 @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
-@given(declarations(), BUS)
+@given(declarations, BUS)
 def test_admission_is_pythons(declared: list[p.Declare], bus: tuple[int, bool]) -> None:
     """Declarations one after the other: each verdict, every priority, the miss and the
     response of ups_ecb_rt_admit are those of broker/_admission.py's Admission.decide."""
@@ -257,11 +269,21 @@ def test_utilisation_at_and_near_one(rows: list[tuple[int, int, int, int]], bitr
 
 
 def test_more_streams_than_priorities() -> None:
-    """127 streams Audsley can order do not fit in 0x02..0x7F: Python's ValueError, a Refuse
-    with response 0; the C says response 0 (and its miss index is the last stream)."""
-    assert RT_FIRST + RT_MAX - 2 == 0x7F  # 126 priorities
-    declared = [p.Declare(1 + i % 100, 0x100 + i, 0, 65_535, 65_535, 0) for i in range(RT_MAX)]
-    check_declarations(declared, 1_000_000, False)
+    """126 streams get 0x02..0x7F as assign_priorities gives them; 127 that Audsley can order
+    do not fit: Python's ValueError (the CAN-ECB's Refuse with response 0), in C response 0
+    with the last stream's index."""
+    assert RT_FIRST + RT_MAX - 2 == RT_LAST  # 126 priorities
+    declared = {(0x100 + i, 1 + i % 100): p.Declare(1 + i % 100, 0x100 + i, 0, 65_535, 65_535, 0)
+                for i in range(RT_MAX)}  # fmt: skip
+    specs = [
+        MessageSpec(f"{key}", 0, Fraction(6553_5, 10), Fraction(6553_5, 10)) for key in declared
+    ]
+    fitting = dict(list(declared.items())[:-1])
+    values = assign_priorities(specs[:-1], 1_000_000, 29, first=RT_FIRST, last=RT_LAST)
+    assert c_admit(fitting, 1_000_000, False) == {key: values[f"{key}"] for key in fitting}
+    with pytest.raises(ValueError, match="do not fit"):
+        assign_priorities(specs, 1_000_000, 29, first=RT_FIRST, last=RT_LAST)
+    assert c_admit(declared, 1_000_000, False) == (RT_MAX - 1, 0)
 
 
 def test_admission_under_sanitizers() -> None:
