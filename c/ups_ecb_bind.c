@@ -154,6 +154,13 @@ static void send_limit(ups_ecb_t *ecb, unsigned txnode, const uint8_t *uid)
     send_uid(ecb, 0u, F_LIMIT | txnode, uid);
 }
 
+/** Whether this CAN-ECB answers the bus now (a candidate or serving, not standing by). */
+static int answering(const ups_ecb_t *ecb)
+{
+    int role = ups_ecb_role(ecb);
+    return role == UPS_ECB_CANDIDATE || role == UPS_ECB_SERVING;
+}
+
 /* ---- leases ---------------------------------------------------------------------------------- */
 
 /** Milliseconds of one age step: a sixteenth of the lease, rounded up (0: no lease). Leases
@@ -758,7 +765,7 @@ static int roster_queued(const ups_ecb_t *ecb)
 static void roster_pump(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    if (ecb->recovering) {
+    if (ecb->recovering || !answering(ecb)) {
         return;
     }
     while (b->r_tokens > 0u && ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH &&
@@ -934,7 +941,7 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
 static void replay(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    while (!ecb->recovering && b->held[0].kind != 0u &&
+    while (!ecb->recovering && answering(ecb) && b->held[0].kind != 0u &&
            ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH) {
         ups_ecb_held_t held;
         copy_held(&held, &b->held[0]);
