@@ -24,7 +24,7 @@
 
 #define HELLO_GAP 10000u /* ms: at most one Hello per this long for unknown TxNodes */
 #define ECHO_WINDOW 1000u /* ms: a frame sent this lately and heard again is an echo */
-#define LEASE_MAX_S 1000000u /* s: leases stay below UPS_ECB__AGE_MAX ms */
+#define LEASE_MAX_S 1000000u /* s: in ms, it fits 32 bits */
 
 #define HELLO_FIELD 0x3300u
 #define CLAIM 0x0004u
@@ -183,9 +183,7 @@ void ups_ecb_start(ups_ecb_t *ecb, uint32_t now_ms)
         return;
     }
     ecb->now = now_ms;
-    for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
-        ecb->join.nodes[i].t_seen = now_ms; /* the leases count from the start */
-    }
+    ups_ecb__join_started(ecb);
     ups_ecb__elect_start(ecb);
     hello(ecb);
 }
@@ -395,10 +393,7 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
         return;
     }
     if (txnode != UPS_ECB__MGMT) {
-        int slot = ups_ecb__holder(ecb, txnode);
-        if (slot != UPS_ECB__NO_SLOT) {
-            ecb->join.nodes[slot].t_seen = now_ms;
-        }
+        ups_ecb__join_seen(ecb, txnode); /* its lease starts again */
     }
     if (!management) {
         ups_ecb__bind_event(ecb, field);

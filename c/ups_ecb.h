@@ -101,8 +101,8 @@ typedef struct {
     uint8_t fd;            /**< 1: declared streams are analysed as CAN FD frames (0) */
     uint16_t recovery_ms;  /**< the recovery window after Hello, 100..10000 (2000) */
     uint32_t lease_s;      /**< a TxNode or etag unused this long may be reclaimed (86400),
-                                1..1000000: ages are kept below 2^30 ms so that the
-                                clock's wraps never make an old entry young */
+                                1..1000000 (ages are counted in fractions of it, so that
+                                the clock's wraps never make an old entry young) */
     uint16_t max_channels; /**< channels one TxNode may use (UPS_ECB_CHANNELS) */
     uint16_t quota[5];     /**< bindings one node id may create, per size class
                                 (1024, 64, 64, 64, 64) */

@@ -81,6 +81,10 @@ int ups_ecb__stray(const ups_ecb_t *ecb, unsigned txnode);
 /* ---- ups_ecb_join.c ---------------------------------------------------------------------- */
 
 void ups_ecb__join_init(ups_ecb_t *ecb);
+/** The CAN-ECB starts (ecb->now): the leases count from now. */
+void ups_ecb__join_started(ups_ecb_t *ecb);
+/** A frame of TxNode @p txnode: its lease starts again. */
+void ups_ecb__join_seen(ups_ecb_t *ecb, unsigned txnode);
 /** The node entry (index into ecb->join.nodes) that holds @p txnode, or UPS_ECB__NO_SLOT. */
 int ups_ecb__holder(const ups_ecb_t *ecb, unsigned txnode);
 /** A frame of TxNode 0x7F at priority 0 in the join's part of the table (Knock, Stage, Query,

@@ -129,9 +129,35 @@ static int free_for(const ups_ecb_t *ecb, unsigned txnode, int slot)
     return 1;
 }
 
-static uint32_t lease_ms(const ups_ecb_t *ecb)
+/** Count the entries' ages up to now, in 64ths of the lease. */
+static void age_entries(ups_ecb_t *ecb)
 {
-    return ecb->cfg.lease_s * 1000u; /* ups_ecb_init keeps it below UPS_ECB__AGE_MAX */
+    uint32_t unit = ecb->cfg.lease_s * 1000u / UPS_ECB__LEASE_AGE; /* >= 15 ms */
+    uint32_t steps = ups_ecb__since(ecb->now, ecb->join.t_aged) / unit;
+    if (steps == 0u) {
+        return;
+    }
+    ecb->join.t_aged += steps * unit;
+    for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
+        ups_ecb_node_t *node = &ecb->join.nodes[i];
+        node->age = (uint8_t)(node->age + steps > 255u ? 255u : node->age + steps);
+    }
+}
+
+void ups_ecb__join_started(ups_ecb_t *ecb)
+{
+    ecb->join.t_aged = ecb->now;
+    for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
+        ecb->join.nodes[i].age = 0u; /* the leases count from the start */
+    }
+}
+
+void ups_ecb__join_seen(ups_ecb_t *ecb, unsigned txnode)
+{
+    int slot = ups_ecb__holder(ecb, txnode);
+    if (slot != UPS_ECB__NO_SLOT) {
+        ecb->join.nodes[slot].age = 0u;
+    }
 }
 
 /** An entry for @p node_id, which has none, with a TxNode of its own: an unused one, the
@@ -143,20 +169,20 @@ static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
     int slot = UPS_ECB__NO_SLOT;
     int lapsed = UPS_ECB__NO_SLOT;
     int idle = UPS_ECB__NO_SLOT;
-    uint32_t lapsed_age = 0u;
-    uint32_t idle_age = 0u;
+    unsigned lapsed_age = 0u;
+    unsigned idle_age = 0u;
     for (int i = 0; i < UPS_ECB_NODES && slot == UPS_ECB__NO_SLOT; i++) {
         ups_ecb_node_t *node = &join->nodes[i];
         if (node->txnode == 0xFFu) {
             slot = i;
         } else if (node->flags == UPS_ECB__LAPSED) {
-            uint32_t age = ups_ecb__age(ecb->now, &node->t_seen);
+            unsigned age = node->age;
             if (lapsed == UPS_ECB__NO_SLOT || age > lapsed_age) {
                 lapsed = i;
                 lapsed_age = age;
             }
         } else if (node->flags == UPS_ECB__HELD) { /* offered: a node's own, in use */
-            uint32_t age = ups_ecb__age(ecb->now, &node->t_seen);
+            unsigned age = node->age;
             if (idle == UPS_ECB__NO_SLOT || age > idle_age) {
                 idle = i;
                 idle_age = age;
@@ -168,7 +194,7 @@ static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
         slot = lapsed;
         join->nodes[slot].txnode = 0xFFu; /* its TxNode is free again */
     } else if (slot == UPS_ECB__NO_SLOT && idle != UPS_ECB__NO_SLOT &&
-               idle_age >= lease_ms(ecb)) {
+               idle_age >= UPS_ECB__LEASE_AGE) {
         slot = idle;
         txnode = join->nodes[slot].txnode;
         ups_ecb__bind_forget(ecb, slot); /* its old owner is forgotten for good */
@@ -191,7 +217,7 @@ static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
     ups_ecb__copy(node->node_id, node_id, 8u);
     node->txnode = (uint8_t)txnode; /* entries <= 127 TxNodes: one is always free */
     node->flags = 0u;
-    node->t_seen = ecb->now;
+    node->age = 0u;
     return slot;
 }
 
@@ -230,7 +256,7 @@ static void assign(ups_ecb_t *ecb, int slot, unsigned txnode)
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     }
     node->flags = UPS_ECB__HELD;
-    node->t_seen = ecb->now;
+    node->age = 0u;
     ups_ecb__count(&ecb->counters.joined);
     send_assign(ecb, txnode, node->node_id, 0);
 }
@@ -278,18 +304,16 @@ static void lapse_offers(ups_ecb_t *ecb)
     if (wait < OFFER_TIMEOUT) {
         wait = OFFER_TIMEOUT;
     }
+    age_entries(ecb);
     for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
         ups_ecb_node_t *node = &ecb->join.nodes[i];
-        if (node->txnode != 0xFFu) {
-            (void)ups_ecb__age(ecb->now, &node->t_seen);
-        }
         if ((node->flags & UPS_ECB__OFFERED) && ups_ecb__since16(ecb->now, node->t_offer) >= wait) {
             ups_ecb__count(&ecb->counters.offers_withdrawn);
             if (node->flags & UPS_ECB__HELD) {
                 node->flags = UPS_ECB__HELD;
             } else {
                 node->flags = UPS_ECB__LAPSED;
-                node->t_seen = ecb->now;
+                node->age = 0u;
             }
         }
     }
@@ -361,7 +385,7 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
         ups_ecb__count(&ecb->counters.adopted);
         node->txnode = (uint8_t)txnode;
         node->flags = UPS_ECB__HELD;
-        node->t_seen = ecb->now;
+        node->age = 0u;
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
         return;
     }
@@ -895,7 +919,7 @@ int ups_ecb__join_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
         ups_ecb__copy(node->node_id, &in[n + 2u], 8u);
         node->txnode = (uint8_t)txnode;
         node->flags = UPS_ECB__HELD;
-        node->t_seen = ecb->now;
+        node->age = 0u;
     }
     return UPS_OK;
 }

@@ -2,8 +2,8 @@
  * libups-ecb, private: the state of ups_ecb_join.c (TxNodes by node id, the census, Offers).
  * Included by ups_ecb.h after its configuration macros; not part of the API.
  *
- * RAM: 16 bytes per node entry, 40 per census query (UPS_ECB_QUERIES), 12 per waiting
- * branch group (UPS_ECB__GROUPS) and 20 more: 508 bytes for the small bus (16 nodes, 4
+ * RAM: 14 bytes per node entry, 40 per census query (UPS_ECB_QUERIES), 12 per waiting
+ * branch group (UPS_ECB__GROUPS) and 24 more: 480 bytes for the small bus (16 nodes, 4
  * queries). A group holds every branch of one stage, so a census's waiting branches take few
  * groups: one per branching of the ids found and not yet queried.
  */
@@ -19,16 +19,19 @@
                                   still gets it; the entry is given up first when none is free */
 
 /** One node id the CAN-ECB knows: it holds a TxNode, is offered one, or let an Offer lapse.
- *  txnode is 0xFF in an unused entry. t_seen is its TxNode's last frame (held), or when its
- *  Offer lapsed (lapsed); ages on this wrapping clock are kept below 2^30 ms by
- *  ups_ecb__join_tick (ups_ecb__age), so that a wrap never makes an old entry young. */
+ *  txnode is 0xFF in an unused entry. age counts 64ths of the lease since its TxNode's last
+ *  frame (held), or since its Offer lapsed (lapsed), saturating: ups_ecb__join_tick ages
+ *  every entry, so leases need no timestamps and no clock wrap makes an old entry young. */
 typedef struct {
     uint8_t node_id[8]; /* big-endian */
     uint8_t txnode;     /* 0xFF: unused entry */
     uint8_t flags;      /* UPS_ECB__HELD, ... */
     uint16_t t_offer;   /* low 16 bits of the time of its Offer */
-    uint32_t t_seen;
+    uint8_t age;        /* 64ths of the lease (UPS_ECB__LEASE_AGE: the lease has passed) */
 } ups_ecb_node_t;
+
+/** An age (ups_ecb_node_t.age) at which the lease has passed. */
+#define UPS_ECB__LEASE_AGE 64u
 
 /** A census query: open (collecting Stage frames), or closed and remembered for the late
  *  answers of its epoch (until its slot is needed again). */
@@ -68,6 +71,7 @@ typedef struct {
     ups_ecb_query_t queries[UPS_ECB_QUERIES];
     ups_ecb_group_t groups[UPS_ECB__GROUPS]; /* a FIFO ring */
     uint32_t late_at;   /* when the slack was last raised */
+    uint32_t t_aged;    /* the node entries' ages were counted up to then */
     uint16_t rtt;       /* ms: the round trip from a query to its first Stage, averaged */
     uint16_t slack0;    /* ms: the slack when it was last raised (0: none) */
     uint16_t sent;      /* queries sent in this census */
