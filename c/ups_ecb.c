@@ -8,9 +8,9 @@
  * etag's. A management frame is checked as ups/_canproto.py's decode checks it (its row, its
  * data length, its ranges and padding): one that matches no row is malformed, counted, and
  * goes no further. Then:
- *   - a frame this CAN-ECB sent (heard again through an echo: it is queued, or was sent in
- *     the last second, identical), and a Hello, Serving or Probe with its own instance:
- *     ignored;
+ *   - a frame this CAN-ECB sent (heard again through an echo: it is queued, or is one of the
+ *     last UPS_ECB_ECHOES sent in the last second, identical), and a Hello, Serving or Probe
+ *     with its own instance: ignored;
  *   - any other CAN-ECB frame: counted (foreign_ecb_frames); while not standing by, what it
  *     contradicts is corrected (the join's and the bind's corrections); the election hears it;
  *   - standing by: every other management frame goes to the election (it watches that the
@@ -319,13 +319,20 @@ static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
     return status_kind(arg >> 8, arg & 0xFFu, d, len);
 }
 
-static uint16_t check16(const uint8_t *data, unsigned len)
+#if UPS_ECB_ECHOES > 0
+/** A check of a frame's identifier, length and data (never 0: 0 marks an unused entry). */
+static uint16_t check16(const ups_frame_t *frame)
 {
-    return (uint16_t)ups_ecb__crc32(len, data, len);
+    uint8_t head[5] = {(uint8_t)(frame->id >> 24), (uint8_t)(frame->id >> 16),
+                       (uint8_t)(frame->id >> 8), (uint8_t)frame->id, frame->len};
+    uint32_t crc = ups_ecb__crc32(ups_ecb__crc32(0u, head, 5u), frame->data, frame->len);
+    uint16_t sum = (uint16_t)(crc ^ (crc >> 16));
+    return sum != 0u ? sum : 1u;
 }
+#endif
 
-/** Whether @p frame is one this CAN-ECB sent (queued, or sent within ECHO_WINDOW): its own,
- *  heard again. */
+/** Whether @p frame is one this CAN-ECB sent (queued, or one of the last UPS_ECB_ECHOES sent
+ *  within ECHO_WINDOW): its own, heard again. */
 static int own(ups_ecb_t *ecb, const ups_frame_t *frame)
 {
     for (unsigned i = 0; i < ecb->tx_count; i++) {
@@ -340,14 +347,15 @@ static int own(ups_ecb_t *ecb, const ups_frame_t *frame)
             }
         }
     }
-    uint16_t sum = check16(frame->data, frame->len);
-    for (unsigned i = 0; i < 4u; i++) {
-        if (ecb->echo[i].id == frame->id && ecb->echo[i].sum == sum &&
-            ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
-            ecb->echo[i].id = 0u; /* heard once */
+#if UPS_ECB_ECHOES > 0
+    uint16_t sum = check16(frame);
+    for (unsigned i = 0; i < UPS_ECB_ECHOES; i++) {
+        if (ecb->echo[i].sum == sum && ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
+            ecb->echo[i].sum = 0u; /* heard once */
             return 1;
         }
     }
+#endif
     return 0;
 }
 
@@ -474,12 +482,12 @@ void ups_ecb_tx_pop(ups_ecb_t *ecb)
     if (ecb->tx_count == 0u) {
         return;
     }
-    const ups_frame_t *sent = &ecb->tx[0];
+#if UPS_ECB_ECHOES > 0
     unsigned at = ecb->echo_next;
-    ecb->echo[at].id = sent->id;
-    ecb->echo[at].sum = check16(sent->data, sent->len);
+    ecb->echo[at].sum = check16(&ecb->tx[0]);
     ecb->echo[at].t = (uint16_t)ecb->now;
-    ecb->echo_next = (uint8_t)((at + 1u) % 4u);
+    ecb->echo_next = (uint16_t)((at + 1u) % UPS_ECB_ECHOES);
+#endif
     for (unsigned i = 1u; i < ecb->tx_count; i++) {
         ecb->tx[i - 1u] = ecb->tx[i];
     }

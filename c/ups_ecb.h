@@ -74,6 +74,14 @@ extern "C" {
 #define UPS_ECB_WATCHED 4
 #endif
 
+/** CAN-ECB frames remembered after they were sent (4 bytes each), so that one heard again
+ *  within a second (an echo: a controller or a bus that hands a sender its own frames, or an
+ *  application that feeds what it sent back in) is known for its own, 0..1024. Frames still
+ *  queued are always known. */
+#ifndef UPS_ECB_ECHOES
+#define UPS_ECB_ECHOES 16
+#endif
+
 /** The type of the counters (saturating). */
 #ifndef UPS_ECB_COUNTER_T
 #define UPS_ECB_COUNTER_T uint32_t
@@ -87,6 +95,9 @@ extern "C" {
 #endif
 #if UPS_ECB_STREAMS < 0 || UPS_ECB_STREAMS > 126
 #error "UPS_ECB_STREAMS must be 0..126"
+#endif
+#if UPS_ECB_ECHOES < 0 || UPS_ECB_ECHOES > 1024
+#error "UPS_ECB_ECHOES must be 0..1024"
 #endif
 #if UPS_ECB_QUERIES < 1 || UPS_ECB_QUERIES > 16 || UPS_ECB_TX_DEPTH < 4 || UPS_ECB_TX_DEPTH > 255
 #error "UPS_ECB_QUERIES must be 1..16 and UPS_ECB_TX_DEPTH 4..255"
@@ -187,17 +198,16 @@ typedef struct ups_ecb {
     uint8_t started_up;   /* the first recovery is over */
     uint8_t tx_count;
     uint8_t hello_gap;    /* a Hello for unknown TxNodes was sent at t_unknown_hello */
-    uint8_t echo_next;    /* the next entry of echo[] to write */
-    uint8_t pad;
+    uint8_t pad[2];
     uint32_t now;         /* the latest time given */
     uint32_t t_recovery;  /* when the recovery window began */
     uint32_t t_unknown_hello; /* the last Hello for an unknown TxNode */
     uint8_t strays[16];   /* TxNodes heard asking while unknown since the last Hello (bits) */
+    uint16_t echo_next;   /* the next entry of echo[] to write */
     struct {              /* CAN-ECB frames sent lately: heard again, they are this one's own */
-        uint32_t id;      /* 0: none (no CAN-ECB frame has identifier 0) */
-        uint16_t sum;     /* a check of the data and length */
+        uint16_t sum;     /* a check of the identifier, length and data; 0: none */
         uint16_t t;       /* low 16 bits of the time it was sent */
-    } echo[4];
+    } echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1];
     ups_frame_t tx[UPS_ECB_TX_DEPTH];
     ups_ecb_counters_t counters;
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
