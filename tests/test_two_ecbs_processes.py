@@ -5,7 +5,8 @@ joins, and when the serving one goes the other takes over.
 Each run: a CAN-ECB starts; after a random delay the other starts; after another random delay
 a node joins (within 5 s). Then the status ports are asked until exactly one CAN-ECB serves
 and the other stands by; the serving one is stopped, and a second node joins once the other
-has taken over. RUNS runs, AT_ONCE at a time, each on a bus of its own. The seed is printed
+has taken over. RUNS runs, AT_ONCE at a time, each on a bus of its own (``UPS_DEEP=1``,
+docs/development.md: three times as many). The seed is printed
 (and given in a failure) so that a run can be repeated; the join and takeover times are
 printed with ``-s``.
 """
@@ -29,8 +30,8 @@ from .procs import Proc, private_multicast_bus
 
 pytestmark = pytest.mark.netns
 
-RUNS = 20
-AT_ONCE = 5
+RUNS = 60 if os.environ.get("UPS_DEEP") == "1" else 20
+AT_ONCE = 10  #: the runs mostly wait (their drawn delays, the takeover): half of them at once
 JOIN = 5.0  #: a node joins within this long, with two CAN-ECBs on the bus
 RECOVERIES = (0.2, 0.5, 2.0)  #: a recovery under a second makes a hasty newcomer (protocol.md)
 SETTLE = 15.0  #: exactly one serves by then (docs/protocol.md, "one serving": 14 s)
