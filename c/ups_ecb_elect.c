@@ -216,6 +216,17 @@ static int recent(const ups_ecb_elect_t *el, unsigned bit, uint32_t now, uint32_
     return (el->known & bit) != 0u && ups_ecb__since(now, t) <= BACKING;
 }
 
+/** Whether instance @p a (8 bytes, big-endian) is lower than @p b. */
+static int below(const uint8_t *a, const uint8_t *b)
+{
+    for (unsigned i = 0u; i < 8u; i++) {
+        if (a[i] != b[i]) {
+            return a[i] < b[i];
+        }
+    }
+    return 0;
+}
+
 /* ---- the calls ----------------------------------------------------------------------------- */
 
 void ups_ecb__elect_start(ups_ecb_t *ecb)
@@ -247,7 +258,7 @@ unsigned ups_ecb__elect_heard(ups_ecb_t *ecb, unsigned status, const uint8_t *in
     }
     int hello = instance != NULL && status == ST_HELLO;
     int serving = instance != NULL && status == ST_SERVING;
-    int lower = (hello || serving) && ups_ecb__get64(instance) < ups_ecb__get64(ecb->instance);
+    int lower = (hello || serving) && below(instance, ecb->instance);
     switch (el->role) {
     case UPS_ECB_STANDBY:
         if (hello || serving) {
