@@ -29,6 +29,7 @@ from tests.conformance._frames import (
     Bind,
     Census,
     Event,
+    Failed,
     Hello,
     Knock,
     Offer,
@@ -391,6 +392,34 @@ def test_incomplete_answers_are_asked_again_and_late_ones_reopen_their_query() -
     ecb.rx(*(Stage(census.epoch, s, n) for s, n in enumerate(nibbles(y))))
     assert [f for f in ecb.tick(5000) if isinstance(f, Offer)] == [Offer(1, y)]  # slack 4 s
     assert ecb.counters()["census_reopened"] == 2
+
+
+def test_claims_moves_and_the_corrections_of_forged_join_frames() -> None:
+    """A claim of another's TxNode in the recovery window moves the claimer (Assign of a free
+    one); after it, a forged Assign, TxNodesFull or Failed of a node id the table gives a
+    TxNode is answered with the table's Assign, of one offered a TxNode with the Offer again;
+    an Offer of another CAN-ECB is no correction; a CLAIM outside a recovery window by a node
+    the table gives another free TxNode is answered with the table's Assign."""
+    a, b, c = 0xAAA, 0xBBB, 0xCCC
+
+    def corrections(out: list[Any]) -> list[Any]:  # a serving one also answers with Serving
+        return [f for f in out if not isinstance(f, Serving)]
+
+    ecb = Driver("full", recovery_ms=200)
+    ecb.start(0)
+    assert ecb.rx(claim(1, a)) == []  # adopted
+    assert ecb.rx(claim(1, b)) == [Assign(0, b)]  # TxNode 1 is a's: b moves to a free one
+    ecb.tick(300)
+    assert ecb.nodes() == {a: 1, b: 0}
+    assert corrections(ecb.rx(Assign(5, a))) == [Assign(1, a)]
+    assert corrections(ecb.rx(TxNodesFull(b))) == [Assign(0, b)]
+    assert corrections(ecb.rx(Failed(a))) == [Assign(1, a)]
+    assert corrections(ecb.rx(Offer(7, a))) == []
+    assert ecb.rx(claim(9, a)) == [Assign(1, a)]  # told to move by a forged Assign: back
+    out = ecb.census(c)
+    assert Offer(2, c) in out
+    assert corrections(ecb.rx(TxNodesFull(c))) == [Offer(2, c)]
+    assert ecb.counters()["conflicts"] == 6
 
 
 def test_a_full_table_the_lease_and_the_blob_call_by_call() -> None:
