@@ -3,7 +3,7 @@
  * Included by ups_ecb.h after its configuration macros; not part of the API.
  *
  * RAM: 14 bytes per node entry, 40 per census query (UPS_ECB_QUERIES), 12 per waiting
- * branch group (UPS_ECB__GROUPS) and 24 more: 480 bytes for the small bus (16 nodes, 4
+ * branch group (UPS_ECB__GROUPS) and 24 more: 504 bytes for the small bus (16 nodes, 4
  * queries). A group holds every branch of one stage, so a census's waiting branches take few
  * groups: one per branching of the ids found and not yet queried.
  */
@@ -64,7 +64,7 @@ typedef struct {
 
 /** Waiting branch groups at once; past it a branch is cut (census_cut): its joiners knock
  *  again and the next census finds them. */
-#define UPS_ECB__GROUPS (UPS_ECB_QUERIES + 2)
+#define UPS_ECB__GROUPS (UPS_ECB_QUERIES + 4)
 
 typedef struct {
     ups_ecb_node_t nodes[UPS_ECB_NODES];
