@@ -573,6 +573,7 @@ static void bind(ups_ecb_t *ecb, int slot, unsigned txnode, unsigned kind, const
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     }
     use(ecb, i, slot, publish);
+    ecb->bind.channels[i].age = 0u; /* just answered: not unused (no reclaim takes it now) */
     send_bind(ecb, ecb->bind.channels[i].etag, uid);
 }
 
@@ -941,8 +942,15 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
 static void replay(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    while (!ecb->recovering && answering(ecb) && b->held[0].kind != 0u &&
-           ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH) {
+    for (unsigned done = 0u; !ecb->recovering && answering(ecb) && b->held[0].kind != 0u &&
+                             ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH; done++) {
+        unsigned kind = b->held[0].kind;
+        int i = find_uid(ecb, b->held[0].uid);
+        if (done > 0u && i >= 0 && kind > PUB_BIND_CLASS &&
+            size_class(b->channels[i].etag) < kind - PUB_BIND_CLASS) {
+            break; /* a move: in a call of its own, so that no Bind this call sent is stale
+                      in the blob saved after it */
+        }
         ups_ecb_held_t held;
         copy_held(&held, &b->held[0]);
         ups_ecb__copy((uint8_t *)&b->held[0], (const uint8_t *)&b->held[1],
@@ -957,8 +965,8 @@ static void replay(ups_ecb_t *ecb)
 
 void ups_ecb__bind_recovered(ups_ecb_t *ecb)
 {
-    replay(ecb);
-    roster_pump(ecb);
+    replay(ecb); /* the rosters asked meanwhile: at the tick's end (ups_ecb__bind_tick), once
+                    the join's part of the tick has reclaimed what it reclaims */
 }
 
 void ups_ecb__bind_stop(ups_ecb_t *ecb)
