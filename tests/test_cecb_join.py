@@ -422,6 +422,24 @@ def test_claims_moves_and_the_corrections_of_forged_join_frames() -> None:
     assert ecb.counters()["conflicts"] == 6
 
 
+def test_requests_of_unknown_txnodes_bring_a_hello_per_gap_for_their_claims_only() -> None:
+    ecb = Driver("full", recovery_ms=200)
+    hello = [f for f in ecb.start(0) if isinstance(f, Hello)]
+    ecb.tick(300)
+    # a request from a TxNode nobody holds: counted, and Hello (a recovery window)
+    assert ecb.rx(Request(SUB_BIND, 9, 0x5EED)) == hello
+    # in that later window only the stray's claim is adopted (a burst of forged claims is not)
+    assert ecb.rx(claim(9, 0x99), claim(10, 0x1010)) == []
+    assert ecb.nodes() == {0x99: 9}
+    ecb.tick(300)
+    # another unknown TxNode within the Hello gap (10 s): no Hello; after it, one
+    assert ecb.rx(Request(SUB_BIND, 11, 0x5EED)) == []
+    ecb.tick(10_000)
+    assert [f for f in ecb.rx(Request(SUB_BIND, 11, 0x5EED)) if isinstance(f, Hello)] == hello
+    counters = ecb.counters()
+    assert (counters["unassigned"], counters["adopted"], counters["conflicts"]) == (3, 1, 1)
+
+
 def test_a_full_table_the_lease_and_the_blob_call_by_call() -> None:
     scenario_full_table("full")
 
