@@ -440,6 +440,20 @@ def test_requests_of_unknown_txnodes_bring_a_hello_per_gap_for_their_claims_only
     assert (counters["unassigned"], counters["adopted"], counters["conflicts"]) == (3, 1, 1)
 
 
+def test_its_own_frames_heard_again_are_its_own() -> None:
+    """A controller or an application that hands the CAN-ECB the frames it sent (an echo):
+    they are not another CAN-ECB's (no Serving in answer, no correction, not counted)."""
+    ecb = Driver("full", recovery_ms=100)
+    sent = ecb.start(0) + ecb.tick(200)
+    sent += ecb.census(0xE1) + ecb.census(0xE2)
+    sent += ecb.rx(claim(0, 0xE1)) + ecb.rx(claim(1, 0xE2))
+    assert {type(f) for f in sent} == {Hello, Serving, Census, Offer, Assign}
+    echoed = [out for f in sent for out in ecb.rx(f)]
+    assert echoed == []
+    assert ecb.counters()["foreign_ecb_frames"] == 0
+    assert ecb.rx(Assign(9, 0xE1)) != []  # another's, heard: corrected
+
+
 def test_a_full_table_the_lease_and_the_blob_call_by_call() -> None:
     scenario_full_table("full")
 
