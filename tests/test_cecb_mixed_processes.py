@@ -49,6 +49,7 @@ class Run:
     gap: float  #: between the two starts
     join_after: float  #: from the second start to the nodes' joins
     port: int  #: the first CAN-ECB's status port; the second's is the next
+    served: str = ""  #: the kind that served until it was killed
 
     @property
     def kinds(self) -> tuple[str, str]:
@@ -137,6 +138,7 @@ async def _run(run: Run, tmp: Path) -> None:
             for key in "ab":
                 await pub.advertise(names[key])
             serving = await _one_serves(statuses)
+            run.served = run.kinds[serving]
             await _flow(pub, {"a": sub_a}, {k: names[k] for k in "ab"})
             await asyncio.to_thread(procs[serving].kill)
             takeover = TAKEOVER + max(run.first_recovery, run.second_recovery) + JOIN
@@ -181,6 +183,8 @@ async def test_a_python_and_a_c_can_ecb_leave_exactly_one_serving(tmp_path: Path
 
     results = await asyncio.gather(*(limited(r) for r in runs), return_exceptions=True)
     failures = [str(r) for r in results if isinstance(r, BaseException)]
+    served = [r.served for r in runs]
+    print(f"served first, then killed: python {served.count('python')}, c {served.count('c')}")
     assert not failures, f"seed {seed}: {len(failures)} of {RUNS} runs failed:\n" + "\n".join(
         failures
     )
