@@ -50,8 +50,6 @@ RAM = 0x2000_0000  #: the node, the buffers the application passes, and the stac
 STACK = 2048  #: bytes of stack the calls get (size.py's worst case is a few hundred)
 RETURN = 0x000F_F000  #: a call returns here (a NOP outside the image)
 MUL_CYCLES = 1  #: MULS: 1 cycle with the fast multiplier, 32 with the small one (the TRM's option)
-_SOURCES = ("ups.h", "ups_internal.h", "ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c",
-            "ups_util.c", "size.py")  # fmt: skip
 
 
 class Fault(Exception):
@@ -81,42 +79,44 @@ def _run(*cmd: str, cwd: Path) -> str:
 
 
 def build_image(config: str = "minimal", extra: tuple[Path, ...] = ()) -> Path:
-    """The Cortex-M0+ image of ``config`` (one of c/size.py's), built if missing or older than
-    its sources, into ``c/build/emu/``: the ELF ``libups.elf`` beside ``node.o`` (one
-    ``ups_node_t``, as a board places it). ``extra`` adds C sources to the image (a test's
-    build; their public ``ups_`` functions are kept too)."""
+    """The Cortex-M0+ image of ``config`` (one of c/size.py's builds: libups's configurations,
+    ``ecb-small`` and ``ecb-full`` for libups-ecb, ``node+ecb``), built if missing or older than
+    its sources, into ``c/build/emu/``: the ELF ``lib.elf`` beside ``state.o`` (the
+    ``ups_node_t node`` and/or ``ups_ecb_t ecb`` a board places). ``extra`` adds C sources to
+    the image (a test's build; their public ``ups_`` functions are kept too)."""
     if shutil.which("arm-none-eabi-gcc") is None:
         raise ConfigError("arm-none-eabi-gcc is not on PATH (Debian: gcc-arm-none-eabi)")
     size = _size_py()
-    if config not in size.CONFIGS:
-        raise ConfigError(f"no configuration {config!r} in c/size.py: {sorted(size.CONFIGS)}")
+    table = size.builds()
+    if config not in table:
+        raise ConfigError(f"no configuration {config!r} in c/size.py: {sorted(table)}")
+    _, sources, defines, state = table[config]
     tag = hashlib.sha256(b"".join(Path(x).read_bytes() for x in extra)).hexdigest()[:8]
-    name = f"{config}-{tag}" if extra else config
-    out = C_DIR / "build" / "emu" / CPU / name
+    out = C_DIR / "build" / "emu" / CPU / (f"{config}-{tag}" if extra else config)
     out.mkdir(parents=True, exist_ok=True)
-    elf = out / "libups.elf"
+    elf = out / "lib.elf"
     with open(out / ".lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        newest = max((C_DIR / s).stat().st_mtime for s in (*_SOURCES, *map(str, extra)))
-        if elf.exists() and elf.stat().st_mtime >= newest:
+        inputs = [C_DIR / "size.py", C_DIR / "Makefile", *C_DIR.glob("ups*.[ch]"), *extra]
+        if elf.exists() and elf.stat().st_mtime >= max(p.stat().st_mtime for p in inputs):
             return elf
-        flags = [*size.CPUS[CPU], *size.FLAGS, *size.CONFIGS[config].split(), f"-I{C_DIR}"]
+        flags = [*size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}"]
         objects = []
-        for src in (*size.SOURCES, *extra):
+        for src in (*sources, *extra):
             obj = out / Path(src).name.replace(".c", ".o")
             _run("arm-none-eabi-gcc", *flags, "-c", str(C_DIR / src), "-o", str(obj), cwd=out)
             objects.append(str(obj))
-        (out / "node.c").write_text('#include "ups.h"\nups_node_t node;\n')
-        _run("arm-none-eabi-gcc", *flags, "-fno-common", "-c", "node.c", "-o", "node.o",
+        (out / "state.c").write_text("".join(sorted(state, key=lambda s: not s.startswith("#"))))
+        _run("arm-none-eabi-gcc", *flags, "-fno-common", "-c", "state.c", "-o", "state.o",
              cwd=out)  # fmt: skip
         public = sorted({m for o in objects for m in re.findall(
             r" T (ups_[a-z]\w*)$", _run("arm-none-eabi-nm", "-g", o, cwd=out), re.M)})  # fmt: skip
         _run("arm-none-eabi-gcc", *size.CPUS[CPU], "-nostdlib", "-Wl,--gc-sections",
-             "-Wl,--entry=0", *(f"-Wl,--undefined={p}" for p in public), "-o", "libups.elf.tmp",
-             *objects, cwd=out)  # fmt: skip
-        defines = _run("arm-none-eabi-gcc", *flags, "-E", "-dM", "-x", "c", "-", cwd=out)
-        (out / "config.h").write_text(defines)
-        (out / "libups.elf.tmp").replace(elf)
+             "-Wl,--entry=0", *(f"-Wl,--undefined={p}" for p in public), "-o", "lib.elf.tmp",
+             *objects, "-lgcc", cwd=out)  # fmt: skip
+        macros = _run("arm-none-eabi-gcc", *flags, "-E", "-dM", "-x", "c", "-", cwd=out)
+        (out / "config.h").write_text(macros)
+        (out / "lib.elf.tmp").replace(elf)
     return elf
 
 
@@ -328,9 +328,13 @@ def _defines(elf: Path) -> dict[str, str]:
     return dict(re.findall(r"^#define (UPS_\w+) (.*)$", text, re.M))
 
 
-def _node_size(elf: Path) -> int:
-    out = _run("arm-none-eabi-nm", "-S", "node.o", cwd=elf.parent)
-    return int(re.search(r"^\w+ (\w+) [BCb] node$", out, re.M).group(1), 16)  # type: ignore[union-attr]
+def state_size(elf: Path, name: str = "node") -> int:
+    """sizeof the state ``name`` (``node``: ups_node_t, ``ecb``: ups_ecb_t) of an image."""
+    out = _run("arm-none-eabi-nm", "-S", "state.o", cwd=elf.parent)
+    found = re.search(rf"^\w+ (\w+) [BCb] {name}$", out, re.M)
+    if found is None:
+        raise ConfigError(f"{elf.parent / 'state.o'} has no {name}")
+    return int(found.group(1), 16)
 
 
 class ArmNode(CNode):
@@ -351,9 +355,9 @@ class ArmNode(CNode):
             raise ConfigError("this libups image was built without CAN FD (UPS_WITH_FD)")
         self._frame_size = (6 + mtu + 3) & ~3
         self._largest = max(256, int(d.get("UPS_MAX_EVENT", "8")))
-        self.mcu = Mcu(self.elf, _node_size(self.elf) + self._frame_size + 64 + self._largest,
+        self.mcu = Mcu(self.elf, state_size(self.elf) + self._frame_size + 64 + self._largest,
                        count=count)  # fmt: skip
-        self._at_node = self.mcu.alloc(_node_size(self.elf))
+        self._at_node = self.mcu.alloc(state_size(self.elf))
         self._at_frame = self.mcu.alloc(self._frame_size, 4)
         self._at_event = self.mcu.alloc(12, 4)
         self._at_scratch = self.mcu.alloc(self._largest, 4)  # publish data, filters
