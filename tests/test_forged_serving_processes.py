@@ -145,21 +145,40 @@ def _ecb_with_status(bus: str, db: Path, recovery: str, status: str) -> Proc:
 
 
 @pytest.mark.timeout(120)
-@pytest.mark.parametrize("order", ["one-then-other", "together"])
-async def test_two_real_can_ecbs_never_both_answer(order: str, tmp_path: Path) -> None:
+async def test_two_real_can_ecbs_never_both_answer(tmp_path: Path) -> None:
     """With two healthy CAN-ECBs on the bus, once one serves and the other stands by: nodes
     join and bind, and every Assign and every Bind on the wire is sent once per request (the
-    standing-by one answers nothing and never takes over; it keeps probing)."""
+    standing-by one answers nothing and never takes over; it keeps probing). Two starts: the
+    second CAN-ECB after the first served, and both together; they run at once, each on a bus
+    of its own (they mostly wait for the election's timers)."""
+    results = await asyncio.gather(
+        *(_two_ecbs(order, tmp_path) for order in ("one-then-other", "together")),
+        return_exceptions=True,
+    )
+    for result in results:
+        if isinstance(result, BaseException):
+            raise result
+
+
+async def _two_ecbs(order: str, tmp_path: Path) -> None:
+    try:
+        await _two_ecbs_serve_once(order, tmp_path)
+    except AssertionError as exc:
+        raise AssertionError(f"{order}: {exc}") from exc
+
+
+async def _two_ecbs_serve_once(order: str, tmp_path: Path) -> None:
     loop = asyncio.get_running_loop()
     bus = private_multicast_bus()
     statuses = [f"127.0.0.1:{_free_port()}" for _ in range(2)]
+    a_db, b_db = tmp_path / f"{order}-a.db", tmp_path / f"{order}-b.db"
     with wire(bus) as listener, contextlib.ExitStack() as procs:
-        a = procs.enter_context(_ecb_with_status(bus, tmp_path / "a.db", "0.5", statuses[0]))
+        a = procs.enter_context(_ecb_with_status(bus, a_db, "0.5", statuses[0]))
         if order == "one-then-other":
             await asyncio.to_thread(a.wait_for_line, "CAN-ECB on")
             async with Node(can=bus, node_id=0xE0, join_timeout=JOIN):
                 pass  # the first serves
-        b = procs.enter_context(_ecb_with_status(bus, tmp_path / "b.db", "2", statuses[1]))
+        b = procs.enter_context(_ecb_with_status(bus, b_db, "2", statuses[1]))
         for proc in (a, b) if order == "together" else (b,):
             await asyncio.to_thread(proc.wait_for_line, "CAN-ECB on")
         deadline = loop.time() + 15.0  # docs/protocol.md, "one serving": 14 s
@@ -187,6 +206,7 @@ async def test_two_real_can_ecbs_never_both_answer(order: str, tmp_path: Path) -
         for status in statuses:  # neither caught the other leaving a request unanswered
             assert (await query_status(status, 5.0))["stats"]["unanswered_takeovers"] == 0
         heard = listener.heard(since)
+        await asyncio.to_thread(procs.close)  # not in the loop: the other order's nodes run
         logs = a.stderr_lines + b.stderr_lines
     assert not [m for m in heard if isinstance(m, p.Hello)], "a CAN-ECB took over"
     for node_id in ids:
