@@ -789,10 +789,12 @@ static void roster_pump(ups_ecb_t *ecb)
         }
         roster_step(ecb);
         b->r_tokens--;
+        ups_ecb__count(&ecb->counters.roster_frames);
     }
 }
 
-static void roster_unqueue(ups_ecb_bind_t *b, int slot)
+/** Drop the Roster of node entry @p slot that waits; whether one did. */
+static int roster_unqueue(ups_ecb_bind_t *b, int slot)
 {
     unsigned to = 0u;
     for (unsigned q = 0u; q < b->r_waiting; q++) {
@@ -800,13 +802,18 @@ static void roster_unqueue(ups_ecb_bind_t *b, int slot)
             b->r_queue[to++] = b->r_queue[q];
         }
     }
+    int dropped = to != b->r_waiting;
     b->r_waiting = (uint8_t)to;
+    return dropped;
 }
 
 static void roster_ask(ups_ecb_t *ecb, int slot, const uint8_t *cursor)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    roster_unqueue(b, slot); /* a newer one replaces the one waiting */
+    ups_ecb__count(&ecb->counters.rosters);
+    if (roster_unqueue(b, slot)) { /* a newer one replaces the one waiting */
+        ups_ecb__count(&ecb->counters.roster_replaced);
+    }
     ups_ecb__copy(b->r_cursor[slot], cursor, 8u);
     b->r_queue[b->r_waiting++] = (uint8_t)slot;
     roster_pump(ecb);
@@ -885,7 +892,7 @@ static void forget_slot(ups_ecb_t *ecb, int slot, int creations)
         ups_ecb__copy(b->refuse, NULL, 8u);
         b->refused_valid = 0u;
     }
-    roster_unqueue(b, slot);
+    (void)roster_unqueue(b, slot);
     b->spent[slot] = 0u;
 }
 

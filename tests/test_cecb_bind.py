@@ -162,6 +162,8 @@ async def test_unsub_and_the_roster_of_who_uses_what(wire: Wire, tmp_path: Path)
             Uses(False, t[0], speed), Uses(False, t[2], speed), Uses(True, t[2], speed),
             Uses(True, t[0], brake),
         ]  # fmt: skip
+        counters = ecb.counters()
+        assert (counters["rosters"], counters["roster_frames"]) == (1, len(uses) + 1)
         status = {c["uid"]: c for c in ecb.status()["channels"]}
         assert status[f"0x{speed:016x}"]["subscribers"] == [f"0x{t[0]:02x}", f"0x{t[2]:02x}"]
 
