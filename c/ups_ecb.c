@@ -321,26 +321,26 @@ static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
 
 #if UPS_ECB_ECHOES > 0
 /** A check of a frame's identifier, length and data (never 0: 0 marks an unused entry). */
-static uint16_t check16(const ups_frame_t *frame)
+static uint16_t check16(uint32_t id, unsigned len, const uint8_t *data)
 {
-    uint8_t head[5] = {(uint8_t)(frame->id >> 24), (uint8_t)(frame->id >> 16),
-                       (uint8_t)(frame->id >> 8), (uint8_t)frame->id, frame->len};
-    uint32_t crc = ups_ecb__crc32(ups_ecb__crc32(0u, head, 5u), frame->data, frame->len);
+    uint8_t head[5] = {(uint8_t)(id >> 24), (uint8_t)(id >> 16), (uint8_t)(id >> 8), (uint8_t)id,
+                       (uint8_t)len};
+    uint32_t crc = ups_ecb__crc32(ups_ecb__crc32(0u, head, 5u), data, len);
     uint16_t sum = (uint16_t)(crc ^ (crc >> 16));
     return sum != 0u ? sum : 1u;
 }
 #endif
 
-/** Whether @p frame is one this CAN-ECB sent (queued, or one of the last UPS_ECB_ECHOES sent
- *  within ECHO_WINDOW): its own, heard again. */
-static int own(ups_ecb_t *ecb, const ups_frame_t *frame)
+/** Whether the frame @p id, @p len, @p data is one this CAN-ECB sent (queued, or one of the
+ *  last UPS_ECB_ECHOES sent within ECHO_WINDOW): its own, heard again. */
+static int own(ups_ecb_t *ecb, uint32_t id, unsigned len, const uint8_t *data)
 {
     for (unsigned i = 0; i < ecb->tx_count; i++) {
-        const ups_frame_t *q = &ecb->tx[i];
-        if (q->id == frame->id && q->len == frame->len) {
+        const ups_ecb_frame_t *q = &ecb->tx[i];
+        if (q->id == id && q->len == len) {
             unsigned diff = 0;
-            for (unsigned k = 0; k < q->len; k++) {
-                diff |= (unsigned)(q->data[k] ^ frame->data[k]);
+            for (unsigned k = 0; k < len; k++) {
+                diff |= (unsigned)(q->data[k] ^ data[k]);
             }
             if (diff == 0u) {
                 return 1;
@@ -348,7 +348,7 @@ static int own(ups_ecb_t *ecb, const ups_frame_t *frame)
         }
     }
 #if UPS_ECB_ECHOES > 0
-    uint16_t sum = check16(frame);
+    uint16_t sum = check16(id, len, data);
     for (unsigned i = 0; i < UPS_ECB_ECHOES; i++) {
         if (ecb->echo[i].sum == sum && ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
             ecb->echo[i].sum = 0u; /* heard once */
@@ -415,7 +415,7 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
         ups_ecb__count(&ecb->counters.malformed);
         return;
     }
-    if (txnode == UPS_ECB__MGMT && own(ecb, frame)) {
+    if (txnode == UPS_ECB__MGMT && own(ecb, id, len, d)) {
         return;
     }
     if (kind == K_ECB) {
@@ -474,7 +474,7 @@ void ups_ecb_tick(ups_ecb_t *ecb, uint32_t now_ms)
 
 const ups_frame_t *ups_ecb_tx_peek(const ups_ecb_t *ecb)
 {
-    return ecb->tx_count > 0u ? &ecb->tx[0] : NULL;
+    return ecb->tx_count > 0u ? &ecb->tx_head : NULL;
 }
 
 void ups_ecb_tx_pop(ups_ecb_t *ecb)
@@ -484,14 +484,11 @@ void ups_ecb_tx_pop(ups_ecb_t *ecb)
     }
 #if UPS_ECB_ECHOES > 0
     unsigned at = ecb->echo_next;
-    ecb->echo[at].sum = check16(&ecb->tx[0]);
+    ecb->echo[at].sum = check16(ecb->tx[0].id, ecb->tx[0].len, ecb->tx[0].data);
     ecb->echo[at].t = (uint16_t)ecb->now;
     ecb->echo_next = (uint16_t)((at + 1u) % UPS_ECB_ECHOES);
 #endif
-    for (unsigned i = 1u; i < ecb->tx_count; i++) {
-        ecb->tx[i - 1u] = ecb->tx[i];
-    }
-    ecb->tx_count--;
+    ups_ecb__pop(ecb);
 }
 
 /* ---- the small calls ----------------------------------------------------------------------- */

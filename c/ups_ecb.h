@@ -187,6 +187,14 @@ typedef struct {
 #include "ups_ecb_bind.h"  /* ups_ecb_bind_t */
 #include "ups_ecb_elect.h" /* ups_ecb_elect_t */
 
+/** A frame waiting to be sent: the CAN-ECB sends classic frames only, so its queue keeps 8
+ *  data bytes a frame whatever UPS_MTU an image that also holds a CAN FD node has. */
+typedef struct {
+    uint32_t id;
+    uint8_t len;
+    uint8_t data[8];
+} ups_ecb_frame_t;
+
 /** The whole state of one CAN-ECB. Private: set up with ups_ecb_init(), then use the
  *  functions. */
 typedef struct ups_ecb {
@@ -208,7 +216,8 @@ typedef struct ups_ecb {
         uint16_t sum;     /* a check of the identifier, length and data; 0: none */
         uint16_t t;       /* low 16 bits of the time it was sent */
     } echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1];
-    ups_frame_t tx[UPS_ECB_TX_DEPTH];
+    ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, lowest identifier first */
+    ups_frame_t tx_head;  /* tx[0] as ups_ecb_tx_peek() hands it out */
     ups_ecb_counters_t counters;
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
     ups_ecb_bind_t bind;   /* ups_ecb_bind.c: etags, who uses them, quotas, held requests,

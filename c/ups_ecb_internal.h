@@ -51,6 +51,8 @@ void ups_ecb__put64(uint8_t *out, uint64_t value);
 /** Queue a classic extended frame of @p len (0..8) bytes, sorted by identifier (FIFO among
  *  equals); a full queue drops it, counted (tx_dropped). */
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
+/** Remove the first frame of the TX queue (it was sent). */
+void ups_ecb__pop(ups_ecb_t *ecb);
 /** Queue a CAN-ECB frame of TxNode 0x7F at priority 0 with the etag field @p field and 8 data
  *  bytes @p value (big-endian), or none when @p with_data is 0. */
 void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data);
@@ -148,5 +150,8 @@ unsigned ups_ecb__elect_heard(ups_ecb_t *ecb, unsigned status, const uint8_t *in
  *  PUB_BIND, PUB_BIND(c)), watched. Returns UPS_ECB__SAY_HELLO or 0. */
 unsigned ups_ecb__elect_asked(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 unsigned ups_ecb__elect_tick(ups_ecb_t *ecb);
+/** Milliseconds from ecb->now until the election's next timer (0: due now; 0xFFFFFFFF: none
+ *  runs): a tick then is the next that can change anything of the election's. */
+uint32_t ups_ecb__elect_next(const ups_ecb_t *ecb);
 
 #endif /* UPS_ECB_INTERNAL_H */

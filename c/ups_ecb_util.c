@@ -49,6 +49,18 @@ void ups_ecb__put64(uint8_t *out, uint64_t value)
     }
 }
 
+/** tx_head: the first frame of the queue, as ups_ecb_tx_peek() hands it out. */
+static void head(ups_ecb_t *ecb)
+{
+    if (ecb->tx_count == 0u) {
+        return;
+    }
+    ecb->tx_head.id = ecb->tx[0].id;
+    ecb->tx_head.flags = UPS_FRAME_EXT;
+    ecb->tx_head.len = ecb->tx[0].len;
+    ups_ecb__copy(ecb->tx_head.data, ecb->tx[0].data, ecb->tx[0].len);
+}
+
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len)
 {
     if (ecb->tx_count >= UPS_ECB_TX_DEPTH) {
@@ -60,12 +72,26 @@ void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned le
         ecb->tx[at] = ecb->tx[at - 1u];
         at--;
     }
-    ups_frame_t *frame = &ecb->tx[at];
+    ups_ecb_frame_t *frame = &ecb->tx[at];
     frame->id = id;
-    frame->flags = UPS_FRAME_EXT;
     frame->len = (uint8_t)len;
     ups_ecb__copy(frame->data, data, len);
     ecb->tx_count++;
+    if (at == 0u) {
+        head(ecb);
+    }
+}
+
+void ups_ecb__pop(ups_ecb_t *ecb)
+{
+    if (ecb->tx_count == 0u) {
+        return;
+    }
+    for (unsigned i = 1u; i < ecb->tx_count; i++) {
+        ecb->tx[i - 1u] = ecb->tx[i];
+    }
+    ecb->tx_count--;
+    head(ecb);
 }
 
 void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data)
