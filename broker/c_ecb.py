@@ -11,7 +11,8 @@ before it sends the frames queued since, as firmware writes its flash. At start 
 given back with ``ups_ecb_restore``; a refused one is logged and kept aside as ``.bad``.
 
 The library is built on first use with ``make -C c`` (``ups._cnode.build``): ``full``
-(``libups-ecb.so``, the tables of a full bus) or ``asan`` (``libups-ecb-asan.so``, small tables,
+(``libups-ecb.so``, the tables of a full bus with room for a node id's
+whole quota of channels) or ``asan`` (``libups-ecb-asan.so``, small tables,
 AddressSanitizer: load it with ``LD_PRELOAD`` of libasan).
 """
 

@@ -17,6 +17,7 @@ from ups._canlink import CanLink
 from ups._cnode import build
 from ups._errors import ConfigError
 from ups.broker import c_ecb
+from ups.broker._quota import QUOTA
 from ups.broker.c_ecb import CEcb
 
 from .conformance._wire import RawNode, Wire
@@ -68,14 +69,17 @@ def test_constants_are_the_headers() -> None:
 
 
 def test_the_full_build_has_the_tables_of_a_full_bus() -> None:
+    """With room for the default quota of a node id (1024 channels of size class 0), which
+    the conformance suite fills."""
     lib = c_ecb.load("full")
-    macros = dict(m[2:].split("=") for m in _makefile("ECB_FULL"))
+    macros = dict(m[2:].split("=") for m in _makefile("ECB_HOST"))
     names = {"nodes": "NODES", "channels": "CHANNELS", "streams": "STREAMS",
              "queries": "QUERIES", "tx_depth": "TX_DEPTH", "held": "HELD",
              "watched": "WATCHED"}  # fmt: skip
     for key, macro in names.items():
         assert lib.config[key] == int(macros[f"UPS_ECB_{macro}"]), key
     cfg = lib.config
+    assert cfg["channels"] > QUOTA[0] and cfg["nodes"] == 127
     assert cfg["blob_max"] >= 12 * (cfg["nodes"] + cfg["channels"] + cfg["streams"])
     assert cfg["counter_bytes"] == 4 and cfg["mtu"] == 8
     assert lib.size > cfg["tx_depth"] * 12  # its TX queue of ups_frame_t alone

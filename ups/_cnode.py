@@ -73,7 +73,8 @@ def build(
         newest = max((c_dir / s).stat().st_mtime for s in sources)
         if not target.exists() or target.stat().st_mtime < newest:
             done = subprocess.run(
-                ["make", "-s", "-C", str(c_dir), f"build/{name}"],
+                # -B: stale by this check (the Makefile itself is a source, not make's)
+                ["make", "-s", "-B", "-C", str(c_dir), f"build/{name}"],
                 capture_output=True,
                 text=True,
                 check=False,

@@ -46,7 +46,7 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
     )  # fmt: skip
     cmd.add_argument(
         "--build", choices=("full", "asan"), default="full",
-        help="the library's configuration: full (127 nodes, 512 channels) or asan (small "
+        help="the library's configuration: full (127 nodes, 2048 channels) or asan (small "
         "tables, AddressSanitizer and UndefinedBehaviorSanitizer: run with "
         "LD_PRELOAD=$(cc -print-file-name=libasan.so))",
     )  # fmt: skip
