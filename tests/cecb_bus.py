@@ -32,6 +32,7 @@ TRACE = bool(os.environ.get("UPS_CECB_FUZZ_TRACE"))  #: print every call and its
 WRAP = 1 << 32
 TAKEOVER = 4000  #: ms a standing-by CAN-ECB waits for another's Hello or Serving
 SLACK = 5  #: ms a timer may end late (the CAN-ECB compares at its ticks)
+ECHOES, ECHO_WINDOW = 16, 1000  #: frames it remembers sending (UPS_ECB_ECHOES), for that long
 IDS = [
     0x1234_5678_9ABC_DEF0, 0x1234_5678_9ABC_DEF1, 0x1234_5678_0000_0001, 0x1234_0000_0000_0002,
     0xFEDC_BA98_7654_3210, 0x0000_0000_0000_0007, 0x8000_0000_0000_0000,
@@ -68,6 +69,9 @@ class Bus:
         self.own_hello = 0  #: when the CAN-ECB last said Hello
         self.last: dict[str, int] = {}
         self.roles: set[int] = set()  #: every role it had (the statistics)
+        self.sent = 0  #: frames the CAN-ECB sent
+        self.sent_at: deque[int] = deque()  #: the number of each of its frames on the bus
+        self.forged_at: dict[tuple[int, bytes], int] = {}  #: forged frame -> when it came
         self.reclaims = 0  #: ``reclaimed`` before the call under way
 
     def close(self) -> None:
@@ -121,12 +125,34 @@ class Bus:
             assert moved & {"limited", "quota_hit"}, f"{what}: Limit, nothing counted"
         if frame is not None:
             self.check_rejected(what, frame, msgs, moved, tables)
+        self.check_said(what, msgs)
         self.see(what, msgs)
         for m, (can_id, _, data) in zip(msgs, sent, strict=True):
             if isinstance(m, p.Hello):
                 self.own_hello = self.abs
             self.queue.append((ECB, can_id, FRAME_EXT, data))
+            self.sent_at.append(self.sent)
+            self.sent += 1
         return msgs
+
+    def check_said(self, what: str, msgs: list[p.Management]) -> None:
+        """What an Offer, Uses or Grant says is true of the tables when it is sent."""
+        assert self.ecb is not None
+        nodes, chans = self.ecb.nodes(), self.ecb.channels()
+        #: TxNodes given to another in this call (a reclaim): what a Uses queued before it in
+        #: the same call says of them was true when queued
+        given = {m.txnode for m in msgs if isinstance(m, p.Offer | p.Assign)}
+        for m in msgs:
+            if isinstance(m, p.Offer):  # a TxNode nobody else holds
+                assert nodes.get(m.txnode, m.node_id) == m.node_id, f"{what}: {m}, {nodes}"
+            elif isinstance(m, p.Uses) and m.txnode not in given:
+                entry = [i for e, (u, i) in chans.items() if u == m.uid]
+                assert entry and m.txnode in nodes, f"{what}: {m} of no binding or TxNode"
+                bit = 2 if m.publish else 1
+                assert self.ecb.use(entry[0], m.txnode) & bit, f"{what}: {m}, not in its table"
+            elif isinstance(m, p.Grant):
+                assert 0x02 <= m.priority <= 0x7F, f"{what}: {m}"
+                assert m.etag in chans, f"{what}: {m} of an etag not bound"
 
     def persist(self) -> None:
         """UPS_ECB_NOTE_STATE: the application writes the blob before it sends anything."""
@@ -226,10 +252,10 @@ class Bus:
             elif isinstance(m, p.Bind):
                 last[("e", m.etag)] = last[("u", m.uid)] = m
         for m in {id(m): m for m in last.values()}.values():  # the latest of each in the batch
-            if isinstance(m, p.Assign) and m in (last[("t", m.txnode)], last[("n", m.node_id)]):
+            if isinstance(m, p.Assign) and m is last[("t", m.txnode)] is last[("n", m.node_id)]:
                 assert nodes.get(m.txnode) == m.node_id, f"{what}: sent {m}, not in its table"
                 assert self.flash_tables[0].get(m.txnode) == m.node_id, f"{what}: {m} not saved"
-            if isinstance(m, p.Bind) and m in (last[("e", m.etag)], last[("u", m.uid)]):
+            if isinstance(m, p.Bind) and m is last[("e", m.etag)] is last[("u", m.uid)]:
                 assert chans.get(m.etag) == m.uid, f"{what}: sent {m}, not in its table"
                 assert self.flash_tables[1].get(m.etag) == m.uid, f"{what}: {m} not saved"
 
@@ -261,8 +287,9 @@ class Bus:
             if not self.queue:
                 return
             sender, can_id, flags, data = self.queue.popleft()
+            seq = self.sent_at.popleft() if sender == ECB else 0
             if sender != ECB or self.echo:
-                self.deliver(sender, can_id, flags, data)
+                self.deliver(sender, can_id, flags, data, self.sent - seq)
             if sender == ECB:
                 msg = p.decode(can_id, data)
                 for i, h in enumerate(self.honest):
@@ -270,9 +297,11 @@ class Bus:
                         self.send(i, out)
         raise AssertionError(f"the bus never went quiet: {list(self.queue)[:8]}")
 
-    def deliver(self, sender: int, can_id: int, flags: int, data: bytes) -> None:
+    def deliver(self, sender: int, can_id: int, flags: int, data: bytes, since: int = 0) -> None:
+        """One frame to the CAN-ECB (``since``: for its own, how many it sent since this one)."""
         assert self.ecb is not None
         ecb, now = self.ecb, self.now
+        foreign = self.last["foreign_ecb_frames"]
         if flags & FRAME_EXT and not flags & (FRAME_RTR | FRAME_ERR):
             self.active[p.split_id(can_id)[1]] = self.abs
             if p.is_management(can_id) and sender != ECB:
@@ -286,7 +315,16 @@ class Bus:
                     self.note_forged(msg)
         what = f"rx {can_id:#010x} {flags:#x} {data.hex()}"
         msgs = self.call(what, lambda: ecb.rx(now, can_id, flags, data), (can_id, flags, data))
-        if sender != ECB:
+        if sender == FORGER:
+            self.forged_at[(can_id, data)] = self.abs
+        # its own frame heard again: nothing to do, nobody else's, unless it sent more than it
+        # remembers since, or the forger sent the same frame within the echo window (the
+        # CAN-ECB takes the first for the echo)
+        forged = self.abs - self.forged_at.get((can_id, data), -ECHO_WINDOW) < ECHO_WINDOW
+        if sender == ECB and since <= ECHOES and not forged:
+            assert not msgs, f"{what}: its own frame answered with {msgs}"
+            assert self.last["foreign_ecb_frames"] == foreign, f"{what}: its own taken as foreign"
+        else:
             self.check_answer(what, can_id, data, msgs)
 
     def check_answer(self, what: str, can_id: int, data: bytes, msgs: list[p.Management]) -> None:

@@ -50,9 +50,9 @@ _libs: dict[str, Library] = {}
 
 
 def library(variant: str) -> Library:
-    """libups-ecb of ``variant``, or the one at ``$UPS_CECB_FUZZ_LIB``."""
+    """libups-ecb of ``variant``; for ``asan``, the one at ``$UPS_CECB_FUZZ_LIB`` if set."""
     path = os.environ.get("UPS_CECB_FUZZ_LIB")
-    if path is None:
+    if path is None or variant != "asan":
         return load(variant)
     if path not in _libs:
         _libs[path] = Library(Path(path))

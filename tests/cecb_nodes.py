@@ -200,25 +200,33 @@ class Ledger:
         """What one call of the CAN-ECB said, at once: (key, holder, where) from its frames,
         then its tables. One call's frames are queued together and leave lowest identifier
         first, as CAN arbitration would send them anyway: a holder's move (a channel to a
-        larger class) and the reuse of the key it left may come in either order."""
-        batch = {(k, h) for k, h, _ in pairs}
-        holders = {h for _, h, _ in pairs}
-        for k in [k for k, h in self.holder.items() if h in holders and (k, h) not in batch]:
-            del self.holder[k]  # it moved: its old key is free
+        larger class) and the reuse of the key it left may come in either order, and a pair
+        that a later one of the same call supersedes (the holder moves on) is a step between.
+        So each holder's last pair counts; a step between may take only a free key, its own,
+        or one whose holder moves in the same call."""
+        last: dict[int, tuple[int, str]] = {}
+        for key, holder, where in pairs:
+            last[holder] = (key, where)
         for key, holder, where in pairs:
             prior = self.holder.get(key)
+            if last[holder][0] != key and prior not in (None, holder) and prior not in last:
+                self.check(key, prior, holder, where, excuse)
+        for k in [k for k, h in self.holder.items() if h in last and last[h][0] != k]:
+            del self.holder[k]  # it moved: its old key is free
+        for holder, (key, where) in last.items():
+            prior = self.holder.get(key)
             if prior is not None and prior != holder:
-                why = None
-                if (key, prior) in self.forged or (key, holder) in self.forged:
-                    why = "forged"
-                else:
-                    why = excuse(key, prior, holder)
-                assert why is not None, (
-                    f"{where}: {self.what} {key:#x} handed to {holder:#x} while {prior:#x} holds it"
-                )
-            for k in [k for k, h in self.holder.items() if h == holder and k != key]:
-                del self.holder[k]
+                self.check(key, prior, holder, where, excuse)
+                for k in [k for k, h in self.holder.items() if h == holder]:
+                    del self.holder[k]
             self.holder[key] = holder
+
+    def check(self, key: int, prior: int, holder: int, where: str, excuse: Excuse) -> None:
+        if (key, prior) in self.forged or (key, holder) in self.forged:
+            return
+        assert excuse(key, prior, holder) is not None, (
+            f"{where}: {self.what} {key:#x} handed to {holder:#x} while {prior:#x} holds it"
+        )
 
     def drop(self, keep: Callable[[int, int], bool]) -> None:
         self.holder = {k: h for k, h in self.holder.items() if keep(k, h)}

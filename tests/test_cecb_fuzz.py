@@ -55,7 +55,7 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, ru
 from ups import _canproto as p
 
 from .cecb_bus import FORGED_IDS, FORGER, IDS, UIDS, WRAP, Bus
-from .cecb_driver import FRAME_ERR, FRAME_EXT, FRAME_FD, FRAME_RTR, STANDBY, config
+from .cecb_driver import FRAME_ERR, FRAME_EXT, FRAME_FD, FRAME_RTR, STANDBY, Ecb, config, tables_of
 from .procs import sanitizer_env
 
 VARIANT = os.environ.get("UPS_CECB_FUZZ", "")  #: "asan" in the child
@@ -322,3 +322,69 @@ def test_machine_under_sanitizers() -> None:
     output = done.stdout[-8000:] + done.stderr[-8000:]
     assert done.returncode == 0, f"libups-ecb-asan.so under the machine:\n{output}"
     assert " passed" in done.stdout and "failed" not in done.stdout, output
+
+
+# --- what the machine found, each in its smallest form (run in the child, on the ASan build) --
+
+child = pytest.mark.skipif(not VARIANT, reason="runs in the sanitizers' child")
+
+
+def joined_bus(recovery: int = 100, **cfg: Any) -> Bus:
+    """A serving CAN-ECB with honest node 0 joined (TxNode 0)."""
+    bus = Bus(VARIANT, config(VARIANT, recovery_ms=recovery, **cfg), t0=WRAP - 1000, echo=False)
+    bus.start(1 << 62)
+    bus.populate([0], [])
+    assert bus.honest[0].txnode == 0
+    return bus
+
+
+@child
+def test_standing_by_answers_no_held_request() -> None:
+    """A request held in a recovery window is not answered while the CAN-ECB stands by (a
+    candidate stands by for a Serving; docs/protocol.md: standing by, it answers nothing).
+    Found by the machine: ups_ecb__bind_tick replays the held requests whatever the role."""
+    bus = joined_bus()
+    try:
+        bus.reset(2, "latest", 0, b"")  # a recovery window: node 0's PUB_BIND is held
+        bus.node_says(0, bus.honest[0].use(UIDS[0], sub=False))
+        bus.send(FORGER, p.Serving(3))  # the candidate stands by
+        bus.pump()
+        assert bus.ecb is not None and bus.ecb.role() == STANDBY
+        bus.ms(150)  # the window ends: Bind sent while standing by (Bus.call's check)
+    finally:
+        bus.close()
+
+
+@child
+def test_blob_of_larger_tables() -> None:
+    """A blob of libups-ecb.so (a full bus: 127 nodes, 512 channels) restores into these small
+    tables while its entries fit them, and is refused (counted, the tables empty) when they
+    do not: 7 nodes and 9 channels, for 6 and 8."""
+    big = Bus("full", config("full", recovery_ms=100), t0=0, echo=False)
+    try:
+        big.start(1 << 62)
+        big.populate([0, 1], [(0, 0, -1), (1, 1, 2)])
+        small = big.flash
+        assert small is not None and len(big.flash_tables[0]) == 2
+        big.populate([2, 3, 4, 5, 6], [(i % 7, u, u % 5 - 1) for i, u in enumerate(range(2, 10))])
+        large = big.flash
+        assert large is not None
+        assert len(big.flash_tables[0]) == 7 and len(big.flash_tables[1]) == 10
+    finally:
+        big.close()
+    cfg = config(VARIANT)
+    ecb = Ecb(VARIANT, cfg, 5)
+    try:
+        assert ecb.restore(small) == 0
+        assert (ecb.nodes(), {e: u for e, (u, _) in ecb.channels().items()}) == tables_of(
+            "full", config("full"), small
+        )
+    finally:
+        ecb.close()
+    ecb = Ecb(VARIANT, cfg, 6)
+    try:
+        assert ecb.restore(large) < 0
+        assert ecb.counters()["blob_refused"] == 1
+        assert ecb.nodes() == {} and ecb.channels() == {}
+    finally:
+        ecb.close()
