@@ -1142,6 +1142,11 @@ int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
     }
     b->stream_count = (uint8_t)streams;
     b->refused_valid = 0u;
+    for (int k = b->stream_count - 1; k >= 0; k--) { /* of a TxNode nobody holds: gone */
+        if (ups_ecb__holder(ecb, b->streams[k].txnode) < 0) {
+            drop_stream(ecb, k);
+        }
+    }
     return UPS_OK;
 }
 
