@@ -562,6 +562,7 @@ static void pump(ups_ecb_t *ecb)
     ups_ecb_join_t *join = &ecb->join;
     unsigned epoch = 0u;
     unsigned slot = 0u;
+again:
     while (join->g_count > 0u && take_epoch(ecb, &epoch, &slot)) {
         ups_ecb_group_t *group = &join->groups[join->g_head];
         ups_ecb_query_t *query = &join->queries[slot];
@@ -615,8 +616,10 @@ static void pump(ups_ecb_t *ecb)
     }
     join->g_counted = join->g_count;
     if (!ups_ecb__join_busy(ecb) && join->again && ecb->elect.role != UPS_ECB_STANDBY) {
-        join->again = 0u;
-        knock(ecb);
+        join->again = 0u; /* knock() again, as a loop (no recursion: a bounded stack) */
+        ups_ecb__count(&ecb->counters.census_knocks);
+        start_census(ecb);
+        goto again;
     }
 }
 

@@ -49,6 +49,13 @@ void ups_ecb__put64(uint8_t *out, uint64_t value)
     }
 }
 
+/** tx[to] = tx[from], by the byte helper (a struct assignment in a loop becomes memmove). */
+static void shift(ups_ecb_t *ecb, unsigned to, unsigned from)
+{
+    ups_ecb__copy((uint8_t *)&ecb->tx[to], (const uint8_t *)&ecb->tx[from],
+                  (unsigned)sizeof(ecb->tx[0]));
+}
+
 /** tx_head: the first frame of the queue, as ups_ecb_tx_peek() hands it out. */
 static void head(ups_ecb_t *ecb)
 {
@@ -69,7 +76,7 @@ void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned le
     }
     unsigned at = ecb->tx_count;
     while (at > 0u && ecb->tx[at - 1u].id > id) { /* after its equals: FIFO among them */
-        ecb->tx[at] = ecb->tx[at - 1u];
+        shift(ecb, at, at - 1u);
         at--;
     }
     ups_ecb_frame_t *frame = &ecb->tx[at];
@@ -88,7 +95,7 @@ void ups_ecb__pop(ups_ecb_t *ecb)
         return;
     }
     for (unsigned i = 1u; i < ecb->tx_count; i++) {
-        ecb->tx[i - 1u] = ecb->tx[i];
+        shift(ecb, i - 1u, i);
     }
     ecb->tx_count--;
     head(ecb);
