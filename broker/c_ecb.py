@@ -81,10 +81,9 @@ class Library:
     def __init__(self, path: Path) -> None:
         self.path = path
         self.lib = lib = ctypes.CDLL(str(path))
-        lib.ups_ecb_host_size.restype = ctypes.c_size_t
-        lib.ups_ecb_host_size.argtypes = []
-        lib.ups_ecb_host_config.restype = ctypes.c_long
-        lib.ups_ecb_host_config.argtypes = [ctypes.c_int]
+        p, u32, u64, i = ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_int
+        lib.ups_ecb_host_size.restype, lib.ups_ecb_host_size.argtypes = ctypes.c_size_t, []
+        lib.ups_ecb_host_config.restype, lib.ups_ecb_host_config.argtypes = ctypes.c_long, [i]
         self.size = int(lib.ups_ecb_host_size())
         self.config = {n: int(lib.ups_ecb_host_config(i)) for i, n in enumerate(CONFIG)}
 
@@ -96,9 +95,7 @@ class Library:
         self.Frame = Frame
         counter = {2: ctypes.c_uint16, 4: ctypes.c_uint32, 8: ctypes.c_uint64}
         self.Counters = counter[self.config["counter_bytes"]] * len(COUNTERS)
-        p, u32, u64, i = ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_int
-        f, size = ctypes.POINTER(Frame), ctypes.c_size_t
-        u64p = ctypes.POINTER(ctypes.c_uint64)
+        f, size, u64p = ctypes.POINTER(Frame), ctypes.c_size_t, ctypes.POINTER(u64)
         signatures: dict[str, tuple[Any, list[Any]]] = {
             "ups_ecb_default_config": (None, [ctypes.POINTER(Config)]),
             "ups_ecb_init": (i, [p, ctypes.POINTER(Config), u64]),
@@ -128,9 +125,17 @@ _loaded: dict[Path, Library] = {}
 def load(variant: str = "full") -> Library:
     """The library of ``variant`` (built if missing or older than its sources)."""
     path = build(variant, targets=VARIANTS, sources=SOURCES)
+    if variant == "asan" and not _asan_loaded():  # else ASan ends the process with no error
+        raise ConfigError("the asan build needs the AddressSanitizer runtime loaded first: run "
+                          "with LD_PRELOAD=$(cc -print-file-name=libasan.so)")  # fmt: skip
     if path not in _loaded:
         _loaded[path] = Library(path)
     return _loaded[path]
+
+
+def _asan_loaded() -> bool:
+    maps = Path("/proc/self/maps")
+    return "libasan" in (maps.read_text() if maps.exists() else os.environ.get("LD_PRELOAD", ""))
 
 
 def default_config(variant: str = "full") -> Config:
