@@ -11,10 +11,12 @@ import json
 from pathlib import Path
 
 import can
+import pytest
 
 from ups import _canproto as p
 from ups import name_to_uid
 
+from .can_ecbs import KINDS, READY, can_ecb_proc
 from .procs import Proc, private_multicast_bus
 
 
@@ -25,10 +27,12 @@ def drain(bus: can.BusABC) -> list[can.Message]:
     return frames
 
 
-def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path) -> None:
+@pytest.mark.parametrize("kind", KINDS)
+def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path, kind: str) -> None:
+    """With ``ups can-broker`` and with ``ups c-ecb`` (``kind``): the same frames."""
     db = tmp_path / "ecb.db"
-    with Proc("can-broker", "--can", mbus, "--db", str(db)) as broker:
-        broker.wait_for_line("CAN-ECB on")
+    with can_ecb_proc(kind, mbus, db) as broker:
+        broker.wait_for_line(READY)
         with Proc(
             "sub",
             "speed",
@@ -101,7 +105,7 @@ def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path) -
         (p.make_id(0x20, 1, speed_etag), b"\x01\x02")
     ] * 3 + [(p.make_id(p.DEFAULT_PRIORITY, 1, bound[0x1234]), b"")]
     # the broker's tables are on disk: a restart on the same file keeps them
-    with Proc("can-broker", "--can", mbus, "--db", str(db)) as broker:
+    with can_ecb_proc(kind, mbus, db) as broker:
         broker.wait_for_line("CAN-ECB on .*: 2 TxNodes, 2 etags bound")
 
 
