@@ -20,9 +20,9 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from ups.broker._admission import RT_FIRST, RT_LAST, Admission
 from ups import _canproto as p
 from ups._cnode import build
+from ups.broker._admission import RT_FIRST, RT_LAST, Admission
 from ups.rt import MessageSpec, analyze, assign_priorities, load_csv
 
 from .procs import sanitizer_env
