@@ -64,12 +64,11 @@ ABOUT = {
     "default": "ups.h's defaults: 8 channels, TX queue 8, one declaration, 32-bit counters",
     "full": "16 channels, TX queue 16, transfers and CAN FD, events <= 1024 B, 4 transfers "
     "reassembled at once, 2 declarations, 8 Binds remembered (doubt)",
-    "ecb-small": "the CAN-ECB of a small bus (Makefile ECB_SMALL): 16 nodes, 64 channels, "
-    "4 streams admitted, ups_ecb.h's other defaults",
-    "ecb-full": "the CAN-ECB of a full bus (Makefile ECB_FULL): 127 nodes, 512 channels, "
-    "32 streams, 16 queries, TX queue 64, 64 held, 16 watched",
-    "node+ecb": "one image, node and broker: libups minimal + libups-ecb small",
-}
+    "ecb-small": "the CAN-ECB of a small bus, with admission (Makefile ECB_SMALL: {}; "
+    "ups_ecb.h's defaults for the rest)",
+    "ecb-full": "the CAN-ECB of a full bus (Makefile ECB_FULL: {})",
+    "node+ecb": "one image, node and broker: libups minimal + libups-ecb small ({})",
+}  # {}: the Makefile's -D flags
 SOURCES = ("ups_util.c", "ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c")
 TARGETS = [  # (cpu, config, flash, RAM): the issues'
     ("cortex-m0plus", "minimal", 4096, 256),  # issue 31: 4 KB flash, 256 B RAM
@@ -79,10 +78,7 @@ TARGETS = [  # (cpu, config, flash, RAM): the issues'
 RUNTIME = ("__aeabi_", "__gnu_")  # the compiler's run-time helpers (libgcc), not the C library
 FLAGS = ["-Os", "-std=c99", "-ffunction-sections", "-fdata-sections", "-fstack-usage",
          "-fcallgraph-info=su"]  # fmt: skip
-PARTS = {  # what of ups_ecb_t each part's state takes (ups_ecb.h, ups_ecb_*.h)
-    "join": "ups_ecb_join_t", "bind": "ups_ecb_bind_t", "elect": "ups_ecb_elect_t",
-    "tx": "ups_frame_t part_tx[UPS_ECB_TX_DEPTH]", "counters": "ups_ecb_counters_t",
-}  # fmt: skip
+PARTS = ("join", "bind", "elect", "counters")  # members of ups_ecb_t: the parts' state
 NODE = ('#include "ups.h"\n', "ups_node_t node;\n")
 ECB = ('#include "ups_ecb.h"\n', "ups_ecb_t ecb;\n")
 
@@ -258,24 +254,28 @@ def measure(cpu: str, config: str) -> dict[str, Any]:
     node = sizes(out / "state.o")[2]
     stack, deepest = worst_stack([o.with_suffix(".ci") for o in objects], set(public),
                                  out / "lib.elf")  # fmt: skip
+    macros = " ".join(d.removeprefix("-D") for d in defines)
     result = {"cpu": cpu, "config": config, "library": library, "flash": text + data,
               "ram": ram + node, "stack": stack, "deepest": deepest, "node": node,
-              "runtime": sorted(needed), "about": ABOUT[config]}  # fmt: skip
-    if ECB[1] in state:
+              "runtime": sorted(needed), "about": ABOUT[config].format(macros)}  # fmt: skip
+    if state == ECB:
         result["parts"] = parts(out, flags)
     return result
 
 
 def parts(out: Path, flags: list[str]) -> dict[str, int]:
-    """Bytes of each part of ups_ecb_t (its state headers' structs, the TX queue, counters)."""
-    lines = [f"{decl if ' ' in decl else f'{decl} part_{name}'};\n" for name, decl in PARTS.items()]
+    """Bytes of ups_ecb_t by part: the state of ups_ecb_join.c, ups_ecb_bind.c and
+    ups_ecb_elect.c, the counters, and the rest (ups_ecb.c's own: the TX queue, the echoes,
+    the configuration, its timers)."""
+    lines = [f"char part_{name}[sizeof(((ups_ecb_t *)0)->{name})];\n" for name in PARTS]
     (out / "parts.c").write_text(ECB[0] + "".join(lines))
     run(CC, *flags, "-fno-common", "-c", "parts.c", "-o", "parts.o", cwd=out)
     found = {}
     for line in run("arm-none-eabi-nm", "-S", "-t", "d", str(out / "parts.o")).splitlines():
         _, size, _, name = line.split()
         found[name.removeprefix("part_")] = int(size)
-    return {name: found[name] for name in PARTS}
+    shares = {name: found[name] for name in PARTS}
+    return {**shares, "core": sizes(out / "state.o")[2] - sum(shares.values())}
 
 
 def largest(cpu: str, config: str, count: int = 8) -> str:
@@ -302,7 +302,7 @@ def main() -> int:
         print(f"target: {config} on {cpu} {verdict} {flash_max} B flash and {ram_max} B RAM "
               f"({r['flash']} B, {r['ram']} B)")  # fmt: skip
     for r in results:
-        if "parts" in r and r["config"] != "node+ecb":
+        if "parts" in r:
             shares = ", ".join(f"{name} {size}" for name, size in r["parts"].items())
             print(f"ups_ecb_t ({r['config']}, {r['cpu']}): {r['node']} B: {shares}")
     for r in results:
