@@ -370,3 +370,37 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
     forget_early(ecb);
     return verdict;
 }
+
+/** Milliseconds left of a timer of @p length started at @p t (0: over). */
+static uint32_t left(uint32_t now, uint32_t t, uint32_t length)
+{
+    uint32_t since = ups_ecb__since(now, t);
+    return since >= length ? 0u : length - since;
+}
+
+static uint32_t sooner(uint32_t a, uint32_t b)
+{
+    return a < b ? a : b;
+}
+
+uint32_t ups_ecb__elect_next(const ups_ecb_t *ecb)
+{
+    const ups_ecb_elect_t *el = &ecb->elect;
+    uint32_t now = ecb->now;
+    uint32_t next = 0xFFFFFFFFu;
+    switch (el->role) {
+    case UPS_ECB_CANDIDATE: return left(now, el->t_role, el->candidacy);
+    case UPS_ECB_SERVING:
+        if (el->due) {
+            next = (el->known & KNOWN_ANSWERED) ? left(now, el->t_answered, SERVING_GAP) : 0u;
+        }
+        return sooner(next, left(now, el->t_serving, BEAT));
+    case UPS_ECB_STANDBY:
+        if (el->n_asked > 0u) {
+            next = left(now, el->asked[0].t, ANSWER);
+        }
+        next = sooner(next, left(now, el->t_role, TAKEOVER));
+        return sooner(next, left(now, el->t_probe, PROBE));
+    default: return next;
+    }
+}

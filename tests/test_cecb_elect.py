@@ -42,7 +42,8 @@ C_DIR = ROOT / "c"
 ROLES = (Role.STOPPED, Role.CANDIDATE, Role.SERVING, Role.STANDBY)  # UPS_ECB_STOPPED, ...
 NOTE_ROLE = 0x02
 SAY_HELLO = 0x01  # UPS_ECB__SAY_HELLO
-TICK, HEARD, ASKED, START = 0, 1, 2, 3  # ups_ecb_host_elect's what
+TICK, HEARD, ASKED, START, NEXT = 0, 1, 2, 3, 4  # ups_ecb_host_elect's what
+NONE = 0xFFFF_FFFF  #: ups_ecb__elect_next: no timer runs
 #: broker/_election.py's timers in ms (docs/protocol.md, Timers)
 TIMERS_MS = {
     "SERVING_GAP": 1000, "PROBE": 2000, "TAKEOVER": 4000, "BEAT": 10000,
@@ -196,6 +197,9 @@ class Pair:
         assert bool(verdict & SAY_HELLO) == want_hello, context
         assert bool(self.c.notes() & NOTE_ROLE) == (self.py.role is not before), context
         assert self.c.counter("unanswered_takeovers") == self.py.unanswered, context
+        deadline = self.py.deadline  # and the next timer (ups_ecb__elect_next)
+        want_next = NONE if deadline is None else max(int(deadline) - self.now, 0)
+        assert self.c.call(self.now, NEXT) == want_next, context
 
     def tick(self, at: int) -> None:
         self.now = at

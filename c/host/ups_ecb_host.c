@@ -12,7 +12,8 @@ size_t ups_ecb_host_size(void);
 long ups_ecb_host_config(int what);
 /** For tests only (tests/test_cecb_elect.py): the election alone, at @p now_ms. @p what: 0 its
  *  tick, 1 a CAN-ECB frame heard (Hello, Serving or Probe pass their data as the instance),
- *  2 a frame asked while standing by, 3 its start. Returns the verdict (UPS_ECB__SAY_HELLO). */
+ *  2 a frame asked while standing by, 3 its start: the verdict (UPS_ECB__SAY_HELLO); 4: the
+ *  ms until its next timer (ups_ecb__elect_next). */
 unsigned ups_ecb_host_elect(ups_ecb_t *ecb, uint32_t now_ms, int what, uint32_t id,
                             const uint8_t *data, unsigned len, int busy);
 
@@ -51,6 +52,7 @@ unsigned ups_ecb_host_elect(ups_ecb_t *ecb, uint32_t now_ms, int what, uint32_t 
     case 1: return ups_ecb__elect_heard(ecb, status, claim ? data : NULL, id, data, busy);
     case 2: return ups_ecb__elect_asked(ecb, id, data, len);
     case 3: ups_ecb__elect_start(ecb); return 0u;
+    case 4: return ups_ecb__elect_next(ecb);
     default: return 0u;
     }
 }
