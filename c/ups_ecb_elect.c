@@ -95,7 +95,7 @@ static void put(ups_ecb_watch_t *w, unsigned knock, const uint8_t *uid, uint32_t
 {
     w->knock = (uint8_t)(knock != 0u);
     ups_ecb__copy(w->uid, knock ? NULL : uid, 8u);
-    w->t = t;
+    w->t = (uint16_t)t;
 }
 
 /** Answers heard more than EARLY ago count for no request: forget them (oldest first). */
@@ -103,7 +103,7 @@ static void forget_early(ups_ecb_t *ecb)
 {
     ups_ecb_elect_t *el = &ecb->elect;
     unsigned stale = 0u;
-    while (stale < el->n_answered && ups_ecb__since(ecb->now, el->answered[stale].t) > EARLY) {
+    while (stale < el->n_answered && ups_ecb__since16(ecb->now, el->answered[stale].t) > EARLY) {
         stale++;
     }
     drop(el->answered, &el->n_answered, 0u, stale);
@@ -310,7 +310,7 @@ unsigned ups_ecb__elect_asked(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, 
         return 0u; /* watched since its first time */
     }
     int early = find(el->answered, el->n_answered, knock, data);
-    if (early >= 0 && ups_ecb__since(ecb->now, el->answered[early].t) <= EARLY) {
+    if (early >= 0 && ups_ecb__since16(ecb->now, el->answered[early].t) <= EARLY) {
         return 0u; /* its answer came first (frames of two senders may cross) */
     }
     if (el->n_asked >= UPS_ECB_WATCHED) {
@@ -343,7 +343,7 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
         }
         break;
     case UPS_ECB_STANDBY:
-        if (el->n_asked > 0u && ups_ecb__since(now, el->asked[0].t) >= ANSWER) {
+        if (el->n_asked > 0u && ups_ecb__since16(now, el->asked[0].t) >= ANSWER) {
             el->wary = 1u; /* a claim without answers: a forger's, or a broken CAN-ECB's */
             ups_ecb__count(&ecb->counters.unanswered_takeovers);
             verdict = candidate(ecb);
@@ -371,10 +371,9 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
     return verdict;
 }
 
-/** Milliseconds left of a timer of @p length started at @p t (0: over). */
-static uint32_t left(uint32_t now, uint32_t t, uint32_t length)
+/** Milliseconds left of a timer of @p length that started @p since ms ago (0: over). */
+static uint32_t left(uint32_t since, uint32_t length)
 {
-    uint32_t since = ups_ecb__since(now, t);
     return since >= length ? 0u : length - since;
 }
 
@@ -389,18 +388,19 @@ uint32_t ups_ecb__elect_next(const ups_ecb_t *ecb)
     uint32_t now = ecb->now;
     uint32_t next = 0xFFFFFFFFu;
     switch (el->role) {
-    case UPS_ECB_CANDIDATE: return left(now, el->t_role, el->candidacy);
+    case UPS_ECB_CANDIDATE: return left(ups_ecb__since(now, el->t_role), el->candidacy);
     case UPS_ECB_SERVING:
         if (el->due) {
-            next = (el->known & KNOWN_ANSWERED) ? left(now, el->t_answered, SERVING_GAP) : 0u;
+            next = (el->known & KNOWN_ANSWERED) ? left(ups_ecb__since(now, el->t_answered), SERVING_GAP)
+                                                   : 0u;
         }
-        return sooner(next, left(now, el->t_serving, BEAT));
+        return sooner(next, left(ups_ecb__since(now, el->t_serving), BEAT));
     case UPS_ECB_STANDBY:
         if (el->n_asked > 0u) {
-            next = left(now, el->asked[0].t, ANSWER);
+            next = left(ups_ecb__since16(now, el->asked[0].t), ANSWER);
         }
-        next = sooner(next, left(now, el->t_role, TAKEOVER));
-        return sooner(next, left(now, el->t_probe, PROBE));
+        next = sooner(next, left(ups_ecb__since(now, el->t_role), TAKEOVER));
+        return sooner(next, left(ups_ecb__since(now, el->t_probe), PROBE));
     default: return next;
     }
 }

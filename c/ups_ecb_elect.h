@@ -15,9 +15,10 @@
  *  lately (when), by its key: the joiners' Knocks, or the UID of a binding request. */
 typedef struct {
     uint8_t uid[8];   /* big-endian; zero for the Knocks */
-    uint32_t t;       /* since when asked, or when answered */
+    uint16_t t;       /* since when asked, or when answered: the clock's low 16 bits (the
+                         entries live seconds: the tick forgets them long before 65 s) */
     uint8_t knock;    /* 1: the key of the Knocks; 0: the UID's */
-    uint8_t pad[3];
+    uint8_t pad;
 } ups_ecb_watch_t;
 
 typedef struct {
