@@ -220,6 +220,10 @@ static int stream_ok(const uint8_t *etag, unsigned txnode)
     return e >= UPS_ECB__FIRST_ETAG && e <= UPS_ECB__ETAG_MASK && txnode < 127u;
 }
 
+/* The fields of a node's request (etag field < 0x0010, priority 0, 8 bytes): PUB_BIND 1,
+ * SUB_BIND 2, UNSUB 3, Roster 6, PUB_BIND(c) 9..12 (DECLARE 5 and CLAIM 4 have their own). */
+#define REQUEST_FIELDS 0x1E4Eu
+
 /** A node's management frame (TxNode < 0x7F), as ups/_canproto.py decodes it. */
 static int node_kind(unsigned prio, unsigned field, const uint8_t *d, unsigned len)
 {
@@ -237,44 +241,63 @@ static int node_kind(unsigned prio, unsigned field, const uint8_t *d, unsigned l
                  (d[5] | d[6]) != 0u;
         return ok ? K_REQUEST : K_MALFORMED;
     }
-    if (field == 0x0006u || (field > 0x0008u && field < 0x000Du) || field == 0x0001u ||
-        field == 0x0002u || field == 0x0003u) {
+    if ((REQUEST_FIELDS >> field) & 1u) {
         return K_REQUEST;
     }
     return field == CLAIM ? K_CLAIM : K_MALFORMED;
 }
 
+/* The rows of the status frames (etag field 0x3S.., S the status), one byte each: bits 0-1 the
+ * range of the field's low byte (LOW_ZERO: 0, LOW_EPOCH: < 16, LOW_TXNODE: < 127, LOW_ROSTER:
+ * < 127 after bit 7, its "complete" flag), ST_DATA: 8 data bytes (else none), bits 3-4 a
+ * check of the data (ST_GRANT, ST_REFUSE, ST_END), ST_KNOCK: a Knock, ST_NONE: no row. */
+#define LOW_ZERO 0u
+#define LOW_EPOCH 1u
+#define LOW_TXNODE 2u
+#define LOW_ROSTER 3u
+#define ST_DATA 0x04u
+#define ST_GRANT 0x08u
+#define ST_REFUSE 0x10u
+#define ST_END 0x18u
+#define ST_KNOCK 0x20u
+#define ST_NONE 0x40u
+
+static const uint8_t STATUS_ROWS[16] = {
+    LOW_EPOCH,                     /* 0 Census */
+    ST_DATA,                       /* 1 TxNodesFull */
+    ST_DATA,                       /* 2 EtagsFull */
+    ST_DATA,                       /* 3 Hello */
+    ST_DATA | ST_GRANT,            /* 4 Grant */
+    ST_DATA | ST_REFUSE,           /* 5 Refuse */
+    ST_DATA,                       /* 6 Serving */
+    ST_DATA,                       /* 7 Failed */
+    ST_DATA | LOW_TXNODE,          /* 8 Limit */
+    ST_DATA,                       /* 9 Probe */
+    ST_DATA | LOW_TXNODE,          /* A Uses (subscribes) */
+    ST_DATA | LOW_TXNODE,          /* B Uses (publishes) */
+    ST_DATA | ST_END | LOW_ROSTER, /* C RosterEnd */
+    ST_NONE,
+    ST_NONE,
+    ST_KNOCK,                      /* F Knock */
+};
+
 static int status_kind(unsigned status, unsigned low, const uint8_t *d, unsigned len)
 {
-    if (status == 0x0u && low < 16u) { /* Census */
-        return len == 0u ? K_ECB : K_MALFORMED;
-    }
-    if ((status == 0x8u || status == 0xAu || status == 0xBu) && low < 127u) {
-        return len == 8u ? K_ECB : K_MALFORMED; /* Limit, Uses */
-    }
-    if (status == 0xCu && (low & 0x7Fu) < 127u) { /* RosterEnd: a complete one names no next */
-        int next = (d[0] | d[1] | d[2] | d[3] | d[4] | d[5] | d[6] | d[7]) != 0;
-        return len == 8u && !((low & 0x80u) && next) ? K_ECB : K_MALFORMED;
-    }
-    if (low != 0u) {
+    static const uint8_t limit[4] = {1u, 16u, 127u, 127u};
+    unsigned row = STATUS_ROWS[status];
+    unsigned range = row & 3u;
+    if ((row & ST_NONE) || ((range == LOW_ROSTER ? low & 0x7Fu : low) >= limit[range]) ||
+        len != (row & ST_DATA ? 8u : 0u)) {
         return K_MALFORMED;
     }
-    switch (status) {
-    case 0xFu: return len == 0u ? K_KNOCK : K_MALFORMED;
-    case 0x1u: /* TxNodesFull */
-    case 0x2u: /* EtagsFull */
-    case 0x3u: /* Hello */
-    case 0x6u: /* Serving */
-    case 0x7u: /* Failed */
-    case 0x9u: /* Probe */
-        return len == 8u ? K_ECB : K_MALFORMED;
-    case 0x4u: /* Grant */
-        return len == 8u && (d[4] | d[5] | d[6] | d[7]) == 0u && stream_ok(d, d[2]) ? K_ECB
-                                                                                    : K_MALFORMED;
-    case 0x5u: /* Refuse */
-        return len == 8u && stream_ok(d, d[2]) && stream_ok(&d[4], d[3]) ? K_ECB : K_MALFORMED;
-    default: return K_MALFORMED;
+    unsigned check = row & ST_END;
+    if ((check == ST_GRANT && ((d[4] | d[5] | d[6] | d[7]) != 0u || !stream_ok(d, d[2]))) ||
+        (check == ST_REFUSE && (!stream_ok(d, d[2]) || !stream_ok(&d[4], d[3]))) ||
+        (check == ST_END && (low & 0x80u) &&
+         (d[0] | d[1] | d[2] | d[3] | d[4] | d[5] | d[6] | d[7]) != 0u)) {
+        return K_MALFORMED; /* a complete RosterEnd names no next */
     }
+    return row & ST_KNOCK ? K_KNOCK : K_ECB;
 }
 
 /** What a management frame is (K_...), or K_MALFORMED when it matches no row of the tables. */
@@ -337,7 +360,7 @@ static int own(ups_ecb_t *ecb, uint32_t id, unsigned len, const uint8_t *data)
 {
     for (unsigned i = 0; i < ecb->tx_count; i++) {
         const ups_ecb_frame_t *q = &ecb->tx[i];
-        if (q->id == id && q->len == len) {
+        if (q->id == id && ecb->tx_len[i] == len) {
             unsigned diff = 0;
             for (unsigned k = 0; k < len; k++) {
                 diff |= (unsigned)(q->data[k] ^ data[k]);
@@ -484,7 +507,7 @@ void ups_ecb_tx_pop(ups_ecb_t *ecb)
     }
 #if UPS_ECB_ECHOES > 0
     unsigned at = ecb->echo_next;
-    ecb->echo[at].sum = check16(ecb->tx[0].id, ecb->tx[0].len, ecb->tx[0].data);
+    ecb->echo[at].sum = check16(ecb->tx_head.id, ecb->tx_head.len, ecb->tx_head.data);
     ecb->echo[at].t = (uint16_t)ecb->now;
     ecb->echo_next = (uint16_t)((at + 1u) % UPS_ECB_ECHOES);
 #endif

@@ -188,10 +188,10 @@ typedef struct {
 #include "ups_ecb_elect.h" /* ups_ecb_elect_t */
 
 /** A frame waiting to be sent: the CAN-ECB sends classic frames only, so its queue keeps 8
- *  data bytes a frame whatever UPS_MTU an image that also holds a CAN FD node has. */
+ *  data bytes a frame whatever UPS_MTU an image that also holds a CAN FD node has (its length:
+ *  ups_ecb_t.tx_len, 13 bytes a frame in all). */
 typedef struct {
     uint32_t id;
-    uint8_t len;
     uint8_t data[8];
 } ups_ecb_frame_t;
 
@@ -217,6 +217,7 @@ typedef struct ups_ecb {
         uint16_t t;       /* low 16 bits of the time it was sent */
     } echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1];
     ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, lowest identifier first */
+    uint8_t tx_len[UPS_ECB_TX_DEPTH];     /* their lengths */
     ups_frame_t tx_head;  /* tx[0] as ups_ecb_tx_peek() hands it out */
     ups_ecb_counters_t counters;
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */

@@ -67,6 +67,38 @@ typedef struct {
     uint64_t bits; /* bits of every frame (c / tau) */
 } rt_msg_t;
 
+/* n / d (d > 0) and n % d in @p rem. A machine of 32-bit words has no 64-bit division: the
+ * compiler would call libgcc's (__aeabi_uldivmod, __udivmoddi4: about 600 bytes of Cortex-M0+
+ * code), so it is done here by shifts and subtractions (32-bit division when both fit);
+ * a 64-bit machine divides. Exact either way. */
+static uint64_t rt_div(uint64_t n, uint64_t d, uint64_t *rem)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu && !defined(UPS_ECB__SOFT_DIV) /* (that: to test the other) */
+    *rem = n % d;
+    return n / d;
+#else
+    uint64_t q = 0u;
+    if ((n >> 32) == 0u && (d >> 32) == 0u) {
+        q = (uint32_t)n / (uint32_t)d;
+        n -= q * d;
+    } else {
+        uint64_t bit = 1u;
+        while ((d >> 63) == 0u && (d << 1) <= n) {
+            d <<= 1;
+            bit <<= 1;
+        }
+        for (; bit != 0u; bit >>= 1, d >>= 1) {
+            if (n >= d) {
+                n -= d;
+                q |= bit;
+            }
+        }
+    }
+    *rem = n;
+    return q;
+#endif
+}
+
 static uint32_t rt_gcd(uint32_t a, uint32_t b)
 {
     while (b != 0u) {
@@ -172,11 +204,10 @@ static int rt_below_one(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned
         }
         uint64_t a = 10000u * x.bits;
         uint64_t p = s[k].period;
-        whole += a / p;
-        uint64_t r = a % p;
+        uint64_t r;
+        whole += rt_div(a, p, &r);
         for (unsigned i = 0u; i < 3u; i++) { /* long division, 32 bits at a time */
-            limb[i] += (r << 32) / p;
-            r = (r << 32) % p;
+            limb[i] += rt_div(r << 32, p, &r);
         }
         inexact += r != 0u ? 1u : 0u;
     }
@@ -198,7 +229,8 @@ static uint64_t rt_step(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned
     for (unsigned k = 0u; k < n && sum <= RT_HORIZON; k++) {
         rt_msg_t y;
         if ((rt_above(k, m, placed) || (with_m && k == m)) && rt_msg(bus, &s[k], &y)) {
-            sum += (x + y.j + add + y.t - 1u) / y.t * y.c;
+            uint64_t r;
+            sum += rt_div(x + y.j + add + y.t - 1u, y.t, &r) * y.c;
         }
     }
     return sum <= RT_HORIZON ? sum : RT_UNBOUNDED;
@@ -248,7 +280,8 @@ static uint64_t rt_response(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsi
         }
         t = next;
     }
-    uint64_t instances = (t + me.j + me.t - 1u) / me.t;
+    uint64_t r;
+    uint64_t instances = rt_div(t + me.j + me.t - 1u, me.t, &r);
     uint64_t worst = 0u;
     uint64_t w = 0u;
     for (uint64_t q = 0u; q < instances; q++) {
@@ -342,9 +375,10 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
             uint64_t per_ms = 10u * bus.scale; /* N = 10 * bitrate / g units a ms */
             *miss = worst;
             *response_10us = 0xFFFFu;
-            if (worst_r != RT_UNBOUNDED && worst_r / per_ms < 656u) { /* else > 655.35 ms */
-                uint64_t tens = worst_r / per_ms * 100u +
-                                (worst_r % per_ms * 100u + per_ms - 1u) / per_ms;
+            uint64_t part;
+            uint64_t ms = rt_div(worst_r, per_ms, &part);
+            if (worst_r != RT_UNBOUNDED && ms < 656u) { /* else > 655.35 ms */
+                uint64_t tens = ms * 100u + rt_div(part * 100u + per_ms - 1u, per_ms, &part);
                 if (tens < 0xFFFFu) {
                     *response_10us = (uint16_t)tens;
                 }

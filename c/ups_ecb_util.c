@@ -49,11 +49,13 @@ void ups_ecb__put64(uint8_t *out, uint64_t value)
     }
 }
 
-/** tx[to] = tx[from], by the byte helper (a struct assignment in a loop becomes memmove). */
+/** tx[to] = tx[from] and its length, by the byte helper (a struct assignment in a loop becomes
+ *  memmove). */
 static void shift(ups_ecb_t *ecb, unsigned to, unsigned from)
 {
     ups_ecb__copy((uint8_t *)&ecb->tx[to], (const uint8_t *)&ecb->tx[from],
                   (unsigned)sizeof(ecb->tx[0]));
+    ecb->tx_len[to] = ecb->tx_len[from];
 }
 
 /** tx_head: the first frame of the queue, as ups_ecb_tx_peek() hands it out. */
@@ -64,8 +66,8 @@ static void head(ups_ecb_t *ecb)
     }
     ecb->tx_head.id = ecb->tx[0].id;
     ecb->tx_head.flags = UPS_FRAME_EXT;
-    ecb->tx_head.len = ecb->tx[0].len;
-    ups_ecb__copy(ecb->tx_head.data, ecb->tx[0].data, ecb->tx[0].len);
+    ecb->tx_head.len = ecb->tx_len[0];
+    ups_ecb__copy(ecb->tx_head.data, ecb->tx[0].data, 8u);
 }
 
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len)
@@ -81,7 +83,7 @@ void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned le
     }
     ups_ecb_frame_t *frame = &ecb->tx[at];
     frame->id = id;
-    frame->len = (uint8_t)len;
+    ecb->tx_len[at] = (uint8_t)len;
     ups_ecb__copy(frame->data, data, len);
     ecb->tx_count++;
     if (at == 0u) {
