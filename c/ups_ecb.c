@@ -167,7 +167,7 @@ static void hello(ups_ecb_t *ecb)
 {
     ecb->recovering = 1u;
     ecb->t_recovery = ecb->now;
-    ups_ecb__send_mgmt(ecb, HELLO_FIELD, ups_ecb__get64(ecb->instance), 1);
+    ups_ecb__send8(ecb, HELLO_FIELD, ecb->instance);
 }
 
 static void elected(ups_ecb_t *ecb, unsigned verdict)

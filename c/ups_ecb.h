@@ -198,20 +198,23 @@ typedef struct {
 /** The whole state of one CAN-ECB. Private: set up with ups_ecb_init(), then use the
  *  functions. */
 typedef struct ups_ecb {
-    ups_ecb_config_t cfg;
-    uint8_t instance[8];  /* big-endian */
+    /* the small fields first, then the parts' states: most offsets fit Thumb's short forms */
+    uint32_t now;         /* the latest time given */
     uint8_t notes;
     uint8_t recovering;   /* in a recovery window: listen and adopt */
     uint8_t knocked;      /* a Knock came in the recovery window */
     uint8_t started_up;   /* the first recovery is over */
     uint8_t tx_count;
     uint8_t hello_gap;    /* a Hello for unknown TxNodes was sent at t_unknown_hello */
-    uint8_t pad[2];
-    uint32_t now;         /* the latest time given */
+    uint16_t echo_next;   /* the next entry of echo[] to write */
     uint32_t t_recovery;  /* when the recovery window began */
     uint32_t t_unknown_hello; /* the last Hello for an unknown TxNode */
+    ups_ecb_config_t cfg;
+    uint8_t instance[8];  /* big-endian */
     uint8_t strays[16];   /* TxNodes heard asking while unknown since the last Hello (bits) */
-    uint16_t echo_next;   /* the next entry of echo[] to write */
+    ups_ecb_counters_t counters;
+    ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
+    ups_ecb_elect_t elect; /* ups_ecb_elect.c: the election */
     struct {              /* CAN-ECB frames sent lately: heard again, they are this one's own */
         uint16_t sum;     /* a check of the identifier, length and data; 0: none */
         uint16_t t;       /* low 16 bits of the time it was sent */
@@ -219,11 +222,8 @@ typedef struct ups_ecb {
     ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, lowest identifier first */
     uint8_t tx_len[UPS_ECB_TX_DEPTH];     /* their lengths */
     ups_frame_t tx_head;  /* tx[0] as ups_ecb_tx_peek() hands it out */
-    ups_ecb_counters_t counters;
-    ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
     ups_ecb_bind_t bind;   /* ups_ecb_bind.c: etags, who uses them, quotas, held requests,
                               rosters, declared streams */
-    ups_ecb_elect_t elect; /* ups_ecb_elect.c: the election */
 } ups_ecb_t;
 
 /** The defaults (the Python CAN-ECB's). */

@@ -204,8 +204,7 @@ static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
     if (slot == UPS_ECB__NO_SLOT) {
         ups_ecb__count(&ecb->counters.refused);
         ups_ecb__count(&ecb->counters.nodes_full);
-        ups_ecb__send_mgmt(ecb, (OP_STATUS << 12) | (ST_TXNODES_FULL << 8),
-                           ups_ecb__get64(node_id), 1);
+        ups_ecb__send8(ecb, (OP_STATUS << 12) | (ST_TXNODES_FULL << 8), node_id);
         return UPS_ECB__NO_SLOT;
     }
     for (unsigned t = 0; txnode == 0xFFu && t < TXNODES; t++) {
@@ -237,8 +236,7 @@ static int txnode_for(ups_ecb_t *ecb, const uint8_t *node_id)
 
 static void send_assign(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id, int offer)
 {
-    ups_ecb__send_mgmt(ecb, (OP_ASSIGN << 12) | (offer ? OFFER_BIT : 0u) | txnode,
-                       ups_ecb__get64(node_id), 1);
+    ups_ecb__send8(ecb, (OP_ASSIGN << 12) | (offer ? OFFER_BIT : 0u) | txnode, node_id);
 }
 
 /** Entry @p slot's node claimed (or is moved to) @p txnode: hold it (durable: noted, so that
@@ -476,6 +474,9 @@ static void follow(ups_ecb_t *ecb, const uint8_t *prefix, unsigned plen, unsigne
     ups_ecb_group_t *group = &join->groups[(join->g_head + join->g_count) % UPS_ECB__GROUPS];
     join->g_count++;
     ups_ecb__copy(group->prefix, prefix, 8u);
+    for (unsigned s = plen; s < NIBBLES; s++) { /* a Query's data: the prefix, then zeros */
+        set_nibble(group->prefix, s, 0u);
+    }
     group->plen = (uint8_t)plen;
     group->tries = (uint8_t)tries;
     group->set = (uint16_t)set;
@@ -601,11 +602,11 @@ again:
         join->sent++;
         ups_ecb__count(&ecb->counters.census_queries);
         if (query->plen == 0u) {
-            ups_ecb__send_mgmt(ecb, (OP_STATUS << 12) | epoch, 0u, 0); /* Census: status 0 */
+            ups_ecb__send8(ecb, (OP_STATUS << 12) | epoch, NULL); /* Census: status 0 */
         } else {
             unsigned last = nibble_at(query->prefix, query->plen - 1u);
             unsigned field = (OP_QUERY << 12) | (epoch << 8) | ((query->plen - 1u) << 4) | last;
-            ups_ecb__send_mgmt(ecb, field, ups_ecb__get64(query->prefix), 1);
+            ups_ecb__send8(ecb, field, query->prefix);
         }
     }
     for (unsigned i = join->g_counted; i < join->g_count; i++) { /* branches that wait */
@@ -695,13 +696,13 @@ static void on_stage(ups_ecb_t *ecb, unsigned epoch, unsigned stage, unsigned ni
     uint16_t bit = (uint16_t)(1u << stage);
     if (!(query->present & bit)) {
         query->present = (uint16_t)(query->present | bit);
-        set_nibble(query->nib, stage, nibble);
-    } else if (nibble_at(query->nib, stage) != nibble || (query->many & bit)) {
+        set_nibble(query->prefix, stage, nibble);
+    } else if (nibble_at(query->prefix, stage) != nibble || (query->many & bit)) {
         if (!(query->many & bit)) {
             query->many = (uint16_t)(query->many | bit);
             if (stage < query->set_stage) { /* the first stage with several, from now on */
                 query->set_stage = (uint8_t)stage;
-                query->set = (uint16_t)(1u << nibble_at(query->nib, stage));
+                query->set = (uint16_t)(1u << nibble_at(query->prefix, stage));
             }
         }
         if (stage == query->set_stage) {
@@ -735,14 +736,14 @@ static void conclude(ups_ecb_t *ecb, const ups_ecb_query_t *query)
     if ((query->present & wanted) != wanted) { /* incomplete: ask again what is certain */
         ups_ecb__count(&ecb->counters.census_incomplete);
         while (len < NIBBLES && (query->present & (1u << len)) && !(query->many & (1u << len))) {
-            set_nibble(prefix, len, nibble_at(query->nib, len));
+            set_nibble(prefix, len, nibble_at(query->prefix, len));
             len++;
         }
         retry(ecb, query, prefix, len);
         return;
     }
     while (len < NIBBLES && !(query->many & (1u << len))) {
-        set_nibble(prefix, len, nibble_at(query->nib, len));
+        set_nibble(prefix, len, nibble_at(query->prefix, len));
         len++;
     }
     if (len == NIBBLES) {

@@ -2,8 +2,8 @@
  * libups-ecb, private: the state of ups_ecb_join.c (TxNodes by node id, the census, Offers).
  * Included by ups_ecb.h after its configuration macros; not part of the API.
  *
- * RAM: 14 bytes per node entry, 40 per census query (UPS_ECB_QUERIES), 12 per waiting
- * branch group (UPS_ECB__GROUPS) and 24 more: 504 bytes for the small bus (16 nodes, 4
+ * RAM: 14 bytes per node entry, 32 per census query (UPS_ECB_QUERIES), 12 per waiting
+ * branch group (UPS_ECB__GROUPS) and 24 more: 472 bytes for the small bus (16 nodes, 4
  * queries). A group holds every branch of one stage, so a census's waiting branches take few
  * groups: one per branching of the ids found and not yet queried.
  */
@@ -38,8 +38,9 @@ typedef struct {
 typedef struct {
     uint32_t sent;      /* when it was sent (or reopened) */
     uint32_t last;      /* open: the latest Stage for it; closed: when it closed */
-    uint8_t prefix[8];  /* its prefix, left-aligned (the Query's data), the rest zero */
-    uint8_t nib[8];     /* the nibble heard at stage s (high half of nib[s / 2] for even s) */
+    uint8_t prefix[8];  /* its prefix, left-aligned (the Query's data, the rest zero when it
+                           is sent), then at each stage s past it the nibble heard (high half
+                           of prefix[s / 2] for even s) */
     uint16_t present;   /* stages at which a nibble was heard */
     uint16_t many;      /* stages at which several were */
     uint16_t set;       /* the nibbles of stage set_stage, the first with several */
@@ -67,9 +68,6 @@ typedef struct {
 #define UPS_ECB__GROUPS (UPS_ECB_QUERIES + 4)
 
 typedef struct {
-    ups_ecb_node_t nodes[UPS_ECB_NODES];
-    ups_ecb_query_t queries[UPS_ECB_QUERIES];
-    ups_ecb_group_t groups[UPS_ECB__GROUPS]; /* a FIFO ring */
     uint32_t late_at;   /* when the slack was last raised */
     uint32_t t_aged;    /* the node entries' ages were counted up to then */
     uint16_t rtt;       /* ms: the round trip from a query to its first Stage, averaged */
@@ -83,6 +81,9 @@ typedef struct {
     uint8_t g_count;
     uint8_t g_counted;  /* waiting groups already counted in queries_waiting (from the head) */
     uint8_t pad[2];
+    ups_ecb_node_t nodes[UPS_ECB_NODES];
+    ups_ecb_query_t queries[UPS_ECB_QUERIES];
+    ups_ecb_group_t groups[UPS_ECB__GROUPS]; /* a FIFO ring */
 } ups_ecb_join_t;
 
 #endif /* UPS_ECB_JOIN_H */

@@ -103,6 +103,11 @@ void ups_ecb__pop(ups_ecb_t *ecb)
     head(ecb);
 }
 
+void ups_ecb__send8(ups_ecb_t *ecb, unsigned field, const uint8_t *data)
+{
+    ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, field), data, data != NULL ? 8u : 0u);
+}
+
 void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data)
 {
     uint8_t data[8];
