@@ -48,6 +48,9 @@
  */
 #include "ups_ecb_rt.h"
 
+/* 11-bit identifiers: only ups_ecb_rt_response asks for them (0 without UPS_ECB_RT_ANALYZE) */
+#define RT_ID11(flags) (UPS_ECB_RT_ANALYZE && ((flags) & UPS_ECB_RT_ID11) != 0u)
+
 #define RT_HORIZON ((uint64_t)1 << 62)
 #define RT_UNBOUNDED UINT64_MAX
 #define RT_FIRST 0x02u
@@ -114,7 +117,7 @@ static uint32_t rt_gcd(uint32_t a, uint32_t b)
  * format cannot carry @p size. */
 static unsigned rt_frame_bits(unsigned size, unsigned flags)
 {
-    unsigned id11 = (flags & UPS_ECB_RT_ID11) != 0u;
+    unsigned id11 = RT_ID11(flags); /* an 11-bit identifier takes 19 bits less (20 stuffed) */
     if ((flags & UPS_ECB_RT_FD) != 0u) {
         static const uint8_t fd_sizes[16] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64};
         unsigned i = 0u;
@@ -124,7 +127,7 @@ static unsigned rt_frame_bits(unsigned size, unsigned flags)
         if (i == 16u) {
             return 0u;
         }
-        unsigned dynamic = (id11 ? 22u : 41u) + 8u * fd_sizes[i];
+        unsigned dynamic = 41u - 19u * id11 + 8u * fd_sizes[i];
         unsigned crc = fd_sizes[i] <= 16u ? 17u : 21u;
         unsigned fixed = 4u + crc + (4u + crc + 3u) / 4u;
         return dynamic + (dynamic - 1u) / 4u + fixed + 13u;
@@ -132,10 +135,12 @@ static unsigned rt_frame_bits(unsigned size, unsigned flags)
     if (size > 8u) {
         return 0u;
     }
-    unsigned stuffed = (id11 ? 34u : 54u) + 8u * size;
+    unsigned stuffed = 54u - 20u * id11 + 8u * size;
+#if UPS_ECB_RT_ANALYZE
     if ((flags & UPS_ECB_RT_TINDELL1994) != 0u) {
         return stuffed + 13u + stuffed / 5u;
     }
+#endif
     return stuffed + 13u + (stuffed - 1u) / 4u;
 }
 
@@ -256,19 +261,25 @@ static uint64_t rt_queuing(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsig
 static uint64_t rt_response(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned n,
                             unsigned m, const uint8_t *placed, uint32_t bitrate)
 {
+    int with_m = 1; /* davis2007: stream m's own utilisation counts */
+#if UPS_ECB_RT_ANALYZE
     int tindell = (bus->flags & UPS_ECB_RT_TINDELL1994) != 0u;
+    with_m = !tindell;
+#endif
     rt_msg_t me;
     uint64_t hp_sum = 0u;
     if (!rt_msg(bus, &s[m], &me) ||
-        !rt_below_one(bus, s, n, m, placed, !tindell, bitrate, &hp_sum)) {
+        !rt_below_one(bus, s, n, m, placed, with_m, bitrate, &hp_sum)) {
         return RT_UNBOUNDED;
     }
     uint64_t before_last = me.c - me.cf;
+#if UPS_ECB_RT_ANALYZE
     if (tindell) { /* paper 000 leaves out J_m */
         uint64_t base = bus->block + before_last;
         uint64_t w = rt_queuing(bus, s, n, m, placed, base, base + hp_sum);
         return w == RT_UNBOUNDED ? w : w + me.cf;
     }
+#endif
     uint64_t t = bus->block + hp_sum + me.c;
     for (;;) {
         if (t > RT_HORIZON) {
@@ -396,6 +407,7 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
     return 1;
 }
 
+#if UPS_ECB_RT_ANALYZE
 uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate,
                              unsigned flags, uint64_t *response)
 {
@@ -414,3 +426,4 @@ uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, ui
     }
     return 10u * bus.scale;
 }
+#endif

@@ -19,6 +19,13 @@
 #error "UPS_ECB_RT_MAX must be 1..255"
 #endif
 
+/** 1 (the default): ups_ecb_rt_response is compiled (the analysis of streams in a given order,
+ *  paper 000's method and 11-bit identifiers too: for tools and tests); 0 leaves it out, and
+ *  what only it needs: the admission (ups_ecb_rt_admit) is the same either way. */
+#ifndef UPS_ECB_RT_ANALYZE
+#define UPS_ECB_RT_ANALYZE 1
+#endif
+
 /** One declared stream, as DECLARE carries it (times in units of 100 us). */
 typedef struct {
     uint16_t etag;     /* etags from 0x3000 carry transfers: size is then frames per event */
@@ -62,7 +69,9 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
  *  horizon of ups_ecb_rt.c, 2^62 units). Returns 0 (and writes nothing) for invalid input: as
  *  ups_ecb_rt_admit's, or tindell1994 with CAN FD or more than 8 bytes. The priority fields
  *  are not used. */
+#if UPS_ECB_RT_ANALYZE
 uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate,
                              unsigned flags, uint64_t *response);
+#endif
 
 #endif /* UPS_ECB_RT_H */
