@@ -322,19 +322,12 @@ static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
         return len == 0u ? K_STAGE : K_MALFORMED;
     }
     if (op == 1u) { /* Query: the prefix's last nibble in the field, the rest zero */
-        if (len != 8u || stage == 15u) {
-            return K_MALFORMED;
+        unsigned bad = len != 8u || stage == 15u;
+        for (unsigned s = stage; s < 16u; s++) { /* nibble s of the data */
+            unsigned nibble = (unsigned)(d[s / 2u] >> (s & 1u ? 0u : 4u)) & 0xFu;
+            bad |= nibble != (s == stage ? (arg & 0xFu) : 0u);
         }
-        unsigned last = (stage & 1u) ? (d[stage / 2u] & 0xFu) : (unsigned)(d[stage / 2u] >> 4);
-        if (last != (arg & 0xFu)) {
-            return K_MALFORMED;
-        }
-        for (unsigned s = stage + 1u; s < 16u; s++) {
-            if (((s & 1u) ? (d[s / 2u] & 0xFu) : (unsigned)(d[s / 2u] >> 4)) != 0u) {
-                return K_MALFORMED;
-            }
-        }
-        return K_ECB;
+        return bad ? K_MALFORMED : K_ECB;
     }
     if (op == 2u) { /* Offer, Assign */
         return (arg & ~0x80u) < 127u && len == 8u ? K_ECB : K_MALFORMED;

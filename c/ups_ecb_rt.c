@@ -57,17 +57,17 @@
 #define RT_LAST 0x7Fu
 
 typedef struct {
-    uint64_t tau;   /* units a bit */
-    uint64_t scale; /* units in 100 us */
-    uint64_t block; /* B: the longest frame of the format */
+    uint32_t tau;   /* units a bit (<= 10000) */
+    uint32_t scale; /* units in 100 us (<= bitrate) */
+    uint32_t block; /* B: the longest frame of the format (< 2^23) */
     unsigned flags;
 } rt_bus_t;
 
 typedef struct {
-    uint64_t c;  /* every frame of an event */
-    uint64_t cf; /* one frame */
+    uint32_t c;  /* every frame of an event (< 2^31) */
+    uint32_t cf; /* one frame */
     uint64_t t, j;
-    uint64_t bits; /* bits of every frame (c / tau) */
+    uint32_t bits; /* bits of every frame (c / tau) */
 } rt_msg_t;
 
 /* n / d (d > 0) and n % d in @p rem. A machine of 32-bit words has no 64-bit division: the
@@ -172,10 +172,10 @@ static int rt_msg(const rt_bus_t *bus, const ups_ecb_stream_t *s, rt_msg_t *m)
         return 0;
     }
     m->cf = bits * bus->tau;
-    m->bits = (uint64_t)bits * frames;
+    m->bits = bits * frames;
     m->c = m->cf * frames;
-    m->t = s->period * bus->scale;
-    m->j = s->jitter * bus->scale;
+    m->t = (uint64_t)s->period * bus->scale;
+    m->j = (uint64_t)s->jitter * bus->scale;
     return 1;
 }
 
@@ -207,12 +207,16 @@ static int rt_below_one(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned
         if (above) {
             *hp_sum += x.c; /* < 255 * 2^31 */
         }
-        uint64_t a = 10000u * x.bits;
-        uint64_t p = s[k].period;
-        uint64_t r;
-        whole += rt_div(a, p, &r);
-        for (unsigned i = 0u; i < 3u; i++) { /* long division, 32 bits at a time */
-            limb[i] += rt_div(r << 32, p, &r);
+        uint32_t a = 10000u * x.bits; /* < 2^31 */
+        uint32_t p = s[k].period;     /* < 2^16 */
+        uint32_t r = a % p;
+        whole += a / p;
+        for (unsigned i = 0u; i < 3u; i++) { /* long division, 32 bits (two 16) at a time */
+            uint32_t high = (r << 16) / p; /* r < p < 2^16: in 32 bits */
+            r = (r << 16) % p;
+            uint32_t low = (r << 16) / p;
+            r = (r << 16) % p;
+            limb[i] += (high << 16) | low;
         }
         inexact += r != 0u ? 1u : 0u;
     }
@@ -371,7 +375,7 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
                 continue;
             }
             uint64_t r = rt_response(&bus, streams, count, i, placed, bitrate);
-            uint64_t d = streams[i].deadline * bus.scale;
+            uint64_t d = (uint64_t)streams[i].deadline * bus.scale;
             if (r != RT_UNBOUNDED && r <= d) {
                 chosen = i;
                 break;
@@ -383,7 +387,7 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
             }
         }
         if (chosen == count) {
-            uint64_t per_ms = 10u * bus.scale; /* N = 10 * bitrate / g units a ms */
+            uint64_t per_ms = 10u * (uint64_t)bus.scale; /* N = 10 * bitrate / g units a ms */
             *miss = worst;
             *response_10us = 0xFFFFu;
             uint64_t part;
@@ -424,6 +428,6 @@ uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, ui
     for (unsigned i = 0u; i < count; i++) {
         response[i] = rt_response(&bus, streams, count, i, 0, bitrate);
     }
-    return 10u * bus.scale;
+    return 10u * (uint64_t)bus.scale;
 }
 #endif
