@@ -8,7 +8,7 @@ to the honest nodes (and back to itself, with ``echo``), everyone else's to the 
 from __future__ import annotations
 
 import os
-from collections import deque
+from collections import Counter, deque
 
 from ups import _canproto as p
 from ups import _cantransfer as t
@@ -62,6 +62,8 @@ class Bus:
         self.txl, self.etl = Ledger("TxNode"), Ledger("etag")
         self.flash: bytes | None = None  #: the latest blob the application saved
         self.flash_tables: tuple[dict[int, int], dict[int, int]] = ({}, {})
+        #: its tables after the last call (read again when it notes a change of state)
+        self.tables: tuple[dict[int, int], dict[int, tuple[int, int]]] = ({}, {})
         self.abs = 0  #: ms since the machine started (the CAN-ECB's clock is t0 + abs mod 2^32)
         self.active: dict[int, int] = {}  #: TxNode -> when a frame of it came last
         self.started = 0  #: when the CAN-ECB last started
@@ -69,9 +71,11 @@ class Bus:
         self.own_hello = 0  #: when the CAN-ECB last said Hello
         self.last: dict[str, int] = {}
         self.roles: set[int] = set()  #: every role it had (the statistics)
+        self.stalled = False  #: the controller sends nothing: the CAN-ECB's frames wait
         self.sent = 0  #: frames the CAN-ECB sent
         self.sent_at: deque[int] = deque()  #: the number of each of its frames on the bus
         self.forged_at: dict[tuple[int, bytes], int] = {}  #: forged frame -> when it came
+        self.stolen: Counter[tuple[int, bytes]] = Counter()  #: see deliver
         self.reclaims = 0  #: ``reclaimed`` before the call under way
 
     def close(self) -> None:
@@ -90,55 +94,75 @@ class Bus:
             self.ecb.close()
         self.ecb = Ecb(self.variant, self.cfg, instance)
         self.last = self.ecb.counters()
+        self.tables = self.ecb.nodes(), self.ecb.channels()
         return self.ecb
 
     def call(
         self, what: str, fn: object, frame: tuple[int, int, bytes] | None = None
     ) -> list[p.Management]:
+        """One call (``fn``) on the CAN-ECB and its checks: the blob saved on NOTE_STATE, then
+        the frames it queued taken and judged (unless the controller stalls: they wait)."""
         ecb = self.ecb
         assert ecb is not None
         role = ecb.role()
         before = self.last
-        tables = (ecb.nodes(), ecb.channels()) if frame is not None else None
+        tables = self.tables
         self.reclaims = before["reclaimed"]
         fn()  # type: ignore[operator]
         if ecb.notes() & NOTE_STATE:
             self.persist()
-        sent = ecb.take()
+            self.tables = ecb.nodes(), ecb.channels()
+        # else the tables did not change (the invariant compares them with the blob's)
         counters = ecb.counters()
         for name, value in counters.items():
             assert value >= before[name], f"{what}: counter {name} went back"
         self.last = counters
+        self.roles.add(ecb.role())
+        moved = {k for k in counters if counters[k] != before[k]}
+        if frame is not None:
+            self.check_rejected(what, frame, moved, tables)
+        if self.reclaimed():
+            self.release(self.tables[0], {e: u for e, (u, _) in self.tables[1].items()})
+        if self.stalled:
+            return []
+        sent = ecb.take()
         msgs = [self.check_frame(what, f) for f in sent]
         if TRACE:
             print(f"{self.abs:>8} {what} -> {msgs} role {ecb.role()}")
         assert [f[0] for f in sent] == sorted(f[0] for f in sent), f"{what}: not lowest first"
-        self.roles.add(ecb.role())
-        if role == STANDBY and ecb.role() == STANDBY:
-            assert all(isinstance(m, p.Probe) for m in msgs), f"{what}: standing by, sent {msgs}"
-        moved = {k for k in counters if counters[k] != before[k]}
-        if any(isinstance(m, p.TxNodesFull) for m in msgs):
-            assert "nodes_full" in moved, f"{what}: TxNodesFull, nodes_full did not move"
-        if any(isinstance(m, p.EtagsFull) for m in msgs):
-            assert "channels_full" in moved, f"{what}: EtagsFull, channels_full did not move"
-        if any(isinstance(m, p.Limit) for m in msgs):
-            assert moved & {"limited", "quota_hit"}, f"{what}: Limit, nothing counted"
-        if frame is not None:
-            self.check_rejected(what, frame, msgs, moved, tables)
-        self.check_said(what, msgs)
+        if frame is not None and self.rejected(frame):
+            assert not msgs, f"{what}: a frame it rejects answered with {msgs}"
+        if what != "stall ends":  # else frames of many calls, some older than the tables
+            if role == STANDBY and ecb.role() == STANDBY:
+                assert all(isinstance(m, p.Probe) for m in msgs), f"{what}: standing by: {msgs}"
+            if any(isinstance(m, p.TxNodesFull) for m in msgs):
+                assert "nodes_full" in moved, f"{what}: TxNodesFull, nodes_full did not move"
+            if any(isinstance(m, p.EtagsFull) for m in msgs):
+                assert "channels_full" in moved, f"{what}: EtagsFull, channels_full did not move"
+            if any(isinstance(m, p.Limit) for m in msgs):
+                assert moved & {"limited", "quota_hit"}, f"{what}: Limit, nothing counted"
+            self.check_said(what, msgs)
         self.see(what, msgs)
         for m, (can_id, _, data) in zip(msgs, sent, strict=True):
-            if isinstance(m, p.Hello):
+            if isinstance(m, p.Hello):  # (queued during a stall: when is not known)
                 self.own_hello = self.abs
             self.queue.append((ECB, can_id, FRAME_EXT, data))
             self.sent_at.append(self.sent)
             self.sent += 1
         return msgs
 
+    def stall(self, stalled: bool) -> None:
+        """The controller stalls (nothing is sent: frames wait in the CAN-ECB's queue, which
+        drops what does not fit), or sends again: what waited goes at once."""
+        self.stalled = stalled
+        if not stalled:
+            self.call("stall ends", lambda: None)
+            self.pump()
+
     def check_said(self, what: str, msgs: list[p.Management]) -> None:
         """What an Offer, Uses or Grant says is true of the tables when it is sent."""
         assert self.ecb is not None
-        nodes, chans = self.ecb.nodes(), self.ecb.channels()
+        nodes, chans = self.tables
         #: TxNodes given to another in this call (a reclaim): what a Uses queued before it in
         #: the same call says of them was true when queued
         given = {m.txnode for m in msgs if isinstance(m, p.Offer | p.Assign)}
@@ -178,26 +202,27 @@ class Bus:
         assert isinstance(msg, p.ECB_FRAMES), f"{what}: sent a node's frame {msg}"
         return msg
 
-    def check_rejected(self, what: str, frame: tuple[int, int, bytes], msgs: list[p.Management],
-                       moved: set[str], tables: object) -> None:  # fmt: skip
-        """A foreign or malformed frame changes nothing and is counted."""
+    @staticmethod
+    def rejected(frame: tuple[int, int, bytes]) -> str | None:
+        """ "foreign" or "malformed" for a frame the CAN-ECB must reject, else None."""
         can_id, flags, data = frame
         if is_foreign(can_id, flags):
-            kind = "foreign"
-        elif p.is_management(can_id) and len(data) <= 8:
+            return "foreign"
+        if p.is_management(can_id) and len(data) <= 8:
             try:
                 p.decode(can_id, data)
-                return
             except DecodeError:
-                kind = "malformed"
-        else:
-            return
-        assert self.ecb is not None
-        assert not msgs, f"{what}: a {kind} frame {can_id:#x} {data.hex()} answered with {msgs}"
-        assert kind in moved, f"{what}: a {kind} frame {can_id:#x} {data.hex()} not counted"
-        assert (self.ecb.nodes(), self.ecb.channels()) == tables, (
-            f"{what}: a {kind} frame changed the tables"
-        )
+                return "malformed"
+        return None
+
+    def check_rejected(
+        self, what: str, frame: tuple[int, int, bytes], moved: set[str], tables: object
+    ) -> None:
+        """A foreign or malformed frame changes nothing and is counted."""
+        kind = self.rejected(frame)
+        if kind is not None:
+            assert kind in moved, f"{what}: a {kind} frame not counted"
+            assert self.tables == tables, f"{what}: a {kind} frame changed the tables"
 
     # --- who holds what -------------------------------------------------------------------
 
@@ -227,9 +252,7 @@ class Bus:
     def see(self, what: str, msgs: list[p.Management]) -> None:
         """Assign and Bind sent, then the tables: nothing handed to two holders."""
         assert self.ecb is not None
-        nodes, chans = self.ecb.nodes(), {e: u for e, (u, _) in self.ecb.channels().items()}
-        if self.reclaimed():
-            self.release(nodes, chans)
+        nodes, chans = self.tables[0], {e: u for e, (u, _) in self.tables[1].items()}
         assigns = [(m.txnode, m.node_id, f"{what}: {m}") for m in msgs if isinstance(m, p.Assign)]
         binds = [(m.etag, m.uid, f"{what}: {m}") for m in msgs if isinstance(m, p.Bind)]
         for txnode, _, _ in assigns:
@@ -251,6 +274,8 @@ class Bus:
                 last[("t", m.txnode)] = last[("n", m.node_id)] = m
             elif isinstance(m, p.Bind):
                 last[("e", m.etag)] = last[("u", m.uid)] = m
+        if what == "stall ends":  # frames queued by many calls: older than the tables
+            return
         for m in {id(m): m for m in last.values()}.values():  # the latest of each in the batch
             if isinstance(m, p.Assign) and m is last[("t", m.txnode)] is last[("n", m.node_id)]:
                 assert nodes.get(m.txnode) == m.node_id, f"{what}: sent {m}, not in its table"
@@ -302,7 +327,7 @@ class Bus:
         assert self.ecb is not None
         ecb, now = self.ecb, self.now
         foreign = self.last["foreign_ecb_frames"]
-        if flags & FRAME_EXT and not flags & (FRAME_RTR | FRAME_ERR):
+        if not is_foreign(can_id, flags):  # a frame of its TxNode: its lease starts again
             self.active[p.split_id(can_id)[1]] = self.abs
             if p.is_management(can_id) and sender != ECB:
                 try:
@@ -315,26 +340,43 @@ class Bus:
                     self.note_forged(msg)
         what = f"rx {can_id:#010x} {flags:#x} {data.hex()}"
         msgs = self.call(what, lambda: ecb.rx(now, can_id, flags, data), (can_id, flags, data))
-        if sender == FORGER:
-            self.forged_at[(can_id, data)] = self.abs
-        # its own frame heard again: nothing to do, nobody else's, unless it sent more than it
-        # remembers since, or the forger sent the same frame within the echo window (the
-        # CAN-ECB takes the first for the echo)
-        forged = self.abs - self.forged_at.get((can_id, data), -ECHO_WINDOW) < ECHO_WINDOW
-        if sender == ECB and since <= ECHOES and not forged:
-            assert not msgs, f"{what}: its own frame answered with {msgs}"
-            assert self.last["foreign_ecb_frames"] == foreign, f"{what}: its own taken as foreign"
-        else:
+        if sender != ECB:
+            if sender == FORGER:
+                self.forged_at[(can_id, data)] = self.abs
             self.check_answer(what, can_id, data, msgs)
+            return
+        # its own frame heard again: nothing to do, nobody else's, unless it sent more than it
+        # remembers since (an echo that then takes the place of a later identical frame's
+        # steals its recognition), or the forger sent the same frame within the echo window
+        # (the CAN-ECB takes the first for its own)
+        key = (can_id, data)
+        taken = self.last["foreign_ecb_frames"] == foreign
+        if since > ECHOES or self.abs - self.forged_at.get(key, -ECHO_WINDOW) < ECHO_WINDOW:
+            self.stolen[key] += taken
+        elif not taken and self.stolen[key]:
+            self.stolen[key] -= 1
+        else:
+            assert not msgs, f"{what}: its own frame answered with {msgs}"
+            assert taken, f"{what}: its own taken as foreign"
 
     def check_answer(self, what: str, can_id: int, data: bytes, msgs: list[p.Management]) -> None:
-        """A PUB_BIND(c) answered with a Bind gets an etag of class c or larger."""
+        """A PUB_BIND(c) answered with a Bind gets an etag of class c or larger. A report
+        (SUB_AT, PUB_AT) or CLAIM it refuses (past the quota: Limit; no entry left:
+        TxNodesFull) is not adopted: after a lost table, that pair is nobody's to it."""
         if not p.is_management(can_id) or p.split_id(can_id)[1] == p.MGMT_TXNODE:
             return
         try:
             msg = p.decode(can_id, data)
         except DecodeError:
             return
+        nodes, chans = self.tables
+        limited = any(isinstance(m, p.Limit) for m in msgs)
+        full = any(isinstance(m, p.TxNodesFull) for m in msgs)
+        if isinstance(msg, p.Holds) and limited and chans.get(msg.etag, (0, 0))[0] != msg.uid:
+            self.etl.drop(lambda etag, uid: (etag, uid) != (msg.etag, msg.uid))
+        claim = isinstance(msg, p.Request) and msg.kind == p.CLAIM
+        if claim and full and nodes.get(msg.txnode) != msg.value:
+            self.txl.drop(lambda txnode, node_id: (txnode, node_id) != (msg.txnode, msg.value))
         if not isinstance(msg, p.Request) or msg.kind != p.PUB_BIND or not msg.size_class:
             return
         binds = [m for m in msgs if isinstance(m, p.Bind) and m.uid == msg.value]
@@ -348,7 +390,7 @@ class Bus:
         self.call(f"tick +{dt} ms", lambda: ecb.tick(now))
         role = ecb.role()
         candidacy = min(self.cfg.recovery_ms, 2000)
-        if role == CANDIDATE:
+        if role == CANDIDATE and not self.stalled:  # (stalled: its Hello waits, unseen)
             assert self.abs - self.own_hello <= candidacy + SLACK, (
                 f"a candidate {self.abs - self.own_hello} ms after its Hello"
             )
@@ -393,6 +435,7 @@ class Bus:
             assert ecb.nodes() == {} and ecb.channels() == {}, "a refused blob left tables"
             self.lost()
         self.last = ecb.counters()
+        self.tables = ecb.nodes(), ecb.channels()
         self.started = self.abs
         self.call("start", lambda: ecb.start(self.now))
         self.pump()
@@ -415,11 +458,17 @@ class Bus:
             if k % 8 == 7:
                 self.retry()
 
-    def populate(self, joins: list[int], uses: list[tuple[int, int, int]]) -> None:
-        """Honest nodes join and use channels (-1: subscribe, else publish in that class)."""
+    def populate(self, joins: list[int], uses: list[tuple[int, int, int]], period: int = 0) -> None:
+        """Honest nodes join and use channels (-1: subscribe, else publish in that class); with
+        ``period`` (100 us), each declares a stream on every channel it publishes on."""
         for i in joins:
             self.node_says(i, self.honest[i].join())
         self.settle(3)
         for i, u, cls in uses:
             self.node_says(i, self.honest[i].use(UIDS[u], sub=cls < 0, cls=max(cls, 0)))
         self.settle(1)
+        for i, h in enumerate(self.honest):
+            for uid in list(h.chans) if period else []:
+                self.node_says(i, h.declare(uid, 8, period, period, 0))
+        if period:
+            self.settle(1)

@@ -83,6 +83,7 @@ class Ecb:
         self.frame = _Block(ctypes.sizeof(self.lib.Frame))
         self._frame = ctypes.cast(self.frame.addr, ctypes.POINTER(self.lib.Frame))
         self.instance = instance
+        self._counters: Any = None
         rc = self.c.ups_ecb_init(self.state.addr, ctypes.byref(cfg), instance)
         assert rc == 0, f"ups_ecb_init: {rc}"
 
@@ -145,8 +146,10 @@ class Ecb:
         return int(self.c.ups_ecb_role(self.state.addr))
 
     def counters(self) -> dict[str, int]:
-        raw = self.lib.Counters.from_address(self.c.ups_ecb_counters(self.state.addr))
-        return dict(zip(COUNTERS, (int(v) for v in raw), strict=True))
+        if self._counters is None:
+            address = self.c.ups_ecb_counters(self.state.addr)
+            self._counters = self.lib.Counters.from_address(address)
+        return dict(zip(COUNTERS, self._counters[:], strict=True))
 
     def nodes(self) -> dict[int, int]:
         """TxNode -> node id; asserts that no TxNode and no node id is in two entries."""

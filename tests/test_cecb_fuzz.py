@@ -59,7 +59,7 @@ from .cecb_driver import FRAME_ERR, FRAME_EXT, FRAME_FD, FRAME_RTR, STANDBY, Ecb
 from .procs import sanitizer_env
 
 VARIANT = os.environ.get("UPS_CECB_FUZZ", "")  #: "asan" in the child
-EXAMPLES = int(os.environ.get("UPS_CECB_FUZZ_EXAMPLES", "80"))
+EXAMPLES = int(os.environ.get("UPS_CECB_FUZZ_EXAMPLES", "100"))
 #: counters that tell the machine reached a deep state (the statistics count them)
 DEEP = ("nodes_full", "channels_full", "streams_full", "held_dropped", "watched_full",
         "queries_waiting", "quota_hit", "limited", "reclaimed", "adopted", "conflicts", "moved",
@@ -141,22 +141,24 @@ class CEcbMachine(RuleBasedStateMachine):
         instance=st.integers(1 << 62, 2**64 - 2),
         recovery=st.sampled_from([100, 250, 2000]),
         lease=st.sampled_from([2, 30, 86_400]),
-        max_channels=st.sampled_from([2, 4, 8]),
+        max_channels=st.sampled_from([2, 4, 8, 8]),
         quota=st.sampled_from([(1024, 64, 64, 64, 64), (3, 1, 1, 1, 1), (1, 0, 0, 0, 0)]),
         echo=st.booleans(),
+        bus=st.sampled_from([(500_000, 0), (125_000, 0), (1_000_000, 1)]),
         joins=st.lists(st.integers(0, len(IDS) - 1), max_size=len(IDS), unique=True),
         uses=st.lists(st.tuples(st.integers(0, len(IDS) - 1), st.integers(0, len(UIDS) - 1),
-                                st.integers(-1, 4)), max_size=12),
+                                st.integers(-1, 4)), max_size=16),
+        period=st.sampled_from([0, 0, 10, 100, 1000]),
     )  # fmt: skip
     def start(self, t0: int, instance: int, recovery: int, lease: int, max_channels: int,
-              quota: tuple[int, ...], echo: bool, joins: list[int],
-              uses: list[tuple[int, int, int]]) -> None:  # fmt: skip
+              quota: tuple[int, ...], echo: bool, bus: tuple[int, int], joins: list[int],
+              uses: list[tuple[int, int, int]], period: int) -> None:  # fmt: skip
         """The CAN-ECB starts; honest nodes join and use channels (``populate``)."""
         cfg = config(VARIANT, recovery_ms=recovery, lease_s=lease, max_channels=max_channels,
-                     quota=quota)  # fmt: skip
+                     quota=quota, bitrate=bus[0], fd=bus[1])  # fmt: skip
         self.bus = Bus(VARIANT, cfg, t0, echo)
         self.bus.start(instance)
-        self.bus.populate(joins, uses)
+        self.bus.populate(joins, uses, period)
 
     @property
     def b(self) -> Bus:
@@ -280,6 +282,28 @@ class CEcbMachine(RuleBasedStateMachine):
             else:
                 self.b.queue.append((FORGER, *f))
         self.b.pump()
+
+    @rule(
+        frames=st.lists(hostile, max_size=20),
+        uses=st.lists(st.tuples(st.integers(0, len(IDS) - 1), st.integers(0, len(UIDS) - 1),
+                                st.integers(-1, 4)), max_size=8),
+        asks=st.lists(st.integers(0, len(IDS) - 1), max_size=6),
+        ticks=st.lists(st.integers(0, 600), max_size=8),
+    )  # fmt: skip
+    def stall(self, frames: list[tuple[str, Any]], uses: list[tuple[int, int, int]],
+              asks: list[int], ticks: list[int]) -> None:  # fmt: skip
+        """The CAN-ECB's controller sends nothing for a while (its TX queue fills, and drops
+        what does not fit) while frames come and time passes; then it sends what waited."""
+        b = self.b
+        b.stall(True)
+        self.flood(frames)
+        for i, u, cls in uses:
+            b.node_says(i, b.honest[i].use(UIDS[u], sub=cls < 0, cls=max(cls, 0)))
+        for i in asks:  # every channel asked again (as after a contradiction): Binds answer
+            b.node_says(i, [f for uid in b.honest[i].chans for f in b.honest[i].request(uid)])
+        for dt in ticks:
+            b.ms(dt)
+        b.stall(False)
 
     # --- invariants -------------------------------------------------------------------------
 
