@@ -133,7 +133,8 @@ static int free_for(const ups_ecb_t *ecb, unsigned txnode, int slot)
 static void age_entries(ups_ecb_t *ecb)
 {
     uint32_t unit = ecb->cfg.lease_s * 1000u / UPS_ECB__LEASE_AGE; /* >= 15 ms */
-    uint32_t steps = ups_ecb__since(ecb->now, ecb->join.t_aged) / unit;
+    uint32_t rest;
+    uint32_t steps = ups_ecb__div32(ups_ecb__since(ecb->now, ecb->join.t_aged), unit, &rest);
     if (steps == 0u) {
         return;
     }
@@ -402,12 +403,13 @@ static uint32_t slack(const ups_ecb_t *ecb)
         return 0u;
     }
     uint32_t age = ups_ecb__since(ecb->now, join->late_at);
-    uint32_t halvings = age / SLACK_HALF_LIFE;
+    uint32_t part;
+    uint32_t halvings = ups_ecb__div32(age, SLACK_HALF_LIFE, &part);
     if (halvings >= 16u) {
         return 0u;
     }
     uint32_t s = (uint32_t)join->slack0 >> halvings;
-    s -= s * (age % SLACK_HALF_LIFE) / (2u * SLACK_HALF_LIFE);
+    s -= ups_ecb__div32(s * part, 2u * SLACK_HALF_LIFE, &part);
     return s < FIRST_MIN ? 0u : s;
 }
 
@@ -434,11 +436,22 @@ int ups_ecb__join_busy(const ups_ecb_t *ecb)
     return ecb->join.g_count != 0u;
 }
 
+/** The place of the @p i-th waiting group (i <= UPS_ECB__GROUPS) in the ring. */
+static unsigned ring(const ups_ecb_join_t *join, unsigned i)
+{
+    unsigned at = join->g_head + i;
+#if (UPS_ECB__GROUPS & (UPS_ECB__GROUPS - 1)) == 0 /* a power of 2: a mask */
+    return at % UPS_ECB__GROUPS;
+#else /* no division (Cortex-M0+ has none) */
+    return at >= UPS_ECB__GROUPS ? at - UPS_ECB__GROUPS : at;
+#endif
+}
+
 static unsigned waiting_branches(const ups_ecb_join_t *join)
 {
     unsigned n = 0;
     for (unsigned i = 0; i < join->g_count; i++) {
-        unsigned set = join->groups[(join->g_head + i) % UPS_ECB__GROUPS].set;
+        unsigned set = join->groups[ring(join, i)].set;
         n += set != 0u ? popcount16(set) : 1u;
     }
     return n;
@@ -471,7 +484,7 @@ static void follow(ups_ecb_t *ecb, const uint8_t *prefix, unsigned plen, unsigne
             }
         }
     }
-    ups_ecb_group_t *group = &join->groups[(join->g_head + join->g_count) % UPS_ECB__GROUPS];
+    ups_ecb_group_t *group = &join->groups[ring(join, join->g_count)];
     join->g_count++;
     ups_ecb__copy(group->prefix, prefix, 8u);
     for (unsigned s = plen; s < NIBBLES; s++) { /* a Query's data: the prefix, then zeros */
@@ -587,7 +600,7 @@ again:
             query->tries = 0u;
         }
         if (group->set == 0u) {
-            join->g_head = (uint8_t)((join->g_head + 1u) % UPS_ECB__GROUPS);
+            join->g_head = (uint8_t)ring(join, 1u);
             join->g_count--;
             if (join->g_counted > 0u) {
                 join->g_counted--;
@@ -610,7 +623,7 @@ again:
         }
     }
     for (unsigned i = join->g_counted; i < join->g_count; i++) { /* branches that wait */
-        unsigned set = join->groups[(join->g_head + i) % UPS_ECB__GROUPS].set;
+        unsigned set = join->groups[ring(join, i)].set;
         for (unsigned k = set != 0u ? popcount16(set) : 1u; k > 0u; k--) {
             ups_ecb__count(&ecb->counters.queries_waiting);
         }

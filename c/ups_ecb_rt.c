@@ -70,6 +70,37 @@ typedef struct {
     uint32_t bits; /* bits of every frame (c / tau) */
 } rt_msg_t;
 
+/* A core that divides (any but an Arm one without a divide instruction, as Cortex-M0+ is);
+ * UPS_ECB__SOFT_DIV takes the shifts and subtractions on any, to test them. */
+#if !defined(UPS_ECB__SOFT_DIV) && (!defined(__arm__) || defined(__ARM_FEATURE_IDIV))
+#define RT_DIVIDES 1
+#else
+#define RT_DIVIDES 0
+#endif
+
+uint32_t ups_ecb__div32(uint32_t n, uint32_t d, uint32_t *rem)
+{
+#if RT_DIVIDES
+    *rem = n % d;
+    return n / d;
+#else
+    uint32_t q = 0u;
+    uint32_t bit = 1u;
+    while ((d >> 31) == 0u && (d << 1) <= n) { /* d under n's top bit: as many steps */
+        d <<= 1;
+        bit <<= 1;
+    }
+    for (; bit != 0u; bit >>= 1, d >>= 1) {
+        if (n >= d) {
+            n -= d;
+            q |= bit;
+        }
+    }
+    *rem = n;
+    return q;
+#endif
+}
+
 /* n / d (d > 0) and n % d in @p rem. A machine of 32-bit words has no 64-bit division: the
  * compiler would call libgcc's (__aeabi_uldivmod, __udivmoddi4: about 600 bytes of Cortex-M0+
  * code), so it is done here by shifts and subtractions (32-bit division when both fit);
@@ -82,8 +113,9 @@ static uint64_t rt_div(uint64_t n, uint64_t d, uint64_t *rem)
 #else
     uint64_t q = 0u;
     if ((n >> 32) == 0u && (d >> 32) == 0u) {
-        q = (uint32_t)n / (uint32_t)d;
-        n -= q * d;
+        uint32_t r32;
+        q = ups_ecb__div32((uint32_t)n, (uint32_t)d, &r32);
+        n = r32;
     } else {
         uint64_t bit = 1u;
         while ((d >> 63) == 0u && (d << 1) <= n) {
@@ -105,7 +137,8 @@ static uint64_t rt_div(uint64_t n, uint64_t d, uint64_t *rem)
 static uint32_t rt_gcd(uint32_t a, uint32_t b)
 {
     while (b != 0u) {
-        uint32_t r = a % b;
+        uint32_t r;
+        (void)ups_ecb__div32(a, b, &r);
         a = b;
         b = r;
     }
@@ -151,8 +184,9 @@ static int rt_bus(rt_bus_t *bus, uint32_t bitrate, unsigned flags)
         return 0;
     }
     uint32_t g = rt_gcd(bitrate, 10000u);
-    bus->tau = 10000u / g;
-    bus->scale = bitrate / g;
+    uint32_t r;
+    bus->tau = ups_ecb__div32(10000u, g, &r);
+    bus->scale = ups_ecb__div32(bitrate, g, &r);
     bus->flags = flags;
     bus->block = rt_frame_bits((flags & UPS_ECB_RT_FD) != 0u ? 64u : 8u, flags) * bus->tau;
     return 1;
@@ -209,13 +243,11 @@ static int rt_below_one(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned
         }
         uint32_t a = 10000u * x.bits; /* < 2^31 */
         uint32_t p = s[k].period;     /* < 2^16 */
-        uint32_t r = a % p;
-        whole += a / p;
+        uint32_t r;
+        whole += ups_ecb__div32(a, p, &r);
         for (unsigned i = 0u; i < 3u; i++) { /* long division, 32 bits (two 16) at a time */
-            uint32_t high = (r << 16) / p; /* r < p < 2^16: in 32 bits */
-            r = (r << 16) % p;
-            uint32_t low = (r << 16) / p;
-            r = (r << 16) % p;
+            uint32_t high = ups_ecb__div32(r << 16, p, &r); /* r < p < 2^16: in 32 bits */
+            uint32_t low = ups_ecb__div32(r << 16, p, &r);
             limb[i] += (high << 16) | low;
         }
         inexact += r != 0u ? 1u : 0u;

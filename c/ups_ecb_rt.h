@@ -56,6 +56,11 @@ typedef struct {
 int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate, unsigned fd,
                      unsigned *miss, uint16_t *response_10us);
 
+/** libups-ecb's 32-bit division (internal): @p n / @p d (d > 0), the remainder in @p rem. A
+ *  core with no divide instruction (Cortex-M0+) does it by shifts and subtractions here, not
+ *  by libgcc's __aeabi_uidiv (266 bytes); any other divides. */
+uint32_t ups_ecb__div32(uint32_t n, uint32_t d, uint32_t *rem);
+
 /* Flags of ups_ecb_rt_response. */
 #define UPS_ECB_RT_DAVIS2007 0u   /**< the revised analysis (Davis et al. 2007), the default */
 #define UPS_ECB_RT_TINDELL1994 1u /**< paper 000's Table 1 (classic frames only) */
