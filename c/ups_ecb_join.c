@@ -83,15 +83,22 @@ void ups_ecb__join_init(ups_ecb_t *ecb)
     ecb->join.rtt = 25u;
 }
 
-int ups_ecb__holder(const ups_ecb_t *ecb, unsigned txnode)
+/** The first entry but @p except whose TxNode is @p txnode and which has a flag of @p flags (any
+ *  entry when 0), or UPS_ECB__NO_SLOT. */
+static int with_txnode(const ups_ecb_t *ecb, unsigned txnode, int except, unsigned flags)
 {
     for (int i = 0; i < UPS_ECB_NODES; i++) {
         const ups_ecb_node_t *node = &ecb->join.nodes[i];
-        if ((node->flags & UPS_ECB__HELD) && node->txnode == txnode) {
+        if (i != except && node->txnode == txnode && (flags == 0u || (node->flags & flags))) {
             return i;
         }
     }
     return UPS_ECB__NO_SLOT;
+}
+
+int ups_ecb__holder(const ups_ecb_t *ecb, unsigned txnode)
+{
+    return with_txnode(ecb, txnode, UPS_ECB__NO_SLOT, UPS_ECB__HELD);
 }
 
 static int entry_of(const ups_ecb_t *ecb, const uint8_t *node_id)
@@ -108,25 +115,13 @@ static int entry_of(const ups_ecb_t *ecb, const uint8_t *node_id)
 /** Whether any entry but @p except uses @p txnode (held, offered or lapsed). */
 static int txnode_used(const ups_ecb_t *ecb, unsigned txnode, int except)
 {
-    for (int i = 0; i < UPS_ECB_NODES; i++) {
-        if (i != except && ecb->join.nodes[i].txnode == txnode) {
-            return 1;
-        }
-    }
-    return 0;
+    return with_txnode(ecb, txnode, except, 0u) != UPS_ECB__NO_SLOT;
 }
 
 /** Nobody else holds @p txnode, and it is offered to nobody but entry @p slot. */
 static int free_for(const ups_ecb_t *ecb, unsigned txnode, int slot)
 {
-    for (int i = 0; i < UPS_ECB_NODES; i++) {
-        const ups_ecb_node_t *node = &ecb->join.nodes[i];
-        if (i != slot && node->txnode == txnode &&
-            (node->flags & (UPS_ECB__HELD | UPS_ECB__OFFERED)) != 0u) {
-            return 0;
-        }
-    }
-    return 1;
+    return with_txnode(ecb, txnode, slot, UPS_ECB__HELD | UPS_ECB__OFFERED) == UPS_ECB__NO_SLOT;
 }
 
 /** Count the entries' ages up to now, in 64ths of the lease. */
@@ -355,12 +350,7 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
     }
     if (known < 0 && holder == UPS_ECB__NO_SLOT) { /* adopt */
         if (node == NULL) {
-            int free_slot = UPS_ECB__NO_SLOT;
-            for (int i = 0; i < UPS_ECB_NODES && free_slot == UPS_ECB__NO_SLOT; i++) {
-                if (ecb->join.nodes[i].txnode == 0xFFu) {
-                    free_slot = i;
-                }
-            }
+            int free_slot = with_txnode(ecb, 0xFFu, UPS_ECB__NO_SLOT, 0u); /* unused */
             for (int i = 0; i < UPS_ECB_NODES && free_slot == UPS_ECB__NO_SLOT; i++) {
                 if (ecb->join.nodes[i].flags == UPS_ECB__LAPSED) {
                     free_slot = i;
