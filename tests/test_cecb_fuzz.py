@@ -48,6 +48,7 @@ every call and its frames, ``UPS_CECB_FUZZ_LIB`` takes another build of the ASan
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -351,7 +352,7 @@ def test_machine_under_sanitizers() -> None:
     )  # fmt: skip
     output = done.stdout[-8000:] + done.stderr[-8000:]
     assert done.returncode == 0, f"libups-ecb-asan.so under the machine:\n{output}"
-    assert " passed" in done.stdout and "failed" not in done.stdout, output
+    assert " passed" in done.stdout and not re.search(r"\d+ failed", done.stdout), output
 
 
 # --- what the machine found, each in its smallest form (run in the child, on the ASan build) --
