@@ -732,22 +732,17 @@ static void conclude(ups_ecb_t *ecb, const ups_ecb_query_t *query)
     if (query->present == 0u) { /* nobody has this prefix (any more) */
         return;
     }
-    uint8_t prefix[8];
+    uint8_t prefix[8]; /* its prefix and the nibbles heard: the first len are certain */
     ups_ecb__copy(prefix, query->prefix, 8u);
     unsigned len = query->plen;
+    while (len < NIBBLES && (query->present & (1u << len)) && !(query->many & (1u << len))) {
+        len++;
+    }
     uint16_t wanted = (uint16_t)(0xFFFFu & ~((1u << query->plen) - 1u));
     if ((query->present & wanted) != wanted) { /* incomplete: ask again what is certain */
         ups_ecb__count(&ecb->counters.census_incomplete);
-        while (len < NIBBLES && (query->present & (1u << len)) && !(query->many & (1u << len))) {
-            set_nibble(prefix, len, nibble_at(query->prefix, len));
-            len++;
-        }
         retry(ecb, query, prefix, len);
         return;
-    }
-    while (len < NIBBLES && !(query->many & (1u << len))) {
-        set_nibble(prefix, len, nibble_at(query->prefix, len));
-        len++;
     }
     if (len == NIBBLES) {
         found(ecb, prefix);
