@@ -336,14 +336,11 @@ static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
 }
 
 #if UPS_ECB_ECHOES > 0
-/** A check of a frame's identifier, length and data (never 0: 0 marks an unused entry). */
-static uint16_t check16(uint32_t id, unsigned len, const uint8_t *data)
+/** A frame's key in echo[]: its identifier, and bit 31 when it has 8 data bytes (the CAN-ECB's
+ *  frames have 0 or 8). */
+static uint32_t echo_key(uint32_t id, unsigned len)
 {
-    uint8_t head[5] = {(uint8_t)(id >> 24), (uint8_t)(id >> 16), (uint8_t)(id >> 8), (uint8_t)id,
-                       (uint8_t)len};
-    uint32_t crc = ups_ecb__crc32(ups_ecb__crc32(0u, head, 5u), data, len);
-    uint16_t sum = (uint16_t)(crc ^ (crc >> 16));
-    return sum != 0u ? sum : 1u;
+    return id | (len != 0u ? 0x80000000u : 0u);
 }
 #endif
 
@@ -364,10 +361,13 @@ static int own(ups_ecb_t *ecb, uint32_t id, unsigned len, const uint8_t *data)
         }
     }
 #if UPS_ECB_ECHOES > 0
-    uint16_t sum = check16(id, len, data);
-    for (unsigned i = 0; i < UPS_ECB_ECHOES; i++) {
-        if (ecb->echo[i].sum == sum && ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
-            ecb->echo[i].sum = 0u; /* heard once */
+    uint32_t key = echo_key(id, len);
+    for (unsigned i = 0; i < UPS_ECB_ECHOES && (len == 0u || len == 8u); i++) {
+        if (ecb->echo[i].key[0] == (uint16_t)(key >> 16) && ecb->echo[i].key[1] == (uint16_t)key &&
+            (len == 0u || ups_ecb__same8(ecb->echo[i].data, data)) &&
+            ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
+            ecb->echo[i].key[0] = 0u; /* heard once */
+            ecb->echo[i].key[1] = 0u;
             return 1;
         }
     }
@@ -500,8 +500,11 @@ void ups_ecb_tx_pop(ups_ecb_t *ecb)
     }
 #if UPS_ECB_ECHOES > 0
     unsigned at = ecb->echo_next;
-    ecb->echo[at].sum = check16(ecb->tx_head.id, ecb->tx_head.len, ecb->tx_head.data);
+    uint32_t key = echo_key(ecb->tx_head.id, ecb->tx_head.len);
+    ecb->echo[at].key[0] = (uint16_t)(key >> 16);
+    ecb->echo[at].key[1] = (uint16_t)key;
     ecb->echo[at].t = (uint16_t)ecb->now;
+    ups_ecb__copy(ecb->echo[at].data, ecb->tx_head.data, 8u);
     ecb->echo_next = (uint16_t)((at + 1u) % UPS_ECB_ECHOES);
 #endif
     ups_ecb__pop(ecb);

@@ -74,10 +74,10 @@ extern "C" {
 #define UPS_ECB_WATCHED 4
 #endif
 
-/** CAN-ECB frames remembered after they were sent (4 bytes each), so that one heard again
- *  within a second (an echo: a controller or a bus that hands a sender its own frames, or an
- *  application that feeds what it sent back in) is known for its own, 0..1024. Frames still
- *  queued are always known. */
+/** CAN-ECB frames remembered after they were sent (14 bytes each: identifier and data, so
+ *  that no other frame passes for one), so that one heard again within a second (an echo: a
+ *  controller or a bus that hands a sender its own frames, or an application that feeds what it
+ *  sent back in) is known for its own, 0..1024. Frames still queued are always known. */
 #ifndef UPS_ECB_ECHOES
 #define UPS_ECB_ECHOES 16
 #endif
@@ -216,8 +216,10 @@ typedef struct ups_ecb {
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
     ups_ecb_elect_t elect; /* ups_ecb_elect.c: the election */
     struct {              /* CAN-ECB frames sent lately: heard again, they are this one's own */
-        uint16_t sum;     /* a check of the identifier, length and data; 0: none */
+        uint16_t key[2];  /* its identifier, high half first, and bit 15 of key[0] when it had
+                             8 data bytes (else none); 0, 0: an unused entry */
         uint16_t t;       /* low 16 bits of the time it was sent */
+        uint8_t data[8];
     } echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1];
     ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, lowest identifier first */
     uint8_t tx_len[UPS_ECB_TX_DEPTH];     /* their lengths */
