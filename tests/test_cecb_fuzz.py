@@ -336,6 +336,7 @@ TestCEcbMachine = pytest.mark.skipif(not VARIANT, reason="runs in the sanitizers
 )
 
 
+@pytest.mark.timeout(max(60, EXAMPLES) + 30)  # a deeper run takes longer (0.1 s an example)
 def test_machine_under_sanitizers() -> None:
     """The machine in a child process on libups-ecb-asan.so (ASan and UBSan abort it)."""
     if VARIANT:
@@ -348,7 +349,7 @@ def test_machine_under_sanitizers() -> None:
     done = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-s", "-x", "-p", "no:cacheprovider",
          "-p", "no:xdist", str(Path(__file__))],  # -s: the sanitizers' reports
-        env=env, capture_output=True, text=True, timeout=600, check=False,
+        env=env, capture_output=True, text=True, timeout=max(50, EXAMPLES), check=False,
     )  # fmt: skip
     output = done.stdout[-8000:] + done.stderr[-8000:]
     assert done.returncode == 0, f"libups-ecb-asan.so under the machine:\n{output}"
