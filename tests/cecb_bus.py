@@ -44,8 +44,8 @@ ECB, FORGER = -1, -2  #: senders besides the honest nodes (their index)
 
 
 def check16(can_id: int, data: bytes) -> int:
-    """libups-ecb's 16-bit check of a frame it sent (ups_ecb.c, check16): it takes a frame
-    with the check of one it sent within the second for that one, heard again."""
+    """The 16-bit check by which libups-ecb knew the frames it sent before 3394f04 (ups_ecb.c,
+    check16), to build a forged frame that collides with one it sent."""
     crc = zlib.crc32(data, zlib.crc32(can_id.to_bytes(4, "big") + bytes([len(data)])))
     return ((crc ^ (crc >> 16)) & 0xFFFF) or 1
 
@@ -82,7 +82,7 @@ class Bus:
         self.stalled = False  #: the controller sends nothing: the CAN-ECB's frames wait
         self.sent = 0  #: frames the CAN-ECB sent
         self.sent_at: deque[int] = deque()  #: the number of each of its frames on the bus
-        self.forged_at: dict[int, int] = {}  #: a forged frame's check16 -> when it came
+        self.forged_at: dict[int, int] = {}  #: a forged frame (its hash) -> when it came
         self.stolen: Counter[tuple[int, bytes]] = Counter()  #: see deliver
         self.reclaims = 0  #: ``reclaimed`` before the call under way
 
@@ -350,17 +350,16 @@ class Bus:
         msgs = self.call(what, lambda: ecb.rx(now, can_id, flags, data), (can_id, flags, data))
         if sender != ECB:
             if sender == FORGER:
-                self.forged_at[check16(can_id, data)] = self.abs
+                self.forged_at[hash((can_id, data))] = self.abs
             self.check_answer(what, can_id, data, msgs)
             return
         # its own frame heard again: nothing to do, nobody else's, unless it sent more than it
         # remembers since (an echo that then takes the place of a later identical frame's
         # steals its recognition), or the forger sent the same frame within the echo window
-        # (the CAN-ECB takes the first for its own), or one of the same check16 (a flaw:
-        # test_forged_bind_that_matches_a_sent_frame_is_corrected)
+        # (the CAN-ECB takes the first for its own)
         key = (can_id, data)
         taken = self.last["foreign_ecb_frames"] == foreign
-        forged = self.forged_at.get(check16(can_id, data), -ECHO_WINDOW)
+        forged = self.forged_at.get(hash(key), -ECHO_WINDOW)
         if since > ECHOES or self.abs - forged < ECHO_WINDOW:
             self.stolen[key] += taken
         elif not taken and self.stolen[key]:

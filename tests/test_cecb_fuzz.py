@@ -423,14 +423,13 @@ def test_blob_of_larger_tables() -> None:
 
 
 @child
-@pytest.mark.xfail(strict=True, reason="core: ups_ecb.c own() knows its sent frames by check16")
 def test_forged_bind_that_matches_a_sent_frame_is_corrected() -> None:
     """A forged Bind that contradicts the table is corrected (and counted as another CAN-ECB's
     frame) even when its 16-bit check equals that of a frame the CAN-ECB sent within the
-    second. Found by the machine (Bind(0x3611, 0x38d87) and Census(3) share 0xc076): ups_ecb.c
-    own() takes any frame whose check16 matches a remembered one for its own echo, so a forger,
-    who hears what the CAN-ECB sends and can choose the etag, passes a contradiction uncorrected
-    (docs/security.md). Knowing its frames by identifier and data would close it."""
+    second. Found by the machine (Bind(0x3611, 0x38d87) and Census(3) share 0xc076): own()
+    took any frame whose check16 matched a remembered one for its echo, so a forger who hears
+    what the CAN-ECB sends passed a contradiction uncorrected (docs/security.md). Fixed in
+    3394f04 (echoes known by identifier and data)."""
     bus = joined_bus()
     try:
         uid, bind = UIDS[0], p.make_id(1, 0x7F, 0x10)
