@@ -28,6 +28,7 @@ with a margin}) and, with --readme, the table in README.md between its markers.
 from __future__ import annotations
 
 import json
+import struct
 import sys
 from pathlib import Path
 
@@ -35,7 +36,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from ups import _canproto as p  # noqa: E402
-from ups._armnode import ArmNode, Counts  # noqa: E402
+from ups._armnode import ArmNode, Counts, Mcu, OverBudget, build_image  # noqa: E402
 from ups._cantransfer import class_etags, class_for, segment  # noqa: E402
 
 MHZ = 48  #: the clock the table converts cycles at
@@ -280,6 +281,82 @@ def figures(worst: dict[str, Counts]) -> dict[str, dict[str, int]]:
             for n, c in sorted(worst.items())}  # fmt: skip
 
 
+BUDGET = 20_000_000  #: instructions one admission may run in the emulator (it is stopped past
+#: them, and the table says "more than"): a search for the worst sets finds calls of hundreds of
+#: millions of cycles, which take the emulator many minutes each
+STREAM = struct.Struct("<HBBHHBB")  #: ups_ecb_stream_t on Cortex-M (10 bytes, 2-aligned)
+
+
+class Admission:
+    """libups-ecb's admission test (ups_ecb_rt_admit) on the CAN-ECB image of a full bus."""
+
+    def __init__(self) -> None:
+        elf = build_image("ecb-full")
+        self.mcu = Mcu(elf, 64 * STREAM.size + 64, count=True)
+        self.streams = self.mcu.alloc(64 * STREAM.size, 4)
+        self.out = self.mcu.alloc(8, 4)
+
+    def admit(self, streams: list[tuple[int, int, int, int, int, int]]) -> tuple[int, int]:
+        """(the verdict, its cycles) for (etag, txnode, size, period, deadline, jitter)s; a
+        call past BUDGET instructions is stopped: verdict -1, the cycles it took so far."""
+        blob = b"".join(STREAM.pack(*s, 0) for s in streams)
+        self.mcu.write(self.streams, blob)
+        try:
+            verdict = self.mcu.call("ups_ecb_rt_admit", self.streams, len(streams), 500_000, 0,
+                                    self.out, self.out + 4, budget=BUDGET)  # fmt: skip
+        except OverBudget:
+            verdict = -1
+        return verdict, self.mcu.counts.cycles
+
+
+def admission_sets(count: int) -> list[list[tuple[int, int, int, int, int, int]]]:
+    """Stream sets of ``count`` streams that make Audsley's assignment work hardest: loads near
+    the limit (each level tries many candidates before one fits), deadlines shorter than the
+    periods, transfers, and a set that fails only at the last level."""
+    sets = []
+    for load in (70, 85, 95):
+        period = max(1, count * 3 * 100 // load)  # 100 us units; a frame is ~0.25 ms at 500k
+        sets.append([(0x10 + k, k % 120, 8, period + k, max(1, period * (k + 1) // count), k % 3)
+                     for k in range(count)])  # fmt: skip
+        sets.append([(0x10 + k, k % 120, 8, period + 3 * k, period, 0) for k in range(count)])
+    sets.append([(0x3000 + k if k % 4 == 0 else 0x10 + k, k % 120, 2 if k % 4 == 0 else 8,
+                  count * 12 + k, count * 6 + k, 0) for k in range(count)])  # fmt: skip
+    return sets
+
+
+def admission_worst(counts: tuple[int, ...] = (4, 16, 32), examples: int = 15) -> dict[str, int]:
+    """The most cycles ups_ecb_rt_admit took for each number of streams: the sets above, then
+    a Hypothesis search maximising them."""
+    bench = Admission()
+    worst: dict[str, int] = {}
+    for count in counts:
+        fixed = max(bench.admit(streams)[1] for streams in admission_sets(count))
+        worst[f"ups_ecb_rt_admit ({count} streams)"] = max(fixed, _search(bench, count, examples))
+    return worst
+
+
+def _search(bench: Admission, count: int, examples: int) -> int:
+    from hypothesis import HealthCheck, given, settings, target
+    from hypothesis import strategies as st
+
+    most = 0
+    stream = st.tuples(st.integers(0x10, 0x3FFF), st.integers(0, 0x7E), st.integers(1, 8),
+                       st.integers(count, count * 40), st.integers(count, count * 40),
+                       st.integers(0, 20))  # fmt: skip
+
+    @settings(max_examples=examples, deadline=None, database=None, derandomize=True,
+              suppress_health_check=list(HealthCheck))  # fmt: skip
+    @given(st.lists(stream, min_size=count, max_size=count, unique_by=lambda s: (s[0], s[1])))
+    def search(streams: list[tuple[int, int, int, int, int, int]]) -> None:
+        nonlocal most
+        cycles = bench.admit(sorted(streams, key=lambda s: (s[0], s[1])))[1]
+        most = max(most, cycles)
+        target(float(cycles))
+
+    search()
+    return most
+
+
 def table(results: dict[str, dict[str, dict[str, int]]]) -> str:
     names = sorted({n for r in results.values() for n in r})
     head = "| function | " + " | ".join(f"{c}: cycles (µs at {MHZ} MHz)" for c in results) + " |"
@@ -293,14 +370,23 @@ def table(results: dict[str, dict[str, dict[str, int]]]) -> str:
     return "\n".join(rows)
 
 
+def ecb_table(admission: dict[str, int]) -> str:
+    rows = [f"| CAN-ECB (ecb-full image) | cycles (ms at {MHZ} MHz) |", "| --- | ---: |"]
+    rows += [f"| `{name}` | {'more than ' * (c >= BUDGET)}{c} ({c / MHZ / 1000:.1f} ms) |"
+             for name, c in admission.items()]  # fmt: skip
+    return "\n".join(rows)
+
+
 def main() -> int:
     results, scenarios = {}, {}
     for config in CONFIGS:
         worst, fixed = measure(config)
         results[config], scenarios[config] = figures(worst), figures(fixed)
+    admission = admission_worst()
     out = HERE / "cycles.json"
-    out.write_text(json.dumps({"worst": results, "scenario": scenarios}, indent=1) + "\n")
-    text = table(results)
+    out.write_text(json.dumps({"worst": results, "scenario": scenarios,
+                               "ecb": admission}, indent=1) + "\n")  # fmt: skip
+    text = table(results) + "\n\n" + ecb_table(admission)
     print(text)
     print(f"written: {out}")
     if "--readme" in sys.argv:

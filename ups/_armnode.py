@@ -61,6 +61,10 @@ class Fault(Exception):
         self.what, self.address, self.pc = what, address, pc
 
 
+class OverBudget(Exception):
+    """A call ran longer than the instructions it was allowed (``Mcu.call(budget=...)``)."""
+
+
 def _size_py() -> ModuleType:
     """c/size.py, the one place the board's flags and configurations are written."""
     spec = importlib.util.spec_from_file_location("ups_c_size", C_DIR / "size.py")
@@ -217,9 +221,11 @@ class Mcu:
 
     # --- calls -------------------------------------------------------------------------------
 
-    def call(self, name: str, *args: int, wide: tuple[int, ...] = ()) -> int:
+    def call(self, name: str, *args: int, wide: tuple[int, ...] = (), budget: int = 0) -> int:
         """Call public function ``name`` with 32-bit ``args``; the positions in ``wide`` are
-        64-bit (an even register pair, or 8-byte aligned on the stack). Returns r0."""
+        64-bit (an even register pair, or 8-byte aligned on the stack). Returns r0. With a
+        ``budget`` of instructions, a call that would run longer is stopped and raises
+        ``OverBudget`` (its counts so far in ``counts``)."""
         a = self._a
         words: list[int] = []
         for k, value in enumerate(args):
@@ -244,7 +250,7 @@ class Mcu:
         self._pending = None
         self.counts = Counts()
         try:
-            self.uc.emu_start(self.symbols[name] | 1, RETURN)
+            self.uc.emu_start(self.symbols[name] | 1, RETURN, count=budget)
         except self._uc_mod.UcError as exc:
             if self.fault is None:
                 pc = int(self.uc.reg_read(a.UC_ARM_REG_PC))
@@ -252,6 +258,8 @@ class Mcu:
         self._settle(RETURN)
         if self.fault is not None:
             raise self.fault
+        if budget and int(self.uc.reg_read(a.UC_ARM_REG_PC)) & ~1 != RETURN:
+            raise OverBudget(f"{name} ran past {budget} instructions")
         if self.counts.instructions and self.counts.cycles > self.worst.get(name, Counts()).cycles:
             self.worst[name] = self.counts
         return int(self.uc.reg_read(a.UC_ARM_REG_R0))
