@@ -36,18 +36,14 @@ typedef struct {
 } ups_ecb_held_t;
 
 typedef struct {
-    ups_ecb_channel_t channels[UPS_ECB_CHANNELS];
-    ups_ecb_held_t held[UPS_ECB_HELD];
-    ups_ecb_stream_t streams[UPS_ECB_STREAMS > 0 ? UPS_ECB_STREAMS : 1]; /* admitted, sorted
-                                                                  by (etag, TxNode) */
+    /* the scalars first (short offsets on Thumb), then the tables */
+    uint32_t t_roster;       /* the roster's tokens were counted up to then */
+    uint32_t t_decl;         /* the DECLARE tokens were counted up to then */
+    uint32_t t_aged;         /* the channels were aged up to then */
+    uint16_t r_count;        /* Uses frames of this page */
+    uint8_t timed;           /* the three times above are set (the first tick) */
     uint8_t stream_count;
     uint8_t refused_valid;  /* the refusal below answers its declaration again */
-    uint8_t refused_decl[8]; /* the DECLARE data last refused (its TxNode: refuse[2]) */
-    uint8_t refuse[8];       /* the Refuse data last sent; refuse[0..1] == 0: none */
-    uint8_t spent[UPS_ECB_NODES]; /* DECLARE analyses each node entry asked lately (<= 20) */
-    /* the roster: Rosters waiting (one per node entry, oldest first) and the answer sent */
-    uint8_t r_cursor[UPS_ECB_NODES][8];
-    uint8_t r_queue[UPS_ECB_NODES]; /* node entries, oldest first */
     uint8_t r_waiting;       /* entries of r_queue */
     uint8_t r_active;        /* an answer is being sent */
     uint8_t r_asker;         /* its TxNode */
@@ -56,11 +52,16 @@ typedef struct {
     uint8_t r_last;          /* the last TxNode listed in that role; 0xFF: none */
     uint8_t r_tokens;        /* roster frames that may be sent back to back now (<= 48) */
     uint8_t r_uid[8];
-    uint16_t r_count;        /* Uses frames of this page */
-    uint32_t t_roster;       /* the roster's tokens were counted up to then */
-    uint32_t t_decl;         /* the DECLARE tokens were counted up to then */
-    uint32_t t_aged;         /* the channels were aged up to then */
-    uint8_t timed;           /* the three times above are set (the first tick) */
+    ups_ecb_channel_t channels[UPS_ECB_CHANNELS];
+    ups_ecb_held_t held[UPS_ECB_HELD];
+    ups_ecb_stream_t streams[UPS_ECB_STREAMS > 0 ? UPS_ECB_STREAMS : 1]; /* admitted, sorted
+                                                                  by (etag, TxNode) */
+    uint8_t refused_decl[8]; /* the DECLARE data last refused (its TxNode: refuse[2]) */
+    uint8_t refuse[8];       /* the Refuse data last sent; refuse[0..1] == 0: none */
+    uint8_t spent[UPS_ECB_NODES]; /* DECLARE analyses each node entry asked lately (<= 20) */
+    /* the roster: Rosters waiting (one per node entry, oldest first) and the answer sent */
+    uint8_t r_cursor[UPS_ECB_NODES][8];
+    uint8_t r_queue[UPS_ECB_NODES]; /* node entries, oldest first */
 } ups_ecb_bind_t;
 
 #endif /* UPS_ECB_BIND_H */

@@ -191,7 +191,7 @@ static unsigned stand_by(ups_ecb_t *ecb)
 static void announce(ups_ecb_t *ecb)
 {
     ecb->elect.t_serving = ecb->now;
-    ups_ecb__send_mgmt(ecb, SERVING_FIELD, ups_ecb__get64(ecb->instance), 1);
+    ups_ecb__send8(ecb, SERVING_FIELD, ecb->instance);
 }
 
 /** Serving in answer: now, or (within the gap of the last answer) once the gap has passed. The
@@ -351,7 +351,7 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
             verdict = candidate(ecb); /* no other CAN-ECB said Serving for 4 s */
         } else if (ups_ecb__since(now, el->t_probe) >= PROBE) {
             el->t_probe = now;
-            ups_ecb__send_mgmt(ecb, PROBE_FIELD, ups_ecb__get64(ecb->instance), 1);
+            ups_ecb__send8(ecb, PROBE_FIELD, ecb->instance);
         }
         break;
     default: break;

@@ -53,10 +53,8 @@ void ups_ecb__put64(uint8_t *out, uint64_t value);
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 /** Remove the first frame of the TX queue (it was sent). */
 void ups_ecb__pop(ups_ecb_t *ecb);
-/** Queue a CAN-ECB frame of TxNode 0x7F at priority 0 with the etag field @p field and 8 data
- *  bytes @p value (big-endian), or none when @p with_data is 0. */
-void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data);
-/** The same with the 8 data bytes @p data as they go on the wire, or none when NULL. */
+/** Queue a CAN-ECB frame of TxNode 0x7F at priority 0 with the etag field @p field and the 8
+ *  data bytes @p data as they go on the wire, or none when @p data is NULL. */
 void ups_ecb__send8(ups_ecb_t *ecb, unsigned field, const uint8_t *data);
 /** Milliseconds from @p then to @p now on the low 16 bits of the clock (valid up to 65 s). */
 static inline uint32_t ups_ecb__since16(uint32_t now, uint16_t then)

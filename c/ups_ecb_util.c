@@ -108,13 +108,6 @@ void ups_ecb__send8(ups_ecb_t *ecb, unsigned field, const uint8_t *data)
     ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, field), data, data != NULL ? 8u : 0u);
 }
 
-void ups_ecb__send_mgmt(ups_ecb_t *ecb, unsigned field, uint64_t value, int with_data)
-{
-    uint8_t data[8];
-    ups_ecb__put64(data, value);
-    ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, field), data, with_data ? 8u : 0u);
-}
-
 uint32_t ups_ecb__age(uint32_t now, uint32_t *then)
 {
     uint32_t age = ups_ecb__since(now, *then);
