@@ -7,7 +7,7 @@
  * for the publishers. A channel's age counts sixteenths of the lease since its last event
  * (ups_ecb__bind_tick ages every channel), so leases need no timestamps and survive the clock's
  * wraps. With the small bus's tables (16 nodes, 64 channels, 4 streams, 8 held requests) this
- * state is 1356 bytes (Cortex-M0+ and host alike), of which the channels take 1024.
+ * state is 1352 bytes (Cortex-M0+ and host alike), of which the channels take 1024.
  */
 #ifndef UPS_ECB_BIND_H
 #define UPS_ECB_BIND_H
