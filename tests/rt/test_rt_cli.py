@@ -226,7 +226,7 @@ def test_node_cycles_put_the_nodes_work_into_the_analysis(
         assert sent[name]["response_time_ms"] >= m["response_time_ms"] + 0.2 - 1e-9
     slow = _responses(capsys, "--node-cycles", "0,220000")  # 4.58 ms: the 5 ms deadlines miss
     assert not slow["9"]["schedulable"] and plain["9"]["schedulable"]
-    code, out, err = _run(capsys, str(SAE_CSV), "--node-cycles", "1652,2019")
+    code, out, _ = _run(capsys, str(SAE_CSV), "--node-cycles", "1652,2019")
     assert code == 0 and "the nodes' own work: 34.4 us to send (in J), 42.1 us to receive" in out
 
 
