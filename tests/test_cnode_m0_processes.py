@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from . import test_cnode_processes as host
+from .can_ecbs import KINDS
 from .procs import Proc
 
 pytest.importorskip("unicorn")
@@ -36,8 +37,9 @@ def m0(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     assert started, "the test started no ups c-node"
 
 
-def test_m0_image_and_python_tools_on_can(tmp_path: Path) -> None:
-    host.test_c_node_and_python_tools_on_can(tmp_path)
+@pytest.mark.parametrize("ecb", KINDS)  # [c]: a bus of microcontrollers' code only
+def test_m0_image_and_python_tools_on_can(tmp_path: Path, ecb: str) -> None:
+    host.test_c_node_and_python_tools_on_can(tmp_path, ecb)
 
 
 def test_join_storm_of_m0_images_and_python_nodes(tmp_path: Path) -> None:
@@ -45,4 +47,4 @@ def test_join_storm_of_m0_images_and_python_nodes(tmp_path: Path) -> None:
 
 
 def test_can_broker_restarts_with_a_fresh_database_no_wrong_delivery(tmp_path: Path) -> None:
-    host.test_can_broker_restarts_no_wrong_delivery(tmp_path, keep_db=False)
+    host.test_can_broker_restarts_no_wrong_delivery(tmp_path, keep_db=False, ecb="python")
