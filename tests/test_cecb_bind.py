@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+from tests.cecb_calls import Driver
 from tests.conformance._frames import (
     PUB_BIND,
     ROSTER,
@@ -38,14 +39,12 @@ from tests.conformance._frames import (
     RosterEnd,
     SubAt,
     Uses,
-    decode_id,
-    encode,
 )
 from tests.conformance._wire import RawNode, Wire
 from tests.procs import sanitizer_env
 from ups._canlink import CanLink
 from ups._cnode import build
-from ups.broker.c_ecb import COUNTERS, SOURCES, VARIANTS, CEcb, default_config, load
+from ups.broker.c_ecb import SOURCES, VARIANTS, CEcb
 
 ROOT = Path(__file__).resolve().parent.parent
 CLASS_FIRST = (0x0010, 0x3000, 0x3400, 0x3800, 0x3C00)  #: the first etag of each size class
@@ -250,60 +249,12 @@ async def test_declare_grant_refuse_and_the_state_across_a_restart(
 # --- call by call -----------------------------------------------------------------------------
 
 
-class Driver:
-    """One ups_ecb_t of ``variant``, its calls made with the time given explicitly."""
-
-    def __init__(self, variant: str, **cfg: Any) -> None:
-        self.lib = load(variant)
-        self.c = self.lib.lib
-        self.config = self.lib.config
-        self.state = ctypes.create_string_buffer(self.lib.size)
-        self.frame = self.lib.Frame()
-        conf = default_config(variant)
-        for name, value in cfg.items():
-            if name == "quota":
-                for c, q in enumerate(value):
-                    conf.quota[c] = q
-            else:
-                setattr(conf, name, value)
-        assert self.c.ups_ecb_init(self.state, ctypes.byref(conf), 0x1D) == 0
-        self.now = 0
-
-    def rx(self, frame: Any) -> list[Any]:
-        can_id, data = encode(frame)
-        self.frame.id, self.frame.flags, self.frame.len = can_id, 0x01, len(data)
-        ctypes.memmove(self.frame.data, data, len(data))
-        self.c.ups_ecb_rx(self.state, self.now, ctypes.byref(self.frame))
-        return self.take()
-
-    def tick(self, ms: int) -> list[Any]:
-        """Pass ``ms`` milliseconds, ticking every 10."""
-        out = []
-        for _ in range(0, ms, 10):
-            self.now = (self.now + 10) & 0xFFFFFFFF
-            self.c.ups_ecb_tick(self.state, self.now)
-            out += self.take()
-        return out
-
-    def take(self) -> list[Any]:
-        out = []
-        while frame := self.c.ups_ecb_tx_peek(self.state):
-            f = frame.contents
-            out.append(decode_id(int(f.id), bytes(f.data[: f.len])))
-            self.c.ups_ecb_tx_pop(self.state)
-        return out
-
-    def counters(self) -> dict[str, int]:
-        raw = self.lib.Counters.from_address(self.c.ups_ecb_counters(self.state))
-        return dict(zip(COUNTERS, (int(v) for v in raw), strict=True))
-
-
 def scenario_full_table_and_the_lease(variant: str) -> None:
     """Requests held in the recovery window (UPS_ECB_HELD of them), then every channel of the
     table filled; EtagsFull (channels_full) until the lease has passed for a channel nobody
     uses, which is then reclaimed; the clock wraps meanwhile; the blob keeps the tables."""
     # the quota is not what this fills (the host build has room for more than one's quota)
-    ecb = Driver(variant, lease_s=1, recovery_ms=300, quota=(0xFFFF,) * 5)
+    ecb = Driver(variant, step=10, lease_s=1, recovery_ms=300, quota=(0xFFFF,) * 5)
     ecb.now = 0xFFFFFE00  # the clock wraps in 0.5 s
     ecb.c.ups_ecb_start(ecb.state, ecb.now)
     ecb.take()
@@ -335,7 +286,7 @@ def scenario_full_table_and_the_lease(variant: str) -> None:
     # the blob's section round trip: the same tables in another CAN-ECB
     blob = ctypes.create_string_buffer(ecb.config["blob_max"])
     size = ecb.c.ups_ecb_save(ecb.state, blob, len(blob))
-    other = Driver(variant)
+    other = Driver(variant, step=10)
     assert other.c.ups_ecb_restore(other.state, blob, size) == 0
     uid = ctypes.c_uint64()
     tables = [

@@ -11,7 +11,6 @@ of the asan build (6 nodes)."""
 from __future__ import annotations
 
 import asyncio
-import ctypes
 import subprocess
 import sys
 from collections.abc import AsyncIterator
@@ -21,6 +20,7 @@ from typing import Any
 
 import pytest
 
+from tests import cecb_calls as calls
 from tests.conformance._frames import (
     PUB_BIND,
     SUB_BIND,
@@ -39,7 +39,6 @@ from tests.conformance._frames import (
     Stage,
     TxNodesFull,
     claim,
-    decode_id,
     encode,
     nibbles,
 )
@@ -47,7 +46,7 @@ from tests.conformance._wire import RawNode, Wire
 from tests.procs import sanitizer_env
 from ups._canlink import CanLink
 from ups._cnode import build
-from ups.broker.c_ecb import COUNTERS, SOURCES, VARIANTS, CEcb, default_config, load
+from ups.broker.c_ecb import SOURCES, VARIANTS, CEcb
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEED = 0xBBCCB9C002D5ED59  #: the worked example's channel UID
@@ -251,70 +250,8 @@ async def test_a_corrupt_blob_is_refused_and_the_nodes_claim_again(
 # --- call by call: a full table, the lease, the blob, a clock that wraps --------------------------
 
 
-class Driver:
-    """One ups_ecb_t of ``variant``, its calls made with the time given explicitly."""
-
-    def __init__(self, variant: str, **cfg: Any) -> None:
-        self.lib = load(variant)
-        self.c = self.lib.lib
-        self.config = self.lib.config
-        self.state = ctypes.create_string_buffer(self.lib.size)
-        self.frame = self.lib.Frame()
-        conf = default_config(variant)
-        for name, value in cfg.items():
-            setattr(conf, name, value)
-        assert self.c.ups_ecb_init(self.state, ctypes.byref(conf), 0x1D) == 0
-        self.now = 0
-
-    def start(self, now: int) -> list[Any]:
-        self.now = now
-        self.c.ups_ecb_start(self.state, now)
-        return self.take()
-
-    def rx(self, *frames: Any) -> list[Any]:
-        out = []
-        for frame in frames:
-            can_id, data = encode(frame)
-            self.frame.id, self.frame.flags, self.frame.len = can_id, 0x01, len(data)
-            ctypes.memmove(self.frame.data, data, len(data))
-            self.c.ups_ecb_rx(self.state, self.now, ctypes.byref(self.frame))
-            out += self.take()
-        return out
-
-    def tick(self, ms: int) -> list[Any]:
-        """Pass ``ms`` milliseconds, ticking every 5."""
-        out = []
-        for _ in range(0, ms, 5):
-            self.now = (self.now + 5) & 0xFFFFFFFF
-            self.c.ups_ecb_tick(self.state, self.now)
-            out += self.take()
-        return out
-
-    def take(self) -> list[Any]:
-        out = []
-        while frame := self.c.ups_ecb_tx_peek(self.state):
-            f = frame.contents
-            out.append(decode_id(int(f.id), bytes(f.data[: f.len])))
-            self.c.ups_ecb_tx_pop(self.state)
-        return out
-
-    def counters(self) -> dict[str, int]:
-        raw = self.lib.Counters.from_address(self.c.ups_ecb_counters(self.state))
-        return dict(zip(COUNTERS, (int(v) for v in raw), strict=True))
-
-    def nodes(self) -> dict[int, int]:
-        node_id = ctypes.c_uint64()
-        out = {}
-        for i in range(self.config["nodes"]):
-            t = self.c.ups_ecb_node(self.state, i, ctypes.byref(node_id))
-            if t >= 0:
-                out[node_id.value] = t
-        return out
-
-    def save(self) -> bytes:
-        blob = ctypes.create_string_buffer(self.config["blob_max"])
-        n = self.c.ups_ecb_save(self.state, blob, len(blob))
-        return blob.raw[:n]
+class Driver(calls.Driver):
+    """The call-by-call driver (tests/cecb_calls.py), with a joiner's census."""
 
     def census(self, node_id: int) -> list[Any]:
         """A Knock, the Stages of ``node_id`` for the Census, and the time to read them."""
