@@ -24,9 +24,9 @@ from pathlib import Path
 import pytest
 
 from ups import Node, Subscription
-from ups._tcpface import query_status
 
 from .procs import Proc, private_multicast_bus
+from .test_two_ecbs_processes import _one_serves, _roles, _started
 
 pytestmark = pytest.mark.netns
 
@@ -34,7 +34,6 @@ RUNS = 60 if os.environ.get("UPS_DEEP") == "1" else 20
 AT_ONCE = 10  #: the runs mostly wait (their drawn delays, the takeover)
 JOIN = 5.0  #: a node joins within this long, with two CAN-ECBs on the bus
 RECOVERIES = (0.2, 0.5, 2.0)  #: a recovery under a second makes a hasty newcomer (protocol.md)
-SETTLE = 15.0  #: exactly one serves by then (docs/protocol.md, "one serving": 14 s)
 TAKEOVER = 4.0  #: docs/protocol.md, Timers: a standing-by CAN-ECB takes over after this
 FLOWS = 20.0  #: events reach both subscribers by then: a bound for the test only
 KINDS = {"python": ("can-broker", "--db", ".db"), "c": ("c-ecb", "--state", ".c-ecb")}
@@ -64,28 +63,6 @@ def _ecb(kind: str, bus: str, state: Path, recovery: float, port: int) -> tuple[
         "--recovery", str(recovery), "--status", status,
     )  # fmt: skip
     return proc, status
-
-
-async def _started(proc: Proc) -> None:
-    await asyncio.to_thread(proc.wait_for_line, "CAN-ECB on")
-
-
-async def _roles(statuses: list[str]) -> list[bool]:
-    """Whether each CAN-ECB stands by, as its status port says."""
-    return [bool((await query_status(s, 5.0))["stats"]["standby"]) for s in statuses]
-
-
-async def _one_serves(statuses: list[str]) -> int:
-    """The index of the one that serves, once exactly one does (the other stands by)."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + SETTLE
-    while True:
-        standby = await _roles(statuses)
-        if standby.count(False) == 1:
-            return standby.index(False)
-        if loop.time() > deadline:
-            raise AssertionError(f"not exactly one serving after {SETTLE} s: standby={standby}")
-        await asyncio.sleep(0.1)  # polling the status ports: a bounded wait for a state
 
 
 async def _flow(pub: Node, subs: dict[str, Subscription], names: dict[str, str]) -> None:
