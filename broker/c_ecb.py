@@ -465,37 +465,13 @@ async def serve(
     ``status`` (HOST:PORT) its tables served to ``ups status`` and ``ups ls``, with ``metrics``
     its counters to Prometheus). The blob is written when the run ends. Returns 1 if writing
     the state file failed during the run, else 0."""
-    from ups._metrics import Reading, serving_metrics
+    from ._serving import run
 
-    from ._metrics import can_ecb_reading
-    from ._status import StatusServer
+    def make(link: CanLink) -> CEcb:
+        return CEcb(link, state_path, bitrate=bitrate, **options)
 
-    link = CanLink.open(bus)
-    try:
-        ecb = CEcb(link, state_path, bitrate=bitrate, **options)
-    except BaseException:
-        link.close()
-        raise
-    server = None if status is None else StatusServer(status, ecb.status)
-
-    def reading() -> Reading:
-        counters = None if server is None else server.counters
-        return can_ecb_reading(ecb.stats(), ecb.link.stats(), counters)
-
-    try:
-        if server is not None:
-            await server.start()
-        async with serving_metrics(metrics, "c-ecb", reading):
-            await ecb.start()
-            await asyncio.Event().wait()
-    except asyncio.CancelledError:  # SIGTERM or SIGINT: the way to stop
-        pass
-    finally:
-        if server is not None:
-            await server.close()
-        ecb.close()
-        link.close()
-        if ecb.storage_errors:
-            log.error("the state file %s could not be written %d times", state_path,
-                      ecb.storage_errors)  # fmt: skip
+    ecb = await run(bus, make, "c-ecb", status, metrics)
+    if ecb.storage_errors:
+        log.error("the state file %s could not be written %d times", state_path,
+                  ecb.storage_errors)  # fmt: skip
     return 1 if ecb.storage_errors else 0

@@ -460,34 +460,10 @@ async def serve(
     Returns 1 if the database failed during the run, else 0. Standing by for another CAN-ECB
     is logged; it serves again when the other goes silent.
     """
-    from ups._metrics import Reading, serving_metrics
+    from ._serving import run
 
-    from ._metrics import can_ecb_reading
-    from ._status import StatusServer
+    def make(link: CanLink) -> CanEcb:
+        return CanEcb(link, db_path, bitrate=bitrate, **options)  # type: ignore[arg-type]
 
-    link = CanLink.open(bus)
-    try:
-        ecb = CanEcb(link, db_path, bitrate=bitrate, **options)  # type: ignore[arg-type]
-    except BaseException:
-        link.close()
-        raise
-    server = None if status is None else StatusServer(status, ecb.status)
-
-    def reading() -> Reading:
-        counters = None if server is None else server.counters
-        return can_ecb_reading(ecb.stats(), ecb.link.stats(), counters)
-
-    try:
-        if server is not None:
-            await server.start()
-        async with serving_metrics(metrics, "can-broker", reading):
-            await ecb.start()
-            await asyncio.Event().wait()
-        return 0
-    except asyncio.CancelledError:
-        return 1 if ecb.counters["storage_errors"] else 0
-    finally:
-        if server is not None:
-            await server.close()
-        ecb.close()
-        link.close()
+    ecb = await run(bus, make, "can-broker", status, metrics)
+    return 1 if ecb.counters["storage_errors"] else 0
