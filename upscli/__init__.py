@@ -34,7 +34,7 @@ from ups._cliargs import (
 )
 from ups._errors import ConfigError, UpsError
 
-from ._argparsing import Unbuilt, Version, add_metrics, unrecognized
+from ._argparsing import Unbuilt, Version, add_ecb_service, add_metrics, unrecognized
 
 EXIT_USAGE = 2
 #: log at INFO; the other commands at WARNING
@@ -117,16 +117,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         help="seconds after which a silent node's TxNode, or an unused etag, may be given to "
         "another when none is free (default 86400)",
     )  # fmt: skip
-    cmd.add_argument(
-        "--bitrate", type=positive_int, default=500_000,
-        help="the bus's bit rate, for admitting real-time channels (default 500000)",
-    )  # fmt: skip
-    cmd.add_argument(
-        "--status", metavar="HOST:PORT", default=None,
-        help="also serve the tables (nodes, etags, who publishes and subscribes) there, for "
-        "'ups status' and 'ups ls --can BUS --ecb HOST:PORT' (default: not served)",
-    )  # fmt: skip
-    add_metrics(cmd)
+    add_ecb_service(cmd)
     cmd.set_defaults(run=_run_can_broker)
 
     cmd = command("broker", help="run a TCP-ECB (the registry of a TCP/IP network)")

@@ -63,3 +63,20 @@ def add_metrics(cmd: argparse.ArgumentParser) -> None:
         from ups._metrics import add_metrics as add
 
         add(cmd)
+
+
+def add_ecb_service(cmd: argparse.ArgumentParser) -> None:
+    """What both CAN-ECB daemons (``ups can-broker``, ``ups c-ecb``) take besides their own
+    options: the bus's bit rate, the status port and the metrics."""
+    from ups._cliargs import positive_int
+
+    cmd.add_argument(
+        "--bitrate", type=positive_int, default=500_000,
+        help="the bus's bit rate, for admitting real-time channels (default 500000)",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--status", metavar="HOST:PORT", default=None,
+        help="also serve the tables (nodes, etags, who publishes and subscribes) there, for "
+        "'ups status' and 'ups ls --can BUS --ecb HOST:PORT' (default: not served)",
+    )  # fmt: skip
+    add_metrics(cmd)

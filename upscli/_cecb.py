@@ -7,9 +7,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from ups._cliargs import add_can, positive_int
+from ups._cliargs import add_can
 
-from ._argparsing import add_metrics
+from ._argparsing import add_ecb_service
 
 
 def _recovery_arg(text: str) -> float:
@@ -36,21 +36,12 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
         "(default 2)",
     )  # fmt: skip
     cmd.add_argument(
-        "--bitrate", type=positive_int, default=500_000,
-        help="the bus's bit rate, for admitting real-time channels (default 500000)",
-    )  # fmt: skip
-    cmd.add_argument(
-        "--status", metavar="HOST:PORT", default=None,
-        help="also serve the tables (nodes, etags, who publishes and subscribes) there, for "
-        "'ups status' and 'ups ls --can BUS --ecb HOST:PORT' (default: not served)",
-    )  # fmt: skip
-    cmd.add_argument(
         "--build", choices=("full", "asan"), default="full",
         help="the library's configuration: full (127 nodes, 2048 channels) or asan (small "
         "tables, AddressSanitizer and UndefinedBehaviorSanitizer: run with "
         "LD_PRELOAD=$(cc -print-file-name=libasan.so))",
     )  # fmt: skip
-    add_metrics(cmd)
+    add_ecb_service(cmd)
     cmd.set_defaults(run=_run_c_ecb)
 
 
