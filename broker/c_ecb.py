@@ -1,5 +1,5 @@
-"""libups-ecb, the CAN-ECB in C (``c/ups_ecb.h``), from Python: its ctypes binding and the loop a
-microcontroller would run it in, on any python-can bus.
+"""libups-ecb, the CAN-ECB in C (``c/ups_ecb.h``), from Python: the loop a microcontroller
+would run it in, on any python-can bus, over one of two backends.
 
 ``CEcb`` has the interface of the Python ``CanEcb`` that the tests and ``serve`` use (``start``,
 ``close``, ``instance``, ``txnodes``, ``etags``, ``stats``, ``status``, ``healthy``,
@@ -10,139 +10,123 @@ link receives to ``ups_ecb_rx`` (not its own: a controller does not hear itself)
 before it sends the frames queued since, as firmware writes its flash. At start the blob is
 given back with ``ups_ecb_restore``; a refused one is logged and kept aside as ``.bad``.
 
-The library is built on first use with ``make -C c`` (``ups._cnode.build``): ``full``
-(``libups-ecb.so``, the tables of a full bus with room for a node id's
-whole quota of channels) or ``asan`` (``libups-ecb-asan.so``, small tables,
-AddressSanitizer: load it with ``LD_PRELOAD`` of libasan).
+The loop calls the library through a ``Backend`` (one method a call of ``c/ups_ecb.h``), of
+``target``:
+
+- ``host``: the library compiled for this machine, through ctypes (``broker/_cecb_lib.py``,
+  builds ``full`` and ``asan``);
+- ``m0``: the Cortex-M0+ image a board flashes, in an emulator (``ups/_armecb.py``, builds
+  ``full``, the ecb-full image of a bus of 127 nodes, and ``small``). A call that faults there
+  (an unaligned access, one outside the image's memory, a write to flash) or runs past its
+  budget of instructions raises one of the backend's ``errors``: the CAN-ECB then stops
+  (``halted``), as a board would reset, sending and writing nothing more.
 """
 
 from __future__ import annotations
 
 import asyncio
-import ctypes
 import fcntl
 import logging
 import os
 import secrets
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import can
 
 from ups._canlink import CanLink
-from ups._cnode import build, now_ms
+from ups._cnode import now_ms
 from ups._errors import ConfigError
 
+from ._cecb_lib import (
+    CONFIG,
+    COUNTERS,
+    FRAME_BRS,
+    FRAME_ERR,
+    FRAME_EXT,
+    FRAME_FD,
+    FRAME_RTR,
+    NOTE_CHANNELS,
+    NOTE_ROLE,
+    NOTE_STATE,
+    ROLES,
+    SOURCES,
+    VARIANTS,
+    Config,
+    HostEcb,
+    Library,
+    default_config,
+    load,
+)
 from ._quota import QUOTA
+
+__all__ = [
+    "CONFIG", "COUNTERS", "FRAME_BRS", "FRAME_ERR", "FRAME_EXT", "FRAME_FD", "FRAME_RTR",
+    "NOTE_CHANNELS", "NOTE_ROLE", "NOTE_STATE", "ROLES", "SOURCES", "TARGETS", "VARIANTS",
+    "Backend", "CEcb", "Config", "Library", "backend", "default_config", "load", "prepare",
+    "serve", "write_atomically",
+]  # fmt: skip
 
 log = logging.getLogger("ups.c_ecb")
 
 RECOVERY = 2.0  #: seconds after Hello the CAN-ECB listens and adopts (CanEcb's)
 LEASE = 86_400.0  #: seconds a TxNode or etag unused may be reclaimed (CanEcb's)
 TICK = 0.001  #: seconds between ups_ecb_tick calls
-
-VARIANTS = {"full": "libups-ecb.so", "asan": "libups-ecb-asan.so"}
-SOURCES = ("ups.h", "ups_ecb.h", "ups_ecb_internal.h", "ups_ecb_rt.h", "ups_ecb_join.h",
-           "ups_ecb_bind.h", "ups_ecb_elect.h", "ups_ecb_util.c", "ups_ecb_rt.c", "ups_ecb.c",
-           "ups_ecb_join.c", "ups_ecb_bind.c", "ups_ecb_elect.c", "host/ups_ecb_host.c",
-           "Makefile")  # fmt: skip
-
-# ups.h's and ups_ecb.h's constants (tests/test_cecb_binding.py checks them against the headers)
-FRAME_EXT, FRAME_FD, FRAME_BRS, FRAME_RTR, FRAME_ERR = 0x01, 0x02, 0x04, 0x08, 0x10
-NOTE_STATE, NOTE_ROLE, NOTE_CHANNELS = 0x01, 0x02, 0x04
-ROLES = ("stopped", "candidate", "serving", "standby")  #: UPS_ECB_STOPPED ... (CanEcb's names)
-#: ups_ecb_counters_t's fields, in order
-COUNTERS = (
-    "joined", "bound", "requests", "malformed", "foreign", "refused", "admitted", "adopted",
-    "conflicts", "foreign_ecb_frames", "unassigned", "deferred", "limited", "reclaimed",
-    "offers_withdrawn", "moved", "late_claims", "quota_hit", "unanswered_takeovers",
-    "census_knocks", "census_censuses", "census_stages", "census_late_stages", "census_queries",
-    "census_reopened", "census_incomplete", "census_cut", "census_retries",
-    "tx_dropped", "nodes_full", "channels_full", "streams_full", "held_dropped", "watched_full",
-    "queries_waiting", "blob_refused", "rosters", "roster_frames", "roster_replaced",
-)  # fmt: skip
-#: ups_ecb_host_config's answers, in order
-CONFIG = ("nodes", "channels", "streams", "queries", "tx_depth", "held", "watched",
-          "counter_bytes", "blob_max", "mtu")  # fmt: skip
+TARGETS = {"host": ("full", "asan"), "m0": ("full", "small")}  #: target -> its builds
 
 
-class Config(ctypes.Structure):
-    """ups_ecb_config_t."""
+class Backend(Protocol):
+    """One ``ups_ecb_t`` and the calls of ``c/ups_ecb.h`` on it (``HostEcb``, ``ArmEcb``).
+    Configurations are ``ups_ecb_config_t``'s bytes (``Config``), frames (id, flags, data)."""
 
-    _fields_ = [("bitrate", ctypes.c_uint32), ("fd", ctypes.c_uint8),
-                ("recovery_ms", ctypes.c_uint16), ("lease_s", ctypes.c_uint32),
-                ("max_channels", ctypes.c_uint16), ("quota", ctypes.c_uint16 * 5)]  # fmt: skip
+    name: str  #: what runs, for the log
+    config: dict[str, int]  #: the table sizes, by ``CONFIG``'s names
 
+    @property
+    def errors(self) -> tuple[type[Exception], ...]:
+        """What a call raises when the code stopped (none: it never stops)."""
 
-class Library:
-    """One compiled libups-ecb: its functions, configuration and frame type."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.lib = lib = ctypes.CDLL(str(path))
-        p, u32, u64, i = ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint64, ctypes.c_int
-        lib.ups_ecb_host_size.restype, lib.ups_ecb_host_size.argtypes = ctypes.c_size_t, []
-        lib.ups_ecb_host_config.restype, lib.ups_ecb_host_config.argtypes = ctypes.c_long, [i]
-        self.size = int(lib.ups_ecb_host_size())
-        self.config = {n: int(lib.ups_ecb_host_config(i)) for i, n in enumerate(CONFIG)}
-
-        class Frame(ctypes.Structure):  # ups_frame_t, of this build's UPS_MTU
-            _fields_ = [("id", ctypes.c_uint32), ("flags", ctypes.c_uint8),
-                        ("len", ctypes.c_uint8),
-                        ("data", ctypes.c_uint8 * self.config["mtu"])]  # fmt: skip
-
-        self.Frame = Frame
-        counter = {2: ctypes.c_uint16, 4: ctypes.c_uint32, 8: ctypes.c_uint64}
-        self.Counters = counter[self.config["counter_bytes"]] * len(COUNTERS)
-        f, size, u64p = ctypes.POINTER(Frame), ctypes.c_size_t, ctypes.POINTER(u64)
-        signatures: dict[str, tuple[Any, list[Any]]] = {
-            "ups_ecb_default_config": (None, [ctypes.POINTER(Config)]),
-            "ups_ecb_init": (i, [p, ctypes.POINTER(Config), u64]),
-            "ups_ecb_restore": (i, [p, ctypes.c_char_p, size]),
-            "ups_ecb_start": (None, [p, u32]),
-            "ups_ecb_rx": (None, [p, u32, f]),
-            "ups_ecb_tick": (None, [p, u32]),
-            "ups_ecb_tx_peek": (f, [p]),
-            "ups_ecb_tx_pop": (None, [p]),
-            "ups_ecb_notes": (ctypes.c_uint, [p]),
-            "ups_ecb_save": (size, [p, ctypes.c_char_p, size]),
-            "ups_ecb_role": (i, [p]),
-            "ups_ecb_counters": (p, [p]),
-            "ups_ecb_node": (i, [p, i, u64p]),
-            "ups_ecb_channel": (i, [p, i, u64p]),
-            "ups_ecb_channel_use": (i, [p, i, ctypes.c_uint]),
-        }
-        for name, (restype, argtypes) in signatures.items():
-            fn = getattr(lib, name)
-            fn.restype = restype
-            fn.argtypes = argtypes
+    def default_config(self) -> bytes: ...
+    def init(self, cfg: bytes, instance: int) -> int: ...
+    def restore(self, blob: bytes) -> int: ...
+    def start(self, now: int) -> None: ...
+    def rx(self, now: int, can_id: int, flags: int, data: bytes) -> None: ...
+    def tick(self, now: int) -> None: ...
+    def notes(self) -> int: ...
+    def pop_tx(self) -> tuple[int, int, bytes] | None: ...
+    def save(self) -> bytes: ...
+    def role(self) -> int: ...
+    def counters(self) -> tuple[int, ...]: ...
+    def node(self, i: int) -> tuple[int, int]: ...
+    def channel(self, i: int) -> tuple[int, int]: ...
+    def channel_use(self, i: int, txnode: int) -> int: ...
 
 
-_loaded: dict[Path, Library] = {}
+def backend(target: str = "host", variant: str = "full") -> Backend:
+    """A fresh ``ups_ecb_t`` of ``variant`` (one of ``TARGETS[target]``) on ``target``."""
+    if variant not in TARGETS.get(target, ()):
+        builds = ", ".join(TARGETS.get(target, ())) or "none"
+        raise ConfigError(f"the C CAN-ECB's builds on {target!r} are {builds}, not {variant!r}")
+    if target == "m0":
+        from ups._armecb import ArmEcb
+
+        return ArmEcb(variant)
+    return HostEcb(variant)
 
 
-def load(variant: str = "full") -> Library:
-    """The library of ``variant`` (built if missing or older than its sources)."""
-    path = build(variant, targets=VARIANTS, sources=SOURCES)
-    if variant == "asan" and not _asan_loaded():  # else ASan ends the process with no error
-        raise ConfigError("the asan build needs the AddressSanitizer runtime loaded first: run "
-                          "with LD_PRELOAD=$(cc -print-file-name=libasan.so)")  # fmt: skip
-    if path not in _loaded:
-        _loaded[path] = Library(path)
-    return _loaded[path]
+def prepare(target: str = "host", variant: str = "full") -> None:
+    """Build what ``backend(target, variant)`` runs (or say why it cannot be), before a bus is
+    opened."""
+    if target == "m0":
+        from ups._armecb import BUILDS
+        from ups._armnode import build_image
 
-
-def _asan_loaded() -> bool:
-    maps = Path("/proc/self/maps")
-    return "libasan" in (maps.read_text() if maps.exists() else os.environ.get("LD_PRELOAD", ""))
-
-
-def default_config(variant: str = "full") -> Config:
-    """ups_ecb_default_config() of ``variant``."""
-    cfg = Config()
-    load(variant).lib.ups_ecb_default_config(ctypes.byref(cfg))
-    return cfg
+        if variant in BUILDS:
+            build_image(BUILDS[variant])
+        return
+    if variant in VARIANTS:
+        load(variant)
 
 
 def write_atomically(path: Path, data: bytes) -> None:
@@ -164,10 +148,12 @@ def write_atomically(path: Path, data: bytes) -> None:
 
 
 class CEcb:
-    """libups-ecb serving the bus of ``link``, its durable state in ``state_path``.
+    """libups-ecb serving the bus of ``link``, its durable state in ``state_path``, on
+    ``target`` ("host" or "m0") built as ``variant``.
 
     ``max_channels`` None: the library's default (its table's size). ``on_sent(can_id, data)``,
     when set, is called with every frame sent (after the blob was written, if it had to be).
+    ``on_halt``, when set, is called once if the code stops (``halted`` says why).
     """
 
     def __init__(
@@ -181,20 +167,16 @@ class CEcb:
         max_channels: int | None = None,
         quota: tuple[int, int, int, int, int] = QUOTA,
         variant: str = "full",
+        target: str = "host",
     ) -> None:
         self.link = link
         self.state_path = Path(state_path)
         self.variant = variant
-        self._lib = load(variant)
-        self._c = self._lib.lib
-        self.config = dict(self._lib.config)
-        self._buf = ctypes.create_string_buffer(self._lib.size)
-        self._ecb = ctypes.cast(self._buf, ctypes.c_void_p)
-        self._frame = self._lib.Frame()
-        self._blob = ctypes.create_string_buffer(self.config["blob_max"])
+        self._c = backend(target, variant)
+        self.config = dict(self._c.config)
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
         self.instance = secrets.randbits(64)
-        cfg = default_config(variant)
+        cfg = Config.from_buffer_copy(self._guarded_at_start(self._c.default_config))
         cfg.bitrate = bitrate
         cfg.fd = 1 if link.fd else 0
         cfg.recovery_ms = _ranged("recovery", round(recovery * 1000), 100, 10_000, "ms")
@@ -203,7 +185,7 @@ class CEcb:
             cfg.max_channels = _ranged("max_channels", max_channels, 1, 0xFFFF, "")
         for k, q in enumerate(quota):
             cfg.quota[k] = _ranged("quota", q, 0, 0xFFFF, "")
-        if self._c.ups_ecb_init(self._ecb, ctypes.byref(cfg), self.instance) < 0:
+        if self._guarded_at_start(self._c.init, bytes(cfg), self.instance) < 0:
             raise ConfigError(f"ups_ecb_init refused the configuration (recovery {recovery} s, "
                               f"bitrate {bitrate}, lease {lease} s)")  # fmt: skip
         self.bitrate = bitrate
@@ -212,6 +194,8 @@ class CEcb:
         self.storage_error: str | None = None
         self.restored = False  #: the state file's blob was taken back at start
         self.on_sent: Callable[[int, bytes], None] | None = None
+        self.on_halt: Callable[[], None] | None = None
+        self.halted: str | None = None  #: why the code stopped (a fault of the image)
         self._saved: bytes | None = None
         self._timer: asyncio.TimerHandle | None = None
         self._started = False
@@ -219,40 +203,55 @@ class CEcb:
         self._role = 0
         self._lock_fd = -1
 
+    def _guarded_at_start(self, call: Callable[..., Any], *args: Any) -> Any:
+        """``call(*args)``, a stop of the code a ConfigError (nothing runs yet to stop)."""
+        try:
+            return call(*args)
+        except self._c.errors as exc:
+            raise ConfigError(f"the CAN-ECB's code stopped at start: {exc}") from exc
+
     # --- life cycle ------------------------------------------------------------------------
 
     async def start(self) -> None:
         """Take the saved blob back, then listen on the bus and say Hello (ups_ecb_start).
         ConfigError when the state file can be neither read nor written."""
         self._lock()
-        self._restore()
-        self._save(initial=True)  # an unwritable state file is an error now, not on a join
+        self._guarded_at_start(self._restore)
+        # an unwritable state file is an error now, not on a join
+        self._guarded_at_start(lambda: self._save(initial=True))
         self.link.add_handler(self._handler, None)
         self.link.start()
         self._started = True
-        self._c.ups_ecb_start(self._ecb, now_ms())
-        self._after()
+        # the tables counted before the Hello: not between it and the frames that follow
+        tables = len(self.txnodes), len(self.etags)
+        self._step(self._c.start, now_ms())
+        if self.halted is not None:
+            return
         self._timer = asyncio.get_running_loop().call_later(TICK, self._tick)
         log.info(
             "CAN-ECB on %s (%s, in C): %d TxNodes, %d etags bound (%s), instance %016x",
-            self.link.channel_info, self._lib.path.name, len(self.txnodes), len(self.etags),
-            self.state_path, self.instance,
+            self.link.channel_info, self._c.name, *tables, self.state_path, self.instance,
         )  # fmt: skip
 
     def close(self) -> None:
-        """Stop serving the bus (the link stays open) and write the blob. Safe to call twice."""
+        """Stop serving the bus (the link stays open) and write the blob (not after the code
+        stopped: the file keeps the last blob written, as a board's flash). Safe to call
+        twice."""
         if self._closed:
             return
         self._closed = True
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
-        self.link.remove_handler(self._handler)
-        if self._started:
+        self._stop_serving()
+        if self._started and self.halted is None:
             self._save()
         if self._lock_fd >= 0:
             os.close(self._lock_fd)
             self._lock_fd = -1
+
+    def _stop_serving(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.link.remove_handler(self._handler)
 
     def _lock(self) -> None:
         """Hold ``STATE.lock`` (one CAN-ECB per state file), or fail naming the file."""
@@ -277,7 +276,7 @@ class CEcb:
             return
         except OSError as exc:
             raise ConfigError(f"cannot read the state file {path}: {exc.strerror}") from exc
-        if self._c.ups_ecb_restore(self._ecb, blob, len(blob)) >= 0:
+        if self._c.restore(blob) >= 0:
             self.restored = True
             self._saved = blob
             return
@@ -293,7 +292,7 @@ class CEcb:
         """Write the blob if it changed; False (counted, logged) when the write failed."""
         blob = self.blob()
         if not blob:
-            error = f"ups_ecb_save wrote nothing (into {len(self._blob)} bytes)"
+            error = f"ups_ecb_save wrote nothing (into {self.config['blob_max']} bytes)"
         elif blob == self._saved and not initial:
             return True
         else:
@@ -318,37 +317,46 @@ class CEcb:
 
     def _tick(self) -> None:
         self._timer = asyncio.get_running_loop().call_later(TICK, self._tick)
-        self._c.ups_ecb_tick(self._ecb, now_ms())
-        self._after()
+        self._step(self._c.tick, now_ms())
 
     def _on_frame(self, msg: can.Message) -> None:
-        frame = self._frame
-        mtu = self.config["mtu"]
-        data = bytes(msg.data)[:mtu]  # a controller of this MTU keeps no more of a frame
-        frame.id = msg.arbitration_id & 0x1FFFFFFF
-        frame.flags = (
+        data = bytes(msg.data)[: self.config["mtu"]]  # a controller of this MTU keeps no more
+        flags = (
             (FRAME_EXT if msg.is_extended_id else 0)
             | (FRAME_FD if msg.is_fd else 0)
             | (FRAME_BRS if msg.bitrate_switch else 0)
             | (FRAME_RTR if msg.is_remote_frame else 0)
             | (FRAME_ERR if msg.is_error_frame else 0)
         )
-        frame.len = len(data)
-        ctypes.memmove(frame.data, data, len(data))
-        self._c.ups_ecb_rx(self._ecb, now_ms(), ctypes.byref(frame))
-        self._after()
+        self._step(self._c.rx, now_ms(), msg.arbitration_id & 0x1FFFFFFF, flags, data)
+
+    def _step(self, call: Callable[..., None], *args: Any) -> None:
+        """One call of the library, then what it left to do; a stop of the code halts the
+        CAN-ECB."""
+        if self.halted is not None:
+            return
+        try:
+            call(*args)
+            self._after()
+        except self._c.errors as exc:
+            self._halt(str(exc))
+
+    def _halt(self, why: str) -> None:
+        """The code stopped (as a board's would, to reset): nothing more is sent or written."""
+        self.halted = why
+        self._stop_serving()
+        log.error("the CAN-ECB's code stopped (%s): %s", self._c.name, why)
+        if self.on_halt is not None:
+            self.on_halt()
 
     def _after(self) -> None:
         """What a call left to do: the blob first (on NOTE_STATE), then the frames."""
-        notes = int(self._c.ups_ecb_notes(self._ecb))
+        notes = self._c.notes()
         if notes & NOTE_ROLE:
             self._role_changed()
         durable = not notes & NOTE_STATE or self._save()
-        c = self._c
-        while frame := c.ups_ecb_tx_peek(self._ecb):
-            f = frame.contents
-            can_id, flags, data = int(f.id), int(f.flags), bytes(f.data[: f.len])
-            c.ups_ecb_tx_pop(self._ecb)
+        while (frame := self._c.pop_tx()) is not None:
+            can_id, flags, data = frame
             if not durable:  # what a reset would forget is not announced: the asker retries
                 continue
             self.link.send(can_id, data, self._handler, fd=bool(flags & FRAME_FD))
@@ -356,7 +364,7 @@ class CEcb:
                 self.on_sent(can_id, data)
 
     def _role_changed(self) -> None:
-        role = int(self._c.ups_ecb_role(self._ecb))
+        role = self._c.role()
         before, self._role = self._role, role
         if ROLES[role] == "standby":
             log.error("another CAN-ECB already serves this bus: this CAN-ECB stands by and "
@@ -369,7 +377,7 @@ class CEcb:
 
     @property
     def role(self) -> str:
-        return ROLES[int(self._c.ups_ecb_role(self._ecb))]
+        return ROLES[self._c.role()]
 
     @property
     def standby(self) -> bool:
@@ -378,18 +386,18 @@ class CEcb:
 
     @property
     def healthy(self) -> bool:
-        """False while writing the state fails or another CAN-ECB serves the bus."""
-        return self.storage_error is None and not self.standby
+        """False while writing the state fails or another CAN-ECB serves the bus, and once the
+        code stopped."""
+        return self.halted is None and self.storage_error is None and not self.standby
 
     @property
     def txnodes(self) -> dict[int, int]:
         """node id -> TxNode, every assignment of the tables."""
         out: dict[int, int] = {}
-        node_id = ctypes.c_uint64()
         for i in range(self.config["nodes"]):
-            txnode = int(self._c.ups_ecb_node(self._ecb, i, ctypes.byref(node_id)))
+            txnode, node_id = self._c.node(i)
             if txnode >= 0:
-                out[node_id.value] = txnode
+                out[node_id] = txnode
         return out
 
     @property
@@ -399,22 +407,19 @@ class CEcb:
 
     def _channels(self) -> list[tuple[int, int, int]]:
         out = []
-        uid = ctypes.c_uint64()
         for i in range(self.config["channels"]):
-            etag = int(self._c.ups_ecb_channel(self._ecb, i, ctypes.byref(uid)))
+            etag, uid = self._c.channel(i)
             if etag >= 0:
-                out.append((i, uid.value, etag))
+                out.append((i, uid, etag))
         return out
 
     def blob(self) -> bytes:
         """What ups_ecb_save() writes now (empty: it wrote nothing)."""
-        n = int(self._c.ups_ecb_save(self._ecb, self._blob, len(self._blob)))
-        return self._blob.raw[:n]
+        return self._c.save()
 
     def counters(self) -> dict[str, int]:
         """ups_ecb_counters(), by name."""
-        raw = self._lib.Counters.from_address(self._c.ups_ecb_counters(self._ecb))
-        return dict(zip(COUNTERS, (int(v) for v in raw), strict=True))
+        return dict(zip(COUNTERS, self._c.counters(), strict=True))
 
     def stats(self) -> dict[str, object]:
         return {
@@ -434,10 +439,10 @@ class CEcb:
         """The tables as ``ups status`` and ``ups ls`` show them (CanEcb.status()'s shape)."""
         txnodes = self.txnodes
         held = sorted(set(txnodes.values()))
-        use = self._c.ups_ecb_channel_use
+        use = self._c.channel_use
         channels = []
         for i, uid, etag in sorted(self._channels(), key=lambda c: c[2]):
-            uses = {t: int(use(self._ecb, i, t)) for t in held}
+            uses = {t: use(i, t) for t in held}
             channels.append({
                 "uid": f"0x{uid:016x}", "etag": f"0x{etag:04x}",
                 "publishers": [f"0x{t:02x}" for t in held if uses[t] & 2],
@@ -461,17 +466,32 @@ async def serve(
     bus: str, state_path: str | Path, bitrate: int = 500_000, status: str | None = None,
     metrics: str | None = None, **options: Any,
 ) -> int:  # fmt: skip
-    """Run libups-ecb as the CAN-ECB of ``bus`` until cancelled (``CanEcb``'s ``serve``: with
+    """Run libups-ecb (``options``: ``CEcb``'s, ``target`` and ``variant`` among them) as the
+    CAN-ECB of ``bus`` until cancelled or until its code stops (``CanEcb``'s ``serve``: with
     ``status`` (HOST:PORT) its tables served to ``ups status`` and ``ups ls``, with ``metrics``
-    its counters to Prometheus). The blob is written when the run ends. Returns 1 if writing
-    the state file failed during the run, else 0."""
+    its counters to Prometheus). The blob is written when the run ends, unless the code
+    stopped. Returns 1 if the code stopped or writing the state file failed during the run,
+    else 0."""
     from ._serving import run
 
-    def make(link: CanLink) -> CEcb:
-        return CEcb(link, state_path, bitrate=bitrate, **options)
+    halted = asyncio.Event()
 
-    ecb = await run(bus, make, "c-ecb", status, metrics)
+    def make(link: CanLink) -> CEcb:
+        ecb = CEcb(link, state_path, bitrate=bitrate, **options)
+        ecb.on_halt = halted.set
+        return ecb
+
+    running = asyncio.ensure_future(run(bus, make, "c-ecb", status, metrics))
+    stopped = asyncio.ensure_future(halted.wait())
+    try:
+        await asyncio.wait((running, stopped), return_when=asyncio.FIRST_COMPLETED)
+    except asyncio.CancelledError:
+        pass  # SIGTERM or SIGINT: the orderly end, as run's own
+    finally:
+        stopped.cancel()
+        running.cancel()  # run ends in order (it returns the CAN-ECB) when cancelled
+    ecb = await running
     if ecb.storage_errors:
         log.error("the state file %s could not be written %d times", state_path,
                   ecb.storage_errors)  # fmt: skip
-    return 1 if ecb.storage_errors else 0
+    return 1 if ecb.storage_errors or ecb.halted is not None else 0

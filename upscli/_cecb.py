@@ -1,10 +1,12 @@
 """``ups c-ecb``: libups-ecb, the CAN-ECB in C (c/ups_ecb.h), run as the CAN-ECB of any
-python-can bus, as a microcontroller would run it (``ups.broker.c_ecb``). Arguments here (cheap
+python-can bus, as a microcontroller would run it (``ups.broker.c_ecb``): compiled for this
+machine, or its Cortex-M0+ image in an emulator (``--target m0``). Arguments here (cheap
 to build), the work in ``ups.broker.c_ecb.serve``."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Callable
 
 from ups._cliargs import add_can
@@ -23,7 +25,11 @@ def _recovery_arg(text: str) -> float:
 
 
 def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
-    cmd = command("c-ecb", help="run the C CAN-ECB (c/, libups-ecb) as the CAN-ECB of one bus")
+    cmd = command(
+        "c-ecb",
+        help="run the C CAN-ECB (c/, libups-ecb) as the CAN-ECB of one bus: compiled for "
+        "this machine, or the Cortex-M0+ image a board flashes in an emulator (--target m0)",
+    )
     add_can(cmd)
     cmd.add_argument(
         "--state", default=None, metavar="FILE",
@@ -36,10 +42,18 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
         "(default 2)",
     )  # fmt: skip
     cmd.add_argument(
-        "--build", choices=("full", "asan"), default="full",
-        help="the library's configuration: full (127 nodes, 2048 channels) or asan (small "
-        "tables, AddressSanitizer and UndefinedBehaviorSanitizer: run with "
-        "LD_PRELOAD=$(cc -print-file-name=libasan.so))",
+        "--target", choices=("host", "m0"), default="host",
+        help="host: the library compiled for this machine; m0: the Cortex-M0+ image a board "
+        "flashes (make -C c size's), run in an emulator (needs the emu extra: unicorn, and "
+        "arm-none-eabi-gcc): a fault of the image (an unaligned access, one outside its "
+        "memory) or a call past its instruction budget stops it with exit code 1",
+    )  # fmt: skip
+    cmd.add_argument(
+        "--build", choices=("full", "small", "asan"), default="full",
+        help="the library's configuration: full (host: 127 nodes, 2048 channels; m0: the "
+        "ecb-full image, 127 nodes, 512 channels), small (m0 only: the ecb-small image, 16 "
+        "nodes, 64 channels) or asan (host only: small tables, AddressSanitizer and "
+        "UndefinedBehaviorSanitizer: run with LD_PRELOAD=$(cc -print-file-name=libasan.so))",
     )  # fmt: skip
     add_ecb_service(cmd)
     cmd.set_defaults(run=_run_c_ecb)
@@ -55,17 +69,21 @@ def default_state(bus: str) -> str:
 def _run_c_ecb(args: argparse.Namespace) -> int:
     from ups._cliargs import run_until_signal, warn_if_virtual
     from ups._metrics import check_metrics
-    from ups.broker.c_ecb import load, serve
+    from ups.broker.c_ecb import TARGETS, prepare, serve
 
+    if args.build not in TARGETS[args.target]:
+        print(f"ups c-ecb: --target {args.target} runs --build "
+              f"{' or '.join(TARGETS[args.target])}", file=sys.stderr)  # fmt: skip
+        return 2
     state = args.state if args.state is not None else default_state(args.can)
     check_metrics(args.metrics)  # before anything starts, or says anything
-    load(args.build)  # built (or its build error said) before the bus is opened
+    prepare(args.target, args.build)  # built (or its build error said) before the bus is opened
     warn_if_virtual(args.can)
 
     async def run() -> int:
         return await serve(
             args.can, state, args.bitrate, status=args.status, metrics=args.metrics,
-            recovery=args.recovery, variant=args.build,
+            recovery=args.recovery, variant=args.build, target=args.target,
         )  # fmt: skip
 
     return run_until_signal(run())

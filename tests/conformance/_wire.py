@@ -40,8 +40,9 @@ from ._frames import (
 
 Match = Frame | type | tuple[type, ...] | Callable[[Frame], bool]
 #: the CAN-ECBs the suite runs against: ours in Python (broker/can_ecb.py) and in C
-#: (libups-ecb, c/ups_ecb.h, through broker/c_ecb.py); the tests use only what both have
-ECBS = ("python", "c")
+#: (libups-ecb, c/ups_ecb.h, through broker/c_ecb.py): compiled for this machine ("c") and its
+#: Cortex-M0+ image in an emulator ("m0", the ecb-full image); the tests use only what all have
+ECBS = ("python", "c", "m0")
 Ecb = CanEcb | CEcb
 REFUSAL_WAIT = 3.0  #: Timers: a refusal ends a join or request once it stood this long
 
@@ -320,12 +321,13 @@ async def serving_ecb(
 ) -> AsyncIterator[Ecb]:
     """Our real CAN-ECB of ``kind`` (one of ``ECBS``) on its own link to the virtual
     ``channel``, its durable state in ``state`` (the SQLite file, or libups-ecb's blob)."""
+    target = "m0" if kind == "m0" else "host"
     link = CanLink.open(f"virtual:{channel}")
     try:
         ecb: Ecb = (
             CanEcb(link, state, recovery=recovery)
             if kind == "python"
-            else CEcb(link, state, recovery=recovery)
+            else CEcb(link, state, recovery=recovery, target=target)
         )
     except BaseException:
         link.close()
