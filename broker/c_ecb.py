@@ -103,26 +103,29 @@ class Backend(Protocol):
     def channel_use(self, i: int, txnode: int) -> int: ...
 
 
-def backend(target: str = "host", variant: str = "full") -> Backend:
-    """A fresh ``ups_ecb_t`` of ``variant`` (one of ``TARGETS[target]``) on ``target``."""
+def backend(target: str = "host", variant: str = "full", image: Path | None = None) -> Backend:
+    """A fresh ``ups_ecb_t`` of ``variant`` (one of ``TARGETS[target]``) on ``target``; on
+    "m0", ``image`` runs that image (linked by ``ups._armnode.build_image``) instead."""
     if variant not in TARGETS.get(target, ()):
         builds = ", ".join(TARGETS.get(target, ())) or "none"
         raise ConfigError(f"the C CAN-ECB's builds on {target!r} are {builds}, not {variant!r}")
     if target == "m0":
         from ups._armecb import ArmEcb
 
-        return ArmEcb(variant)
+        return ArmEcb(variant, elf=image)
+    if image is not None:
+        raise ConfigError("an image is for the m0 target")
     return HostEcb(variant)
 
 
-def prepare(target: str = "host", variant: str = "full") -> None:
+def prepare(target: str = "host", variant: str = "full", image: Path | None = None) -> None:
     """Build what ``backend(target, variant)`` runs (or say why it cannot be), before a bus is
     opened."""
     if target == "m0":
         from ups._armecb import BUILDS
         from ups._armnode import build_image
 
-        if variant in BUILDS:
+        if image is None and variant in BUILDS:
             build_image(BUILDS[variant])
         return
     if variant in VARIANTS:
@@ -149,7 +152,8 @@ def write_atomically(path: Path, data: bytes) -> None:
 
 class CEcb:
     """libups-ecb serving the bus of ``link``, its durable state in ``state_path``, on
-    ``target`` ("host" or "m0") built as ``variant``.
+    ``target`` ("host" or "m0") built as ``variant`` (on "m0", ``image``: an image of
+    ``ups._armnode.build_image``'s instead).
 
     ``max_channels`` None: the library's default (its table's size). ``on_sent(can_id, data)``,
     when set, is called with every frame sent (after the blob was written, if it had to be).
@@ -168,11 +172,12 @@ class CEcb:
         quota: tuple[int, int, int, int, int] = QUOTA,
         variant: str = "full",
         target: str = "host",
+        image: Path | None = None,
     ) -> None:
         self.link = link
         self.state_path = Path(state_path)
         self.variant = variant
-        self._c = backend(target, variant)
+        self._c = backend(target, variant, image)
         self.config = dict(self._c.config)
         self._handler = self._on_frame  # one bound method, so the link can tell it apart
         self.instance = secrets.randbits(64)

@@ -9,8 +9,10 @@ address and the instruction) or runs past ``budget`` instructions (``OverBudget`
 ``Stopped``, which names the call: the one error of ``errors``, what the daemon stops on.
 
 The sizes of the image's tables (and of ``ups_ecb_t``, its frame, its counters, its blob) are
-the compiler's, for the image's own flags: a declaration of each as an array, compiled beside
-the image, read back with ``nm -S`` (as ``state_size`` reads ``ups_ecb_t``).
+the compiler's, for the image's own configuration (the ``UPS_...`` macros ``build_image`` wrote
+beside it): a declaration of each as an array, compiled beside the image, read back with
+``nm -S`` (as ``state_size`` reads ``ups_ecb_t``). So any image ``build_image`` linked runs,
+a test's build with sources of its own among them.
 """
 
 from __future__ import annotations
@@ -18,8 +20,19 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
-from ._armnode import CPU, Fault, Mcu, OverBudget, _run, _size_py, build_image, state_size
+from ._armnode import (
+    CPU,
+    Fault,
+    Mcu,
+    OverBudget,
+    _defines,
+    _run,
+    _size_py,
+    build_image,
+    state_size,
+)
 from ._cnode import C_DIR
+from ._errors import ConfigError
 
 BUILDS = {"full": "ecb-full", "small": "ecb-small"}  #: ``--build`` -> c/size.py's image
 BUDGET = 20_000_000  #: instructions one call may run (0.4 s and more at 48 MHz: a board's
@@ -46,13 +59,15 @@ class Stopped(Exception):
         self.cause = cause
 
 
-def limits(build: str, elf: Path) -> dict[str, int]:
-    """The sizes of ``_LIMITS`` for the image ``elf`` of c/size.py's ``build``."""
+def limits(elf: Path) -> dict[str, int]:
+    """The sizes of ``_LIMITS`` for the image ``elf`` (linked by ``build_image``)."""
     out = elf.parent
     obj = out / "limits.o"
+    if not (out / "state.o").exists():
+        raise ConfigError(f"{elf} was not linked by ups._armnode.build_image (no state.o beside)")
     if not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime:
         size = _size_py()
-        defines = size.builds()[build][2]
+        defines = [f"-D{name}={value}" for name, value in _defines(elf).items()]
         (out / "limits.c").write_text('#include "ups_ecb.h"\n' + "".join(
             f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items()))  # fmt: skip
         _run("arm-none-eabi-gcc", *size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}",
@@ -73,11 +88,11 @@ class ArmEcb:
     errors = (Stopped,)  #: what a call raises when the image stopped
 
     def __init__(self, build: str = "full", *, budget: int = BUDGET, elf: Path | None = None):
-        config = BUILDS[build]
-        self.elf = elf or build_image(config)
-        self.name = f"the {config} image on an emulated {CPU}"
+        """``elf``: an image of ``build_image``'s to run instead of ``build``'s."""
+        self.elf = elf or build_image(BUILDS[build])
+        self.name = f"{BUILDS[build] if elf is None else elf} on an emulated {CPU}"
         self.budget = budget
-        sizes = limits(config, self.elf)
+        sizes = limits(self.elf)
         self.config = {k: sizes[k] for k in ("nodes", "channels", "streams", "queries",
                                              "tx_depth", "held", "watched", "counter_bytes",
                                              "blob_max", "mtu")}  # fmt: skip

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from ups._cliargs import add_can
 
@@ -55,6 +56,12 @@ def add_commands(command: Callable[..., argparse.ArgumentParser]) -> None:
         "nodes, 64 channels) or asan (host only: small tables, AddressSanitizer and "
         "UndefinedBehaviorSanitizer: run with LD_PRELOAD=$(cc -print-file-name=libasan.so))",
     )  # fmt: skip
+    cmd.add_argument(
+        "--image", default=None, metavar="ELF",
+        help="with --target m0: run this image instead of --build's (one linked as make -C c "
+        "size links, by ups._armnode.build_image, with its state.o and config.h beside it: "
+        "a configuration or a test build of your own)",
+    )  # fmt: skip
     add_ecb_service(cmd)
     cmd.set_defaults(run=_run_c_ecb)
 
@@ -75,15 +82,19 @@ def _run_c_ecb(args: argparse.Namespace) -> int:
         print(f"ups c-ecb: --target {args.target} runs --build "
               f"{' or '.join(TARGETS[args.target])}", file=sys.stderr)  # fmt: skip
         return 2
+    image = None if args.image is None else Path(args.image)
+    if image is not None and args.target != "m0":
+        print("ups c-ecb: --image is for --target m0", file=sys.stderr)
+        return 2
     state = args.state if args.state is not None else default_state(args.can)
     check_metrics(args.metrics)  # before anything starts, or says anything
-    prepare(args.target, args.build)  # built (or its build error said) before the bus is opened
+    prepare(args.target, args.build, image)  # built (or its error said) before the bus opens
     warn_if_virtual(args.can)
 
     async def run() -> int:
         return await serve(
             args.can, state, args.bitrate, status=args.status, metrics=args.metrics,
-            recovery=args.recovery, variant=args.build, target=args.target,
+            recovery=args.recovery, variant=args.build, target=args.target, image=image,
         )  # fmt: skip
 
     return run_until_signal(run())
