@@ -8,7 +8,10 @@
  * larger than one frame in ups_transfer.c. They and this file stand on ups_util.c (size
  * classes, byte helpers, counters, the TX queue), which calls none of them.
  */
-#include "ups_internal.h"
+#include "ups_bind.h"
+#include "ups_join.h"
+#include "ups_transfer.h"
+#include "ups_util.h"
 
 /* ---- the TX queue's refill ----------------------------------------------------------------- */
 

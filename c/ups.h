@@ -38,7 +38,8 @@
  * sending, events), the protocol's seams under it, ups_join.c (the join, moves, the answer to
  * Hello), ups_bind.c (binding, the contradiction rule, declarations) and ups_transfer.c (events
  * larger than one frame), and at the bottom ups_util.c (size classes, byte helpers, counters,
- * the TX queue); ups_internal.h holds what they share. Compile all five.
+ * the TX queue); each has its internal header (ups_join.h, ..., ups_util.h, which also holds
+ * what they all share), included only by the floors above it. Compile all five.
  */
 #ifndef UPS_H
 #define UPS_H
@@ -239,10 +240,10 @@ typedef struct {
     uint8_t uid[8];   /* big-endian, as on the wire */
     uint16_t etag;    /* bound, or the candidate while settling; 0: none */
     uint16_t t0;      /* request start / settle start / ready time (low 16 bits of ms) */
-    uint8_t flags;    /* UPS__SUB, UPS__PUB, ... (ups.c) */
+    uint8_t flags;    /* UPS__SUB, UPS__PUB, ... (ups_util.h) */
     uint8_t step;     /* wanted size class << 4 | request retry step, or -UPS_ERR_ once failed */
     uint8_t priority; /* for this node's events on the channel */
-    uint8_t owe;      /* frames owed to the CAN-ECB: UPS__OWE_... (ups_internal.h) */
+    uint8_t owe;      /* frames owed to the CAN-ECB: UPS__OWE_... (ups_util.h) */
 } ups_channel_t;
 
 #if UPS_DECLARATIONS

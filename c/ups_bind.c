@@ -24,7 +24,9 @@
  * a full queue never loses a request, SUB_AT, PUB_AT, DECLARE or UNSUB, and the queue's order
  * by identifier never puts a DECLARE before the PUB_AT the CAN-ECB needs first.
  */
-#include "ups_internal.h"
+#include "ups_bind.h"
+#include "ups_transfer.h"
+#include "ups_util.h"
 
 /* timers, in milliseconds (docs/protocol.md, "Timers") */
 #define RETRY_FIRST 50u

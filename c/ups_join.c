@@ -16,7 +16,9 @@
  * queued by ups__queue_owed in ups_bind.c): a full queue never loses them, and the queue's order
  * by identifier never puts one before a frame it depends on.
  */
-#include "ups_internal.h"
+#include "ups_bind.h"
+#include "ups_join.h"
+#include "ups_util.h"
 
 /* timers, in milliseconds (docs/protocol.md, "Timers") */
 #define KNOCK_FIRST 300u

@@ -10,7 +10,8 @@
  * room appears in the TX queue. Receiving: one transfer in progress per (TxNode, etag), in
  * UPS_RX_TRANSFERS slots; anything that cannot be an intact event is counted in large_lost.
  */
-#include "ups_internal.h"
+#include "ups_transfer.h"
+#include "ups_util.h"
 
 #if UPS_WITH_TRANSFERS
 

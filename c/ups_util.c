@@ -1,10 +1,10 @@
 /*
- * libups: what every source stands on (see ups_internal.h for each call): size classes, byte
+ * libups: what every source stands on (see ups_util.h for each call): size classes, byte
  * helpers, the saturating counters and the TX queue. Nothing here calls into another source:
  * ups.c (receiving, the timers, the API), ups_join.c, ups_bind.c and ups_transfer.c call down
  * into this file, never the other way.
  */
-#include "ups_internal.h"
+#include "ups_util.h"
 
 /* ---- size classes, bytes and counters ------------------------------------------------------ */
 

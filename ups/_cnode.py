@@ -28,8 +28,8 @@ from ._errors import ConfigError
 
 C_DIR = Path(__file__).resolve().parent.parent / "c"
 VARIANTS = {"full": "libups.so", "min": "libups-min.so", "asan": "libups-asan.so"}
-SOURCES = ("ups.h", "ups_internal.h", "ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c",
-           "ups_util.c",
+SOURCES = ("ups.h", "ups_util.h", "ups_join.h", "ups_bind.h", "ups_transfer.h",
+           "ups.c", "ups_join.c", "ups_bind.c", "ups_transfer.c", "ups_util.c",
            "host/ups_host.c", "Makefile")  # fmt: skip
 
 # ups.h's constants (the header is the reference; tests check these against it)

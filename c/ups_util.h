@@ -1,15 +1,16 @@
 /*
- * libups internals shared by its sources: the identifier layout, the frames' codes, flags,
- * small helpers, and the calls between the sources. Not part of the API.
+ * libups internals: what every source stands on, defined in ups_util.c and here. The
+ * identifier layout, the frames' codes, the flags, small inline helpers, and ups_util.c's calls
+ * (size classes, byte helpers, counters, the TX queue). Not part of the API.
  *
- * The sources stand in floors: ups.c (the dispatcher: receiving, the timers, the API's small
- * calls) calls the protocol's seams, ups_join.c, ups_bind.c (which ups_join.c calls too) and
- * ups_transfer.c (which ups_bind.c calls to give up a contradicted etag's transfers); all of
- * them stand on ups_util.c (size classes, byte helpers, counters, the TX queue), which calls
- * none of them.
+ * The sources stand in floors, and each includes the headers of the floors under it: ups.c
+ * (the dispatcher: receiving, the timers, the API's small calls) calls the protocol's seams,
+ * ups_join.c (ups_join.h), ups_bind.c (ups_bind.h; ups_join.c calls it too) and ups_transfer.c
+ * (ups_transfer.h; ups_bind.c calls it to give up a contradicted etag's transfers); all of them
+ * stand on ups_util.c and this header, which include and call none of them.
  */
-#ifndef UPS_INTERNAL_H
-#define UPS_INTERNAL_H
+#ifndef UPS_UTIL_H
+#define UPS_UTIL_H
 
 #include "ups.h"
 
@@ -120,7 +121,7 @@ static inline int ups__valid_channel(const ups_node_t *node, int channel)
     return channel >= 0 && channel < UPS_CHANNELS && node->channels[channel].flags != 0u;
 }
 
-/* ups_util.c: what every source stands on; it calls no other source */
+/* ups_util.c: it calls no other source */
 /** The size class of an etag: 0 for one-frame events, 1..4 for transfers. */
 unsigned ups__class(unsigned etag);
 /** The largest event of a size class. */
@@ -147,54 +148,4 @@ void ups__push_request(ups_node_t *node, unsigned priority, unsigned etag, const
  *  channel's); the transfers on it are the caller's to give up (ups__transfer_drop). */
 void ups__tx_drop(ups_node_t *node, unsigned first, unsigned etag);
 
-/* ups_join.c */
-/** A well-formed frame of TxNode 0x7F at priority 0 (etag field: @p op, @p arg), heard while
- *  joining or joined: the join, moves, Hello, refusals and verdicts. */
-void ups__config_frame(ups_node_t *node, unsigned op, unsigned arg, const uint8_t *data,
-                       uint32_t now);
-/** Queue the join's frames that wait for room (the CLAIM of an Offer, Stage answers). */
-void ups__join_refill(ups_node_t *node);
-void ups__tick_join(ups_node_t *node, uint32_t now);
-void ups__tick_hello(ups_node_t *node, uint32_t now);
-
-/* ups_bind.c */
-/** The request @p kind for @p uid went out: if its channel asks just that, Binds from now on
- *  may answer it (a Bind received before the request went does not count). */
-void ups__sent_request(ups_node_t *node, unsigned kind, const uint8_t *uid);
-/** EtagsFull, Failed or Limit (UPS_ERR_ code @p why) for @p uid, or a Bind of a size class
- *  the node cannot receive (UPS_ERR_TOO_LARGE): the request of its channel, if one was sent and
- *  waits (not a re-binding's), ends with it once it stood 3 s with no Bind answering the
- *  request while the node kept asking. */
-void ups__refused(ups_node_t *node, const uint8_t *uid, int why, uint32_t now);
-/** Queue the next frame a channel owes, if any; 1 when it queued one. */
-int ups__queue_owed(ups_node_t *node, uint32_t now);
-/** Bind(etag, uid) from the CAN-ECB or anyone: the contradiction rule, then answers. */
-void ups__on_bind(ups_node_t *node, uint16_t etag, const uint8_t *uid, uint32_t now);
-/** Whether @p etag was ever heard bound (to a channel of this node, or, with UPS_HEARD_BINDS,
- *  to any): an event on it that the node does not receive is filtered, not unknown. */
-int ups__etag_known(const ups_node_t *node, uint16_t etag);
-/** The request and declaration retries, settling, the publisher's pause. */
-void ups__tick_bind(ups_node_t *node, uint32_t now);
-#if UPS_DECLARATIONS
-/** Grant (of @p priority) or Refuse for this node's TxNode and @p etag: taken only for a
- *  stream it declared; the latest one is the answer once it stood 0.5 s. */
-void ups__on_verdict(ups_node_t *node, uint16_t etag, int granted, uint8_t priority,
-                     uint32_t now);
-#endif
-
-#if UPS_WITH_TRANSFERS
-/* ups_transfer.c */
-int ups__transfer_rx(ups_node_t *node, uint32_t now, const ups_frame_t *frame, uint8_t txnode,
-                     uint16_t etag, ups_event_t *event);
-/** ups_publish() of an event on a large etag (@p id): UPS_ERR_TOO_LARGE beyond its size class
- *  or UPS_MAX_EVENT, UPS_ERR_BUSY while another transfer is sent, else as ups__push(). */
-int ups__transfer_tx(ups_node_t *node, int channel, uint32_t id, const uint8_t *data,
-                     uint16_t size);
-void ups__transfer_refill(ups_node_t *node);
-void ups__transfer_tick(ups_node_t *node, uint32_t now);
-/** The node stops relying on @p etag: the rest of a transfer being sent on it is not sent, and
- *  transfers being received on it are given up. */
-void ups__transfer_drop(ups_node_t *node, uint16_t etag);
-#endif
-
-#endif /* UPS_INTERNAL_H */
+#endif /* UPS_UTIL_H */
