@@ -55,7 +55,7 @@ class Stopped(Exception):
     address) or ``OverBudget``."""
 
     def __init__(self, call: str, cause: Fault | OverBudget) -> None:
-        super().__init__(f"{call}: {cause}")
+        super().__init__(str(cause) if isinstance(cause, OverBudget) else f"{call}: {cause}")
         self.cause = cause
 
 

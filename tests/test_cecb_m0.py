@@ -1,0 +1,142 @@
+"""libups-ecb as a board runs it: the CAN-ECB's Cortex-M0+ image (ecb-full) in the emulator, as
+``CEcb``'s backend (``ups/_armecb.py``, issue 42), in this process.
+
+Frame for frame and tick for tick, the image and the host build answer alike; a call past the
+instruction budget halts the CAN-ECB: it sends nothing more, says why, and its state file keeps
+the blob it last wrote.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from ups import _canproto as p
+from ups._armecb import BUDGET
+from ups._canlink import CanLink
+from ups.broker.c_ecb import Backend, CEcb, Config, backend
+
+from .conformance._frames import SUB_BIND, Bind, Census, Knock, nibbles
+from .conformance._wire import RawNode, Wire
+
+pytest.importorskip("unicorn")
+
+_INSTANCE = 0x5EED_0000_C0DE_0042
+_IDS = (0x0123_4567_89AB_CDEF, 0x0123_4567_89AB_CDE0, 0xF000_0000_0000_0001)
+_UIDS = (0x5000_0000_0000_0000, 0x5000_0000_0000_0001, 0x7777)
+
+
+def _f(*messages: p.Management) -> list[tuple[int, bytes, int]]:
+    return [(*p.encode(m), 1) for m in messages]
+
+
+#: a bus to start from: TxNode 5 claimed in the recovery window (adopted), then a node joins
+#: (Knock, the Census, its answer, the Offer, its claim: TxNode 0)
+_PROLOGUE = [_f(p.Request(p.CLAIM, 5, _IDS[2])), 150, _f(p.Knock()), 10,
+             _f(*(p.Stage(0, k, n) for k, n in enumerate(nibbles(_IDS[0])))), 100,
+             _f(p.Request(p.CLAIM, 0, _IDS[0]))]  # fmt: skip
+_valid = [(*p.encode(m), 1) for m in (  # what takes the CAN-ECB somewhere
+    p.Knock(), *(p.Stage(e, s, n) for e in (0, 1) for s in (0, 15) for n in (0, 0xF)),
+    *(p.Request(p.CLAIM, t, i) for t in (0, 1, 5) for i in _IDS),
+    *(p.Request(k, t, u) for k in (p.SUB_BIND, p.PUB_BIND, p.UNSUB) for t in (0, 1, 5)
+      for u in _UIDS),
+    p.Request(p.PUB_BIND, 5, _UIDS[1], 2), p.Declare(5, 0x10, 8, 100, 50, 0),
+    p.Declare(0, 0x11, 8, 20, 20, 3), p.Roster(5, 0), p.Roster(0, 0x5000_0000_0000_0001),
+    p.Holds(False, 5, 0x10, _UIDS[0]), p.Holds(True, 1, 0x12, _UIDS[1]),
+)]  # fmt: skip
+_election = _f(p.Hello(7), p.Serving(3), p.Serving(0xFFFF_FFFF_FFFF_FFFF), p.Probe(9),
+               p.Assign(5, _IDS[0]), p.Bind(0x10, _UIDS[2]))  # another CAN-ECB's  # fmt: skip
+_frames = st.one_of(st.sampled_from(_valid), st.sampled_from(_valid), st.sampled_from(_valid),
+                    st.sampled_from(_election), st.tuples(
+    st.builds(lambda pr, tx, e: (pr << 21) | (tx << 14) | e, st.sampled_from([0, 1, 0x20]),
+              st.sampled_from([0x7F, 0, 5, 0x21]), st.integers(0, 0x3FFF)),
+    st.binary(max_size=8),
+    st.sampled_from([1, 1, 1, 0, 1 | 8]),
+))  # fmt: skip
+_answers = st.builds(  # a joiner's whole answer to a Census of epoch e
+    lambda e, i: [(*p.encode(p.Stage(e, k, n)), 1) for k, n in enumerate(nibbles(i))],
+    st.integers(0, 3), st.sampled_from(_IDS),
+)  # fmt: skip
+
+
+def _config() -> bytes:
+    cfg = Config.from_buffer_copy(backend("host").default_config())
+    cfg.recovery_ms, cfg.max_channels = 100, 64  # the image's table is smaller than the host's
+    return bytes(cfg)
+
+
+_arm: list[Backend] = []
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(st.lists(st.one_of(_frames, _answers, st.integers(1, 300)), max_size=50),
+       st.integers(0, 2**32 - 1))  # fmt: skip
+def test_the_m0_image_does_what_the_host_build_does(steps: list[object], start: int) -> None:
+    """The same frames sent, notes raised, counters, roles, tables and blob."""
+    if not _arm:
+        _arm.append(backend("m0"))  # one emulator (ups_ecb_init sets the whole state)
+    host, arm = backend("host"), _arm[0]
+    for ecb in (host, arm):
+        assert ecb.init(_config(), _INSTANCE) == 0
+        ecb.start(start)
+    now = start
+
+    def out(ecb: Backend) -> tuple[int, list[tuple[int, int, bytes]]]:
+        notes = ecb.notes()
+        return notes, list(iter(ecb.pop_tx, None))
+
+    assert out(host) == out(arm)
+    for step in [*_PROLOGUE, *steps]:
+        if isinstance(step, int):
+            now = (now + step) & 0xFFFF_FFFF
+            for ecb in (host, arm):
+                ecb.tick(now)
+        else:
+            for can_id, data, flags in step if isinstance(step, list) else [step]:  # type: ignore[misc]
+                for ecb in (host, arm):
+                    ecb.rx(now, can_id, flags, data)
+        assert out(host) == out(arm), step
+    assert host.counters() == arm.counters()
+    assert host.role() == arm.role()
+    for table, size in (("node", 127), ("channel", 64)):  # the entries in use
+        used = [[e for e in map(getattr(b, table), range(size)) if e[0] >= 0] for b in (host, arm)]
+        assert used[0] == used[1], table
+    assert host.save() == arm.save()
+
+
+async def test_a_call_past_the_budget_halts_it_and_the_state_file_keeps_the_last_blob(
+    tmp_path: Path,
+) -> None:
+    """The image's ups_ecb_rx runs past its budget (lowered here, as if it ran for ever): the
+    CAN-ECB says so, answers nothing more, and close writes no blob."""
+    channel = f"cecb-m0-budget-{id(tmp_path)}"
+    state = tmp_path / "ecb.state"
+    wire = Wire(channel)
+    link = CanLink.open(f"virtual:{channel}")
+    ecb = CEcb(link, state, recovery=0.2, target="m0")
+    halted = asyncio.Event()
+    ecb.on_halt = halted.set
+    try:
+        await ecb.start()
+        node = RawNode(wire, _IDS[0])
+        await node.join()
+        await node.ask(SUB_BIND, _UIDS[0])
+        assert ecb.healthy and ecb.halted is None
+        written = state.read_bytes()
+        ecb._c.budget = 50  # type: ignore[attr-defined]  # the backend's, for this test
+        since = wire.send(node.request(SUB_BIND, _UIDS[1]))
+        await asyncio.wait_for(halted.wait(), 10)
+        assert ecb.halted is not None and "ran past 50 instructions" in ecb.halted
+        ecb._c.budget = BUDGET  # type: ignore[attr-defined]  # its tables are still readable
+        assert not ecb.healthy and ecb.stats()["healthy"] is False
+        wire.send(Knock())
+        await wire.expect_none((Bind, Census), since=since, window=0.5, what="a halted CAN-ECB")
+    finally:
+        ecb.close()
+        link.close()
+        await wire.close()
+    assert state.read_bytes() == written  # close wrote nothing after the halt
