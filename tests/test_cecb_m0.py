@@ -140,3 +140,23 @@ async def test_a_call_past_the_budget_halts_it_and_the_state_file_keeps_the_last
         link.close()
         await wire.close()
     assert state.read_bytes() == written  # close wrote nothing after the halt
+
+
+async def test_the_small_bus_image_serves_a_node(tmp_path: Path) -> None:
+    """``--build small``: the ecb-small image (16 nodes, 64 channels, 16-bit counters)."""
+    channel = f"cecb-m0-small-{id(tmp_path)}"
+    wire = Wire(channel)
+    link = CanLink.open(f"virtual:{channel}")
+    ecb = CEcb(link, tmp_path / "ecb.state", recovery=0.2, target="m0", variant="small")
+    try:
+        await ecb.start()
+        assert ecb.config["nodes"] == 16 and ecb.config["channels"] == 64
+        node = RawNode(wire, _IDS[1])
+        txnode = await node.join()
+        bind = await node.ask(SUB_BIND, _UIDS[0])
+        assert ecb.txnodes == {_IDS[1]: txnode} and ecb.etags == {_UIDS[0]: bind.etag}
+        assert ecb.counters()["joined"] == 1 and ecb.counters()["bound"] == 1
+    finally:
+        ecb.close()
+        link.close()
+        await wire.close()
