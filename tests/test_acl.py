@@ -235,7 +235,7 @@ async def test_what_the_gateway_may_not_receive_never_reaches_its_bus(
     async with (
         acl_ecb(fleet) as ecb,
         Gateway(bus, f"127.0.0.1:{ecb.port}", db=tmp_path / "gw.db", node_id=0x6A7E,
-                tls=tls(fleet, "gw")) as gw,
+                tls=tls(fleet, "gw"), recovery=0.1) as gw,
         Node(can=bus, node_id=0xC1) as can_node,
         node(fleet, ecb, "bob", 0xB0) as bob,
     ):  # fmt: skip

@@ -41,7 +41,7 @@ def _publish(net: tuple[str, ...], channel: str, data: str, count: int = 1,
 def test_a_tcp_pattern_gets_every_event_of_channels_named_after_it() -> None:
     """`ups sub 'fleet/*'`, then five channels published once each, then five three times:
     all 20 events (before: 0 of 5 and 12 of 20, nothing counted)."""
-    broker, address = start_tcp_broker()
+    broker, address = start_tcp_broker("--recovery", "0")
     net = ("--broker", address)
     with broker, Proc("sub", "fleet/*", *net, "--json", env=NO_ENV) as sub:
         sub.wait_for_line("subscribed to fleet/\\*")
@@ -106,7 +106,9 @@ def test_a_gateway_that_joins_a_running_bus_forwards_what_was_bound_before_it(
             where = _free_endpoint()
             stack.enter_context(start_router(where))
         ip = (f"--{side}", where)
-        ecb = stack.enter_context(Proc("can-broker", "--can", bus, "--db", str(tmp_path / "e.db")))
+        ecb = stack.enter_context(
+            Proc("can-broker", "--can", bus, "--db", str(tmp_path / "e.db"), "--recovery", "0.2")
+        )
         ecb.wait_for_line("CAN-ECB on")
         stack.enter_context(
             Proc("pub", "robot/speed", "0032", "--can", bus, "--count", "100000", "--rate", "20")

@@ -35,7 +35,7 @@ def fd_bus(request: pytest.FixtureRequest, bus: str) -> str:
 
 async def test_events_of_every_size_arrive_whole(fd_bus: str, tmp_path: Path) -> None:
     async with (
-        running_ecb(fd_bus, tmp_path / "ecb.db"),
+        running_ecb(fd_bus, tmp_path / "ecb.db", recovery=0.1),
         Node(can=fd_bus, node_id=1) as pub,
         Node(can=fd_bus, node_id=2) as sub_node,
     ):
@@ -157,7 +157,7 @@ async def test_a_large_real_time_channel_is_admitted_by_its_frames(
     bus: str, tmp_path: Path
 ) -> None:
     async with (
-        running_ecb(bus, tmp_path / "rt.db", bitrate=500_000) as ecb,
+        running_ecb(bus, tmp_path / "rt.db", bitrate=500_000, recovery=0.1) as ecb,
         Node(can=bus, node_id=1) as pub,
     ):
         # 100 bytes = 15 classic frames of 160 bits at most: 4.8 ms per event at 500 kbit/s

@@ -66,7 +66,7 @@ async def test_node_waits_for_a_late_ecb(bus: str, tmp_path: Path, raw_bus: can.
     frame = await asyncio.to_thread(raw_bus.recv, 5.0)
     assert frame is not None and isinstance(p.decode(frame.arbitration_id, frame.data), p.Knock)
     try:
-        async with running_ecb(bus, tmp_path / "late.db"):
+        async with running_ecb(bus, tmp_path / "late.db", recovery=0.1):
             await asyncio.wait_for(joining, 10)
             assert node.stats()["txnode"] == 0
     finally:
@@ -85,7 +85,7 @@ async def test_txnodes_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> N
     with sqlite3.connect(tmp_path / "full.db") as db:
         rows = [(f"{0xAAAA_0000 + t:016x}", t) for t in range(p.TXNODE_COUNT)]
         db.executemany("INSERT INTO txnodes VALUES (?, ?)", rows)
-    async with running_ecb(bus, tmp_path / "full.db") as full:
+    async with running_ecb(bus, tmp_path / "full.db", recovery=0.1) as full:
         async with Node(can=bus, node_id=0xAAAA_0005) as known:  # known nodes still join
             assert known.stats()["txnode"] == 5
         with pytest.raises(Exhausted, match="127 TxNodes"):
@@ -98,7 +98,10 @@ async def test_etags_run_out_with_a_clear_error(bus: str, tmp_path: Path) -> Non
     with sqlite3.connect(tmp_path / "full.db") as db:
         rows = [(f"{e:016x}", e) for e in range(p.FIRST_ETAG, p.LAST_ETAG + 1)]
         db.executemany("INSERT INTO etags VALUES (?, ?)", rows)
-    async with running_ecb(bus, tmp_path / "full.db"), Node(can=bus, node_id=1) as node:
+    async with (
+        running_ecb(bus, tmp_path / "full.db", recovery=0.1),
+        Node(can=bus, node_id=1) as node,
+    ):
         with pytest.raises(Exhausted, match="no etag left"):
             await node.subscribe("one/too/many")
         await node.subscribe(p.FIRST_ETAG + 3)  # a bound channel still works

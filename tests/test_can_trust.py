@@ -320,7 +320,7 @@ async def test_a_locked_database_fails_requests_clearly_and_never_blocks_the_loo
 async def test_one_database_file_is_never_shared(bus: str, tmp_path: Path) -> None:
     from ups import ConfigError
 
-    async with running_ecb(bus, tmp_path / "ecb.db"):
+    async with running_ecb(bus, tmp_path / "ecb.db", recovery=0.1):
         link = CanLink.open(bus + "-other")
         try:
             with pytest.raises(ConfigError, match="in use by process"):

@@ -102,7 +102,9 @@ def test_join_timeout_waits_for_a_broker_started_later_and_says_so_once() -> Non
 
 def test_a_virtual_bus_in_another_process_is_named_as_the_cause(tmp_path: Path) -> None:
     bus = f"virtual:robot-{tmp_path.name}"
-    with Proc("can-broker", "--can", bus, "--db", str(tmp_path / "ecb.db")) as broker:
+    with Proc(
+        "can-broker", "--can", bus, "--db", str(tmp_path / "ecb.db"), "--recovery", "0.2"
+    ) as broker:
         broker.wait_for_line(f"{bus} is a python-can virtual bus, which lives inside this process")
         broker.wait_for_line("CAN-ECB on")
         line = one_line(Proc("sub", "robot/speed", "--can", bus, env=NO_NETWORK))

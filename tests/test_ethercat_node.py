@@ -75,7 +75,7 @@ class Rig:
 
 @contextlib.contextmanager
 def over_tcp(tmp_path: Path, watchdog: float = 0.0) -> Iterator[Rig]:
-    broker, address = start_tcp_broker()
+    broker, address = start_tcp_broker("--recovery", "0")
     with (
         broker,
         segment(tmp_path, watchdog=watchdog) as (master, wire, emu, control),

@@ -36,6 +36,7 @@ def addr(ecb: TcpEcb) -> str:
 @contextlib.asynccontextmanager
 async def gateway(bus: str, ecb: TcpEcb, db: Path, **options: Any) -> AsyncIterator[Gateway]:
     options.setdefault("node_id", 0x6A7E)
+    options.setdefault("recovery", 0.1)  # the hosted CAN-ECB's: nodes join after it
     async with Gateway(bus, addr(ecb), db=db, **options) as gw:
         yield gw
 
@@ -264,7 +265,7 @@ async def test_a_restarted_gateway_keeps_bindings_and_forwards_again(
             txnode = cpub.stats()["txnode"]
             etag = cpub.face.bindings.bound[name_to_uid("speed")]  # type: ignore[attr-defined]
             await first.close()
-            async with gateway(bus, tcp_ecb, db) as second:
+            async with gateway(bus, tcp_ecb, db, recovery=2.0) as second:
                 # it relearns the bus during its recovery window (2 s) and then forwards
                 await eventually(lambda: forwarding(second, "speed", "tcp"), timeout=15)
                 await cpub.publish("speed", b"\x01")
@@ -277,7 +278,7 @@ async def test_a_restarted_gateway_keeps_bindings_and_forwards_again(
 
 async def test_gateway_with_an_external_can_ecb(bus: str, tcp_ecb: TcpEcb, tmp_path: Path) -> None:
     link = CanLink.open(bus)
-    ecb = CanEcb(link, tmp_path / "ecb.db")
+    ecb = CanEcb(link, tmp_path / "ecb.db", recovery=0.1)
     await ecb.start()
     try:
         async with (

@@ -17,7 +17,7 @@ from .conftest import eventually
 
 @contextlib.asynccontextmanager
 async def gateway(bus: str, endpoint: str, db: Path) -> AsyncIterator[Gateway]:
-    async with Gateway(bus, zenoh=endpoint, db=db, node_id=0x6A7E) as gw:
+    async with Gateway(bus, zenoh=endpoint, db=db, node_id=0x6A7E, recovery=0.1) as gw:
         face: Any = gw.ip.face if gw.ip else None
         face.linger = 0.3  # seconds: quick, for the test
         yield gw

@@ -192,7 +192,8 @@ def test_an_ocu_discovers_controls_queries_and_watches_the_robot_over_judp(
     mapping = write_mapping(tmp_path)
     catalog = tmp_path / "catalog.toml"
     with robot_namespace() as in_robot, (
-        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", prefix=in_robot)
+        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", "--recovery", "0.2",
+             prefix=in_robot)
     ), Proc("sub", "robot/max-speed", "--can", bus, "--json", "--count", "2", "--timeout", "120",
             prefix=in_robot) as wheels, Proc(
         "jaus", "--listen", f"0.0.0.0:{JAUS_PORT}", "--id", "1.1.1", "--map", str(mapping),
@@ -295,7 +296,8 @@ def test_an_ra33_ocu_discovers_controls_queries_and_drives_the_robot(tmp_path: P
     mapping = write_mapping(tmp_path)
     catalog = tmp_path / "catalog.toml"
     with robot_namespace() as in_robot, (
-        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", prefix=in_robot)
+        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", "--recovery", "0.2",
+             prefix=in_robot)
     ), Proc("sub", "robot/max-speed", "--can", bus, "--json", "--count", "2", "--timeout", "120",
             prefix=in_robot) as wheels, Proc(
         "jaus", "--listen", f"0.0.0.0:{JAUS_PORT}", "--id", "1.1.1", "--map", str(mapping),
@@ -348,7 +350,8 @@ def test_ups_jaus_ocu_discovers_queries_drives_and_watches(tmp_path: Path) -> No
     catalog = tmp_path / "catalog.toml"
     target = f"{ROBOT_ADDR}:{JAUS_PORT}"
     with robot_namespace() as in_robot, (
-        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", prefix=in_robot)
+        Proc("can-broker", "--can", bus, "--db", f"{tmp_path}/ecb.db", "--recovery", "0.2",
+             prefix=in_robot)
     ), Proc("sub", "robot/max-speed", "--can", bus, "--json", "--count", "1", "--timeout", "120",
             prefix=in_robot) as wheels, Proc(
         "jaus", "--listen", f"0.0.0.0:{JAUS_PORT}", "--id", "1.1.1", "--map", str(mapping),

@@ -322,7 +322,7 @@ async def test_ups_jaus_ocu_drives_a_robot_through_a_waypoint_list(tmp_path: Pat
     (tmp_path / "rover.jaus.toml").write_text(MAPPING)
     bridge = load_mapping(tmp_path / "rover.jaus.toml")
     goal_of, pose = bridge["SetLocalWaypoint"].channel, bridge["ReportLocalPose"].channel
-    broker, address = start_tcp_broker()
+    broker, address = start_tcp_broker("--recovery", "0")
     with broker, Proc("jaus", "--listen", "127.0.0.1:0", "--map", str(tmp_path / "rover.jaus.toml"),
                       "--broker", address) as component:  # fmt: skip
         port = re.search(r"on 127\.0\.0\.1:(\d+)", component.wait_for_line("JAUS component"))

@@ -112,7 +112,8 @@ def test_two_publisher_processes_interleave_large_events(mbus: str, tmp_path: Pa
     subscriber gets every event of both, whole. (About 4600 frames/s: what a 1 Mbit/s bus
     carries; faster, a slow reader's socket buffer overflows and the loss is only counted.)"""
     with (
-        Proc("can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db")) as ecb,
+        Proc("can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db"),
+             "--recovery", "0.2") as ecb,
         Proc("sub", "shared", "--can", mbus, "--json", "--count", "40", "--timeout", "120",
              "--node-id", "0xD0") as sub,
     ):  # fmt: skip
@@ -138,7 +139,8 @@ def test_a_frame_dropped_on_the_wire_is_a_counted_loss(mbus: str, tmp_path: Path
     raw = open_bus(mbus)
     try:
         with (
-            Proc("can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db")) as ecb,
+            Proc("can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db"),
+             "--recovery", "0.2") as ecb,
             Proc("sub", "lossy", "--can", mbus, "--json", "--count", "2", "--timeout", "120",
                  "--node-id", "0xE0") as sub,
         ):  # fmt: skip

@@ -111,7 +111,9 @@ def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path, k
 
 def test_sub_times_out_without_events(tmp_path: Path) -> None:
     mbus = private_multicast_bus()  # the command's behaviour: one bus is enough, no kernel's
-    with Proc("can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db")) as broker:
+    with Proc(
+        "can-broker", "--can", mbus, "--db", str(tmp_path / "ecb.db"), "--recovery", "0.2"
+    ) as broker:
         broker.wait_for_line("CAN-ECB on")
         sub = Proc("sub", "quiet", "--can", mbus, "--timeout", "0.5")
         code, out = sub.finish()

@@ -85,7 +85,7 @@ def test_can_ups_sub_of_a_pattern_takes_the_catalogs_channels(tmp_path: Path) ->
     code, _ = refused.finish(timeout=25)
     assert code == 2 and len(refused.stderr_lines) == 1, refused.stderr_lines
     assert "on CAN, channel names come only from a channel catalog" in refused.stderr_lines[0]
-    with Proc("can-broker", *net, "--db", str(tmp_path / "ecb.db")) as ecb:
+    with Proc("can-broker", *net, "--db", str(tmp_path / "ecb.db"), "--recovery", "0.2") as ecb:
         ecb.wait_for_line("CAN-ECB on")
         with Proc("sub", "robot/*", *net, "--json", env={**NO_ENV, "UPS_CATALOG": CATALOG}) as sub:
             line = sub.wait_for_line("subscribed to robot/\\*", timeout=60)

@@ -20,7 +20,7 @@ SLOW = 125_000
 
 @pytest.fixture
 async def slow_ecb(bus: str, tmp_path: Path) -> AsyncIterator[CanEcb]:
-    async with running_ecb(bus, tmp_path / "ecb.db", bitrate=SLOW) as ecb:
+    async with running_ecb(bus, tmp_path / "ecb.db", bitrate=SLOW, recovery=0.1) as ecb:
         yield ecb
 
 
