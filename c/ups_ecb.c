@@ -36,27 +36,33 @@ void ups_ecb_default_config(ups_ecb_config_t *cfg)
     cfg->recovery_ms = 2000u;
     cfg->lease_s = 86400u;
     cfg->max_channels = UPS_ECB_CHANNELS;
-    cfg->quota[0] = 1024u;
-    for (unsigned c = 1u; c < 5u; c++) {
-        cfg->quota[c] = 64u;
+    for (unsigned c = 0u; c < 5u; c++) {
+        cfg->quota[c] = c == 0u ? 1024u : 64u;
     }
+}
+
+/** Empty tables (before a restore, and after a refused one). */
+static void empty(ups_ecb_t *ecb)
+{
+    ups_ecb__join_init(ecb);
+    ups_ecb__bind_init(ecb);
 }
 
 int ups_ecb_init(ups_ecb_t *ecb, const ups_ecb_config_t *cfg, uint64_t instance)
 {
+    ups_ecb_config_t defaults;
     ups_ecb__copy((uint8_t *)ecb, NULL, (unsigned)sizeof(*ecb));
-    if (cfg != NULL) {
-        if (cfg->bitrate == 0u || cfg->recovery_ms < 100u || cfg->recovery_ms > 10000u ||
-            cfg->lease_s == 0u || cfg->lease_s > LEASE_MAX_S) {
-            return UPS_ERR_ARGUMENT;
-        }
-        ecb->cfg = *cfg;
-    } else {
-        ups_ecb_default_config(&ecb->cfg);
+    if (cfg == NULL) {
+        ups_ecb_default_config(&defaults);
+        cfg = &defaults;
     }
+    if (cfg->bitrate == 0u || cfg->recovery_ms - 100u > 10000u - 100u ||
+        cfg->lease_s - 1u >= LEASE_MAX_S) {
+        return UPS_ERR_ARGUMENT;
+    }
+    ecb->cfg = *cfg;
     ups_ecb__put64(ecb->instance, instance);
-    ups_ecb__join_init(ecb);
-    ups_ecb__bind_init(ecb);
+    empty(ecb);
     return UPS_OK;
 }
 
@@ -81,19 +87,25 @@ int ups_ecb_init(ups_ecb_t *ecb, const ups_ecb_config_t *cfg, uint64_t instance)
  */
 
 #define BLOB_HEADER 12u
-#define BLOB_VERSION 1u
+#define BLOB_MAGIC 0x55505365u   /* "UPSe" */
+#define BLOB_VERSION 0x0100u     /* bytes 4-5: the version, 0 */
+#define BLOB_FIXED (BLOB_HEADER + 8u) /* the header, B and the CRC */
 
 static void put32(uint8_t *out, uint32_t v)
 {
-    out[0] = (uint8_t)(v >> 24);
-    out[1] = (uint8_t)(v >> 16);
-    out[2] = (uint8_t)(v >> 8);
-    out[3] = (uint8_t)v;
+    for (unsigned i = 4u; i-- > 0u;) {
+        out[i] = (uint8_t)v;
+        v >>= 8;
+    }
 }
 
 static uint32_t get32(const uint8_t *in)
 {
-    return ((uint32_t)in[0] << 24) | ((uint32_t)in[1] << 16) | ((uint32_t)in[2] << 8) | in[3];
+    uint32_t v = 0u;
+    for (unsigned i = 0u; i < 4u; i++) {
+        v = (v << 8) | in[i];
+    }
+    return v;
 }
 
 size_t ups_ecb_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
@@ -101,63 +113,43 @@ size_t ups_ecb_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
     if (cap < UPS_ECB_BLOB_MAX) {
         return 0u;
     }
-    size_t j = ups_ecb__join_save(ecb, out + BLOB_HEADER, cap - BLOB_HEADER - 8u);
-    size_t at = BLOB_HEADER + j;
-    size_t b = ups_ecb__bind_save(ecb, out + at + 4u, cap - at - 8u);
-    size_t n = at + 4u + b + 4u;
-    out[0] = 0x55u;
-    out[1] = 0x50u;
-    out[2] = 0x53u;
-    out[3] = 0x65u;
-    out[4] = BLOB_VERSION;
-    out[5] = 0u;
-    out[6] = (uint8_t)(j >> 8);
-    out[7] = (uint8_t)j;
+    size_t j = ups_ecb__join_save(ecb, out + BLOB_HEADER, cap - BLOB_FIXED);
+    uint8_t *bind = out + BLOB_HEADER + j;
+    size_t b = ups_ecb__bind_save(ecb, bind + 4u, cap - BLOB_FIXED - j);
+    size_t n = BLOB_FIXED + j + b;
+    put32(out, BLOB_MAGIC);
+    put32(&out[4], (BLOB_VERSION << 16) | (uint32_t)j);
     put32(&out[8], (uint32_t)n);
-    put32(&out[at], (uint32_t)b);
+    put32(bind, (uint32_t)b);
     put32(&out[n - 4u], ups_ecb__crc32(0u, out, n - 4u));
     return n;
 }
 
-static int restore(ups_ecb_t *ecb, const uint8_t *blob, size_t size)
+/** Whether @p blob holds (its header, lengths and CRC), and its sections were taken back. */
+static int restored(ups_ecb_t *ecb, const uint8_t *blob, size_t size)
 {
-    if (blob == NULL || size < BLOB_HEADER + 8u || size > UPS_ECB_BLOB_MAX) {
-        return UPS_ERR_ARGUMENT;
+    if (blob == NULL || size < BLOB_FIXED || size > UPS_ECB_BLOB_MAX) {
+        return 0;
     }
-    if (blob[0] != 0x55u || blob[1] != 0x50u || blob[2] != 0x53u || blob[3] != 0x65u ||
-        blob[4] != BLOB_VERSION || blob[5] != 0u || get32(&blob[8]) != size ||
-        get32(&blob[size - 4u]) != ups_ecb__crc32(0u, blob, size - 4u)) {
-        return UPS_ERR_ARGUMENT;
-    }
-    size_t j = ((size_t)blob[6] << 8) | blob[7];
-    if (j > size - BLOB_HEADER - 8u) {
-        return UPS_ERR_ARGUMENT;
-    }
-    size_t at = BLOB_HEADER + j;
-    size_t b = get32(&blob[at]);
-    if (b != size - at - 8u) {
-        return UPS_ERR_ARGUMENT;
-    }
-    if (ups_ecb__join_restore(ecb, blob + BLOB_HEADER, j) != UPS_OK) {
-        return UPS_ERR_ARGUMENT;
-    }
-    if (b > 0u && ups_ecb__bind_restore(ecb, blob + at + 4u, b) != UPS_OK) {
-        return UPS_ERR_ARGUMENT;
-    }
-    return UPS_OK;
+    uint32_t version = get32(&blob[4]);
+    size_t j = version & 0xFFFFu;
+    size_t b = size - BLOB_FIXED - j; /* wraps when j is too long: checked first */
+    return get32(blob) == BLOB_MAGIC && version >> 16 == BLOB_VERSION &&
+           get32(&blob[8]) == size && get32(&blob[size - 4u]) == ups_ecb__crc32(0u, blob, size - 4u) &&
+           j <= size - BLOB_FIXED && get32(&blob[BLOB_HEADER + j]) == b &&
+           ups_ecb__join_restore(ecb, blob + BLOB_HEADER, j) == UPS_OK &&
+           (b == 0u || ups_ecb__bind_restore(ecb, blob + BLOB_HEADER + j + 4u, b) == UPS_OK);
 }
 
 int ups_ecb_restore(ups_ecb_t *ecb, const uint8_t *blob, size_t size)
 {
-    ups_ecb__join_init(ecb);
-    ups_ecb__bind_init(ecb);
-    if (restore(ecb, blob, size) != UPS_OK) {
-        ups_ecb__join_init(ecb); /* empty tables: the bus is relearnt from the Hello answers */
-        ups_ecb__bind_init(ecb);
-        ups_ecb__count(&ecb->counters.blob_refused);
-        return UPS_ERR_ARGUMENT;
+    empty(ecb);
+    if (restored(ecb, blob, size)) {
+        return UPS_OK;
     }
-    return UPS_OK;
+    empty(ecb); /* empty tables: the bus is relearnt from the Hello answers */
+    ups_ecb__count(&ecb->counters.blob_refused);
+    return UPS_ERR_ARGUMENT;
 }
 
 /* ---- life cycle ---------------------------------------------------------------------------- */
@@ -177,12 +169,20 @@ static void elected(ups_ecb_t *ecb, unsigned verdict)
     }
 }
 
+/** Take the time; whether the CAN-ECB was started. */
+static int running(ups_ecb_t *ecb, uint32_t now_ms)
+{
+    ecb->now = now_ms;
+    return ecb->elect.role != UPS_ECB_STOPPED;
+}
+
 void ups_ecb_start(ups_ecb_t *ecb, uint32_t now_ms)
 {
     if (ecb->elect.role != UPS_ECB_STOPPED) {
         return;
     }
     ecb->now = now_ms;
+    ecb->t_unknown_hello = now_ms - HELLO_GAP; /* a stray may have its Hello at once */
     ups_ecb__join_started(ecb);
     ups_ecb__elect_start(ecb);
     hello(ecb);
@@ -192,9 +192,7 @@ void ups_ecb__unassigned(ups_ecb_t *ecb, unsigned txnode)
 {
     ups_ecb__count(&ecb->counters.unassigned);
     ecb->strays[(txnode & 0x7Fu) / 8u] |= (uint8_t)(1u << (txnode % 8u));
-    if (!ecb->recovering &&
-        (!ecb->hello_gap || ups_ecb__since(ecb->now, ecb->t_unknown_hello) >= HELLO_GAP)) {
-        ecb->hello_gap = 1u;
+    if (!ecb->recovering && ups_ecb__since(ecb->now, ecb->t_unknown_hello) >= HELLO_GAP) {
         ecb->t_unknown_hello = ecb->now;
         hello(ecb);
     }
@@ -214,160 +212,161 @@ int ups_ecb__stray(const ups_ecb_t *ecb, unsigned txnode)
 #define K_CLAIM 4
 #define K_REQUEST 5 /* any other node frame: PUB_BIND, SUB_BIND, UNSUB, DECLARE, Roster, ... */
 
+/** The OR of @p n bytes (0: all zero). */
+static unsigned ors(const uint8_t *d, unsigned n)
+{
+    unsigned all = 0u;
+    for (unsigned i = 0u; i < n; i++) {
+        all |= d[i];
+    }
+    return all;
+}
+
+/** Whether the 2 bytes at @p etag are an event etag (0x0010..0x3FFF). */
+static int etag_ok(const uint8_t *etag)
+{
+    return (unsigned)(((unsigned)etag[0] << 8 | etag[1]) - UPS_ECB__FIRST_ETAG) <=
+           UPS_ECB__ETAG_MASK - UPS_ECB__FIRST_ETAG;
+}
+
 static int stream_ok(const uint8_t *etag, unsigned txnode)
 {
-    unsigned e = ((unsigned)etag[0] << 8) | etag[1];
-    return e >= UPS_ECB__FIRST_ETAG && e <= UPS_ECB__ETAG_MASK && txnode < 127u;
+    return etag_ok(etag) && txnode < 127u;
 }
 
 /* The fields of a node's request (etag field < 0x0010, priority 0, 8 bytes): PUB_BIND 1,
- * SUB_BIND 2, UNSUB 3, Roster 6, PUB_BIND(c) 9..12 (DECLARE 5 and CLAIM 4 have their own). */
-#define REQUEST_FIELDS 0x1E4Eu
+ * SUB_BIND 2, UNSUB 3, CLAIM 4, DECLARE 5, Roster 6, PUB_BIND(c) 9..12. */
+#define NODE_FIELDS 0x1E7Eu
+#define DECLARE 0x0005u
 
 /** A node's management frame (TxNode < 0x7F), as ups/_canproto.py decodes it. */
 static int node_kind(unsigned prio, unsigned field, const uint8_t *d, unsigned len)
 {
-    if (field >= UPS_ECB__FIRST_ETAG) { /* SUB_AT, PUB_AT */
-        return prio <= 1u && len == 8u ? K_REQUEST : K_MALFORMED;
-    }
-    if (prio != 0u || len != 8u) {
+    if (len != 8u) {
         return K_MALFORMED;
     }
-    if (field == 0x0005u) { /* DECLARE */
-        unsigned etag = ((unsigned)d[0] << 8) | d[1];
-        unsigned largest = etag < UPS_ECB__LARGE_ETAG ? 8u : 0xFFu;
-        int ok = etag >= UPS_ECB__FIRST_ETAG && etag <= UPS_ECB__ETAG_MASK && d[2] <= largest &&
-                 (d[2] != 0u || etag < UPS_ECB__LARGE_ETAG) && (d[3] | d[4]) != 0u &&
-                 (d[5] | d[6]) != 0u;
-        return ok ? K_REQUEST : K_MALFORMED;
-    }
-    if ((REQUEST_FIELDS >> field) & 1u) {
+    if (field >= UPS_ECB__FIRST_ETAG) { /* SUB_AT, PUB_AT (of priority 0 or 1: management) */
         return K_REQUEST;
     }
-    return field == CLAIM ? K_CLAIM : K_MALFORMED;
+    if (prio != 0u || !((NODE_FIELDS >> field) & 1u)) {
+        return K_MALFORMED;
+    }
+    if (field == DECLARE) { /* a large channel (0x3000..) declares its size, 1..255 */
+        int large = d[0] >= (UPS_ECB__LARGE_ETAG >> 8);
+        if (!etag_ok(d) || (large ? d[2] == 0u : d[2] > 8u) || ors(&d[3], 2u) == 0u ||
+            ors(&d[5], 2u) == 0u) {
+            return K_MALFORMED;
+        }
+    }
+    return field == CLAIM ? K_CLAIM : K_REQUEST;
 }
 
-/* The rows of the status frames (etag field 0x3S.., S the status), one byte each: bits 0-1 the
- * range of the field's low byte (LOW_ZERO: 0, LOW_EPOCH: < 16, LOW_TXNODE: < 127, LOW_ROSTER:
- * < 127 after bit 7, its "complete" flag), ST_DATA: 8 data bytes (else none), bits 3-4 a
- * check of the data (ST_GRANT, ST_REFUSE, ST_END), ST_KNOCK: a Knock, ST_NONE: no row. */
+/* The rows of the CAN-ECB's frames of priority 0 but the Query (etag field 0xOS.., O the op, S
+ * the status of op 3), one byte each: bits 0-1 the range of the field's low byte (below 1, 16,
+ * 127 or 256), ROW_FLAG: its bit 7 is a flag, out of the range, ROW_DATA: 8 data bytes (else
+ * none), bits 4-5 a check of the data (ROW_GRANT, ROW_REFUSE, ROW_END), bits 6-7 the kind
+ * (K_ECB, K_STAGE, K_KNOCK; 0: no row, malformed). */
 #define LOW_ZERO 0u
 #define LOW_EPOCH 1u
 #define LOW_TXNODE 2u
-#define LOW_ROSTER 3u
-#define ST_DATA 0x04u
-#define ST_GRANT 0x08u
-#define ST_REFUSE 0x10u
-#define ST_END 0x18u
-#define ST_KNOCK 0x20u
-#define ST_NONE 0x40u
+#define LOW_ANY 3u
+#define ROW_FLAG 0x04u
+#define ROW_DATA 0x08u
+#define ROW_GRANT 0x10u
+#define ROW_REFUSE 0x20u
+#define ROW_END 0x30u
+#define ROW_ECB (K_ECB << 6)
+#define ROW_STAGE ((unsigned)K_STAGE << 6)
+#define ROW_KNOCK ((unsigned)K_KNOCK << 6)
 
 static const uint8_t STATUS_ROWS[16] = {
-    LOW_EPOCH,                     /* 0 Census */
-    ST_DATA,                       /* 1 TxNodesFull */
-    ST_DATA,                       /* 2 EtagsFull */
-    ST_DATA,                       /* 3 Hello */
-    ST_DATA | ST_GRANT,            /* 4 Grant */
-    ST_DATA | ST_REFUSE,           /* 5 Refuse */
-    ST_DATA,                       /* 6 Serving */
-    ST_DATA,                       /* 7 Failed */
-    ST_DATA | LOW_TXNODE,          /* 8 Limit */
-    ST_DATA,                       /* 9 Probe */
-    ST_DATA | LOW_TXNODE,          /* A Uses (subscribes) */
-    ST_DATA | LOW_TXNODE,          /* B Uses (publishes) */
-    ST_DATA | ST_END | LOW_ROSTER, /* C RosterEnd */
-    ST_NONE,
-    ST_NONE,
-    ST_KNOCK,                      /* F Knock */
+    ROW_ECB | LOW_EPOCH,                           /* 0 Census */
+    ROW_ECB | ROW_DATA,                            /* 1 TxNodesFull */
+    ROW_ECB | ROW_DATA,                            /* 2 EtagsFull */
+    ROW_ECB | ROW_DATA,                            /* 3 Hello */
+    ROW_ECB | ROW_DATA | ROW_GRANT,                /* 4 Grant */
+    ROW_ECB | ROW_DATA | ROW_REFUSE,               /* 5 Refuse */
+    ROW_ECB | ROW_DATA,                            /* 6 Serving */
+    ROW_ECB | ROW_DATA,                            /* 7 Failed */
+    ROW_ECB | ROW_DATA | LOW_TXNODE,               /* 8 Limit */
+    ROW_ECB | ROW_DATA,                            /* 9 Probe */
+    ROW_ECB | ROW_DATA | LOW_TXNODE,               /* A Uses (subscribes) */
+    ROW_ECB | ROW_DATA | LOW_TXNODE,               /* B Uses (publishes) */
+    ROW_ECB | ROW_DATA | ROW_END | ROW_FLAG | LOW_TXNODE, /* C RosterEnd */
+    0u,
+    0u,
+    ROW_KNOCK,                                     /* F Knock */
 };
 
-static int status_kind(unsigned status, unsigned low, const uint8_t *d, unsigned len)
+/** A Query: the prefix's last nibble in the field (@p arg), the rest of the prefix in the data,
+ *  every nibble after it zero. */
+static int query_ok(unsigned arg, const uint8_t *d)
 {
-    static const uint8_t limit[4] = {1u, 16u, 127u, 127u};
-    unsigned row = STATUS_ROWS[status];
-    unsigned range = row & 3u;
-    if ((row & ST_NONE) || ((range == LOW_ROSTER ? low & 0x7Fu : low) >= limit[range]) ||
-        len != (row & ST_DATA ? 8u : 0u)) {
-        return K_MALFORMED;
+    unsigned stage = (arg >> 4) & 0xFu;
+    unsigned bad = stage == 15u;
+    for (unsigned s = stage; s < 16u; s++) { /* nibble s of the data */
+        unsigned nibble = (unsigned)(d[s / 2u] >> (s & 1u ? 0u : 4u)) & 0xFu;
+        bad |= nibble != (s == stage ? (arg & 0xFu) : 0u);
     }
-    unsigned check = row & ST_END;
-    if ((check == ST_GRANT && ((d[4] | d[5] | d[6] | d[7]) != 0u || !stream_ok(d, d[2]))) ||
-        (check == ST_REFUSE && (!stream_ok(d, d[2]) || !stream_ok(&d[4], d[3]))) ||
-        (check == ST_END && (low & 0x80u) &&
-         (d[0] | d[1] | d[2] | d[3] | d[4] | d[5] | d[6] | d[7]) != 0u)) {
-        return K_MALFORMED; /* a complete RosterEnd names no next */
-    }
-    return row & ST_KNOCK ? K_KNOCK : K_ECB;
+    return !bad;
 }
 
 /** What a management frame is (K_...), or K_MALFORMED when it matches no row of the tables. */
 static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
 {
-    unsigned prio = (id >> UPS_ECB__PRIO_SHIFT) & 0xFFu;
-    unsigned txnode = (id >> UPS_ECB__TXNODE_SHIFT) & 0x7Fu;
+    static const uint16_t limit[4] = {1u, 16u, 127u, 256u};
+    unsigned prio = id >> UPS_ECB__PRIO_SHIFT; /* 29 bits: at most 0xFF */
     unsigned field = id & UPS_ECB__ETAG_MASK;
-    if (txnode != UPS_ECB__MGMT) {
+    if (((id >> UPS_ECB__TXNODE_SHIFT) & 0x7Fu) != UPS_ECB__MGMT) {
         return node_kind(prio, field, d, len);
     }
-    if (prio == 1u) { /* Bind */
-        return field >= UPS_ECB__FIRST_ETAG && len == 8u ? K_ECB : K_MALFORMED;
-    }
-    if (prio != 0u) {
+    unsigned op = field >> 12;
+    unsigned row = ROW_ECB | ROW_DATA | LOW_ANY; /* Bind, Query */
+    if (prio > 1u || (prio == 1u && field < UPS_ECB__FIRST_ETAG) ||
+        (prio == 0u && op == 1u && !query_ok(field & 0xFFFu, d))) {
         return K_MALFORMED;
     }
-    unsigned op = field >> 12;
-    unsigned arg = field & 0xFFFu;
-    unsigned stage = (arg >> 4) & 0xFu;
-    if (op == 0u) {
-        return len == 0u ? K_STAGE : K_MALFORMED;
+    if (prio == 0u && op != 1u) {
+        unsigned status = (field >> 8) & 0xFu;
+        row = op == 3u ? STATUS_ROWS[status]
+              : op == 2u ? (status == 0u ? ROW_ECB | ROW_DATA | ROW_FLAG | LOW_TXNODE : 0u) /* Offer, Assign */
+                         : ROW_STAGE | LOW_ANY;
     }
-    if (op == 1u) { /* Query: the prefix's last nibble in the field, the rest zero */
-        unsigned bad = len != 8u || stage == 15u;
-        for (unsigned s = stage; s < 16u; s++) { /* nibble s of the data */
-            unsigned nibble = (unsigned)(d[s / 2u] >> (s & 1u ? 0u : 4u)) & 0xFu;
-            bad |= nibble != (s == stage ? (arg & 0xFu) : 0u);
-        }
-        return bad ? K_MALFORMED : K_ECB;
+    unsigned low = field & (row & ROW_FLAG ? 0x7Fu : 0xFFu);
+    unsigned check = row & ROW_END;
+    if ((row >> 6) == 0u || low >= limit[row & 3u] || len != (row & ROW_DATA ? 8u : 0u) ||
+        ((check == ROW_GRANT || check == ROW_REFUSE) && !stream_ok(d, d[2])) ||
+        (check == ROW_GRANT && ors(&d[4], 4u) != 0u) ||
+        (check == ROW_REFUSE && !stream_ok(&d[4], d[3])) ||
+        (check == ROW_END && (field & 0x80u) && ors(d, 8u) != 0u)) {
+        return K_MALFORMED; /* a complete RosterEnd names no next */
     }
-    if (op == 2u) { /* Offer, Assign */
-        return (arg & ~0x80u) < 127u && len == 8u ? K_ECB : K_MALFORMED;
-    }
-    return status_kind(arg >> 8, arg & 0xFFu, d, len);
+    return (int)(row >> 6);
 }
 
-#if UPS_ECB_ECHOES > 0
-/** A frame's key in echo[]: its identifier, and bit 31 when it has 8 data bytes (the CAN-ECB's
- *  frames have 0 or 8). */
-static uint32_t echo_key(uint32_t id, unsigned len)
+/** A CAN-ECB frame's key (ups_ecb_echo_t.key): its identifier and length in 16 bits. */
+static unsigned echo_key(uint32_t id, unsigned len)
 {
-    return id | (len != 0u ? 0x80000000u : 0u);
+    return (id & UPS_ECB__ETAG_MASK) | ((id >> UPS_ECB__PRIO_SHIFT) != 0u ? 0u : 0x4000u) |
+           (len != 0u ? 0x8000u : 0u);
 }
-#endif
 
-/** Whether the frame @p id, @p len, @p data is one this CAN-ECB sent (queued, or one of the
- *  last UPS_ECB_ECHOES sent within ECHO_WINDOW): its own, heard again. */
-static int own(ups_ecb_t *ecb, uint32_t id, unsigned len, const uint8_t *data)
+/** Whether the CAN-ECB frame (TxNode 0x7F, priority 0 or 1, 0 or 8 bytes: checked) @p key,
+ *  @p data is one this CAN-ECB sent (queued, or one of the last UPS_ECB_ECHOES sent within
+ *  ECHO_WINDOW): its own, heard again. */
+static int own(ups_ecb_t *ecb, unsigned key, const uint8_t *data)
 {
     for (unsigned i = 0; i < ecb->tx_count; i++) {
-        const ups_ecb_frame_t *q = &ecb->tx[i];
-        if (q->id == id && ecb->tx_len[i] == len) {
-            unsigned diff = 0;
-            for (unsigned k = 0; k < len; k++) {
-                diff |= (unsigned)(q->data[k] ^ data[k]);
-            }
-            if (diff == 0u) {
-                return 1;
-            }
+        if (echo_key(ecb->tx[i].id, ecb->tx_len[i]) == key && ups_ecb__same8(ecb->tx[i].data, data)) {
+            return 1;
         }
     }
 #if UPS_ECB_ECHOES > 0
-    uint32_t key = echo_key(id, len);
-    for (unsigned i = 0; i < UPS_ECB_ECHOES && (len == 0u || len == 8u); i++) {
-        if (ecb->echo[i].key[0] == (uint16_t)(key >> 16) && ecb->echo[i].key[1] == (uint16_t)key &&
-            (len == 0u || ups_ecb__same8(ecb->echo[i].data, data)) &&
-            ups_ecb__since16(ecb->now, ecb->echo[i].t) < ECHO_WINDOW) {
-            ecb->echo[i].key[0] = 0u; /* heard once */
-            ecb->echo[i].key[1] = 0u;
+    for (unsigned i = 0; i < UPS_ECB_ECHOES; i++) {
+        ups_ecb_echo_t *e = &ecb->echo[i];
+        if (e->key == key && ups_ecb__same8(e->data, data) &&
+            ups_ecb__since16(ecb->now, e->t) < ECHO_WINDOW) {
+            e->key = 0u; /* heard once */
             return 1;
         }
     }
@@ -375,45 +374,48 @@ static int own(ups_ecb_t *ecb, uint32_t id, unsigned len, const uint8_t *data)
     return 0;
 }
 
+/* Hello, Serving, Probe: the status frames that name an instance (their bits) */
+#define CLAIMS ((1u << 0x3u) | (1u << 0x6u) | (1u << 0x9u))
+
 static void on_ecb_frame(ups_ecb_t *ecb, uint32_t id, const uint8_t *d, unsigned len)
 {
-    unsigned field = id & UPS_ECB__ETAG_MASK;
-    unsigned prio = (id >> UPS_ECB__PRIO_SHIFT) & 0xFFu;
-    unsigned status = (field >> 8) & 0xFu;
-    int claim = prio == 0u && field >> 12 == 3u && (status == 0x3u || status == 0x6u ||
-                                                      status == 0x9u); /* Hello, Serving, Probe */
-    if (claim && ups_ecb__same8(d, ecb->instance)) {
+    unsigned status = (id >> 8) & 0xFu;
+    unsigned prio0 = (id >> UPS_ECB__PRIO_SHIFT) == 0u;
+    /* priority 0, TxNode 0x7F, op 3: a status frame */
+    const uint8_t *claim = (id >> 12) == 0x1FFu && ((CLAIMS >> status) & 1u) ? d : NULL;
+    if (claim != NULL && ups_ecb__same8(d, ecb->instance)) {
         return; /* its own */
     }
     ups_ecb__count(&ecb->counters.foreign_ecb_frames);
-    if (ecb->elect.role != UPS_ECB_STANDBY && !claim) {
+    if (ecb->elect.role != UPS_ECB_STANDBY && claim == NULL) {
         ups_ecb__join_correct(ecb, id, d);
         ups_ecb__bind_correct(ecb, id, d, len);
     }
     int busy = ecb->recovering || ups_ecb__join_busy(ecb);
-    elected(ecb, ups_ecb__elect_heard(ecb, prio == 0u ? status : 0xFFu, claim ? d : NULL, id, d,
-                                      busy));
+    elected(ecb, ups_ecb__elect_heard(ecb, prio0 ? status : 0xFFu, claim, id, d, busy));
 }
 
 void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
 {
-    ecb->now = now_ms;
-    if (ecb->elect.role == UPS_ECB_STOPPED) {
+    if (!running(ecb, now_ms)) {
         return; /* not started: it listens from its Hello on */
     }
     uint32_t id = frame->id;
-    if ((frame->flags & (UPS_FRAME_RTR | UPS_FRAME_ERR)) != 0u ||
-        (frame->flags & UPS_FRAME_EXT) == 0u || id > 0x1FFFFFFFu || frame->len > UPS_MTU) {
-        ups_ecb__count(&ecb->counters.foreign);
-        return;
-    }
-    unsigned prio = (id >> UPS_ECB__PRIO_SHIFT) & 0xFFu;
+    unsigned len = frame->len;
     unsigned txnode = (id >> UPS_ECB__TXNODE_SHIFT) & 0x7Fu;
     unsigned field = id & UPS_ECB__ETAG_MASK;
-    int management = prio < 2u || txnode == UPS_ECB__MGMT || field < UPS_ECB__FIRST_ETAG;
+    /* not UPS: not a 29-bit data frame; a management frame is a classic one */
+    int foreign = (frame->flags & (UPS_FRAME_RTR | UPS_FRAME_ERR | UPS_FRAME_EXT)) !=
+                      UPS_FRAME_EXT ||
+                  id > 0x1FFFFFFFu || len > UPS_MTU;
+    int management = (id >> 22) == 0u /* priority 0 or 1 */ || txnode == UPS_ECB__MGMT ||
+                     field < UPS_ECB__FIRST_ETAG;
     /* cppcheck-suppress knownConditionTrueFalse ; a longer one exists where UPS_MTU is 64 */
-    if (management && ((frame->flags & UPS_FRAME_FD) != 0u || frame->len > 8u)) {
-        ups_ecb__count(&ecb->counters.foreign); /* management frames are classic frames */
+    if (management && ((frame->flags & UPS_FRAME_FD) != 0u || len > 8u)) {
+        foreign = 1;
+    }
+    if (foreign) {
+        ups_ecb__count(&ecb->counters.foreign);
         return;
     }
     if (txnode != UPS_ECB__MGMT) {
@@ -424,14 +426,13 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
         return;
     }
     uint8_t d[8] = {0};
-    ups_ecb__copy(d, frame->data, frame->len);
-    unsigned len = frame->len;
+    ups_ecb__copy(d, frame->data, len);
     int kind = kind_of(id, d, len);
     if (kind == K_MALFORMED) {
         ups_ecb__count(&ecb->counters.malformed);
         return;
     }
-    if (txnode == UPS_ECB__MGMT && own(ecb, id, len, d)) {
+    if (txnode == UPS_ECB__MGMT && own(ecb, echo_key(id, len), d)) {
         return;
     }
     if (kind == K_ECB) {
@@ -442,12 +443,10 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
         elected(ecb, ups_ecb__elect_asked(ecb, id, d, len));
         return;
     }
-    if (kind == K_STAGE || kind == K_KNOCK) {
-        ups_ecb__join_rx(ecb, id, d, len);
-        return;
+    if (kind >= K_CLAIM) {
+        ups_ecb__count(&ecb->counters.requests);
     }
-    ups_ecb__count(&ecb->counters.requests);
-    if (kind == K_CLAIM) {
+    if (kind != K_REQUEST) { /* Stage, Knock, CLAIM */
         ups_ecb__join_rx(ecb, id, d, len);
         return;
     }
@@ -463,20 +462,20 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
 
 void ups_ecb_tick(ups_ecb_t *ecb, uint32_t now_ms)
 {
-    ecb->now = now_ms;
-    if (ecb->elect.role == UPS_ECB_STOPPED) {
+    if (!running(ecb, now_ms)) {
         return;
     }
     (void)ups_ecb__age(now_ms, &ecb->t_unknown_hello);
     /* the election first: a candidacy that ends with the recovery window serves (Serving)
        before it answers what the window held (the Python CAN-ECB's timers fire in that
        order); the queue sends the lowest identifier first, so the window ends a tick later */
-    int role = ecb->elect.role;
+    unsigned role = ecb->elect.role;
     elected(ecb, ups_ecb__elect_tick(ecb));
-    if (role == ecb->elect.role && ecb->recovering && ups_ecb__since(now_ms, ecb->t_recovery) >= ecb->cfg.recovery_ms) {
+    if (role == ecb->elect.role && ecb->recovering &&
+        ups_ecb__since(now_ms, ecb->t_recovery) >= ecb->cfg.recovery_ms) {
         ecb->recovering = 0u;
         ups_ecb__copy(ecb->strays, NULL, (unsigned)sizeof(ecb->strays));
-        if (ecb->elect.role != UPS_ECB_STANDBY) {
+        if (role != UPS_ECB_STANDBY) {
             ecb->started_up = 1u;
             ups_ecb__bind_recovered(ecb);
             ups_ecb__join_recovered(ecb);
@@ -495,17 +494,15 @@ const ups_frame_t *ups_ecb_tx_peek(const ups_ecb_t *ecb)
 
 void ups_ecb_tx_pop(ups_ecb_t *ecb)
 {
-    if (ecb->tx_count == 0u) {
-        return;
-    }
 #if UPS_ECB_ECHOES > 0
-    unsigned at = ecb->echo_next;
-    uint32_t key = echo_key(ecb->tx_head.id, ecb->tx_head.len);
-    ecb->echo[at].key[0] = (uint16_t)(key >> 16);
-    ecb->echo[at].key[1] = (uint16_t)key;
-    ecb->echo[at].t = (uint16_t)ecb->now;
-    ups_ecb__copy(ecb->echo[at].data, ecb->tx_head.data, 8u);
-    ecb->echo_next = (uint16_t)((at + 1u) % UPS_ECB_ECHOES);
+    if (ecb->tx_count != 0u) { /* remembered: heard again, it is known for its own */
+        unsigned at = ecb->echo_next;
+        ups_ecb_echo_t *e = &ecb->echo[at];
+        e->key = (uint16_t)echo_key(ecb->tx_head.id, ecb->tx_head.len);
+        e->t = (uint16_t)ecb->now;
+        ups_ecb__copy(e->data, ecb->tx_head.data, 8u);
+        ecb->echo_next = (uint16_t)(at + 1u < UPS_ECB_ECHOES ? at + 1u : 0u);
+    }
 #endif
     ups_ecb__pop(ecb);
 }
@@ -531,7 +528,7 @@ const ups_ecb_counters_t *ups_ecb_counters(const ups_ecb_t *ecb)
 
 int ups_ecb_node(const ups_ecb_t *ecb, int i, uint64_t *node_id)
 {
-    if (i < 0 || i >= UPS_ECB_NODES || !(ecb->join.nodes[i].flags & UPS_ECB__HELD)) {
+    if ((unsigned)i >= UPS_ECB_NODES || !(ecb->join.nodes[i].flags & UPS_ECB__HELD)) {
         return -1;
     }
     *node_id = ups_ecb__get64(ecb->join.nodes[i].node_id);
@@ -540,7 +537,7 @@ int ups_ecb_node(const ups_ecb_t *ecb, int i, uint64_t *node_id)
 
 int ups_ecb_channel(const ups_ecb_t *ecb, int i, uint64_t *uid)
 {
-    if (i < 0 || i >= UPS_ECB_CHANNELS || ecb->bind.channels[i].etag == 0u) {
+    if ((unsigned)i >= UPS_ECB_CHANNELS || ecb->bind.channels[i].etag == 0u) {
         return -1;
     }
     *uid = ups_ecb__get64(ecb->bind.channels[i].uid);

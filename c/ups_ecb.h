@@ -74,7 +74,7 @@ extern "C" {
 #define UPS_ECB_WATCHED 4
 #endif
 
-/** CAN-ECB frames remembered after they were sent (14 bytes each: identifier and data, so
+/** CAN-ECB frames remembered after they were sent (12 bytes each: identifier and data, so
  *  that no other frame passes for one), so that one heard again within a second (an echo: a
  *  controller or a bus that hands a sender its own frames, or an application that feeds what it
  *  sent back in) is known for its own, 0..1024. Frames still queued are always known. */
@@ -195,6 +195,16 @@ typedef struct {
     uint8_t data[8];
 } ups_ecb_frame_t;
 
+/** A frame the CAN-ECB sent lately (UPS_ECB_ECHOES of them), 12 bytes: its frames all have
+ *  TxNode 0x7F, priority 0 or 1, and 0 or 8 data bytes, so 16 bits name the identifier and the
+ *  length. */
+typedef struct {
+    uint16_t key;    /* the etag field, bit 14 for priority 0, bit 15 for 8 data bytes; 0 (a
+                        priority-1 frame without data: none is sent) an unused entry */
+    uint16_t t;      /* low 16 bits of the time it was sent */
+    uint8_t data[8]; /* zero without data */
+} ups_ecb_echo_t;
+
 /** The whole state of one CAN-ECB. Private: set up with ups_ecb_init(), then use the
  *  functions. */
 typedef struct ups_ecb {
@@ -205,22 +215,18 @@ typedef struct ups_ecb {
     uint8_t knocked;      /* a Knock came in the recovery window */
     uint8_t started_up;   /* the first recovery is over */
     uint8_t tx_count;
-    uint8_t hello_gap;    /* a Hello for unknown TxNodes was sent at t_unknown_hello */
     uint16_t echo_next;   /* the next entry of echo[] to write */
     uint32_t t_recovery;  /* when the recovery window began */
-    uint32_t t_unknown_hello; /* the last Hello for an unknown TxNode */
+    uint32_t t_unknown_hello; /* the last Hello for an unknown TxNode (HELLO_GAP before the
+                                 start: the first one goes at once) */
     ups_ecb_config_t cfg;
     uint8_t instance[8];  /* big-endian */
     uint8_t strays[16];   /* TxNodes heard asking while unknown since the last Hello (bits) */
     ups_ecb_counters_t counters;
     ups_ecb_join_t join;   /* ups_ecb_join.c: TxNodes, the census, Offers */
     ups_ecb_elect_t elect; /* ups_ecb_elect.c: the election */
-    struct {              /* CAN-ECB frames sent lately: heard again, they are this one's own */
-        uint16_t key[2];  /* its identifier, high half first, and bit 15 of key[0] when it had
-                             8 data bytes (else none); 0, 0: an unused entry */
-        uint16_t t;       /* low 16 bits of the time it was sent */
-        uint8_t data[8];
-    } echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1];
+    ups_ecb_echo_t echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1]; /* CAN-ECB frames sent
+                                    lately: heard again, they are this one's own */
     ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, lowest identifier first */
     uint8_t tx_len[UPS_ECB_TX_DEPTH];     /* their lengths */
     ups_frame_t tx_head;  /* tx[0] as ups_ecb_tx_peek() hands it out */

@@ -43,13 +43,15 @@ void ups_ecb__count(UPS_ECB_COUNTER_T *counter);
 void ups_ecb__note(ups_ecb_t *ecb, unsigned bits);
 /** Whether two 8-byte values are equal. */
 int ups_ecb__same8(const uint8_t *a, const uint8_t *b);
-/** Copy @p n bytes (or zero them when @p from is NULL) in a loop no compiler makes a call of. */
+/** Copy @p n bytes (or zero them when @p from is NULL) in a loop no compiler makes a call of;
+ *  first byte first, so @p to may overlap @p from from below. */
 void ups_ecb__copy(uint8_t *to, const uint8_t *from, unsigned n);
 /** Read / write 8 bytes big-endian. */
 uint64_t ups_ecb__get64(const uint8_t *in);
 void ups_ecb__put64(uint8_t *out, uint64_t value);
-/** Queue a classic extended frame of @p len (0..8) bytes, sorted by identifier (FIFO among
- *  equals); a full queue drops it, counted (tx_dropped). */
+/** Queue a classic extended frame of @p len bytes: 0, or 8 of @p data (the CAN-ECB's frames
+ *  have no other length). It is sent in the order of the identifiers (FIFO among equals); a
+ *  full queue drops it, counted (tx_dropped). */
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 /** Remove the first frame of the TX queue (it was sent). */
 void ups_ecb__pop(ups_ecb_t *ecb);

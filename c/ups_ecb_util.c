@@ -49,46 +49,38 @@ void ups_ecb__put64(uint8_t *out, uint64_t value)
     }
 }
 
-/** tx[to] = tx[from] and its length, by the byte helper (a struct assignment in a loop becomes
- *  memmove). */
-static void shift(ups_ecb_t *ecb, unsigned to, unsigned from)
+/** tx_head: the frame to send first (the lowest identifier, the first queued among equals:
+ *  the queue keeps the order the frames came in, so that queuing one moves none), as
+ *  ups_ecb_tx_peek() hands it out; returns its entry. */
+static unsigned head(ups_ecb_t *ecb)
 {
-    ups_ecb__copy((uint8_t *)&ecb->tx[to], (const uint8_t *)&ecb->tx[from],
-                  (unsigned)sizeof(ecb->tx[0]));
-    ecb->tx_len[to] = ecb->tx_len[from];
-}
-
-/** tx_head: the first frame of the queue, as ups_ecb_tx_peek() hands it out. */
-static void head(ups_ecb_t *ecb)
-{
-    if (ecb->tx_count == 0u) {
-        return;
+    const ups_ecb_frame_t *tx = ecb->tx;
+    unsigned at = 0u;
+    for (unsigned i = 1u; i < ecb->tx_count; i++) {
+        if (tx[i].id < tx[at].id) {
+            at = i;
+        }
     }
-    ecb->tx_head.id = ecb->tx[0].id;
-    ecb->tx_head.flags = UPS_FRAME_EXT;
-    ecb->tx_head.len = ecb->tx_len[0];
-    ups_ecb__copy(ecb->tx_head.data, ecb->tx[0].data, 8u);
+    ups_frame_t *h = &ecb->tx_head;
+    h->id = tx[at].id;
+    h->flags = UPS_FRAME_EXT;
+    h->len = ecb->tx_len[at];
+    ups_ecb__copy(h->data, tx[at].data, 8u);
+    return at;
 }
 
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len)
 {
-    if (ecb->tx_count >= UPS_ECB_TX_DEPTH) {
+    unsigned n = ecb->tx_count;
+    if (n >= UPS_ECB_TX_DEPTH) {
         ups_ecb__count(&ecb->counters.tx_dropped);
         return;
     }
-    unsigned at = ecb->tx_count;
-    while (at > 0u && ecb->tx[at - 1u].id > id) { /* after its equals: FIFO among them */
-        shift(ecb, at, at - 1u);
-        at--;
-    }
-    ups_ecb_frame_t *frame = &ecb->tx[at];
-    frame->id = id;
-    ecb->tx_len[at] = (uint8_t)len;
-    ups_ecb__copy(frame->data, data, len);
-    ecb->tx_count++;
-    if (at == 0u) {
-        head(ecb);
-    }
+    ecb->tx[n].id = id;
+    ecb->tx_len[n] = (uint8_t)len;
+    ups_ecb__copy(ecb->tx[n].data, len != 0u ? data : NULL, 8u); /* no data: zeros */
+    ecb->tx_count = (uint8_t)(n + 1u);
+    (void)head(ecb);
 }
 
 void ups_ecb__pop(ups_ecb_t *ecb)
@@ -96,11 +88,13 @@ void ups_ecb__pop(ups_ecb_t *ecb)
     if (ecb->tx_count == 0u) {
         return;
     }
-    for (unsigned i = 1u; i < ecb->tx_count; i++) {
-        shift(ecb, i - 1u, i);
-    }
+    unsigned at = head(ecb);
+    unsigned after = ecb->tx_count - 1u - at; /* the entries behind it move up one */
+    ups_ecb__copy((uint8_t *)&ecb->tx[at], (const uint8_t *)&ecb->tx[at + 1u],
+                  after * (unsigned)sizeof(ecb->tx[0]));
+    ups_ecb__copy(&ecb->tx_len[at], &ecb->tx_len[at + 1u], after);
     ecb->tx_count--;
-    head(ecb);
+    (void)head(ecb);
 }
 
 void ups_ecb__send8(ups_ecb_t *ecb, unsigned field, const uint8_t *data)
