@@ -29,16 +29,32 @@
 #define HELLO_FIELD 0x3300u
 #define CLAIM 0x0004u
 
+/* numbers as the blob and the instance keep them: big-endian */
+static void put32(uint8_t *out, uint32_t v)
+{
+    for (unsigned i = 4u; i-- > 0u;) {
+        out[i] = (uint8_t)v;
+        v >>= 8;
+    }
+}
+
+static uint32_t get32(const uint8_t *in)
+{
+    uint32_t v = 0u;
+    for (unsigned i = 0u; i < 4u; i++) {
+        v = (v << 8) | in[i];
+    }
+    return v;
+}
+
+/** The Python CAN-ECB's. */
+static const ups_ecb_config_t DEFAULTS = {
+    500000u, 0u, 2000u, 86400u, UPS_ECB_CHANNELS, {1024u, 64u, 64u, 64u, 64u},
+};
+
 void ups_ecb_default_config(ups_ecb_config_t *cfg)
 {
-    cfg->bitrate = 500000u;
-    cfg->fd = 0u;
-    cfg->recovery_ms = 2000u;
-    cfg->lease_s = 86400u;
-    cfg->max_channels = UPS_ECB_CHANNELS;
-    for (unsigned c = 0u; c < 5u; c++) {
-        cfg->quota[c] = c == 0u ? 1024u : 64u;
-    }
+    *cfg = DEFAULTS;
 }
 
 /** Empty tables (before a restore, and after a refused one). */
@@ -50,18 +66,17 @@ static void empty(ups_ecb_t *ecb)
 
 int ups_ecb_init(ups_ecb_t *ecb, const ups_ecb_config_t *cfg, uint64_t instance)
 {
-    ups_ecb_config_t defaults;
     ups_ecb__copy((uint8_t *)ecb, NULL, (unsigned)sizeof(*ecb));
     if (cfg == NULL) {
-        ups_ecb_default_config(&defaults);
-        cfg = &defaults;
+        cfg = &DEFAULTS;
     }
     if (cfg->bitrate == 0u || cfg->recovery_ms - 100u > 10000u - 100u ||
         cfg->lease_s - 1u >= LEASE_MAX_S) {
         return UPS_ERR_ARGUMENT;
     }
     ecb->cfg = *cfg;
-    ups_ecb__put64(ecb->instance, instance);
+    put32(ecb->instance, (uint32_t)(instance >> 32));
+    put32(&ecb->instance[4], (uint32_t)instance);
     empty(ecb);
     return UPS_OK;
 }
@@ -91,21 +106,17 @@ int ups_ecb_init(ups_ecb_t *ecb, const ups_ecb_config_t *cfg, uint64_t instance)
 #define BLOB_VERSION 0x0100u     /* bytes 4-5: the version, 0 */
 #define BLOB_FIXED (BLOB_HEADER + 8u) /* the header, B and the CRC */
 
-static void put32(uint8_t *out, uint32_t v)
+/** CRC-32 (IEEE 802.3, reflected, as zlib's crc32) of @p n bytes. */
+static uint32_t crc32(const uint8_t *data, size_t n)
 {
-    for (unsigned i = 4u; i-- > 0u;) {
-        out[i] = (uint8_t)v;
-        v >>= 8;
+    uint32_t crc = 0xFFFFFFFFu;
+    for (size_t i = 0; i < n; i++) {
+        crc ^= data[i];
+        for (unsigned k = 0; k < 8u; k++) {
+            crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
+        }
     }
-}
-
-static uint32_t get32(const uint8_t *in)
-{
-    uint32_t v = 0u;
-    for (unsigned i = 0u; i < 4u; i++) {
-        v = (v << 8) | in[i];
-    }
-    return v;
+    return ~crc;
 }
 
 size_t ups_ecb_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
@@ -121,7 +132,7 @@ size_t ups_ecb_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
     put32(&out[4], (BLOB_VERSION << 16) | (uint32_t)j);
     put32(&out[8], (uint32_t)n);
     put32(bind, (uint32_t)b);
-    put32(&out[n - 4u], ups_ecb__crc32(0u, out, n - 4u));
+    put32(&out[n - 4u], crc32(out, n - 4u));
     return n;
 }
 
@@ -135,7 +146,7 @@ static int restored(ups_ecb_t *ecb, const uint8_t *blob, size_t size)
     size_t j = version & 0xFFFFu;
     size_t b = size - BLOB_FIXED - j; /* wraps when j is too long: checked first */
     return get32(blob) == BLOB_MAGIC && version >> 16 == BLOB_VERSION &&
-           get32(&blob[8]) == size && get32(&blob[size - 4u]) == ups_ecb__crc32(0u, blob, size - 4u) &&
+           get32(&blob[8]) == size && get32(&blob[size - 4u]) == crc32(blob, size - 4u) &&
            j <= size - BLOB_FIXED && get32(&blob[BLOB_HEADER + j]) == b &&
            ups_ecb__join_restore(ecb, blob + BLOB_HEADER, j) == UPS_OK &&
            (b == 0u || ups_ecb__bind_restore(ecb, blob + BLOB_HEADER + j + 4u, b) == UPS_OK);
@@ -303,12 +314,11 @@ static const uint8_t STATUS_ROWS[16] = {
 static int query_ok(unsigned arg, const uint8_t *d)
 {
     unsigned stage = (arg >> 4) & 0xFu;
-    unsigned bad = stage == 15u;
-    for (unsigned s = stage; s < 16u; s++) { /* nibble s of the data */
-        unsigned nibble = (unsigned)(d[s / 2u] >> (s & 1u ? 0u : 4u)) & 0xFu;
-        bad |= nibble != (s == stage ? (arg & 0xFu) : 0u);
-    }
-    return !bad;
+    unsigned at = stage / 2u;
+    unsigned odd = stage & 1u; /* the low nibble of d[at], else its high one */
+    unsigned nibble = arg & 0xFu;
+    return stage != 15u && (d[at] & (odd ? 0x0Fu : 0xFFu)) == (odd ? nibble : nibble << 4) &&
+           ors(&d[at + 1u], 7u - at) == 0u;
 }
 
 /** What a management frame is (K_...), or K_MALFORMED when it matches no row of the tables. */
@@ -321,16 +331,22 @@ static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
         return node_kind(prio, field, d, len);
     }
     unsigned op = field >> 12;
+    unsigned status = (field >> 8) & 0xFu;
     unsigned row = ROW_ECB | ROW_DATA | LOW_ANY; /* Bind, Query */
-    if (prio > 1u || (prio == 1u && field < UPS_ECB__FIRST_ETAG) ||
-        (prio == 0u && op == 1u && !query_ok(field & 0xFFFu, d))) {
-        return K_MALFORMED;
-    }
-    if (prio == 0u && op != 1u) {
-        unsigned status = (field >> 8) & 0xFu;
-        row = op == 3u ? STATUS_ROWS[status]
-              : op == 2u ? (status == 0u ? ROW_ECB | ROW_DATA | ROW_FLAG | LOW_TXNODE : 0u) /* Offer, Assign */
-                         : ROW_STAGE | LOW_ANY;
+    if (prio != 0u) {
+        if (prio > 1u || field < UPS_ECB__FIRST_ETAG) {
+            return K_MALFORMED;
+        }
+    } else if (op == 1u) {
+        if (!query_ok(field & 0xFFFu, d)) {
+            return K_MALFORMED;
+        }
+    } else if (op == 3u) {
+        row = STATUS_ROWS[status];
+    } else if (op == 2u) { /* Offer, Assign */
+        row = status == 0u ? ROW_ECB | ROW_DATA | ROW_FLAG | LOW_TXNODE : 0u;
+    } else {
+        row = ROW_STAGE | LOW_ANY;
     }
     unsigned low = field & (row & ROW_FLAG ? 0x7Fu : 0xFFu);
     unsigned check = row & ROW_END;
@@ -380,11 +396,12 @@ static int own(ups_ecb_t *ecb, unsigned key, const uint8_t *data)
 static void on_ecb_frame(ups_ecb_t *ecb, uint32_t id, const uint8_t *d, unsigned len)
 {
     unsigned status = (id >> 8) & 0xFu;
-    unsigned prio0 = (id >> UPS_ECB__PRIO_SHIFT) == 0u;
-    /* priority 0, TxNode 0x7F, op 3: a status frame */
-    const uint8_t *claim = (id >> 12) == 0x1FFu && ((CLAIMS >> status) & 1u) ? d : NULL;
-    if (claim != NULL && ups_ecb__same8(d, ecb->instance)) {
-        return; /* its own */
+    const uint8_t *claim = NULL;
+    if ((id >> 12) == 0x1FFu && ((CLAIMS >> status) & 1u)) { /* priority 0, TxNode 0x7F, op 3 */
+        if (ups_ecb__same8(d, ecb->instance)) {
+            return; /* its own */
+        }
+        claim = d;
     }
     ups_ecb__count(&ecb->counters.foreign_ecb_frames);
     if (ecb->elect.role != UPS_ECB_STANDBY && claim == NULL) {
@@ -392,7 +409,10 @@ static void on_ecb_frame(ups_ecb_t *ecb, uint32_t id, const uint8_t *d, unsigned
         ups_ecb__bind_correct(ecb, id, d, len);
     }
     int busy = ecb->recovering || ups_ecb__join_busy(ecb);
-    elected(ecb, ups_ecb__elect_heard(ecb, prio0 ? status : 0xFFu, claim, id, d, busy));
+    if ((id >> UPS_ECB__PRIO_SHIFT) != 0u) {
+        status = 0xFFu; /* a Bind */
+    }
+    elected(ecb, ups_ecb__elect_heard(ecb, status, claim, id, d, busy));
 }
 
 void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)

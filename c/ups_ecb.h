@@ -227,9 +227,9 @@ typedef struct ups_ecb {
     ups_ecb_elect_t elect; /* ups_ecb_elect.c: the election */
     ups_ecb_echo_t echo[UPS_ECB_ECHOES > 0 ? UPS_ECB_ECHOES : 1]; /* CAN-ECB frames sent
                                     lately: heard again, they are this one's own */
-    ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, lowest identifier first */
+    ups_ecb_frame_t tx[UPS_ECB_TX_DEPTH]; /* waiting to be sent, in the order queued */
     uint8_t tx_len[UPS_ECB_TX_DEPTH];     /* their lengths */
-    ups_frame_t tx_head;  /* tx[0] as ups_ecb_tx_peek() hands it out */
+    ups_frame_t tx_head;  /* the one to send first, as ups_ecb_tx_peek() hands it out */
     ups_ecb_bind_t bind;   /* ups_ecb_bind.c: etags, who uses them, quotas, held requests,
                               rosters, declared streams */
 } ups_ecb_t;

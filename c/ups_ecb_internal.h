@@ -46,12 +46,12 @@ int ups_ecb__same8(const uint8_t *a, const uint8_t *b);
 /** Copy @p n bytes (or zero them when @p from is NULL) in a loop no compiler makes a call of;
  *  first byte first, so @p to may overlap @p from from below. */
 void ups_ecb__copy(uint8_t *to, const uint8_t *from, unsigned n);
-/** Read / write 8 bytes big-endian. */
+/** Read 8 bytes big-endian. */
 uint64_t ups_ecb__get64(const uint8_t *in);
-void ups_ecb__put64(uint8_t *out, uint64_t value);
-/** Queue a classic extended frame of @p len bytes: 0, or 8 of @p data (the CAN-ECB's frames
- *  have no other length). It is sent in the order of the identifiers (FIFO among equals); a
- *  full queue drops it, counted (tx_dropped). */
+/** Queue a classic extended frame of @p len bytes: 0, or 8 of @p data. The CAN-ECB's frames
+ *  have no other length, and all have TxNode 0x7F and priority 0 or 1 (ups_ecb_echo_t keys
+ *  them so). It is sent in the order of the identifiers (FIFO among equals); a full queue
+ *  drops it, counted (tx_dropped). */
 void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 /** Remove the first frame of the TX queue (it was sent). */
 void ups_ecb__pop(ups_ecb_t *ecb);
@@ -70,9 +70,6 @@ static inline uint32_t ups_ecb__since16(uint32_t now, uint16_t then)
  *  now - UPS_ECB__AGE_MAX when older). Called at least every 2^30 ms on every timestamp that
  *  lives longer (every tick does), it keeps each age exact up to that bound. */
 uint32_t ups_ecb__age(uint32_t now, uint32_t *then);
-/** CRC-32 (IEEE 802.3, reflected, as zlib's crc32) of @p n bytes, continuing from @p crc (0 to
- *  start). */
-uint32_t ups_ecb__crc32(uint32_t crc, const uint8_t *data, size_t n);
 
 /* ---- ups_ecb.c: what the parts ask of the dispatcher --------------------------------------- */
 

@@ -41,14 +41,6 @@ uint64_t ups_ecb__get64(const uint8_t *in)
     return value;
 }
 
-void ups_ecb__put64(uint8_t *out, uint64_t value)
-{
-    for (unsigned i = 8u; i-- > 0u;) {
-        out[i] = (uint8_t)value;
-        value >>= 8;
-    }
-}
-
 /** tx_head: the frame to send first (the lowest identifier, the first queued among equals:
  *  the queue keeps the order the frames came in, so that queuing one moves none), as
  *  ups_ecb_tx_peek() hands it out; returns its entry. */
@@ -85,15 +77,17 @@ void ups_ecb__send(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned le
 
 void ups_ecb__pop(ups_ecb_t *ecb)
 {
-    if (ecb->tx_count == 0u) {
+    unsigned n = ecb->tx_count;
+    if (n == 0u) {
         return;
     }
     unsigned at = head(ecb);
-    unsigned after = ecb->tx_count - 1u - at; /* the entries behind it move up one */
-    ups_ecb__copy((uint8_t *)&ecb->tx[at], (const uint8_t *)&ecb->tx[at + 1u],
-                  after * (unsigned)sizeof(ecb->tx[0]));
-    ups_ecb__copy(&ecb->tx_len[at], &ecb->tx_len[at + 1u], after);
-    ecb->tx_count--;
+    unsigned after = n - 1u - at; /* the entries behind it move up one */
+    uint8_t *frame = (uint8_t *)&ecb->tx[at];
+    uint8_t *len = &ecb->tx_len[at];
+    ups_ecb__copy(frame, frame + sizeof(ecb->tx[0]), after * (unsigned)sizeof(ecb->tx[0]));
+    ups_ecb__copy(len, len + 1, after);
+    ecb->tx_count = (uint8_t)(n - 1u);
     (void)head(ecb);
 }
 
@@ -110,16 +104,4 @@ uint32_t ups_ecb__age(uint32_t now, uint32_t *then)
         age = UPS_ECB__AGE_MAX;
     }
     return age;
-}
-
-uint32_t ups_ecb__crc32(uint32_t crc, const uint8_t *data, size_t n)
-{
-    crc = ~crc;
-    for (size_t i = 0; i < n; i++) {
-        crc ^= data[i];
-        for (unsigned k = 0; k < 8u; k++) {
-            crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
-        }
-    }
-    return ~crc;
 }
