@@ -324,7 +324,7 @@ static int query_ok(unsigned arg, const uint8_t *d)
 /** What a management frame is (K_...), or K_MALFORMED when it matches no row of the tables. */
 static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
 {
-    static const uint16_t limit[4] = {1u, 16u, 127u, 256u};
+    static const uint8_t largest[4] = {0u, 15u, 126u, 255u};
     unsigned prio = id >> UPS_ECB__PRIO_SHIFT; /* 29 bits: at most 0xFF */
     unsigned field = id & UPS_ECB__ETAG_MASK;
     if (((id >> UPS_ECB__TXNODE_SHIFT) & 0x7Fu) != UPS_ECB__MGMT) {
@@ -350,10 +350,10 @@ static int kind_of(uint32_t id, const uint8_t *d, unsigned len)
     }
     unsigned low = field & (row & ROW_FLAG ? 0x7Fu : 0xFFu);
     unsigned check = row & ROW_END;
-    if ((row >> 6) == 0u || low >= limit[row & 3u] || len != (row & ROW_DATA ? 8u : 0u) ||
-        ((check == ROW_GRANT || check == ROW_REFUSE) && !stream_ok(d, d[2])) ||
-        (check == ROW_GRANT && ors(&d[4], 4u) != 0u) ||
-        (check == ROW_REFUSE && !stream_ok(&d[4], d[3])) ||
+    if ((row >> 6) == 0u || low > largest[row & 3u] || len != (row & ROW_DATA ? 8u : 0u) ||
+        ((check == ROW_GRANT || check == ROW_REFUSE) &&
+         (!stream_ok(d, d[2]) ||
+          (check == ROW_GRANT ? ors(&d[4], 4u) != 0u : !stream_ok(&d[4], d[3])))) ||
         (check == ROW_END && (field & 0x80u) && ors(d, 8u) != 0u)) {
         return K_MALFORMED; /* a complete RosterEnd names no next */
     }
@@ -369,7 +369,8 @@ static unsigned echo_key(uint32_t id, unsigned len)
 
 /** Whether the CAN-ECB frame (TxNode 0x7F, priority 0 or 1, 0 or 8 bytes: checked) @p key,
  *  @p data is one this CAN-ECB sent (queued, or one of the last UPS_ECB_ECHOES sent within
- *  ECHO_WINDOW): its own, heard again. */
+ *  ECHO_WINDOW): its own, heard again. Only a CAN-ECB frame can be: it sends no node's frame,
+ *  nor Stage or Knock. */
 static int own(ups_ecb_t *ecb, unsigned key, const uint8_t *data)
 {
     for (unsigned i = 0; i < ecb->tx_count; i++) {
@@ -395,6 +396,9 @@ static int own(ups_ecb_t *ecb, unsigned key, const uint8_t *data)
 
 static void on_ecb_frame(ups_ecb_t *ecb, uint32_t id, const uint8_t *d, unsigned len)
 {
+    if (own(ecb, echo_key(id, len), d)) {
+        return; /* its own, heard again */
+    }
     unsigned status = (id >> 8) & 0xFu;
     const uint8_t *claim = NULL;
     if ((id >> 12) == 0x1FFu && ((CLAIMS >> status) & 1u)) { /* priority 0, TxNode 0x7F, op 3 */
@@ -450,9 +454,6 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
     int kind = kind_of(id, d, len);
     if (kind == K_MALFORMED) {
         ups_ecb__count(&ecb->counters.malformed);
-        return;
-    }
-    if (txnode == UPS_ECB__MGMT && own(ecb, echo_key(id, len), d)) {
         return;
     }
     if (kind == K_ECB) {
