@@ -116,7 +116,9 @@ def test_a_gateway_that_joins_a_running_bus_forwards_what_was_bound_before_it(
         listener = open_bus(bus)
         stack.callback(listener.shutdown)
         event_ids(listener, 2)  # it publishes: its channel was bound before the gateway came
-        own = ("--db", str(tmp_path / "gw.db")) if mode == "hosting" else (mode,)
+        own = (
+            ("--db", str(tmp_path / "gw.db"), "--recovery", "0.2") if mode == "hosting" else (mode,)
+        )
         gw = stack.enter_context(Proc("gateway", *own, "--can", bus, *ip, "--node-id", "0x6a7f"))
         gw.wait_for_line("gateway .* between", timeout=60)
         with Proc("sub", "robot/speed", *ip, "--json", "--count", "3", "--timeout", "20",

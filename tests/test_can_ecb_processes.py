@@ -138,10 +138,11 @@ async def test_two_gateways_for_two_buses_from_one_directory(tmp_path: Path) -> 
     a, b = private_multicast_bus(), private_multicast_bus()
     env = {"UPS_STATE_DIR": str(tmp_path / "state")}
     tcp, address = start_tcp_broker("--recovery", "0")
+    short = ("--recovery", "0.2")  # the hosted CAN-ECBs' windows
     with (
         tcp,
-        Proc("gateway", "--can", a, "--broker", address, env=env, cwd=tmp_path) as gw_a,
-        Proc("gateway", "--can", b, "--broker", address, env=env, cwd=tmp_path) as gw_b,
+        Proc("gateway", "--can", a, "--broker", address, *short, env=env, cwd=tmp_path) as gw_a,
+        Proc("gateway", "--can", b, "--broker", address, *short, env=env, cwd=tmp_path) as gw_b,
     ):
         gw_a.wait_for_line("gateway .* between")
         gw_b.wait_for_line("gateway .* between")

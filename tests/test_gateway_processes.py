@@ -25,11 +25,15 @@ from .test_tcp_processes import wait_until
 GW_ID = 0x6A7E
 
 
-def start_gateway(bus: str, broker: str, db: Path, node_id: int = GW_ID) -> tuple[Proc, str]:
-    """``ups gateway``; returns it and the HOST:PORT where ``ups status`` reaches it."""
+def start_gateway(
+    bus: str, broker: str, db: Path, node_id: int = GW_ID, recovery: str = "0.2"
+) -> tuple[Proc, str]:
+    """``ups gateway``; returns it and the HOST:PORT where ``ups status`` reaches it. Its
+    CAN-ECB's recovery window is short (nodes join after it) unless a test relearns in it."""
     gw = Proc(
-        "gateway", "--can", bus, "--broker", broker, "--db", str(db), "--node-id", hex(node_id)
-    )
+        "gateway", "--can", bus, "--broker", broker, "--db", str(db), "--node-id", hex(node_id),
+        "--recovery", recovery,
+    )  # fmt: skip
     try:
         line = gw.wait_for_line(r"gateway .* listening on", timeout=60)
     except BaseException:
@@ -196,7 +200,7 @@ def test_gateway_killed_and_restarted_mid_stream(tmp_path: Path) -> None:
                 first.kill()
                 before = event_ids(wire, 5)
                 got = len(sub.stdout_lines)
-                second, gw_address = start_gateway(bus, address, db)
+                second, gw_address = start_gateway(bus, address, db, recovery="2")  # relearns
                 with second:
                     code, _ = sub.finish(timeout=60)
                     assert code == 0  # forwarding resumed by itself

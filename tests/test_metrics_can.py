@@ -76,7 +76,7 @@ def test_the_gateway_counts_what_it_forwards_each_way(tmp_path: Path) -> None:
     broker, address = start_tcp_broker("--recovery", "0")
     with broker, Proc(
         "gateway", "--can", bus, "--broker", address, "--db", str(tmp_path / "gw.db"),
-        "--metrics", "127.0.0.1:0",
+        "--recovery", "0.2", "--metrics", "127.0.0.1:0",
     ) as gw:  # fmt: skip
         gw_address = address_in(gw, r"gateway .* listening on (\S+:\d+)")
         url = metrics_url(gw)

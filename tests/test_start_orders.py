@@ -150,7 +150,8 @@ class Run:
             proc = Proc("can-broker", *self.net(arg), *db, "--recovery", RECOVERY)
         elif kind == "gw":
             bus, hosting = scene.gateways[int(arg)]
-            own = ("--db", str(self.tmp / f"gw-{arg}.db")) if hosting else ("--external-can-ecb",)
+            db = ("--db", str(self.tmp / f"gw-{arg}.db"), "--recovery", RECOVERY)
+            own = db if hosting else ("--external-can-ecb",)
             ip = (*self.net("ip"), "--catalog", str(self.catalog), "--join-timeout", "90")
             proc = Proc("gateway", *own, *self.net(bus), *ip, "--node-id", hex(0x6A00 + int(arg)))
         elif kind == "sub":

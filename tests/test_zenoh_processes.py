@@ -110,7 +110,7 @@ def start_gateway(
 ) -> Proc:
     gw = Proc(
         "gateway", "--can", bus, "--zenoh", endpoint, "--db", str(db), "--node-id", hex(node_id),
-        prefix=prefix,
+        "--recovery", "0.2", prefix=prefix,
     )  # fmt: skip
     try:
         gw.wait_for_line(r"gateway .* and the Zenoh router", timeout=60)

@@ -168,6 +168,11 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         help="do not host the bus's CAN-ECB: one already runs ('ups can-broker')",
     )  # fmt: skip
     cmd.add_argument(
+        "--recovery", type=nonnegative_float, default=2.0,
+        help="seconds the hosted CAN-ECB spends relearning the bus after start, as can-broker's "
+        "(default 2)",
+    )  # fmt: skip
+    cmd.add_argument(
         "--bitrate", type=positive_int, default=500_000,
         help="the bus's bit rate: TCP->CAN pacing and real-time admission (default 500000)",
     )  # fmt: skip
@@ -385,6 +390,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         zenoh_config=args.zenoh_config,
         db=args.db,
         host_can_ecb=not args.external_can_ecb,
+        recovery=args.recovery,
         bitrate=args.bitrate,
         node_id=args.node_id,
         listen=args.listen,
