@@ -6,9 +6,11 @@ compiler makes a C library call of it at any optimisation; and the SocketCAN exa
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -97,20 +99,26 @@ def test_no_compiler_makes_a_c_library_call_of_the_library(tmp_path: Path, level
         "host": (["cc"], "nm"),
     }
     sources = [str(ROOT / "c" / s) for s in C_SOURCES]
-    calls: dict[str, list[str]] = {}
-    for target, (cc, nm) in compilers.items():
-        for config, flags in CONFIGS.items():
-            out = tmp_path / target / config
-            out.mkdir(parents=True)
-            subprocess.run([*cc, level, "-std=c99", *flags, "-c", *sources], cwd=out, check=True)
-            needed = set()
-            for obj in out.glob("*.o"):
-                listing = subprocess.run([nm, "-u", str(obj)], capture_output=True, text=True,
-                                         check=True).stdout  # fmt: skip
-                needed |= {line.split()[-1] for line in listing.splitlines() if line.strip()}
-            outside = sorted(s for s in needed if not s.startswith("ups_"))
-            if outside:
-                calls[f"{target} {config}"] = outside
+
+    def undefined(target: str, config: str) -> list[str]:
+        """The symbols outside libups that its objects, built for ``target``, need."""
+        cc, nm = compilers[target]
+        out = tmp_path / target / config
+        out.mkdir(parents=True)
+        flags = CONFIGS[config]
+        subprocess.run([*cc, level, "-std=c99", *flags, "-c", *sources], cwd=out, check=True)
+        needed = set()
+        for obj in out.glob("*.o"):
+            listing = subprocess.run([nm, "-u", str(obj)], capture_output=True, text=True,
+                                     check=True).stdout  # fmt: skip
+            needed |= {line.split()[-1] for line in listing.splitlines() if line.strip()}
+        return sorted(s for s in needed if not s.startswith("ups_"))
+
+    # the builds are independent: one per core at a time (the other test worker mostly waits)
+    builds = [(target, config) for target in compilers for config in CONFIGS]
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        found = dict(zip(builds, pool.map(lambda b: undefined(*b), builds), strict=True))
+    calls = {f"{target} {config}": out for (target, config), out in found.items() if out}
     assert calls == {}
 
 
