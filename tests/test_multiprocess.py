@@ -31,7 +31,7 @@ def drain(bus: can.BusABC) -> list[can.Message]:
 def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path, kind: str) -> None:
     """With ``ups can-broker`` and with ``ups c-ecb`` (``kind``): the same frames."""
     db = tmp_path / "ecb.db"
-    with can_ecb_proc(kind, mbus, db) as broker:
+    with can_ecb_proc(kind, mbus, db, "--recovery", "0.2") as broker:
         broker.wait_for_line(READY)
         with Proc(
             "sub",
@@ -105,7 +105,7 @@ def test_broker_sub_pub_processes(mbus: str, wire: can.BusABC, tmp_path: Path, k
         (p.make_id(0x20, 1, speed_etag), b"\x01\x02")
     ] * 3 + [(p.make_id(p.DEFAULT_PRIORITY, 1, bound[0x1234]), b"")]
     # the broker's tables are on disk: a restart on the same file keeps them
-    with can_ecb_proc(kind, mbus, db) as broker:
+    with can_ecb_proc(kind, mbus, db, "--recovery", "0.2") as broker:
         broker.wait_for_line("CAN-ECB on .*: 2 TxNodes, 2 etags bound")
 
 
