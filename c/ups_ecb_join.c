@@ -21,9 +21,9 @@
 
 #define NIBBLES 16u
 #define TXNODES 127u
-#define Q_FREE 0u
-#define Q_OPEN 1u
-#define Q_CLOSED 2u
+#define Q_OPEN 0x10u   /* a query's tag: its state (high nibble), or 0 (free), with its epoch */
+#define Q_CLOSED 0x20u
+#define Q_STATE 0xF0u
 
 /* timers (ms; docs/protocol.md, *Timers*) */
 #define FIRST_MAX 250u
@@ -45,31 +45,36 @@
 #define OP_STATUS 3u
 #define ST_TXNODES_FULL 1u
 #define ST_FAILED 7u
-#define ST_KNOCK 0xFu
 #define OFFER_BIT 0x80u
-#define CLAIM 0x0004u
 
 static unsigned nibble_at(const uint8_t *id, unsigned s)
 {
-    return (s & 1u) ? (id[s / 2u] & 0x0Fu) : (unsigned)(id[s / 2u] >> 4);
+    return (unsigned)(id[s / 2u] >> ((s & 1u) ? 0u : 4u)) & 0x0Fu;
 }
 
+/** Set nibble @p s of @p id to @p n (0..15). */
 static void set_nibble(uint8_t *id, unsigned s, unsigned n)
 {
-    if (s & 1u) {
-        id[s / 2u] = (uint8_t)((id[s / 2u] & 0xF0u) | (n & 0x0Fu));
-    } else {
-        id[s / 2u] = (uint8_t)((id[s / 2u] & 0x0Fu) | ((n & 0x0Fu) << 4));
-    }
+    unsigned shift = (s & 1u) ? 0u : 4u;
+    id[s / 2u] = (uint8_t)((id[s / 2u] & ~(0x0Fu << shift)) | (n << shift));
 }
 
-static unsigned popcount16(unsigned v)
+/** The branches of a group of children @p set: one per nibble, or the prefix itself (set 0). */
+static unsigned branches(unsigned set)
 {
-    unsigned n = 0;
-    for (; v != 0u; v &= v - 1u) {
+    unsigned n = set == 0u;
+    for (; set != 0u; set &= set - 1u) {
         n++;
     }
     return n;
+}
+
+/** Count @p n in @p counter (one by one: it saturates). */
+static void count_n(UPS_ECB_COUNTER_T *counter, unsigned n)
+{
+    for (; n > 0u; n--) {
+        ups_ecb__count(counter);
+    }
 }
 
 /* ==== the node table ====================================================================== */
@@ -112,32 +117,20 @@ static int entry_of(const ups_ecb_t *ecb, const uint8_t *node_id)
     return UPS_ECB__NO_SLOT;
 }
 
-/** Whether any entry but @p except uses @p txnode (held, offered or lapsed). */
-static int txnode_used(const ups_ecb_t *ecb, unsigned txnode, int except)
-{
-    return with_txnode(ecb, txnode, except, 0u) != UPS_ECB__NO_SLOT;
-}
-
 /** Nobody else holds @p txnode, and it is offered to nobody but entry @p slot. */
 static int free_for(const ups_ecb_t *ecb, unsigned txnode, int slot)
 {
     return with_txnode(ecb, txnode, slot, UPS_ECB__HELD | UPS_ECB__OFFERED) == UPS_ECB__NO_SLOT;
 }
 
-/** Count the entries' ages up to now, in 64ths of the lease. */
-static void age_entries(ups_ecb_t *ecb)
+/** Entry @p node is @p node_id's, with @p txnode and @p flags, its age 0. */
+static void set_entry(ups_ecb_node_t *node, const uint8_t *node_id, unsigned txnode,
+                      unsigned flags)
 {
-    uint32_t unit = ecb->cfg.lease_s * 1000u / UPS_ECB__LEASE_AGE; /* >= 15 ms */
-    uint32_t rest;
-    uint32_t steps = ups_ecb__div32(ups_ecb__since(ecb->now, ecb->join.t_aged), unit, &rest);
-    if (steps == 0u) {
-        return;
-    }
-    ecb->join.t_aged += steps * unit;
-    for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
-        ups_ecb_node_t *node = &ecb->join.nodes[i];
-        node->age = (uint8_t)(node->age + steps > 255u ? 255u : node->age + steps);
-    }
+    ups_ecb__copy(node->node_id, node_id, 8u);
+    node->txnode = (uint8_t)txnode;
+    node->flags = (uint8_t)flags;
+    node->age = 0u;
 }
 
 void ups_ecb__join_started(ups_ecb_t *ecb)
@@ -156,152 +149,145 @@ void ups_ecb__join_seen(ups_ecb_t *ecb, unsigned txnode)
     }
 }
 
+/** The entry a node id without one takes: an unused one, else a lapsed Offer's (the oldest when
+ *  @p reclaim, else the first), else (when @p reclaim) the one whose TxNode is silent longest
+ *  past the lease; UPS_ECB__NO_SLOT when none. */
+static int free_entry(const ups_ecb_t *ecb, int reclaim)
+{
+    int slot = UPS_ECB__NO_SLOT;
+    unsigned best = 0u;
+    for (int i = 0; i < UPS_ECB_NODES; i++) {
+        const ups_ecb_node_t *node = &ecb->join.nodes[i];
+        unsigned age = reclaim ? node->age : 0u;
+        unsigned rank = 0u; /* the first of the highest rank wins */
+        if (node->txnode == 0xFFu) {
+            rank = 0x300u;
+        } else if (node->flags == UPS_ECB__LAPSED) {
+            rank = 0x200u + age;
+        } else if (node->flags == UPS_ECB__HELD && age >= UPS_ECB__LEASE_AGE) {
+            rank = 0x100u + age; /* offered: a node's own, in use */
+        }
+        if (rank > best) {
+            best = rank;
+            slot = i;
+        }
+    }
+    return slot;
+}
+
 /** An entry for @p node_id, which has none, with a TxNode of its own: an unused one, the
  *  oldest lapsed Offer's, or the one silent longest past the lease (reclaimed). Else
  *  UPS_ECB__NO_SLOT and TxNodesFull. */
 static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
 {
-    ups_ecb_join_t *join = &ecb->join;
-    int slot = UPS_ECB__NO_SLOT;
-    int lapsed = UPS_ECB__NO_SLOT;
-    int idle = UPS_ECB__NO_SLOT;
-    unsigned lapsed_age = 0u;
-    unsigned idle_age = 0u;
-    for (int i = 0; i < UPS_ECB_NODES && slot == UPS_ECB__NO_SLOT; i++) {
-        ups_ecb_node_t *node = &join->nodes[i];
-        if (node->txnode == 0xFFu) {
-            slot = i;
-        } else if (node->flags == UPS_ECB__LAPSED) {
-            unsigned age = node->age;
-            if (lapsed == UPS_ECB__NO_SLOT || age > lapsed_age) {
-                lapsed = i;
-                lapsed_age = age;
-            }
-        } else if (node->flags == UPS_ECB__HELD) { /* offered: a node's own, in use */
-            unsigned age = node->age;
-            if (idle == UPS_ECB__NO_SLOT || age > idle_age) {
-                idle = i;
-                idle_age = age;
-            }
-        }
-    }
-    unsigned txnode = 0xFFu;
-    if (slot == UPS_ECB__NO_SLOT && lapsed != UPS_ECB__NO_SLOT) {
-        slot = lapsed;
-        join->nodes[slot].txnode = 0xFFu; /* its TxNode is free again */
-    } else if (slot == UPS_ECB__NO_SLOT && idle != UPS_ECB__NO_SLOT &&
-               idle_age >= UPS_ECB__LEASE_AGE) {
-        slot = idle;
-        txnode = join->nodes[slot].txnode;
-        ups_ecb__bind_forget(ecb, slot); /* its old owner is forgotten for good */
-        ups_ecb__count(&ecb->counters.reclaimed);
-        ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-    }
+    int slot = free_entry(ecb, 1);
     if (slot == UPS_ECB__NO_SLOT) {
         ups_ecb__count(&ecb->counters.refused);
         ups_ecb__count(&ecb->counters.nodes_full);
         ups_ecb__send8(ecb, (OP_STATUS << 12) | (ST_TXNODES_FULL << 8), node_id);
         return UPS_ECB__NO_SLOT;
     }
-    for (unsigned t = 0; txnode == 0xFFu && t < TXNODES; t++) {
-        if (!txnode_used(ecb, t, slot)) {
-            txnode = t;
+    ups_ecb_node_t *node = &ecb->join.nodes[slot];
+    unsigned txnode = node->txnode;
+    if (node->flags & UPS_ECB__HELD) { /* reclaimed: the new node id takes its TxNode */
+        ups_ecb__bind_forget(ecb, slot); /* its old owner is forgotten for good */
+        ups_ecb__count(&ecb->counters.reclaimed);
+        ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
+    } else { /* the lowest TxNode no other entry uses: entries <= 127 TxNodes, one is free */
+        for (txnode = 0u; txnode < TXNODES && with_txnode(ecb, txnode, slot, 0u) >= 0; txnode++) {
         }
     }
-    ups_ecb_node_t *node = &join->nodes[slot];
-    ups_ecb__copy(node->node_id, node_id, 8u);
-    node->txnode = (uint8_t)txnode; /* entries <= 127 TxNodes: one is always free */
-    node->flags = 0u;
-    node->age = 0u;
+    set_entry(node, node_id, txnode, 0u);
     return slot;
 }
 
-/** The entry of @p node_id with its own TxNode: the one it holds, else a new one. */
-static int txnode_for(ups_ecb_t *ecb, const uint8_t *node_id)
+/** Entry @p node is unused from now on (its TxNode free again). */
+static void forget(ups_ecb_node_t *node)
 {
-    int slot = entry_of(ecb, node_id);
-    if (slot != UPS_ECB__NO_SLOT && (ecb->join.nodes[slot].flags & UPS_ECB__HELD)) {
-        return slot;
-    }
-    if (slot != UPS_ECB__NO_SLOT) { /* offered or lapsed elsewhere: its own TxNode now */
-        ecb->join.nodes[slot].txnode = 0xFFu;
-        ecb->join.nodes[slot].flags = 0u;
-    }
-    return new_entry(ecb, node_id);
+    node->txnode = 0xFFu;
+    node->flags = 0u;
 }
 
-static void send_assign(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id, int offer)
+static void send_assign(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id, unsigned offer)
 {
-    ups_ecb__send8(ecb, (OP_ASSIGN << 12) | (offer ? OFFER_BIT : 0u) | txnode, node_id);
+    ups_ecb__send8(ecb, (OP_ASSIGN << 12) | offer | txnode, node_id);
 }
 
-/** Entry @p slot's node claimed (or is moved to) @p txnode: hold it (durable: noted, so that
+/** Entry @p slot's node claimed (or is moved to) its TxNode: hold it (durable: noted, so that
  *  the application saves before it sends the Assign), then Assign. */
-static void assign(ups_ecb_t *ecb, int slot, unsigned txnode)
+static void assign(ups_ecb_t *ecb, int slot)
 {
     ups_ecb_node_t *node = &ecb->join.nodes[slot];
-    if ((node->flags & UPS_ECB__HELD) && node->txnode == txnode) {
+    if (node->flags & UPS_ECB__HELD) {
         ups_ecb__bind_rejoined(ecb, slot); /* a (re)joining node starts with no channels */
     } else {
-        if (node->flags & UPS_ECB__HELD) {
-            ups_ecb__bind_rejoined(ecb, slot);
-        }
-        node->txnode = (uint8_t)txnode;
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     }
     node->flags = UPS_ECB__HELD;
     node->age = 0u;
     ups_ecb__count(&ecb->counters.joined);
-    send_assign(ecb, txnode, node->node_id, 0);
+    send_assign(ecb, node->txnode, node->node_id, 0u);
 }
 
-/** Give a node whose TxNode another holds (or that was told to move) one of its own. */
-static void move(ups_ecb_t *ecb, const uint8_t *node_id)
+/** Give the node of @p node_id and entry @p slot (UPS_ECB__NO_SLOT: none) whose TxNode another
+ *  holds (or that was told to move) one of its own: the one it holds, else a new one. */
+static void move(ups_ecb_t *ecb, int slot, const uint8_t *node_id)
 {
-    int slot = txnode_for(ecb, node_id);
+    if (slot == UPS_ECB__NO_SLOT || !(ecb->join.nodes[slot].flags & UPS_ECB__HELD)) {
+        if (slot != UPS_ECB__NO_SLOT) {
+            forget(&ecb->join.nodes[slot]); /* offered or lapsed elsewhere */
+        }
+        slot = new_entry(ecb, node_id);
+    }
     if (slot != UPS_ECB__NO_SLOT) {
-        assign(ecb, slot, ecb->join.nodes[slot].txnode);
+        assign(ecb, slot);
     }
 }
 
 /** The census found @p node_id: offer it a TxNode, which its node must claim. */
 static void found(ups_ecb_t *ecb, const uint8_t *node_id)
 {
-    if (ecb->elect.role == UPS_ECB_STANDBY) {
-        return;
-    }
     int slot = entry_of(ecb, node_id);
     if (slot != UPS_ECB__NO_SLOT && ecb->join.nodes[slot].flags == UPS_ECB__LAPSED) {
-        if (free_for(ecb, ecb->join.nodes[slot].txnode, slot)) {
-            ecb->join.nodes[slot].flags = 0u; /* offered the same TxNode again */
-        } else {
-            slot = txnode_for(ecb, node_id);
+        ups_ecb_node_t *node = &ecb->join.nodes[slot];
+        node->flags = 0u; /* offered the same TxNode again, unless it went to another */
+        if (!free_for(ecb, node->txnode, slot)) {
+            forget(node); /* then a TxNode of its own */
+            slot = UPS_ECB__NO_SLOT;
         }
-    } else if (slot == UPS_ECB__NO_SLOT) {
-        slot = new_entry(ecb, node_id);
     }
     if (slot == UPS_ECB__NO_SLOT) {
-        return;
+        slot = new_entry(ecb, node_id);
+        if (slot == UPS_ECB__NO_SLOT) {
+            return;
+        }
     }
     ups_ecb_node_t *node = &ecb->join.nodes[slot];
     node->flags = (uint8_t)(node->flags | UPS_ECB__OFFERED);
-    node->t_offer = (uint16_t)ecb->now;
-    send_assign(ecb, node->txnode, node->node_id, 1);
+    ecb->join.t_offer[slot] = (uint16_t)ecb->now;
+    send_assign(ecb, node->txnode, node_id, OFFER_BIT);
 }
 
 static uint32_t slack(const ups_ecb_t *ecb);
 
-/** Offers unclaimed past the offer time lapse; a lapsed one is remembered for a late claim. */
-static void lapse_offers(ups_ecb_t *ecb)
+/** Count the entries' ages up to now, in 64ths of the lease; Offers unclaimed past the offer
+ *  time lapse (a lapsed one is remembered for a late claim). */
+static void age_entries(ups_ecb_t *ecb)
 {
+    ups_ecb_join_t *join = &ecb->join;
     uint32_t wait = 2u * slack(ecb);
     if (wait < OFFER_TIMEOUT) {
         wait = OFFER_TIMEOUT;
     }
-    age_entries(ecb);
+    uint32_t unit = ecb->cfg.lease_s * 1000u / UPS_ECB__LEASE_AGE; /* >= 15 ms */
+    uint32_t rest;
+    uint32_t steps = ups_ecb__div32(ups_ecb__since(ecb->now, join->t_aged), unit, &rest);
+    join->t_aged = ecb->now - rest; /* counted up to the last whole unit */
     for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
-        ups_ecb_node_t *node = &ecb->join.nodes[i];
-        if ((node->flags & UPS_ECB__OFFERED) && ups_ecb__since16(ecb->now, node->t_offer) >= wait) {
+        ups_ecb_node_t *node = &join->nodes[i];
+        uint32_t age = node->age + steps;
+        node->age = (uint8_t)(age > 255u ? 255u : age);
+        if ((node->flags & UPS_ECB__OFFERED) && ups_ecb__since16(ecb->now, join->t_offer[i]) >= wait) {
             ups_ecb__count(&ecb->counters.offers_withdrawn);
             if (node->flags & UPS_ECB__HELD) {
                 node->flags = UPS_ECB__HELD;
@@ -313,73 +299,59 @@ static void lapse_offers(ups_ecb_t *ecb)
     }
 }
 
+/** A CLAIM of @p txnode by @p node_id (docs/protocol.md, *Joining* and *Restarts*). */
 static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
 {
     int slot = entry_of(ecb, node_id);
     ups_ecb_node_t *node = slot != UPS_ECB__NO_SLOT ? &ecb->join.nodes[slot] : NULL;
-    if (node != NULL && node->txnode == txnode && (node->flags & UPS_ECB__OFFERED)) {
-        assign(ecb, slot, txnode); /* a joiner takes the TxNode offered */
-        return;
-    }
-    if (node != NULL && node->txnode == txnode && node->flags == UPS_ECB__LAPSED) {
-        ups_ecb__count(&ecb->counters.late_claims); /* slow to claim what it was offered */
-        if (free_for(ecb, txnode, slot)) {
-            assign(ecb, slot, txnode);
-        } else { /* given to another meanwhile: a TxNode of its own */
-            move(ecb, node_id);
+    if (node != NULL && node->txnode == txnode) {
+        if (node->flags == UPS_ECB__LAPSED) {
+            ups_ecb__count(&ecb->counters.late_claims); /* slow to claim what it was offered */
         }
-        return;
-    }
-    int known = (node != NULL && (node->flags & UPS_ECB__HELD)) ? (int)node->txnode : -1;
-    if (known == (int)txnode) {
-        return;
-    }
-    int holder = ups_ecb__holder(ecb, txnode);
-    if (!ecb->recovering) { /* claims answer Hello; any other is stray or forged */
-        ups_ecb__count(&ecb->counters.conflicts);
-        if (known >= 0 && holder == UPS_ECB__NO_SLOT) { /* told to move: the truth */
-            send_assign(ecb, (unsigned)known, node_id, 0);
-        } else if (known < 0 && holder == UPS_ECB__NO_SLOT) {
-            ups_ecb__unassigned(ecb, txnode);
-        }
-        return;
-    }
-    if (ecb->started_up && !ups_ecb__stray(ecb, txnode)) { /* later windows: strays only */
-        ups_ecb__count(&ecb->counters.conflicts);
-        return;
-    }
-    if (known < 0 && holder == UPS_ECB__NO_SLOT) { /* adopt */
-        if (node == NULL) {
-            int free_slot = with_txnode(ecb, 0xFFu, UPS_ECB__NO_SLOT, 0u); /* unused */
-            for (int i = 0; i < UPS_ECB_NODES && free_slot == UPS_ECB__NO_SLOT; i++) {
-                if (ecb->join.nodes[i].flags == UPS_ECB__LAPSED) {
-                    free_slot = i;
+        if (node->flags != UPS_ECB__LAPSED || free_for(ecb, txnode, slot)) {
+            if (node->flags != UPS_ECB__HELD) { /* a joiner takes the TxNode offered */
+                assign(ecb, slot);
+            }
+            return;
+        } /* else given to another meanwhile: a TxNode of its own */
+    } else {
+        int known = (node != NULL && (node->flags & UPS_ECB__HELD)) ? (int)node->txnode : -1;
+        int holder = ups_ecb__holder(ecb, txnode);
+        /* claims answer Hello (later windows: strays only); any other is stray or forged */
+        int window = ecb->recovering && (!ecb->started_up || ups_ecb__stray(ecb, txnode));
+        if (window && known < 0 && holder == UPS_ECB__NO_SLOT) { /* adopt */
+            if (node == NULL) {
+                slot = free_entry(ecb, 0);
+                if (slot == UPS_ECB__NO_SLOT) {
+                    ups_ecb__count(&ecb->counters.nodes_full);
+                    return;
+                }
+                node = &ecb->join.nodes[slot];
+            }
+            /* an entry of another node that lapsed or is offered this TxNode gives it up */
+            for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
+                if (ecb->join.nodes[i].txnode == txnode) {
+                    forget(&ecb->join.nodes[i]);
                 }
             }
-            if (free_slot == UPS_ECB__NO_SLOT) {
-                ups_ecb__count(&ecb->counters.nodes_full);
-                return;
-            }
-            node = &ecb->join.nodes[free_slot];
-            ups_ecb__copy(node->node_id, node_id, 8u);
+            ups_ecb__count(&ecb->counters.adopted);
+            set_entry(node, node_id, txnode, UPS_ECB__HELD);
+            ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
+            return;
         }
-        /* an entry of another node that lapsed or is offered this TxNode gives it up */
-        for (unsigned i = 0; i < UPS_ECB_NODES; i++) {
-            ups_ecb_node_t *other = &ecb->join.nodes[i];
-            if (other != node && other->txnode == txnode) {
-                other->txnode = 0xFFu;
-                other->flags = 0u;
+        ups_ecb__count(&ecb->counters.conflicts);
+        if (!window) {
+            if (!ecb->recovering && holder == UPS_ECB__NO_SLOT) {
+                if (known >= 0) { /* told to move: the truth */
+                    send_assign(ecb, (unsigned)known, node_id, 0u);
+                } else {
+                    ups_ecb__unassigned(ecb, txnode);
+                }
             }
-        }
-        ups_ecb__count(&ecb->counters.adopted);
-        node->txnode = (uint8_t)txnode;
-        node->flags = UPS_ECB__HELD;
-        node->age = 0u;
-        ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-        return;
+            return;
+        } /* else another's TxNode: the holder keeps it */
     }
-    ups_ecb__count(&ecb->counters.conflicts); /* another's TxNode: the holder keeps it */
-    move(ecb, node_id);
+    move(ecb, slot, node_id);
 }
 
 /* ==== the census ========================================================================== */
@@ -406,7 +378,10 @@ static uint32_t slack(const ups_ecb_t *ecb)
 /** An answer came @p delay ms after its query was sent, which had closed. */
 static void late(ups_ecb_t *ecb, uint32_t delay)
 {
-    uint32_t s = delay > SLACK_MAX ? SLACK_MAX : delay + delay / 2u;
+    if (delay > SLACK_MAX) {
+        delay = SLACK_MAX;
+    }
+    uint32_t s = delay + delay / 2u;
     if (s > SLACK_MAX) {
         s = SLACK_MAX;
     }
@@ -419,7 +394,7 @@ static void late(ups_ecb_t *ecb, uint32_t delay)
 int ups_ecb__join_busy(const ups_ecb_t *ecb)
 {
     for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
-        if (ecb->join.queries[i].state == Q_OPEN) {
+        if ((ecb->join.queries[i].tag & Q_STATE) == Q_OPEN) {
             return 1;
         }
     }
@@ -437,45 +412,34 @@ static unsigned ring(const ups_ecb_join_t *join, unsigned i)
 #endif
 }
 
-static unsigned waiting_branches(const ups_ecb_join_t *join)
-{
-    unsigned n = 0;
-    for (unsigned i = 0; i < join->g_count; i++) {
-        unsigned set = join->groups[ring(join, i)].set;
-        n += set != 0u ? popcount16(set) : 1u;
-    }
-    return n;
-}
-
 /** Query @p plen nibbles of @p prefix (a group of one) or its children in @p set in this
  *  census, unless it has sent all it may or no group is free (cut, counted). */
 static void follow(ups_ecb_t *ecb, const uint8_t *prefix, unsigned plen, unsigned set,
                    unsigned tries)
 {
     ups_ecb_join_t *join = &ecb->join;
-    unsigned want = set != 0u ? popcount16(set) : 1u;
-    unsigned queued = join->sent + waiting_branches(join);
+    unsigned want = branches(set);
+    unsigned queued = join->queued;
     unsigned room = queued >= MAX_QUERIES ? 0u : MAX_QUERIES - queued;
     if (join->g_count >= UPS_ECB__GROUPS) {
         room = 0u;
     }
     if (room < want) { /* the highest nibbles are cut */
-        unsigned cut = want - room;
-        for (unsigned k = 0; k < cut; k++) {
-            ups_ecb__count(&ecb->counters.census_cut);
-        }
+        count_n(&ecb->counters.census_cut, want - room);
         if (room == 0u) {
             return;
         }
-        for (unsigned n = 16u; n-- > 0u && cut > 0u;) {
+        for (unsigned n = 16u; n-- > 0u && want > room;) {
             if (set & (1u << n)) {
                 set &= ~(1u << n);
-                cut--;
+                want--;
             }
         }
     }
     ups_ecb_group_t *group = &join->groups[ring(join, join->g_count)];
     join->g_count++;
+    join->queued = (uint16_t)(queued + want);
+    join->uncounted = (uint16_t)(join->uncounted + want);
     ups_ecb__copy(group->prefix, prefix, 8u);
     for (unsigned s = plen; s < NIBBLES; s++) { /* a Query's data: the prefix, then zeros */
         set_nibble(group->prefix, s, 0u);
@@ -491,7 +455,7 @@ static void start_census(ups_ecb_t *ecb)
     ups_ecb_join_t *join = &ecb->join;
     ups_ecb__count(&ecb->counters.census_censuses);
     join->retries = 0u;
-    join->sent = 0u;
+    join->queued = 0u; /* none waits: the census before is over */
     follow(ecb, none, 0u, 0u, 0u);
 }
 
@@ -509,85 +473,79 @@ static void knock(ups_ecb_t *ecb)
     pump(ecb);
 }
 
-static uint32_t quarantine(const ups_ecb_t *ecb)
+/** Open @p query for @p epoch now: a window of its own from now on. */
+static void open_query(ups_ecb_t *ecb, ups_ecb_query_t *query, unsigned epoch)
 {
-    uint32_t q = slack(ecb) / 2u;
-    return q > QUARANTINE ? q : QUARANTINE;
+    query->tag = (uint8_t)(Q_OPEN | epoch);
+    query->sent = ecb->now;
+    query->last = ecb->now;
+    query->many = 0u;
+    query->seq = ecb->join.seq++;
 }
 
-/** A free epoch (round robin, none open or in quarantine) and a slot for its query (a free
- *  one, else the one closed longest past its quarantine); 0 when none. */
-static int take_epoch(ups_ecb_t *ecb, unsigned *epoch, unsigned *slot)
+/** A new open query, empty, of a free epoch (round robin, none open or in quarantine) in a
+ *  free slot, else in the one closed longest past its quarantine; NULL when none. */
+static ups_ecb_query_t *new_query(ups_ecb_t *ecb)
 {
     ups_ecb_join_t *join = &ecb->join;
-    uint32_t q = quarantine(ecb);
-    int best = -1;
+    uint32_t q = slack(ecb) / 2u;
+    if (q < QUARANTINE) {
+        q = QUARANTINE;
+    }
+    unsigned busy = 0u; /* the epochs open or in quarantine */
+    ups_ecb_query_t *best = NULL;
     uint32_t best_age = 0u;
     for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
         ups_ecb_query_t *query = &join->queries[i];
-        if (query->state == Q_FREE) {
-            best = (int)i;
+        uint32_t age = ups_ecb__since(ecb->now, query->last);
+        if (query->tag == 0u) { /* free (the last free one) */
+            best = query;
             best_age = 0xFFFFFFFFu;
-        } else if (query->state == Q_CLOSED) {
-            uint32_t age = ups_ecb__since(ecb->now, query->last);
-            if (age >= q && (best < 0 || age > best_age)) {
-                best = (int)i;
-                best_age = age;
-            }
+        } else if ((query->tag & Q_STATE) == Q_OPEN || age < q) {
+            busy |= 1u << (query->tag & 0x0Fu);
+        } else if (age > best_age) { /* the first closed longest */
+            best = query;
+            best_age = age;
         }
     }
-    if (best < 0) {
-        return 0;
-    }
-    for (unsigned k = 0; k < 16u; k++) {
+    for (unsigned k = 0; k < 16u && best != NULL; k++) {
         unsigned e = (join->next_epoch + k) % 16u;
-        int busy = 0;
-        for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
-            const ups_ecb_query_t *query = &join->queries[i];
-            if (query->epoch == e && (query->state == Q_OPEN ||
-                                      (query->state == Q_CLOSED &&
-                                       ups_ecb__since(ecb->now, query->last) < q))) {
-                busy = 1;
-            }
-        }
-        if (!busy) {
+        if (!(busy & (1u << e))) {
             join->next_epoch = (uint8_t)((e + 1u) % 16u);
-            *epoch = e;
-            *slot = (unsigned)best;
-            return 1;
+            for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) { /* the epoch's old query is gone */
+                if (join->queries[i].tag == (Q_CLOSED | e)) {
+                    join->queries[i].tag = 0u;
+                }
+            }
+            ups_ecb__copy((uint8_t *)best, NULL, (unsigned)sizeof(*best));
+            open_query(ecb, best, e);
+            return best;
         }
     }
-    return 0;
+    return NULL;
 }
 
 /** Send waiting queries while epochs are free; then another census if a Knock came. */
 static void pump(ups_ecb_t *ecb)
 {
     ups_ecb_join_t *join = &ecb->join;
-    unsigned epoch = 0u;
-    unsigned slot = 0u;
+    ups_ecb_query_t *query;
 again:
-    while (join->g_count > 0u && take_epoch(ecb, &epoch, &slot)) {
+    while (join->g_count > 0u && (query = new_query(ecb)) != NULL) {
         ups_ecb_group_t *group = &join->groups[join->g_head];
-        ups_ecb_query_t *query = &join->queries[slot];
-        for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) { /* the epoch's old query is gone */
-            if (join->queries[i].state == Q_CLOSED && join->queries[i].epoch == epoch) {
-                join->queries[i].state = Q_FREE;
-            }
-        }
-        ups_ecb__copy((uint8_t *)query, NULL, (unsigned)sizeof(*query));
         ups_ecb__copy(query->prefix, group->prefix, 8u);
-        query->plen = group->plen;
-        query->tries = group->tries;
+        unsigned plen = group->plen;
+        query->tries = group->tries; /* 0 in a group of children */
         if (group->set != 0u) { /* the lowest child of the group */
             unsigned n = 0;
-            while (!(group->set & (1u << n))) {
+            while (n < 15u && !(group->set & (1u << n))) {
                 n++;
             }
             group->set = (uint16_t)(group->set & ~(1u << n));
-            set_nibble(query->prefix, query->plen, n);
-            query->plen++;
-            query->tries = 0u;
+            set_nibble(query->prefix, plen++, n);
+        }
+        if (join->g_counted == 0u) { /* the head's group is not counted yet */
+            join->uncounted--;
         }
         if (group->set == 0u) {
             join->g_head = (uint8_t)ring(join, 1u);
@@ -596,68 +554,26 @@ again:
                 join->g_counted--;
             }
         }
-        query->state = Q_OPEN;
-        query->epoch = (uint8_t)epoch;
-        query->sent = ecb->now;
-        query->last = ecb->now;
-        query->set_stage = NIBBLES;
-        query->seq = join->seq++;
-        join->sent++;
+        query->plen = (uint8_t)plen;
         ups_ecb__count(&ecb->counters.census_queries);
-        if (query->plen == 0u) {
+        unsigned epoch = query->tag & 0x0Fu;
+        if (plen == 0u) {
             ups_ecb__send8(ecb, (OP_STATUS << 12) | epoch, NULL); /* Census: status 0 */
         } else {
-            unsigned last = nibble_at(query->prefix, query->plen - 1u);
-            unsigned field = (OP_QUERY << 12) | (epoch << 8) | ((query->plen - 1u) << 4) | last;
+            unsigned field = (OP_QUERY << 12) | (epoch << 8) | ((plen - 1u) << 4) |
+                             nibble_at(query->prefix, plen - 1u);
             ups_ecb__send8(ecb, field, query->prefix);
         }
     }
-    for (unsigned i = join->g_counted; i < join->g_count; i++) { /* branches that wait */
-        unsigned set = join->groups[ring(join, i)].set;
-        for (unsigned k = set != 0u ? popcount16(set) : 1u; k > 0u; k--) {
-            ups_ecb__count(&ecb->counters.queries_waiting);
-        }
-    }
+    count_n(&ecb->counters.queries_waiting, join->uncounted); /* the new branches that wait */
+    join->uncounted = 0u;
     join->g_counted = join->g_count;
-    if (!ups_ecb__join_busy(ecb) && join->again && ecb->elect.role != UPS_ECB_STANDBY) {
+    if (!ups_ecb__join_busy(ecb) && join->again) {
         join->again = 0u; /* knock() again, as a loop (no recursion: a bounded stack) */
         ups_ecb__count(&ecb->counters.census_knocks);
         start_census(ecb);
         goto again;
     }
-}
-
-/** The open query of @p epoch, else the closed one it last carried, reopened when it had no
- *  answer at all and @p stage is at or past its prefix; NULL when neither. */
-static ups_ecb_query_t *query_of(ups_ecb_t *ecb, unsigned epoch, unsigned stage, int *closed)
-{
-    ups_ecb_join_t *join = &ecb->join;
-    ups_ecb_query_t *last = NULL;
-    *closed = 0;
-    for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
-        ups_ecb_query_t *query = &join->queries[i];
-        if (query->epoch == epoch && query->state == Q_OPEN) {
-            return query;
-        }
-        if (query->epoch == epoch && query->state == Q_CLOSED) {
-            last = query;
-        }
-    }
-    if (last == NULL) {
-        return NULL;
-    }
-    if (last->present == 0u && stage >= last->plen) { /* its answers come late, not never */
-        ups_ecb__count(&ecb->counters.census_reopened);
-        late(ecb, ups_ecb__since(ecb->now, last->sent));
-        last->state = Q_OPEN;
-        last->sent = ecb->now; /* a window of its own from now on */
-        last->last = ecb->now;
-        last->late = 0u;
-        last->seq = join->seq++;
-        return last;
-    }
-    *closed = 1;
-    return last;
 }
 
 /** A Stage for the query its epoch last carried, which has closed: once the query's first
@@ -668,62 +584,58 @@ static void late_stage(ups_ecb_t *ecb, ups_ecb_query_t *query, unsigned stage)
     if (age > LONGEST + SLACK_MAX || stage < query->plen) {
         return;
     }
-    query->late = (uint16_t)(query->late | (1u << stage));
-    unsigned end = query->plen + LATE_QUORUM < NIBBLES ? query->plen + LATE_QUORUM : NIBBLES;
-    unsigned wanted = ((1u << end) - 1u) & ~((1u << query->plen) - 1u);
-    if ((query->late & wanted) == wanted) {
-        query->late = 0u;
+    query->many = (uint16_t)(query->many | (1u << stage)); /* closed: its late answers */
+    unsigned wanted = (((1u << LATE_QUORUM) - 1u) << query->plen) & 0xFFFFu; /* or to the end */
+    if ((query->many & wanted) == wanted) {
+        query->many = 0u;
         late(ecb, age);
     }
 }
 
 static void on_stage(ups_ecb_t *ecb, unsigned epoch, unsigned stage, unsigned nibble)
 {
-    int closed = 0;
-    ups_ecb_query_t *query = query_of(ecb, epoch, stage, &closed);
+    ups_ecb_join_t *join = &ecb->join;
+    ups_ecb_query_t *query = NULL; /* the query the epoch carries (one at most), or last did */
+    for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
+        if (join->queries[i].tag != 0u && (join->queries[i].tag & 0x0Fu) == epoch) {
+            query = &join->queries[i];
+        }
+    }
+    int closed = query != NULL && (query->tag & Q_STATE) == Q_CLOSED;
+    if (closed && query->present == 0u && stage >= query->plen) { /* late, not never */
+        ups_ecb__count(&ecb->counters.census_reopened);
+        late(ecb, ups_ecb__since(ecb->now, query->sent));
+        open_query(ecb, query, epoch);
+        closed = 0;
+    }
     if (query == NULL || closed || stage < query->plen) {
         ups_ecb__count(&ecb->counters.census_late_stages);
-        if (query != NULL && closed) {
+        if (closed) {
             late_stage(ecb, query, stage);
         }
         return;
     }
     ups_ecb__count(&ecb->counters.census_stages);
-    ups_ecb_join_t *join = &ecb->join;
     if (query->present == 0u) { /* its first answer: the round trip */
         uint32_t d = ups_ecb__since(ecb->now, query->sent);
         int32_t rtt = (int32_t)join->rtt;
-        rtt += ((int32_t)(d > 60000u ? 60000u : d) - rtt) / 4;
-        join->rtt = (uint16_t)(rtt < 0 ? 0 : rtt);
+        rtt += ((int32_t)(d > 60000u ? 60000u : d) - rtt) / 4; /* >= 3/4 rtt: >= 0 */
+        join->rtt = (uint16_t)rtt;
     }
-    uint16_t bit = (uint16_t)(1u << stage);
+    unsigned bit = 1u << stage;
     if (!(query->present & bit)) {
         query->present = (uint16_t)(query->present | bit);
         set_nibble(query->prefix, stage, nibble);
     } else if (nibble_at(query->prefix, stage) != nibble || (query->many & bit)) {
-        if (!(query->many & bit)) {
-            query->many = (uint16_t)(query->many | bit);
-            if (stage < query->set_stage) { /* the first stage with several, from now on */
-                query->set_stage = (uint8_t)stage;
+        if (!(query->many & (bit - 1u))) { /* the first stage with several: its nibbles */
+            if (!(query->many & bit)) {
                 query->set = (uint16_t)(1u << nibble_at(query->prefix, stage));
             }
-        }
-        if (stage == query->set_stage) {
             query->set = (uint16_t)(query->set | (1u << nibble));
         }
+        query->many = (uint16_t)(query->many | bit);
     }
     query->last = ecb->now;
-}
-
-static void retry(ups_ecb_t *ecb, const ups_ecb_query_t *query, const uint8_t *certain,
-                  unsigned len)
-{
-    unsigned tries = (len == query->plen ? query->tries : 0u) + 1u;
-    if (tries <= RETRIES && ecb->join.retries < RETRY_BUDGET) {
-        ecb->join.retries++;
-        ups_ecb__count(&ecb->counters.census_retries);
-        follow(ecb, certain, len, 0u, tries);
-    }
 }
 
 /** Read a closed query's answers (docs/protocol.md, *Joining*). */
@@ -738,23 +650,28 @@ static void conclude(ups_ecb_t *ecb, const ups_ecb_query_t *query)
     while (len < NIBBLES && (query->present & (1u << len)) && !(query->many & (1u << len))) {
         len++;
     }
-    uint16_t wanted = (uint16_t)(0xFFFFu & ~((1u << query->plen) - 1u));
+    unsigned wanted = (0xFFFFu << query->plen) & 0xFFFFu; /* every stage past its prefix */
     if ((query->present & wanted) != wanted) { /* incomplete: ask again what is certain */
         ups_ecb__count(&ecb->counters.census_incomplete);
-        retry(ecb, query, prefix, len);
+        unsigned tries = (len == query->plen ? query->tries : 0u) + 1u;
+        if (tries <= RETRIES && ecb->join.retries < RETRY_BUDGET) {
+            ecb->join.retries++;
+            ups_ecb__count(&ecb->counters.census_retries);
+            follow(ecb, prefix, len, 0u, tries);
+        }
         return;
     }
-    if (len == NIBBLES) {
-        found(ecb, prefix);
-    } else if (len == NIBBLES - 1u) { /* several at the last stage: whole ids at once */
-        for (unsigned n = 0; n < 16u; n++) {
-            if (query->set & (1u << n)) {
-                set_nibble(prefix, len, n);
-                found(ecb, prefix);
-            }
-        }
-    } else { /* several joiners: a query for each branch */
+    if (len < NIBBLES - 1u) { /* several joiners: a query for each branch */
         follow(ecb, prefix, len, query->set, 0u);
+        return;
+    }
+    /* whole ids: one, or several at the last stage at once */
+    unsigned set = len == NIBBLES ? 1u << nibble_at(prefix, NIBBLES - 1u) : query->set;
+    for (unsigned n = 0; n < 16u; n++) {
+        if (set & (1u << n)) {
+            set_nibble(prefix, NIBBLES - 1u, n);
+            found(ecb, prefix);
+        }
     }
 }
 
@@ -762,46 +679,36 @@ static void census_tick(ups_ecb_t *ecb)
 {
     ups_ecb_join_t *join = &ecb->join;
     uint32_t s = slack(ecb);
-    if (s == 0u) {
-        join->slack0 = 0u;
-    }
     uint32_t first = 4u * join->rtt;
     first = first < FIRST_MIN ? FIRST_MIN : (first > FIRST_MAX ? FIRST_MAX : first);
     first = first > s ? first : s;
     uint32_t quiet = s / 4u > QUIET ? s / 4u : QUIET;
-    int closed_any = 0;
-    for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) { /* closed ones may stay for weeks */
-        if (join->queries[i].state == Q_CLOSED) {
-            (void)ups_ecb__age(ecb->now, &join->queries[i].sent);
-            (void)ups_ecb__age(ecb->now, &join->queries[i].last);
-        }
-    }
-    for (;;) { /* the due queries, in the order they were opened */
+    join->slack0 = (uint16_t)(s == 0u ? 0u : join->slack0);
+    for (unsigned k = 0; k < UPS_ECB_QUERIES; k++) { /* the due queries, in the order opened */
         ups_ecb_query_t *next = NULL;
         for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
             ups_ecb_query_t *query = &join->queries[i];
-            if (query->state != Q_OPEN) {
-                continue;
+            if ((query->tag & Q_STATE) == Q_CLOSED) { /* closed ones may stay for weeks */
+                (void)ups_ecb__age(ecb->now, &query->sent);
+                (void)ups_ecb__age(ecb->now, &query->last);
             }
             uint32_t age = ups_ecb__since(ecb->now, query->sent);
             int due = (age >= first && ups_ecb__since(ecb->now, query->last) >= quiet) ||
                       age >= LONGEST + s;
-            if (due && (next == NULL || (int16_t)(uint16_t)(query->seq - next->seq) < 0)) {
+            if ((query->tag & Q_STATE) == Q_OPEN && due &&
+                (next == NULL || (int16_t)(uint16_t)(query->seq - next->seq) < 0)) {
                 next = query;
             }
         }
         if (next == NULL) {
             break;
         }
-        next->state = Q_CLOSED;
+        next->tag = (uint8_t)(Q_CLOSED | (next->tag & 0x0Fu));
         next->last = ecb->now;
-        next->late = 0u;
         conclude(ecb, next);
-        closed_any = 1;
+        next->many = 0u; /* closed: its late answers, none yet */
     }
-    if (closed_any || join->g_count > 0u || join->again) {
-        pump(ecb);
-    }
+    pump(ecb);
 }
 
 /* ==== the join's frames =================================================================== */
@@ -813,20 +720,14 @@ void ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned
     unsigned field = id & UPS_ECB__ETAG_MASK;
     if (txnode != UPS_ECB__MGMT) { /* CLAIM */
         on_claim(ecb, txnode, data);
-        return;
-    }
-    if (field >> 12 == 0u) { /* Stage */
+    } else if (field >> 12 == 0u) { /* Stage */
         if (!ecb->recovering) {
             on_stage(ecb, (field >> 8) & 0xFu, (field >> 4) & 0xFu, field & 0xFu);
         }
-        return;
-    }
-    if (field == ((OP_STATUS << 12) | (ST_KNOCK << 8))) {
-        if (ecb->recovering) {
-            ecb->knocked = 1u; /* answered when the recovery window ends */
-        } else {
-            knock(ecb);
-        }
+    } else if (ecb->recovering) { /* Knock (the dispatcher sends no other) */
+        ecb->knocked = 1u; /* answered when the recovery window ends */
+    } else {
+        knock(ecb);
     }
 }
 
@@ -836,29 +737,28 @@ void ups_ecb__join_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data)
     unsigned op = field >> 12;
     unsigned status = (field >> 8) & 0xFu;
     int slot = entry_of(ecb, data);
-    const ups_ecb_node_t *node = slot != UPS_ECB__NO_SLOT ? &ecb->join.nodes[slot] : NULL;
-    int held = node != NULL && (node->flags & UPS_ECB__HELD);
-    if (op == OP_ASSIGN && !(field & OFFER_BIT)) { /* Assign of an id the table gives another */
-        if (held && node->txnode != (field & 0x7Fu)) {
-            ups_ecb__count(&ecb->counters.conflicts);
-            send_assign(ecb, node->txnode, node->node_id, 0);
-        }
+    if (slot == UPS_ECB__NO_SLOT) {
         return;
     }
-    if (op == OP_STATUS && (status == ST_TXNODES_FULL || status == ST_FAILED) && node != NULL) {
-        if (held) {
-            ups_ecb__count(&ecb->counters.conflicts);
-            send_assign(ecb, node->txnode, node->node_id, 0);
-        } else if (node->flags & UPS_ECB__OFFERED) {
-            ups_ecb__count(&ecb->counters.conflicts);
-            send_assign(ecb, node->txnode, node->node_id, 1);
+    const ups_ecb_node_t *node = &ecb->join.nodes[slot];
+    unsigned flags = node->flags;
+    if (op == OP_ASSIGN) { /* Assign of an id the table gives another */
+        if ((field & OFFER_BIT) || node->txnode == (field & 0x7Fu)) {
+            return;
         }
+        flags &= UPS_ECB__HELD;
+    } else if (op != OP_STATUS || (status != ST_TXNODES_FULL && status != ST_FAILED)) {
+        return;
+    }
+    if (flags & (UPS_ECB__HELD | UPS_ECB__OFFERED)) { /* the table's answer again */
+        ups_ecb__count(&ecb->counters.conflicts);
+        send_assign(ecb, node->txnode, data, (flags & UPS_ECB__HELD) ? 0u : OFFER_BIT);
     }
 }
 
 void ups_ecb__join_tick(ups_ecb_t *ecb)
 {
-    lapse_offers(ecb);
+    age_entries(ecb);
     census_tick(ecb);
 }
 
@@ -866,10 +766,11 @@ void ups_ecb__join_stop(ups_ecb_t *ecb)
 {
     ups_ecb_join_t *join = &ecb->join;
     for (unsigned i = 0; i < UPS_ECB_QUERIES; i++) {
-        join->queries[i].state = Q_FREE;
+        join->queries[i].tag = 0u;
     }
     join->g_count = 0u;
     join->g_counted = 0u;
+    join->uncounted = 0u;
     join->again = 0u;
 }
 
@@ -906,10 +807,8 @@ size_t ups_ecb__join_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
 
 int ups_ecb__join_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
 {
-    if (size % ENTRY_BYTES != 0u || size > (size_t)UPS_ECB_NODES * ENTRY_BYTES) {
-        return UPS_ERR_ARGUMENT;
-    }
-    for (size_t n = 0; n < size; n += ENTRY_BYTES) {
+    size_t n = 0;
+    for (; n + ENTRY_BYTES <= size; n += ENTRY_BYTES) { /* each entry once: <= UPS_ECB_NODES */
         unsigned slot = in[n];
         unsigned txnode = in[n + 1u];
         if (slot >= UPS_ECB_NODES || txnode >= TXNODES ||
@@ -917,11 +816,7 @@ int ups_ecb__join_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
             entry_of(ecb, &in[n + 2u]) >= 0) {
             return UPS_ERR_ARGUMENT; /* out of range, or twice: not a blob this library wrote */
         }
-        ups_ecb_node_t *node = &ecb->join.nodes[slot];
-        ups_ecb__copy(node->node_id, &in[n + 2u], 8u);
-        node->txnode = (uint8_t)txnode;
-        node->flags = UPS_ECB__HELD;
-        node->age = 0u;
+        set_entry(&ecb->join.nodes[slot], &in[n + 2u], txnode, UPS_ECB__HELD);
     }
-    return UPS_OK;
+    return n == size ? UPS_OK : UPS_ERR_ARGUMENT; /* no part of an entry */
 }
