@@ -152,7 +152,7 @@ void ups_ecb__join_seen(ups_ecb_t *ecb, unsigned txnode)
 /** The entry a node id without one takes: an unused one, else a lapsed Offer's (the oldest when
  *  @p reclaim, else the first), else (when @p reclaim) the one whose TxNode is silent longest
  *  past the lease; UPS_ECB__NO_SLOT when none. */
-static int free_entry(const ups_ecb_t *ecb, int reclaim)
+static int vacant_entry(const ups_ecb_t *ecb, int reclaim)
 {
     int slot = UPS_ECB__NO_SLOT;
     unsigned best = 0u;
@@ -180,7 +180,7 @@ static int free_entry(const ups_ecb_t *ecb, int reclaim)
  *  UPS_ECB__NO_SLOT and TxNodesFull. */
 static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
 {
-    int slot = free_entry(ecb, 1);
+    int slot = vacant_entry(ecb, 1);
     if (slot == UPS_ECB__NO_SLOT) {
         ups_ecb__count(&ecb->counters.refused);
         ups_ecb__count(&ecb->counters.nodes_full);
@@ -321,7 +321,7 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
         int window = ecb->recovering && (!ecb->started_up || ups_ecb__stray(ecb, txnode));
         if (window && known < 0 && holder == UPS_ECB__NO_SLOT) { /* adopt */
             if (node == NULL) {
-                slot = free_entry(ecb, 0);
+                slot = vacant_entry(ecb, 0);
                 if (slot == UPS_ECB__NO_SLOT) {
                     ups_ecb__count(&ecb->counters.nodes_full);
                     return;
@@ -378,13 +378,8 @@ static uint32_t slack(const ups_ecb_t *ecb)
 /** An answer came @p delay ms after its query was sent, which had closed. */
 static void late(ups_ecb_t *ecb, uint32_t delay)
 {
-    if (delay > SLACK_MAX) {
-        delay = SLACK_MAX;
-    }
-    uint32_t s = delay + delay / 2u;
-    if (s > SLACK_MAX) {
-        s = SLACK_MAX;
-    }
+    /* 1.5 times the delay, at most SLACK_MAX (which 2667 ms and more reach) */
+    uint32_t s = delay > SLACK_MAX * 2u / 3u ? SLACK_MAX : delay + delay / 2u;
     if (s > slack(ecb)) {
         ecb->join.slack0 = (uint16_t)s;
         ecb->join.late_at = ecb->now;
@@ -703,7 +698,7 @@ static void census_tick(ups_ecb_t *ecb)
         if (next == NULL) {
             break;
         }
-        next->tag = (uint8_t)(Q_CLOSED | (next->tag & 0x0Fu));
+        next->tag = (uint8_t)(next->tag + (Q_CLOSED - Q_OPEN)); /* closed, in its epoch */
         next->last = ecb->now;
         conclude(ecb, next);
         next->many = 0u; /* closed: its late answers, none yet */
