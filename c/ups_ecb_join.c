@@ -268,14 +268,13 @@ static void found(ups_ecb_t *ecb, const uint8_t *node_id)
     send_assign(ecb, node->txnode, node_id, OFFER_BIT);
 }
 
-static uint32_t slack(const ups_ecb_t *ecb);
-
 /** Count the entries' ages up to now, in 64ths of the lease; Offers unclaimed past the offer
- *  time lapse (a lapsed one is remembered for a late claim). */
-static void age_entries(ups_ecb_t *ecb)
+ *  time (twice the slack @p s, at least OFFER_TIMEOUT) lapse: a lapsed one is remembered for
+ *  a late claim. */
+static void age_entries(ups_ecb_t *ecb, uint32_t s)
 {
     ups_ecb_join_t *join = &ecb->join;
-    uint32_t wait = 2u * slack(ecb);
+    uint32_t wait = 2u * s;
     if (wait < OFFER_TIMEOUT) {
         wait = OFFER_TIMEOUT;
     }
@@ -287,7 +286,8 @@ static void age_entries(ups_ecb_t *ecb)
         ups_ecb_node_t *node = &join->nodes[i];
         uint32_t age = node->age + steps;
         node->age = (uint8_t)(age > 255u ? 255u : age);
-        if ((node->flags & UPS_ECB__OFFERED) && ups_ecb__since16(ecb->now, join->t_offer[i]) >= wait) {
+        if ((node->flags & UPS_ECB__OFFERED) &&
+            ups_ecb__since16(ecb->now, join->t_offer[i]) >= wait) {
             ups_ecb__count(&ecb->counters.offers_withdrawn);
             if (node->flags & UPS_ECB__HELD) {
                 node->flags = UPS_ECB__HELD;
@@ -596,18 +596,18 @@ static void on_stage(ups_ecb_t *ecb, unsigned epoch, unsigned stage, unsigned ni
             query = &join->queries[i];
         }
     }
-    int closed = query != NULL && (query->tag & Q_STATE) == Q_CLOSED;
-    if (closed && query->present == 0u && stage >= query->plen) { /* late, not never */
-        ups_ecb__count(&ecb->counters.census_reopened);
+    if (query != NULL && (query->tag & Q_STATE) == Q_CLOSED) {
+        if (query->present != 0u || stage < query->plen) {
+            ups_ecb__count(&ecb->counters.census_late_stages);
+            late_stage(ecb, query, stage);
+            return;
+        }
+        ups_ecb__count(&ecb->counters.census_reopened); /* its answers come late, not never */
         late(ecb, ups_ecb__since(ecb->now, query->sent));
         open_query(ecb, query, epoch);
-        closed = 0;
     }
-    if (query == NULL || closed || stage < query->plen) {
+    if (query == NULL || stage < query->plen) {
         ups_ecb__count(&ecb->counters.census_late_stages);
-        if (closed) {
-            late_stage(ecb, query, stage);
-        }
         return;
     }
     ups_ecb__count(&ecb->counters.census_stages);
@@ -642,11 +642,11 @@ static void conclude(ups_ecb_t *ecb, const ups_ecb_query_t *query)
     uint8_t prefix[8]; /* its prefix and the nibbles heard: the first len are certain */
     ups_ecb__copy(prefix, query->prefix, 8u);
     unsigned len = query->plen;
-    while (len < NIBBLES && (query->present & (1u << len)) && !(query->many & (1u << len))) {
+    unsigned certain = query->present & ~(unsigned)query->many; /* one nibble heard */
+    while (len < NIBBLES && (certain & (1u << len))) {
         len++;
     }
-    unsigned wanted = (0xFFFFu << query->plen) & 0xFFFFu; /* every stage past its prefix */
-    if ((query->present & wanted) != wanted) { /* incomplete: ask again what is certain */
+    if ((~query->present & 0xFFFFu) >> query->plen) { /* incomplete: ask again what is certain */
         ups_ecb__count(&ecb->counters.census_incomplete);
         unsigned tries = (len == query->plen ? query->tries : 0u) + 1u;
         if (tries <= RETRIES && ecb->join.retries < RETRY_BUDGET) {
@@ -670,10 +670,10 @@ static void conclude(ups_ecb_t *ecb, const ups_ecb_query_t *query)
     }
 }
 
-static void census_tick(ups_ecb_t *ecb)
+/** Close the due queries and read them; send what waits. @p s: the slack now. */
+static void census_tick(ups_ecb_t *ecb, uint32_t s)
 {
     ups_ecb_join_t *join = &ecb->join;
-    uint32_t s = slack(ecb);
     uint32_t first = 4u * join->rtt;
     first = first < FIRST_MIN ? FIRST_MIN : (first > FIRST_MAX ? FIRST_MAX : first);
     first = first > s ? first : s;
@@ -729,20 +729,20 @@ void ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned
 void ups_ecb__join_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data)
 {
     unsigned field = id & UPS_ECB__ETAG_MASK;
-    unsigned op = field >> 12;
-    unsigned status = (field >> 8) & 0xFu;
+    unsigned row = field >> 8; /* op and status (an Assign's: 0) */
     int slot = entry_of(ecb, data);
     if (slot == UPS_ECB__NO_SLOT) {
         return;
     }
     const ups_ecb_node_t *node = &ecb->join.nodes[slot];
     unsigned flags = node->flags;
-    if (op == OP_ASSIGN) { /* Assign of an id the table gives another */
+    if (row == OP_ASSIGN << 4) { /* Assign of an id the table gives another */
         if ((field & OFFER_BIT) || node->txnode == (field & 0x7Fu)) {
             return;
         }
         flags &= UPS_ECB__HELD;
-    } else if (op != OP_STATUS || (status != ST_TXNODES_FULL && status != ST_FAILED)) {
+    } else if (row != ((OP_STATUS << 4) | ST_TXNODES_FULL) &&
+               row != ((OP_STATUS << 4) | ST_FAILED)) {
         return;
     }
     if (flags & (UPS_ECB__HELD | UPS_ECB__OFFERED)) { /* the table's answer again */
@@ -753,8 +753,9 @@ void ups_ecb__join_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data)
 
 void ups_ecb__join_tick(ups_ecb_t *ecb)
 {
-    age_entries(ecb);
-    census_tick(ecb);
+    uint32_t s = slack(ecb);
+    age_entries(ecb, s);
+    census_tick(ecb, s);
 }
 
 void ups_ecb__join_stop(ups_ecb_t *ecb)

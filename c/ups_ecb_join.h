@@ -3,9 +3,10 @@
  * Included by ups_ecb.h after its configuration macros; not part of the API.
  *
  * RAM: 13 bytes per node entry (its Offer's time apart: no padding), 28 per census query
- * (UPS_ECB_QUERIES), 12 per waiting branch group (UPS_ECB__GROUPS) and 24 more: 440 bytes for
- * the small bus (16 nodes, 4 queries). A group holds every branch of one stage, so a census's waiting branches take few
- * groups: one per branching of the ids found and not yet queried.
+ * (UPS_ECB_QUERIES), 12 per waiting branch group (UPS_ECB__GROUPS) and 24 more: 440 bytes
+ * for the small bus (16 nodes, 4 queries). A group holds every branch of one stage, so a
+ * census's waiting branches take few groups: one per branching of the ids found and not yet
+ * queried.
  */
 #ifndef UPS_ECB_JOIN_H
 #define UPS_ECB_JOIN_H
