@@ -26,12 +26,18 @@
 #define F_GRANT 0x3400u
 #define F_REFUSE 0x3500u
 #define F_LIMIT 0x3800u
-#define F_USES_SUB 0x3A00u
-#define F_USES_PUB 0x3B00u
+#define F_USES_SUB 0x3A00u /* + 0x100: Uses(pub), + 0x200: RosterEnd */
 #define F_ROSTER_END 0x3C00u
 #define BIND_PRIORITY 1u
 
-#define NOBODY 0xFFu
+/* what the answer to a Roster lists next (r_role) */
+#define R_SUBS 0u  /* the subscribers of channel r_uid */
+#define R_PUBS 1u  /* its publishers */
+#define R_NEXT 2u  /* the channel after r_uid */
+#define R_FIRST 3u /* the channel at r_uid or after (the cursor) */
+
+#define ANY 0xFFu     /* oldest_idle: of any size class */
+#define NONE 0xFFu    /* roster: no TxNode */
 #define AGE_PAST 17u  /* ages are sixteenths of the lease, rounded up: 17 is past it for sure */
 #define DECLARE_BURST 20u
 #define DECLARE_GAP 100u /* ms per DECLARE token: 10 a second */
@@ -48,40 +54,35 @@ static unsigned size_class(unsigned etag)
     return etag < UPS_ECB__LARGE_ETAG ? 0u : 1u + ((etag - UPS_ECB__LARGE_ETAG) >> 10);
 }
 
-static unsigned class_first(unsigned c)
+static unsigned has(const uint8_t *map, unsigned slot)
 {
-    return c == 0u ? UPS_ECB__FIRST_ETAG : UPS_ECB__LARGE_ETAG + ((c - 1u) << 10);
+    return ((unsigned)map[slot >> 3] >> (slot & 7u)) & 1u;
 }
 
-static unsigned class_end(unsigned c)
+/** Set (@p on) or clear node entry @p slot in @p map; a change is a change of the users. */
+static void mark(ups_ecb_t *ecb, uint8_t *map, unsigned slot, unsigned on)
 {
-    return UPS_ECB__LARGE_ETAG + (c << 10);
+    unsigned old = map[slot >> 3];
+    unsigned bit = 1u << (slot & 7u);
+    unsigned now = on ? old | bit : old & ~bit;
+    if (now != old) {
+        map[slot >> 3] = (uint8_t)now;
+        ups_ecb__note(ecb, UPS_ECB_NOTE_CHANNELS);
+    }
 }
 
-static int has(const uint8_t *map, int slot)
+static unsigned uses(const ups_ecb_channel_t *ch, unsigned slot)
 {
-    return (int)(((unsigned)map[(unsigned)slot >> 3] >> ((unsigned)slot & 7u)) & 1u);
-}
-
-static void put_bit(uint8_t *map, int slot, int on)
-{
-    uint8_t bit = (uint8_t)(1u << ((unsigned)slot & 7u));
-    map[(unsigned)slot >> 3] = (uint8_t)(on ? map[(unsigned)slot >> 3] | bit
-                                            : map[(unsigned)slot >> 3] & (uint8_t)~bit);
+    return has(ch->use[0], slot) | has(ch->use[1], slot);
 }
 
 static int in_use(const ups_ecb_channel_t *ch)
 {
     unsigned any = 0u;
     for (unsigned k = 0u; k < UPS_ECB_NODE_BYTES; k++) {
-        any |= (unsigned)(ch->sub[k] | ch->pub[k]);
+        any |= (unsigned)(ch->use[0][k] | ch->use[1][k]);
     }
     return any != 0u;
-}
-
-static int uses(const ups_ecb_channel_t *ch, int slot)
-{
-    return has(ch->sub, slot) || has(ch->pub, slot);
 }
 
 static unsigned get16(const uint8_t *in)
@@ -95,8 +96,8 @@ static void put16(uint8_t *out, unsigned value)
     out[1] = (uint8_t)value;
 }
 
-/* struct copies and shifts through ups_ecb__copy, so that no compiler makes memcpy or memmove
- * calls of them (no C library) */
+/* struct copies through ups_ecb__copy, so that no compiler makes memcpy calls of them (no C
+ * library) */
 static void copy_stream(ups_ecb_stream_t *to, const ups_ecb_stream_t *from)
 {
     ups_ecb__copy((uint8_t *)to, (const uint8_t *)from, (unsigned)sizeof(*to));
@@ -139,26 +140,25 @@ static int find_etag(const ups_ecb_t *ecb, unsigned etag)
     return -1;
 }
 
-static void send_uid(ups_ecb_t *ecb, unsigned priority, unsigned field, const uint8_t *uid)
+/** Queue a CAN-ECB frame (TxNode 0x7F) of 8 bytes: @p data, zeros when NULL. */
+static void send_mgmt(ups_ecb_t *ecb, unsigned priority, unsigned field, const uint8_t *data)
 {
-    ups_ecb__send(ecb, ups_ecb__id(priority, UPS_ECB__MGMT, field), uid, 8u);
+    ups_ecb__send(ecb, ups_ecb__id(priority, UPS_ECB__MGMT, field), data, 8u);
 }
 
 static void send_bind(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
 {
-    send_uid(ecb, BIND_PRIORITY, etag, uid);
+    send_mgmt(ecb, BIND_PRIORITY, etag, uid);
 }
 
-static void send_limit(ups_ecb_t *ecb, unsigned txnode, const uint8_t *uid)
-{
-    send_uid(ecb, 0u, F_LIMIT | txnode, uid);
-}
-
-/** Whether this CAN-ECB answers the bus now (a candidate or serving, not standing by). */
-static int answering(const ups_ecb_t *ecb)
+/** Whether the answers paced by the tick (held requests, rosters) may go now: the CAN-ECB
+ *  answers the bus (a candidate or serving, not standing by, not in a recovery window) and the
+ *  TX queue has room. */
+static int may_answer(const ups_ecb_t *ecb)
 {
     int role = ups_ecb_role(ecb);
-    return role == UPS_ECB_CANDIDATE || role == UPS_ECB_SERVING;
+    return !ecb->recovering && (role == UPS_ECB_CANDIDATE || role == UPS_ECB_SERVING) &&
+           ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH;
 }
 
 /* ---- leases ---------------------------------------------------------------------------------- */
@@ -175,83 +175,62 @@ static uint32_t age_unit(const ups_ecb_t *ecb)
     return unit < 2147483u ? unit * 1000u : 0x7FFFFFFFu;
 }
 
-static int past_lease(const ups_ecb_t *ecb, const ups_ecb_channel_t *ch)
+/** The channel unused longest, past the lease, that no node uses: of size class @p c (or ANY),
+ *  created by node entry @p creator - 1 (or by anyone: 0); -1 when there is none. */
+static int oldest_idle(const ups_ecb_t *ecb, unsigned c, unsigned creator)
 {
-    return age_unit(ecb) == 0u || ch->age >= AGE_PAST;
-}
-
-/** The channel unused longest, past the lease, that no node uses: of size class @p c (or any,
- *  -1), created by node entry @p creator (or anyone, -1); -1 when there is none. */
-static int oldest_idle(const ups_ecb_t *ecb, int c, int creator)
-{
+    unsigned past = age_unit(ecb) == 0u ? 0u : AGE_PAST;
     int best = -1;
+    unsigned oldest = 0u;
     for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
         const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-        if (ch->etag == 0u || in_use(ch) || !past_lease(ecb, ch) ||
-            (c >= 0 && size_class(ch->etag) != (unsigned)c) ||
-            (creator >= 0 && ch->creator != (unsigned)creator)) {
-            continue;
-        }
-        if (best < 0 || ch->age > ecb->bind.channels[best].age) {
+        if (ch->etag != 0u && !in_use(ch) && ch->age >= past &&
+            (c == ANY || size_class(ch->etag) == c) && (creator == 0u || ch->creator == creator) &&
+            (best < 0 || ch->age > oldest)) {
             best = i;
+            oldest = ch->age;
         }
     }
     return best;
 }
 
-static void forget_etag(ups_ecb_t *ecb, unsigned etag);
+static void drop_streams(ups_ecb_t *ecb, unsigned etag, unsigned txnode);
 
 /** Unbind the i-th channel, unused past the lease: its etag is free, its creator's quota too. */
 static void reclaim(ups_ecb_t *ecb, int i)
 {
     ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-    forget_etag(ecb, ch->etag);
+    drop_streams(ecb, ch->etag, NONE);
     ups_ecb__copy((uint8_t *)ch, NULL, (unsigned)sizeof(*ch));
-    ch->creator = NOBODY;
     ups_ecb__count(&ecb->counters.reclaimed);
     ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-}
-
-/** A free entry of the table, reclaiming the channel unused longest past the lease if need be;
- *  -1 when none. */
-static int free_entry(ups_ecb_t *ecb)
-{
-    int i = find_etag(ecb, 0u);
-    if (i < 0) {
-        i = oldest_idle(ecb, -1, -1);
-        if (i >= 0) {
-            reclaim(ecb, i);
-        }
-    }
-    return i;
 }
 
 /** The lowest free etag of size class @p c, else the one unused longest past the lease
  *  (reclaimed); 0 when none. */
 static unsigned free_etag(ups_ecb_t *ecb, unsigned c)
 {
-    unsigned end = class_end(c);
-    for (unsigned base = class_first(c); base < end; base += 64u) {
-        uint8_t taken[8];
-        ups_ecb__copy(taken, NULL, 8u);
+    unsigned end = UPS_ECB__LARGE_ETAG + (c << 10);
+    unsigned etag = c == 0u ? UPS_ECB__FIRST_ETAG : end - 0x400u;
+    /* past every etag taken, until a pass over the table finds the candidate free (the
+     * entries are mostly in etag order: one pass, and the one that finds it free) */
+    for (int moved = 1; moved && etag < end;) {
+        moved = 0;
         for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
-            unsigned e = ecb->bind.channels[i].etag;
-            if (e >= base && e < base + 64u) {
-                unsigned bit = e - base;
-                taken[bit >> 3] = (uint8_t)(taken[bit >> 3] | (1u << (bit & 7u)));
-            }
-        }
-        for (unsigned k = 0u; k < 64u && base + k < end; k++) {
-            if ((((unsigned)taken[k >> 3] >> (k & 7u)) & 1u) == 0u) {
-                return base + k;
+            if (ecb->bind.channels[i].etag == etag) {
+                etag++;
+                moved = 1;
             }
         }
     }
-    int i = oldest_idle(ecb, (int)c, -1);
+    if (etag < end) {
+        return etag;
+    }
+    int i = oldest_idle(ecb, c, 0u);
     if (i < 0) {
         return 0u;
     }
-    unsigned etag = ecb->bind.channels[i].etag;
+    etag = ecb->bind.channels[i].etag;
     reclaim(ecb, i);
     return etag;
 }
@@ -279,6 +258,12 @@ static void age_channels(ups_ecb_t *ecb)
 
 /* ---- declared streams ------------------------------------------------------------------------ */
 
+/** A stream's place in the order the analysis takes them: (etag, TxNode). */
+static unsigned stream_key(const ups_ecb_stream_t *s)
+{
+    return ((unsigned)s->etag << 7) | s->txnode;
+}
+
 static int find_stream(const ups_ecb_t *ecb, unsigned etag, unsigned txnode)
 {
     for (int k = 0; k < ecb->bind.stream_count; k++) {
@@ -290,28 +275,49 @@ static int find_stream(const ups_ecb_t *ecb, unsigned etag, unsigned txnode)
     return -1;
 }
 
-static void drop_stream(ups_ecb_t *ecb, int k)
+/* A stream as the blob has it (STREAM bytes): ups_ecb_stream_t's fields in order (etag, TxNode,
+ * size, period, deadline, jitter, priority), the 16-bit ones big-endian. */
+#define STREAM 10u
+typedef char stream_record_check[sizeof(ups_ecb_stream_t) == STREAM &&
+                                         offsetof(ups_ecb_stream_t, period) == 4u &&
+                                         offsetof(ups_ecb_stream_t, priority) == 9u
+                                     ? 1
+                                     : -1];
+
+static void load_stream(ups_ecb_stream_t *s, const uint8_t *in)
 {
-    ups_ecb_bind_t *b = &ecb->bind;
-    unsigned room = (unsigned)(sizeof b->streams / sizeof b->streams[0]);
-    for (unsigned j = (unsigned)k; j + 1u < b->stream_count && j + 1u < room; j++) {
-        copy_stream(&b->streams[j], &b->streams[j + 1u]);
-    }
-    b->stream_count--;
-    b->refused_valid = 0u;
-    ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
+    ups_ecb__copy((uint8_t *)s, in, STREAM);
+    s->etag = (uint16_t)get16(in);
+    s->period = (uint16_t)get16(in + 4);
+    s->deadline = (uint16_t)get16(in + 6);
 }
 
-/** The channel left @p etag (it moved, or was reclaimed): the streams declared on it are gone. */
-static void forget_etag(ups_ecb_t *ecb, unsigned etag)
+static void store_stream(uint8_t *out, const ups_ecb_stream_t *s)
+{
+    ups_ecb__copy(out, (const uint8_t *)s, STREAM);
+    put16(out, s->etag);
+    put16(out + 4, s->period);
+    put16(out + 6, s->deadline);
+}
+
+/** Drop the streams on @p etag (the channel left it: moved or reclaimed), or when @p etag is 0,
+ *  those of TxNode @p txnode and of TxNodes nobody holds; and the Refuse remembered of them. */
+static void drop_streams(ups_ecb_t *ecb, unsigned etag, unsigned txnode)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    for (int k = b->stream_count - 1; k >= 0; k--) {
-        if (b->streams[k].etag == etag) {
-            drop_stream(ecb, k);
+    for (unsigned k = b->stream_count; k-- > 0u;) {
+        ups_ecb_stream_t *s = &b->streams[k];
+        if (etag != 0u ? s->etag == etag
+                       : s->txnode == txnode || ups_ecb__holder(ecb, s->txnode) < 0) {
+            b->stream_count--;
+            ups_ecb__copy((uint8_t *)s, (const uint8_t *)(s + 1),
+                          (b->stream_count - k) * (unsigned)sizeof(*s));
+            b->refused_valid = 0u;
+            ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
         }
     }
-    if (get16(b->refuse) == etag) {
+    unsigned refused = get16(b->refuse);
+    if (refused != 0u && (etag != 0u ? refused == etag : b->refuse[2] == txnode)) {
         ups_ecb__copy(b->refuse, NULL, 8u);
         b->refused_valid = 0u;
     }
@@ -324,127 +330,34 @@ static void send_grant(ups_ecb_t *ecb, const ups_ecb_stream_t *s)
     put16(data, s->etag);
     data[2] = s->txnode;
     data[3] = s->priority;
-    ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, F_GRANT), data, 8u);
+    send_mgmt(ecb, 0u, F_GRANT, data);
 }
 
-static void send_refuse(ups_ecb_t *ecb, const uint8_t *data)
-{
-    ups_ecb__send(ecb, ups_ecb__id(0u, UPS_ECB__MGMT, F_REFUSE), data, 8u);
-}
-
-/** Refuse stream (etag, txnode), naming (miss_etag, miss_txnode) and @p response; remembered
- *  (the answer to the same DECLARE again, and to a forged Grant of the stream). */
-static void refuse(ups_ecb_t *ecb, const uint8_t *decl, unsigned txnode, unsigned miss_etag,
-                   unsigned miss_txnode, unsigned response)
+/** DECLARE: the admitted streams and the new one analysed: Grants, or a Refuse. */
+static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_t *data)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    uint8_t *r = b->refuse;
-    r[0] = decl[0];
-    r[1] = decl[1];
-    r[2] = (uint8_t)txnode;
-    r[3] = (uint8_t)miss_txnode;
-    r[4] = (uint8_t)(miss_etag >> 8);
-    r[5] = (uint8_t)miss_etag;
-    r[6] = (uint8_t)(response >> 8);
-    r[7] = (uint8_t)response;
-    ups_ecb__copy(b->refused_decl, decl, 8u);
-    b->refused_valid = 1u;
-    ups_ecb__count(&ecb->counters.refused);
-    send_refuse(ecb, r);
-}
-
-/** Analyse the admitted streams and the new one: Grants, or a Refuse. */
-static void decide(ups_ecb_t *ecb, const ups_ecb_stream_t *new_stream, const uint8_t *decl)
-{
-    ups_ecb_bind_t *b = &ecb->bind;
-    ups_ecb_stream_t work[UPS_ECB_STREAMS + 1];
-    unsigned count = 0u;
-    int placed = 0;
-    for (int k = 0; k < b->stream_count; k++) {
-        const ups_ecb_stream_t *s = &b->streams[k];
-        unsigned key = ((unsigned)s->etag << 7) | s->txnode;
-        unsigned new_key = ((unsigned)new_stream->etag << 7) | new_stream->txnode;
-        if (key == new_key) {
-            continue; /* declared again: replaced */
-        }
-        if (!placed && key > new_key) {
-            copy_stream(&work[count++], new_stream);
-            placed = 1;
-        }
-        copy_stream(&work[count++], s);
-    }
-    if (!placed) {
-        copy_stream(&work[count++], new_stream);
-    }
-    unsigned txnode = new_stream->txnode;
-    if (count > (unsigned)UPS_ECB_STREAMS) {
-        ups_ecb__count(&ecb->counters.streams_full);
-        refuse(ecb, decl, txnode, new_stream->etag, txnode, 0u);
-        return;
-    }
-    unsigned miss = 0u;
-    uint16_t response = UNBOUNDED;
-    if (!ups_ecb_rt_admit(work, count, ecb->cfg.bitrate, ecb->cfg.fd, &miss, &response)) {
-        if (response == 0u || miss >= count) { /* more streams than priorities */
-            refuse(ecb, decl, txnode, new_stream->etag, txnode, 0u);
-        } else {
-            refuse(ecb, decl, txnode, work[miss].etag, work[miss].txnode, response);
-        }
-        return;
-    }
-    for (unsigned j = 0u; j < count; j++) {
-        int old = find_stream(ecb, work[j].etag, work[j].txnode);
-        if ((work[j].etag == new_stream->etag && work[j].txnode == txnode) || old < 0 ||
-            b->streams[old].priority != work[j].priority) {
-            send_grant(ecb, &work[j]);
-        }
-    }
-    for (unsigned j = 0u; j < count; j++) {
-        copy_stream(&b->streams[j], &work[j]);
-    }
-    b->stream_count = (uint8_t)count;
-    b->refused_valid = 0u;
-    if (get16(b->refuse) == new_stream->etag && b->refuse[2] == txnode) {
-        ups_ecb__copy(b->refuse, NULL, 8u);
-    }
-    ups_ecb__count(&ecb->counters.admitted);
-    ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-}
-
-static int valid_declaration(unsigned etag, unsigned size, unsigned period, unsigned deadline)
-{
-    if (etag < UPS_ECB__FIRST_ETAG || etag > UPS_ECB__ETAG_MASK || period == 0u ||
-        deadline == 0u) {
-        return 0;
-    }
-    return etag < UPS_ECB__LARGE_ETAG ? size <= 8u : size >= 1u;
-}
-
-static void declare(ups_ecb_t *ecb, int slot, unsigned txnode, const uint8_t *data)
-{
-    ups_ecb_bind_t *b = &ecb->bind;
+    uint8_t in[10]; /* the DECLARE as the blob has a stream: its TxNode after the etag */
+    in[0] = data[0];
+    in[1] = data[1];
+    in[2] = (uint8_t)txnode;
+    ups_ecb__copy(in + 3, data + 2, 6u);
+    in[9] = 0u;
     ups_ecb_stream_t s;
-    s.etag = (uint16_t)get16(data);
-    s.txnode = (uint8_t)txnode;
-    s.size = data[2];
-    s.period = (uint16_t)get16(data + 3);
-    s.deadline = (uint16_t)get16(data + 5);
-    s.jitter = data[7];
-    s.priority = 0u;
-    int i = find_etag(ecb, s.etag);
-    if (!valid_declaration(s.etag, s.size, s.period, s.deadline) || i < 0 ||
-        !has(b->channels[i].pub, slot)) {
+    load_stream(&s, in);
+    int i = find_etag(ecb, s.etag); /* its fields are in range (the dispatcher checked them) */
+    if (i < 0 || !has(b->channels[i].use[1], slot)) {
         ups_ecb__count(&ecb->counters.malformed); /* as the Python CAN-ECB counts it */
         return;
     }
     int k = find_stream(ecb, s.etag, txnode);
-    if (k >= 0 && b->streams[k].size == s.size && b->streams[k].period == s.period &&
-        b->streams[k].deadline == s.deadline && b->streams[k].jitter == s.jitter) {
+    if (k >= 0 && ups_ecb__same8((const uint8_t *)&b->streams[k], (const uint8_t *)&s) &&
+        b->streams[k].jitter == s.jitter) {
         send_grant(ecb, &b->streams[k]); /* asked again: the same answer, no analysis */
         return;
     }
     if (b->refused_valid && b->refuse[2] == txnode && ups_ecb__same8(b->refused_decl, data)) {
-        send_refuse(ecb, b->refuse);
+        send_mgmt(ecb, 0u, F_REFUSE, b->refuse);
         return;
     }
     if (b->spent[slot] >= DECLARE_BURST) {
@@ -452,60 +365,107 @@ static void declare(ups_ecb_t *ecb, int slot, unsigned txnode, const uint8_t *da
         return;
     }
     b->spent[slot]++;
-    decide(ecb, &s, data);
+    /* the streams with the new one in its place by (etag, TxNode): declared again, replaced */
+    ups_ecb_stream_t work[UPS_ECB_STREAMS + 1];
+    unsigned count = b->stream_count;
+    ups_ecb__copy((uint8_t *)work, (const uint8_t *)b->streams, count * (unsigned)sizeof(s));
+    unsigned at = (unsigned)k;
+    if (k < 0) {
+        for (at = count++; at > 0u && stream_key(&work[at - 1u]) > stream_key(&s); at--) {
+            copy_stream(&work[at], &work[at - 1u]);
+        }
+    }
+    copy_stream(&work[at], &s);
+    unsigned miss = 0u;
+    uint16_t response = 0u;
+    if (count > (unsigned)UPS_ECB_STREAMS) {
+        ups_ecb__count(&ecb->counters.streams_full);
+    } else if (ups_ecb_rt_admit(work, count, ecb->cfg.bitrate, ecb->cfg.fd, &miss, &response)) {
+        for (unsigned j = 0u; j < count; j++) {
+            int old = find_stream(ecb, work[j].etag, work[j].txnode);
+            if (j == at || old < 0 || b->streams[old].priority != work[j].priority) {
+                send_grant(ecb, &work[j]);
+            }
+        }
+        ups_ecb__copy((uint8_t *)b->streams, (const uint8_t *)work, count * (unsigned)sizeof(s));
+        b->stream_count = (uint8_t)count;
+        b->refused_valid = 0u;
+        if (get16(b->refuse) == s.etag && b->refuse[2] == txnode) {
+            ups_ecb__copy(b->refuse, NULL, 8u);
+        }
+        ups_ecb__count(&ecb->counters.admitted);
+        ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
+        return;
+    } else if (miss >= count) { /* more streams than priorities */
+        response = 0u;
+    }
+    /* Refused, naming the stream that would miss, and remembered (the answer to the same
+     * DECLARE again, and to a forged Grant of the stream) */
+    const ups_ecb_stream_t *m = response == 0u ? &s : &work[miss];
+    uint8_t *r = b->refuse;
+    put16(r, s.etag);
+    r[2] = (uint8_t)txnode;
+    r[3] = m->txnode;
+    put16(r + 4, m->etag);
+    put16(r + 6, response);
+    ups_ecb__copy(b->refused_decl, data, 8u);
+    b->refused_valid = 1u;
+    ups_ecb__count(&ecb->counters.refused);
+    send_mgmt(ecb, 0u, F_REFUSE, r);
 }
 
 /* ---- binding --------------------------------------------------------------------------------- */
 
-/** May node entry @p slot (TxNode @p txnode) use the channel of @p uid (entry @p i, or -1)?
- *  If not, Limit. */
-static int within_limit(ups_ecb_t *ecb, int slot, unsigned txnode, int i, const uint8_t *uid)
+/** May node entry @p slot (TxNode @p txnode) use the channel of @p uid (entry @p i, or -1), and
+ *  when it creates it (@p c: its size class; else > 4), is it within its quota? Past its quota,
+ *  the one it created that was unused longest is reclaimed, once past the lease. If not, Limit,
+ *  counted. */
+static int allowed(ups_ecb_t *ecb, unsigned slot, unsigned txnode, int i, const uint8_t *uid,
+                   unsigned c)
 {
-    if (i >= 0 && uses(&ecb->bind.channels[i], slot)) {
-        return 1;
-    }
     unsigned used = 0u;
-    for (unsigned j = 0u; j < UPS_ECB_CHANNELS; j++) {
-        used += ecb->bind.channels[j].etag != 0u && uses(&ecb->bind.channels[j], slot);
-    }
-    if (used < ecb->cfg.max_channels) {
-        return 1;
-    }
-    ups_ecb__count(&ecb->counters.limited);
-    send_limit(ecb, txnode, uid);
-    return 0;
-}
-
-/** May node entry @p slot create a binding of size class @p c? Past its quota, the one it
- *  created that was unused longest is reclaimed, once past the lease; else Limit, counted. */
-static int within_quota(ups_ecb_t *ecb, int slot, unsigned txnode, const uint8_t *uid,
-                        unsigned c)
-{
     unsigned made = 0u;
     for (unsigned j = 0u; j < UPS_ECB_CHANNELS; j++) {
         const ups_ecb_channel_t *ch = &ecb->bind.channels[j];
-        made += ch->etag != 0u && ch->creator == (unsigned)slot && size_class(ch->etag) == c;
+        if (ch->etag != 0u) {
+            used += uses(ch, slot);
+            made += ch->creator == slot + 1u && size_class(ch->etag) == c;
+        }
     }
-    if (made < ecb->cfg.quota[c]) {
-        return 1;
+    UPS_ECB_COUNTER_T *counter = &ecb->counters.limited;
+    if (i >= 0 && uses(&ecb->bind.channels[i], slot)) {
+        used = 0u; /* it uses it already */
     }
-    int i = oldest_idle(ecb, (int)c, slot);
-    if (i >= 0) {
-        reclaim(ecb, i);
-        return 1;
+    if (used < ecb->cfg.max_channels) {
+        if (c > 4u || made < ecb->cfg.quota[c]) {
+            return 1;
+        }
+        int old = oldest_idle(ecb, c, slot + 1u);
+        if (old >= 0) {
+            reclaim(ecb, old);
+            return 1;
+        }
+        counter = &ecb->counters.quota_hit;
     }
-    ups_ecb__count(&ecb->counters.quota_hit);
-    send_limit(ecb, txnode, uid);
+    ups_ecb__count(counter);
+    send_mgmt(ecb, 0u, F_LIMIT | txnode, uid);
     return 0;
 }
 
-static void use(ups_ecb_t *ecb, int i, int slot, int publish)
+/** A free entry of the table, reclaiming the channel unused longest past the lease if need be;
+ *  -1 when none (counted: channels_full). */
+static int free_entry(ups_ecb_t *ecb)
 {
-    uint8_t *map = publish ? ecb->bind.channels[i].pub : ecb->bind.channels[i].sub;
-    if (!has(map, slot)) {
-        put_bit(map, slot, 1);
-        ups_ecb__note(ecb, UPS_ECB_NOTE_CHANNELS);
+    int i = find_etag(ecb, 0u);
+    if (i < 0) {
+        i = oldest_idle(ecb, ANY, 0u);
+        if (i < 0) {
+            ups_ecb__count(&ecb->counters.channels_full);
+        } else {
+            reclaim(ecb, i);
+        }
     }
+    return i;
 }
 
 static void hold(ups_ecb_t *ecb, unsigned txnode, unsigned kind, const uint8_t *uid)
@@ -526,133 +486,110 @@ static void hold(ups_ecb_t *ecb, unsigned txnode, unsigned kind, const uint8_t *
     ups_ecb__count(&ecb->counters.held_dropped);
 }
 
-/** SUB_BIND, PUB_BIND or PUB_BIND(c) (@p kind, the request's etag field) of @p uid. */
-static void bind(ups_ecb_t *ecb, int slot, unsigned txnode, unsigned kind, const uint8_t *uid)
+/** Drop the @p h-th held request: the later ones move up (the held requests are the first
+ *  entries, oldest first). */
+static void unhold(ups_ecb_bind_t *b, unsigned h)
 {
-    unsigned c = kind > PUB_BIND_CLASS ? kind - PUB_BIND_CLASS : 0u;
-    int publish = kind != SUB_BIND;
-    int i = find_uid(ecb, uid);
-    int fits = i >= 0 && size_class(ecb->bind.channels[i].etag) >= c;
-    if (ecb->recovering && !fits) {
-        hold(ecb, txnode, kind, uid);
-        return;
-    }
-    if (!within_limit(ecb, slot, txnode, i, uid)) {
-        return;
-    }
-    if (!fits) {
-        if (!within_quota(ecb, slot, txnode, uid, c)) {
-            return;
-        }
-        unsigned etag = 0u;
-        if (i < 0) { /* a new channel: an entry first (one reclaimed frees its etag too) */
-            i = free_entry(ecb);
-            if (i < 0) {
-                ups_ecb__count(&ecb->counters.channels_full);
-            }
-        }
-        if (i >= 0) {
-            etag = free_etag(ecb, c);
-        }
-        if (etag == 0u) {
-            ups_ecb__count(&ecb->counters.refused);
-            send_uid(ecb, 0u, F_ETAGS_FULL, uid);
-            return;
-        }
-        ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-        if (ch->etag != 0u) { /* a move to a larger size class */
-            ups_ecb__count(&ecb->counters.moved);
-            forget_etag(ecb, ch->etag);
-        } else {
-            ups_ecb__copy(ch->uid, uid, 8u);
-        }
-        ch->etag = (uint16_t)etag;
-        ch->creator = (uint8_t)slot;
-        ch->age = 0u;
-        ups_ecb__count(&ecb->counters.bound);
-        ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-    }
-    use(ecb, i, slot, publish);
-    ecb->bind.channels[i].age = 0u; /* just answered: not unused (no reclaim takes it now) */
-    send_bind(ecb, ecb->bind.channels[i].etag, uid);
+    ups_ecb__copy((uint8_t *)&b->held[h], (const uint8_t *)&b->held[h + 1u],
+                  (UPS_ECB_HELD - 1u - h) * (unsigned)sizeof(b->held[0]));
+    b->held[UPS_ECB_HELD - 1u].kind = 0u;
 }
 
-/** The tables' Binds of @p etag and of @p uid where they differ from (etag, uid); how many. */
+/** The tables' Binds of @p etag and of @p uid where they differ from (etag, uid); how many
+ *  (none when the tables bind them to each other). */
 static unsigned correct(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
 {
-    unsigned sent = 0u;
     int j = find_etag(ecb, etag);
-    if (j >= 0) {
+    int i = find_uid(ecb, uid);
+    unsigned sent = 0u;
+    if (j >= 0 && i != j) {
         send_bind(ecb, etag, ecb->bind.channels[j].uid);
         sent++;
     }
-    int i = find_uid(ecb, uid);
-    if (i >= 0 && ecb->bind.channels[i].etag != etag) {
+    if (i >= 0 && i != j) { /* etags are unique: its etag is not @p etag */
         send_bind(ecb, ecb->bind.channels[i].etag, uid);
         sent++;
     }
     return sent;
 }
 
-/** SUB_AT / PUB_AT(etag, uid): a binding a node holds. */
-static void holds(ups_ecb_t *ecb, int slot, unsigned txnode, int publish, unsigned etag,
-                  const uint8_t *uid)
+/** Node entry @p slot (TxNode @p txnode) uses the channel of @p uid: it asks for it (@p etag 0;
+ *  @p kind the request's etag field: SUB_BIND, PUB_BIND or PUB_BIND(c)), or it holds it bound
+ *  to @p etag (SUB_AT, PUB_AT: @p kind SUB_BIND or PUB_BIND), which is adopted when the tables
+ *  have neither. */
+static void bind(ups_ecb_t *ecb, unsigned slot, unsigned txnode, unsigned kind,
+                 const uint8_t *uid, unsigned etag)
 {
+    ups_ecb_bind_t *b = &ecb->bind;
+    unsigned c = etag != 0u ? size_class(etag) : kind > PUB_BIND_CLASS ? kind - PUB_BIND_CLASS : 0u;
     int i = find_uid(ecb, uid);
-    if (i >= 0 && ecb->bind.channels[i].etag == etag) {
-        if (within_limit(ecb, slot, txnode, i, uid)) {
-            use(ecb, i, slot, publish);
+    int fits = i >= 0 && (etag != 0u ? b->channels[i].etag == etag
+                                     : size_class(b->channels[i].etag) >= c);
+    if (etag != 0u && !fits && (i >= 0 || find_etag(ecb, etag) >= 0)) { /* contradicted */
+        ups_ecb__count(&ecb->counters.conflicts);
+        (void)correct(ecb, etag, uid);
+        if (i >= 0 || ecb->recovering) {
+            return;
         }
+        etag = 0u; /* it will ask again: answered now, as its request (of size class 0) */
+        c = 0u;
+    }
+    if (etag == 0u && ecb->recovering && !fits) {
+        hold(ecb, txnode, kind, uid);
         return;
     }
-    if (i < 0 && find_etag(ecb, etag) < 0) {
-        if (!within_limit(ecb, slot, txnode, -1, uid) ||
-            !within_quota(ecb, slot, txnode, uid, size_class(etag))) {
+    if (!allowed(ecb, slot, txnode, i, uid, fits ? 5u : c)) {
+        return;
+    }
+    if (!fits) {
+        unsigned to = etag;
+        if (i < 0) { /* a new channel: an entry first (one reclaimed frees its etag too) */
+            i = free_entry(ecb);
+            if (i < 0 && etag != 0u) {
+                return;
+            }
+        }
+        if (to == 0u && i >= 0) {
+            to = free_etag(ecb, c);
+        }
+        if (to == 0u) {
+            ups_ecb__count(&ecb->counters.refused);
+            send_mgmt(ecb, 0u, F_ETAGS_FULL, uid);
             return;
         }
-        i = free_entry(ecb);
-        if (i < 0) {
-            ups_ecb__count(&ecb->counters.channels_full);
-            return;
+        if (b->channels[i].etag != 0u) { /* a move to a larger size class */
+            ups_ecb__count(&ecb->counters.moved);
+            drop_streams(ecb, b->channels[i].etag, NONE);
         }
-        ups_ecb_channel_t *ch = &ecb->bind.channels[i];
+        ups_ecb_channel_t *ch = &b->channels[i];
         ups_ecb__copy(ch->uid, uid, 8u);
-        ch->etag = (uint16_t)etag;
-        ch->creator = (uint8_t)slot;
+        ch->etag = (uint16_t)to;
+        ch->creator = (uint8_t)(slot + 1u);
         ch->age = 0u;
-        ups_ecb__count(&ecb->counters.adopted);
+        ups_ecb__count(etag != 0u ? &ecb->counters.adopted : &ecb->counters.bound);
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-        use(ecb, i, slot, publish);
-        return;
     }
-    ups_ecb__count(&ecb->counters.conflicts);
-    (void)correct(ecb, etag, uid);
-    if (i < 0 && !ecb->recovering) { /* it will ask again: answer it now */
-        bind(ecb, slot, txnode, publish ? PUB_BIND : SUB_BIND, uid);
+    ups_ecb_channel_t *ch = &b->channels[i];
+    mark(ecb, ch->use[kind != SUB_BIND], slot, 1u);
+    if (etag == 0u) {
+        ch->age = 0u; /* just answered: not unused (no reclaim takes it now) */
+        send_bind(ecb, ch->etag, uid);
     }
 }
 
-static void unsubscribe(ups_ecb_t *ecb, int slot, unsigned txnode, const uint8_t *uid)
+static void unsubscribe(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_t *uid)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    unsigned to = 0u;
-    for (unsigned h = 0u; h < UPS_ECB_HELD; h++) { /* a SUB_BIND held: dropped */
+    for (unsigned h = 0u; h < UPS_ECB_HELD; h++) { /* a SUB_BIND held (once at most): dropped */
         const ups_ecb_held_t *held = &b->held[h];
         if (held->kind == SUB_BIND && held->txnode == txnode && ups_ecb__same8(held->uid, uid)) {
-            continue;
+            unhold(b, h);
+            break;
         }
-        if (to != h) {
-            copy_held(&b->held[to], held);
-        }
-        to++;
-    }
-    for (; to < UPS_ECB_HELD; to++) {
-        b->held[to].kind = 0u;
     }
     int i = find_uid(ecb, uid);
-    if (i >= 0 && has(b->channels[i].sub, slot)) {
-        put_bit(b->channels[i].sub, slot, 0);
-        ups_ecb__note(ecb, UPS_ECB_NOTE_CHANNELS);
+    if (i >= 0) {
+        mark(ecb, b->channels[i].use[0], slot, 0u);
     }
 }
 
@@ -664,11 +601,7 @@ static int next_channel(const ups_ecb_t *ecb, const uint8_t *uid, int after)
     int best = -1;
     for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
         const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-        if (ch->etag == 0u || !in_use(ch)) {
-            continue;
-        }
-        int cmp = uid_cmp(ch->uid, uid);
-        if ((cmp > 0 || (cmp == 0 && !after)) &&
+        if (ch->etag != 0u && in_use(ch) && uid_cmp(ch->uid, uid) >= after &&
             (best < 0 || uid_cmp(ch->uid, ecb->bind.channels[best].uid) < 0)) {
             best = i;
         }
@@ -676,87 +609,75 @@ static int next_channel(const ups_ecb_t *ecb, const uint8_t *uid, int after)
     return best;
 }
 
-/** The lowest TxNode above @p last (-1: any) of the node entries in @p map; -1 when none. */
-static int next_user(const ups_ecb_t *ecb, const uint8_t *map, int last)
+/** The lowest TxNode from @p from on of the node entries in @p map; NONE when none. */
+static unsigned next_user(const ups_ecb_t *ecb, const uint8_t *map, unsigned from)
 {
-    int best = -1;
-    for (int j = 0; j < UPS_ECB_NODES; j++) {
-        int t = ecb->join.nodes[j].txnode;
-        if (t != 0xFF && has(map, j) && t > last && (best < 0 || t < best)) {
+    unsigned best = NONE;
+    for (unsigned j = 0u; j < UPS_ECB_NODES; j++) {
+        unsigned t = ecb->join.nodes[j].txnode; /* 0xFF (NONE) in an unused entry */
+        if (has(map, j) && t >= from && t < best) {
             best = t;
         }
     }
     return best;
 }
 
-static void roster_end(ups_ecb_t *ecb, const uint8_t *next)
-{
-    static const uint8_t zero[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
-    unsigned done = next == NULL;
-    send_uid(ecb, 0u, F_ROSTER_END | (done << 7) | ecb->bind.r_asker, done ? zero : next);
-    ecb->bind.r_active = 0u;
-}
-
-/** Start listing the channel after (or at) r_uid, or end the page; 1 when a frame was sent. */
-static int roster_channel(ups_ecb_t *ecb, int after)
-{
-    ups_ecb_bind_t *b = &ecb->bind;
-    int i = next_channel(ecb, b->r_uid, after);
-    if (i < 0) {
-        roster_end(ecb, NULL);
-        return 1;
-    }
-    if (b->r_count >= ROSTER_PAGE) {
-        roster_end(ecb, b->channels[i].uid);
-        return 1;
-    }
-    ups_ecb__copy(b->r_uid, b->channels[i].uid, 8u);
-    b->r_started = 1u;
-    b->r_role = 0u;
-    b->r_last = 0xFFu;
-    return 0;
-}
-
-/** Send the answer's next frame. */
+/** Send the answer's next frame: a Uses of the channel r_uid, else the RosterEnd of the page
+ *  when the next channel starts none or there is none. */
 static void roster_step(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    if (!b->r_started && roster_channel(ecb, 0)) {
-        return;
-    }
     for (;;) {
-        int i = find_uid(ecb, b->r_uid);
-        if (i >= 0) {
-            const ups_ecb_channel_t *ch = &b->channels[i];
-            int last = b->r_last == 0xFFu ? -1 : b->r_last;
-            int t = next_user(ecb, b->r_role ? ch->pub : ch->sub, last);
-            if (t >= 0) {
-                send_uid(ecb, 0u, (b->r_role ? F_USES_PUB : F_USES_SUB) | (unsigned)t, ch->uid);
-                b->r_last = (uint8_t)t;
-                b->r_count++;
-                return;
+        int i;
+        if (b->r_role <= R_PUBS) {
+            i = find_uid(ecb, b->r_uid);
+            if (i >= 0) {
+                const ups_ecb_channel_t *ch = &b->channels[i];
+                unsigned t = next_user(ecb, ch->use[b->r_role], b->r_from);
+                if (t != NONE) {
+                    send_mgmt(ecb, 0u, (F_USES_SUB + ((unsigned)b->r_role << 8)) | t, ch->uid);
+                    b->r_from = (uint8_t)(t + 1u);
+                    b->r_count++;
+                    return;
+                }
             }
-            if (b->r_role == 0u) {
-                b->r_role = 1u;
-                b->r_last = 0xFFu;
-                continue;
-            }
+            b->r_role = (uint8_t)(i >= 0 ? b->r_role + 1u : R_NEXT); /* gone: the next one */
+            b->r_from = 0u;
+            continue;
         }
-        if (roster_channel(ecb, 1)) {
+        i = next_channel(ecb, b->r_uid, b->r_role == R_NEXT);
+        if (i < 0 || b->r_count >= ROSTER_PAGE) {
+            unsigned done = i < 0;
+            send_mgmt(ecb, 0u, F_ROSTER_END | (done << 7) | b->r_asker,
+                      done ? NULL : b->channels[i].uid);
+            b->r_active = 0u;
             return;
         }
+        ups_ecb__copy(b->r_uid, b->channels[i].uid, 8u);
+        b->r_role = R_SUBS;
     }
 }
 
-/** Whether a roster frame waits in the TX queue: the queue sends the lowest identifier first,
- *  so the answer's frames go one at a time to keep their order. */
+/** Drop the Roster of node entry @p slot that waits; whether one did. */
+static int roster_unqueue(ups_ecb_bind_t *b, unsigned slot)
+{
+    unsigned to = 0u;
+    for (unsigned q = 0u; q < b->r_waiting; q++) {
+        if (b->r_queue[q] != slot) {
+            b->r_queue[to++] = b->r_queue[q];
+        }
+    }
+    int dropped = to != b->r_waiting;
+    b->r_waiting = (uint8_t)to;
+    return dropped;
+}
+
+/** Whether a roster frame (Uses, RosterEnd) waits in the TX queue: the queue sends the lowest
+ *  identifier first, so the answer's frames go one at a time to keep their order. */
 static int roster_queued(const ups_ecb_t *ecb)
 {
     for (unsigned q = 0u; q < ecb->tx_count; q++) {
-        uint32_t id = ecb->tx[q].id;
-        if ((id >> UPS_ECB__TXNODE_SHIFT) == UPS_ECB__MGMT &&
-            (id & UPS_ECB__ETAG_MASK) >= F_USES_SUB &&
-            (id & UPS_ECB__ETAG_MASK) < F_ROSTER_END + 0x100u) {
+        if (ecb->tx[q].id - ups_ecb__id(0u, UPS_ECB__MGMT, F_USES_SUB) < 0x300u) {
             return 1;
         }
     }
@@ -766,24 +687,19 @@ static int roster_queued(const ups_ecb_t *ecb)
 static void roster_pump(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    if (ecb->recovering || !answering(ecb)) {
-        return;
-    }
-    while (b->r_tokens > 0u && ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH &&
-           !roster_queued(ecb)) {
+    while (b->r_tokens > 0u && may_answer(ecb) && !roster_queued(ecb)) {
         if (!b->r_active) {
             if (b->r_waiting == 0u) {
                 return;
             }
             unsigned slot = b->r_queue[0];
-            b->r_waiting--;
-            ups_ecb__copy(b->r_queue, b->r_queue + 1, b->r_waiting);
-            if (ecb->join.nodes[slot].txnode == 0xFFu) {
+            (void)roster_unqueue(b, slot);
+            b->r_asker = ecb->join.nodes[slot].txnode;
+            if (b->r_asker == 0xFFu) {
                 continue;
             }
-            b->r_asker = ecb->join.nodes[slot].txnode;
             ups_ecb__copy(b->r_uid, b->r_cursor[slot], 8u);
-            b->r_started = 0u;
+            b->r_role = R_FIRST;
             b->r_count = 0u;
             b->r_active = 1u;
         }
@@ -793,73 +709,48 @@ static void roster_pump(ups_ecb_t *ecb)
     }
 }
 
-/** Drop the Roster of node entry @p slot that waits; whether one did. */
-static int roster_unqueue(ups_ecb_bind_t *b, int slot)
-{
-    unsigned to = 0u;
-    for (unsigned q = 0u; q < b->r_waiting; q++) {
-        if (b->r_queue[q] != (unsigned)slot) {
-            b->r_queue[to++] = b->r_queue[q];
-        }
-    }
-    int dropped = to != b->r_waiting;
-    b->r_waiting = (uint8_t)to;
-    return dropped;
-}
-
-static void roster_ask(ups_ecb_t *ecb, int slot, const uint8_t *cursor)
-{
-    ups_ecb_bind_t *b = &ecb->bind;
-    ups_ecb__count(&ecb->counters.rosters);
-    if (roster_unqueue(b, slot)) { /* a newer one replaces the one waiting */
-        ups_ecb__count(&ecb->counters.roster_replaced);
-    }
-    ups_ecb__copy(b->r_cursor[slot], cursor, 8u);
-    b->r_queue[b->r_waiting++] = (uint8_t)slot;
-    roster_pump(ecb);
-}
-
 /* ---- the part's entries ---------------------------------------------------------------------- */
 
 void ups_ecb__bind_init(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
-        b->channels[i].creator = NOBODY;
-    }
+    ups_ecb__copy((uint8_t *)b->channels, NULL, (unsigned)sizeof b->channels);
+    b->stream_count = 0u;
     b->r_tokens = ROSTER_BURST;
 }
 
+/* The dispatcher (ups_ecb.c, kind_of) let through only well-formed requests: SUB_AT and PUB_AT
+ * at priority 0 or 1, the others at priority 0, 8 bytes each, a DECLARE's fields in range. */
 void ups_ecb__bind_request(ups_ecb_t *ecb, int slot, uint32_t id, const uint8_t *data)
 {
     unsigned priority = (unsigned)(id >> UPS_ECB__PRIO_SHIFT);
     unsigned txnode = (unsigned)(id >> UPS_ECB__TXNODE_SHIFT) & UPS_ECB__MGMT;
     unsigned field = (unsigned)id & UPS_ECB__ETAG_MASK;
-    if (slot < 0 || slot >= UPS_ECB_NODES) {
-        return;
-    }
+    unsigned s = (unsigned)slot;
     if (field >= UPS_ECB__FIRST_ETAG) {
-        if (priority <= BIND_PRIORITY) {
-            holds(ecb, slot, txnode, priority == BIND_PRIORITY, field, data);
-        }
-    } else if (priority != 0u) {
-        return;
-    } else if (field == PUB_BIND || field == SUB_BIND ||
-               (field > PUB_BIND_CLASS && field <= PUB_BIND_CLASS + 4u)) {
-        bind(ecb, slot, txnode, field, data);
+        bind(ecb, s, txnode, priority == BIND_PRIORITY ? PUB_BIND : SUB_BIND, data, field);
     } else if (field == UNSUB) {
-        unsubscribe(ecb, slot, txnode, data);
+        unsubscribe(ecb, s, txnode, data);
     } else if (field == DECLARE) {
-        declare(ecb, slot, txnode, data);
+        declare(ecb, s, txnode, data);
     } else if (field == ROSTER) {
-        roster_ask(ecb, slot, data);
+        ups_ecb_bind_t *b = &ecb->bind;
+        ups_ecb__count(&ecb->counters.rosters);
+        if (roster_unqueue(b, s)) { /* a newer one replaces the one waiting */
+            ups_ecb__count(&ecb->counters.roster_replaced);
+        }
+        ups_ecb__copy(b->r_cursor[s], data, 8u);
+        b->r_queue[b->r_waiting++] = (uint8_t)s;
+        roster_pump(ecb);
+    } else { /* PUB_BIND, SUB_BIND, PUB_BIND(c) */
+        bind(ecb, s, txnode, field, data, 0u);
     }
 }
 
 void ups_ecb__bind_event(ups_ecb_t *ecb, unsigned etag)
 {
-    int i = find_etag(ecb, etag);
-    if (i >= 0 && etag != 0u) {
+    int i = find_etag(ecb, etag); /* an event's etag: not 0 */
+    if (i >= 0) {
         ecb->bind.channels[i].age = 0u;
     }
 }
@@ -867,33 +758,19 @@ void ups_ecb__bind_event(ups_ecb_t *ecb, unsigned etag)
 static void forget_slot(ups_ecb_t *ecb, int slot, int creations)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    if (slot < 0 || slot >= UPS_ECB_NODES) {
-        return;
-    }
+    unsigned s = (unsigned)slot;
     for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
         ups_ecb_channel_t *ch = &b->channels[i];
-        if (uses(ch, slot)) {
-            put_bit(ch->sub, slot, 0);
-            put_bit(ch->pub, slot, 0);
-            ups_ecb__note(ecb, UPS_ECB_NOTE_CHANNELS);
-        }
-        if (creations && ch->etag != 0u && ch->creator == (unsigned)slot) {
-            ch->creator = NOBODY;
+        mark(ecb, ch->use[0], s, 0u);
+        mark(ecb, ch->use[1], s, 0u);
+        if (creations && ch->creator == s + 1u) {
+            ch->creator = 0u;
             ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
         }
     }
-    unsigned txnode = ecb->join.nodes[slot].txnode;
-    for (int k = b->stream_count - 1; k >= 0; k--) {
-        if (b->streams[k].txnode == txnode || ups_ecb__holder(ecb, b->streams[k].txnode) < 0) {
-            drop_stream(ecb, k);
-        }
-    }
-    if (get16(b->refuse) != 0u && b->refuse[2] == txnode) {
-        ups_ecb__copy(b->refuse, NULL, 8u);
-        b->refused_valid = 0u;
-    }
-    (void)roster_unqueue(b, slot);
-    b->spent[slot] = 0u;
+    drop_streams(ecb, 0u, ecb->join.nodes[s].txnode);
+    (void)roster_unqueue(b, s);
+    b->spent[s] = 0u;
 }
 
 void ups_ecb__bind_forget(ups_ecb_t *ecb, int slot)
@@ -910,13 +787,9 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
 {
     unsigned priority = (unsigned)(id >> UPS_ECB__PRIO_SHIFT);
     unsigned field = (unsigned)id & UPS_ECB__ETAG_MASK;
-    if (len != 8u) {
-        return;
-    }
+    (void)len; /* 8: Bind, Grant and Refuse have 8 bytes (the dispatcher checked them) */
     if (priority == BIND_PRIORITY && field >= UPS_ECB__FIRST_ETAG) { /* Bind */
-        int j = find_etag(ecb, field);
-        if ((j < 0 || !ups_ecb__same8(ecb->bind.channels[j].uid, data)) &&
-            correct(ecb, field, data) > 0u) {
+        if (correct(ecb, field, data) > 0u) {
             ups_ecb__count(&ecb->counters.conflicts);
         }
         return;
@@ -927,21 +800,23 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
     unsigned etag = get16(data);
     unsigned txnode = data[2];
     int k = find_stream(ecb, etag, txnode);
+    const uint8_t *r = ecb->bind.refuse;
+    uint8_t own[8]; /* naming the stream itself, unbounded */
     if (k >= 0) {
-        if (field == F_REFUSE || data[3] != ecb->bind.streams[k].priority) {
-            ups_ecb__count(&ecb->counters.conflicts);
-            send_grant(ecb, &ecb->bind.streams[k]);
+        if (field == F_GRANT && data[3] == ecb->bind.streams[k].priority) {
+            return;
         }
+        send_grant(ecb, &ecb->bind.streams[k]);
     } else if (field == F_GRANT) { /* a stream it has not admitted */
-        const uint8_t *r = ecb->bind.refuse;
-        uint8_t own[8]; /* naming the stream itself, unbounded */
         ups_ecb__copy(own, data, 3u);
         own[3] = data[2];
         put16(own + 4, etag);
         put16(own + 6, UNBOUNDED);
-        ups_ecb__count(&ecb->counters.conflicts);
-        send_refuse(ecb, get16(r) == etag && r[2] == txnode ? r : own);
+        send_mgmt(ecb, 0u, F_REFUSE, get16(r) == etag && r[2] == txnode ? r : own);
+    } else {
+        return;
     }
+    ups_ecb__count(&ecb->counters.conflicts);
 }
 
 /** Answer the requests held in the recovery window, oldest first, as far as the TX queue has
@@ -949,23 +824,19 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
 static void replay(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
-    for (unsigned done = 0u; !ecb->recovering && answering(ecb) && b->held[0].kind != 0u &&
-                             ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH; done++) {
-        unsigned kind = b->held[0].kind;
-        int i = find_uid(ecb, b->held[0].uid);
-        if (done > 0u && i >= 0 && kind > PUB_BIND_CLASS &&
-            size_class(b->channels[i].etag) < kind - PUB_BIND_CLASS) {
+    for (unsigned done = 0u; b->held[0].kind != 0u && may_answer(ecb); done++) {
+        ups_ecb_held_t held;
+        copy_held(&held, &b->held[0]);
+        int i = find_uid(ecb, held.uid);
+        if (done > 0u && i >= 0 && held.kind > PUB_BIND_CLASS &&
+            size_class(b->channels[i].etag) < held.kind - PUB_BIND_CLASS) {
             break; /* a move: in a call of its own, so that no Bind this call sent is stale
                       in the blob saved after it */
         }
-        ups_ecb_held_t held;
-        copy_held(&held, &b->held[0]);
-        ups_ecb__copy((uint8_t *)&b->held[0], (const uint8_t *)&b->held[1],
-                      (unsigned)((UPS_ECB_HELD - 1u) * sizeof(b->held[0])));
-        b->held[UPS_ECB_HELD - 1u].kind = 0u;
+        unhold(b, 0u);
         int slot = ups_ecb__holder(ecb, held.txnode);
         if (slot >= 0) {
-            bind(ecb, slot, held.txnode, held.kind, held.uid);
+            bind(ecb, (unsigned)slot, held.txnode, held.kind, held.uid, 0u);
         }
     }
 }
@@ -1017,7 +888,6 @@ void ups_ecb__bind_tick(ups_ecb_t *ecb)
 
 #define HEAD 3u     /* channels (u16), streams (u8) */
 #define CHANNEL 11u /* uid, etag, the creator's TxNode (0xFF: nobody) */
-#define STREAM 10u  /* etag, TxNode, size, period, deadline, jitter, priority */
 
 size_t ups_ecb__bind_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
 {
@@ -1030,79 +900,27 @@ size_t ups_ecb__bind_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap)
     if (cap < size) {
         return 0u;
     }
-    out[0] = (uint8_t)(channels >> 8);
-    out[1] = (uint8_t)channels;
+    put16(out, channels);
     out[2] = b->stream_count;
     uint8_t *at = out + HEAD;
     for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
         const ups_ecb_channel_t *ch = &b->channels[i];
-        if (ch->etag == 0u) {
-            continue;
+        if (ch->etag != 0u) {
+            ups_ecb__copy(at, ch->uid, 8u);
+            put16(at + 8, ch->etag);
+            at[10] = ch->creator != 0u ? ecb->join.nodes[ch->creator - 1u].txnode : 0xFFu;
+            at += CHANNEL;
         }
-        ups_ecb__copy(at, ch->uid, 8u);
-        at[8] = (uint8_t)(ch->etag >> 8);
-        at[9] = (uint8_t)ch->etag;
-        at[10] = ch->creator < UPS_ECB_NODES ? ecb->join.nodes[ch->creator].txnode : NOBODY;
-        at += CHANNEL;
     }
     for (unsigned k = 0u; k < b->stream_count; k++) {
-        const ups_ecb_stream_t *s = &b->streams[k];
-        put16(at, s->etag);
-        at[2] = s->txnode;
-        at[3] = s->size;
-        put16(at + 4, s->period);
-        put16(at + 6, s->deadline);
-        at[8] = s->jitter;
-        at[9] = s->priority;
+        store_stream(at, &b->streams[k]);
         at += STREAM;
     }
     return size;
 }
 
-/** Whether the section @p in of @p channels and @p streams records fits the tables and
- *  contradicts itself nowhere. */
-static int valid_section(const uint8_t *in, unsigned channels, unsigned streams)
-{
-    const uint8_t *ch = in + HEAD;
-    for (unsigned i = 0u; i < channels; i++) {
-        unsigned etag = get16(ch + i * CHANNEL + 8u);
-        unsigned creator = ch[i * CHANNEL + 10u];
-        if (etag < UPS_ECB__FIRST_ETAG || etag > UPS_ECB__ETAG_MASK ||
-            (creator >= UPS_ECB__MGMT && creator != NOBODY)) {
-            return 0;
-        }
-        for (unsigned j = 0u; j < i; j++) {
-            if (get16(ch + j * CHANNEL + 8u) == etag ||
-                ups_ecb__same8(ch + j * CHANNEL, ch + i * CHANNEL)) {
-                return 0;
-            }
-        }
-    }
-    const uint8_t *st = ch + CHANNEL * channels;
-    unsigned last_key = 0u;
-    for (unsigned k = 0u; k < streams; k++) {
-        const uint8_t *s = st + k * STREAM;
-        unsigned etag = get16(s);
-        unsigned key = (etag << 7) | s[2];
-        int bound = 0;
-        for (unsigned i = 0u; i < channels; i++) {
-            bound |= get16(ch + i * CHANNEL + 8u) == etag;
-        }
-        if (!bound || s[2] >= UPS_ECB__MGMT || (k > 0u && key <= last_key) ||
-            !valid_declaration(etag, s[3], get16(s + 4), get16(s + 6)) || s[9] < 2u ||
-            s[9] > 0x7Fu) {
-            return 0;
-        }
-        for (unsigned j = 0u; j < k; j++) {
-            if (st[j * STREAM + 9u] == s[9]) {
-                return 0;
-            }
-        }
-        last_key = key;
-    }
-    return 1;
-}
-
+/* The section goes straight into the tables, empty (ups_ecb__bind_init), checked as it goes: a
+ * section that does not fit or contradicts itself fails, and the caller empties them again. */
 int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
 {
     ups_ecb_bind_t *b = &ecb->bind;
@@ -1112,41 +930,43 @@ int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
     unsigned channels = get16(in);
     unsigned streams = in[2];
     if (channels > UPS_ECB_CHANNELS || streams > UPS_ECB_STREAMS ||
-        size != HEAD + CHANNEL * (size_t)channels + STREAM * (size_t)streams ||
-        !valid_section(in, channels, streams)) {
+        size != HEAD + CHANNEL * (size_t)channels + STREAM * (size_t)streams) {
         return UPS_ERR_ARGUMENT;
     }
     const uint8_t *at = in + HEAD;
-    for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
-        ups_ecb_channel_t *ch = &b->channels[i];
-        ups_ecb__copy((uint8_t *)ch, NULL, (unsigned)sizeof(*ch));
-        ch->creator = NOBODY;
-        if (i < channels) {
-            ups_ecb__copy(ch->uid, at, 8u);
-            ch->etag = (uint16_t)get16(at + 8u);
-            int creator = at[10] == NOBODY ? -1 : ups_ecb__holder(ecb, at[10]);
-            ch->creator = creator < 0 ? NOBODY : (uint8_t)creator;
-            at += CHANNEL;
+    for (unsigned i = 0u; i < channels; i++, at += CHANNEL) {
+        unsigned etag = get16(at + 8);
+        unsigned txnode = at[10];
+        if (etag < UPS_ECB__FIRST_ETAG || etag > UPS_ECB__ETAG_MASK ||
+            (txnode >= UPS_ECB__MGMT && txnode != 0xFFu) || find_etag(ecb, etag) >= 0 ||
+            find_uid(ecb, at) >= 0) {
+            return UPS_ERR_ARGUMENT;
         }
+        ups_ecb_channel_t *ch = &b->channels[i];
+        ups_ecb__copy(ch->uid, at, 8u);
+        ch->etag = (uint16_t)etag;
+        int creator = txnode == 0xFFu ? UPS_ECB__NO_SLOT : ups_ecb__holder(ecb, txnode);
+        ch->creator = (uint8_t)(creator + 1); /* NO_SLOT (-1): nobody (0) */
     }
-    for (unsigned k = 0u; k < streams; k++) {
+    for (unsigned k = 0u; k < streams; k++, at += STREAM) {
         ups_ecb_stream_t *s = &b->streams[k];
-        s->etag = (uint16_t)get16(at);
-        s->txnode = at[2];
-        s->size = at[3];
-        s->period = (uint16_t)get16(at + 4);
-        s->deadline = (uint16_t)get16(at + 6);
-        s->jitter = at[8];
-        s->priority = at[9];
-        at += STREAM;
+        load_stream(s, at);
+        /* bound (so its etag is in range), in order, valid as DECLARE, a priority granted */
+        if (find_etag(ecb, s->etag) < 0 || s->txnode >= UPS_ECB__MGMT ||
+            (k > 0u && stream_key(s) <= stream_key(s - 1)) || s->period == 0u ||
+            s->deadline == 0u || (s->etag < UPS_ECB__LARGE_ETAG ? s->size > 8u : s->size == 0u) ||
+            s->priority < 2u || s->priority > 0x7Fu) {
+            return UPS_ERR_ARGUMENT;
+        }
+        for (unsigned j = 0u; j < k; j++) {
+            if (b->streams[j].priority == s->priority) {
+                return UPS_ERR_ARGUMENT;
+            }
+        }
     }
     b->stream_count = (uint8_t)streams;
     b->refused_valid = 0u;
-    for (int k = b->stream_count - 1; k >= 0; k--) { /* of a TxNode nobody holds: gone */
-        if (ups_ecb__holder(ecb, b->streams[k].txnode) < 0) {
-            drop_stream(ecb, k);
-        }
-    }
+    drop_streams(ecb, 0u, NONE); /* of a TxNode nobody holds: gone */
     return UPS_OK;
 }
 
@@ -1156,5 +976,6 @@ int ups_ecb_channel_use(const ups_ecb_t *ecb, int i, unsigned txnode)
     if (i < 0 || i >= UPS_ECB_CHANNELS || slot < 0 || ecb->bind.channels[i].etag == 0u) {
         return 0;
     }
-    return has(ecb->bind.channels[i].sub, slot) | (has(ecb->bind.channels[i].pub, slot) << 1);
+    const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
+    return (int)(has(ch->use[0], (unsigned)slot) | (has(ch->use[1], (unsigned)slot) << 1));
 }

@@ -22,10 +22,9 @@
 typedef struct {
     uint8_t uid[8];   /* big-endian */
     uint16_t etag;    /* 0: unused entry */
-    uint8_t creator;  /* the node entry (ups_ecb_join_t.nodes) that created it; 0xFF: nobody */
+    uint8_t creator;  /* 1 + the node entry (ups_ecb_join_t.nodes) that created it; 0: nobody */
     uint8_t age;      /* sixteenths of the lease since its last event (saturating) */
-    uint8_t sub[UPS_ECB_NODE_BYTES]; /* node entries that subscribe to it */
-    uint8_t pub[UPS_ECB_NODE_BYTES]; /* node entries that publish on it */
+    uint8_t use[2][UPS_ECB_NODE_BYTES]; /* node entries that subscribe to it [0], publish [1] */
 } ups_ecb_channel_t;
 
 /** A binding request held in a recovery window. */
@@ -43,13 +42,12 @@ typedef struct {
     uint16_t r_count;        /* Uses frames of this page */
     uint8_t timed;           /* the three times above are set (the first tick) */
     uint8_t stream_count;
-    uint8_t refused_valid;  /* the refusal below answers its declaration again */
+    uint8_t refused_valid;   /* the refusal below answers its declaration again */
     uint8_t r_waiting;       /* entries of r_queue */
     uint8_t r_active;        /* an answer is being sent */
     uint8_t r_asker;         /* its TxNode */
-    uint8_t r_started;       /* r_uid is the channel being listed (else: the cursor) */
-    uint8_t r_role;          /* 0: subscribers, 1: publishers of r_uid */
-    uint8_t r_last;          /* the last TxNode listed in that role; 0xFF: none */
+    uint8_t r_role;          /* what it lists next (R_... in ups_ecb_bind.c) */
+    uint8_t r_from;          /* the next TxNode to list in that role is this or above */
     uint8_t r_tokens;        /* roster frames that may be sent back to back now (<= 48) */
     uint8_t r_uid[8];
     ups_ecb_channel_t channels[UPS_ECB_CHANNELS];

@@ -108,10 +108,11 @@ int ups_ecb__join_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size);
 
 /* ---- ups_ecb_bind.c ---------------------------------------------------------------------- */
 
+/** Empty the durable tables (channels, streams); the rest stays as ups_ecb_init zeroed it. */
 void ups_ecb__bind_init(ups_ecb_t *ecb);
 /** A node's request or report from the TxNode of node entry @p slot (PUB_BIND, SUB_BIND,
- *  UNSUB, DECLARE, Roster, PUB_BIND(c), SUB_AT, PUB_AT); held in a recovery window as the
- *  protocol says. */
+ *  UNSUB, DECLARE, Roster, PUB_BIND(c), SUB_AT, PUB_AT), well-formed as the dispatcher's
+ *  checks let through (kind_of); held in a recovery window as the protocol says. */
 void ups_ecb__bind_request(ups_ecb_t *ecb, int slot, uint32_t id, const uint8_t *data);
 /** An event frame on @p etag (the channel is in use: its lease starts again). */
 void ups_ecb__bind_event(ups_ecb_t *ecb, unsigned etag);
@@ -123,13 +124,17 @@ void ups_ecb__bind_forget(ups_ecb_t *ecb, int slot);
  *  its TxNode used and declared; the bindings it created still count against it. */
 void ups_ecb__bind_rejoined(ups_ecb_t *ecb, int slot);
 /** A CAN-ECB frame this one did not send (Bind, EtagsFull, Limit, Grant, Refuse, Failed,
- *  Uses, RosterEnd), heard while serving: correct what contradicts the tables. */
+ *  Uses, RosterEnd), well-formed (kind_of), heard while serving: correct what contradicts the
+ *  tables. */
 void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 /** The recovery window ended: answer the held requests and the rosters asked meanwhile. */
 void ups_ecb__bind_recovered(ups_ecb_t *ecb);
 /** Standing by: drop the answers in progress (rosters). */
 void ups_ecb__bind_stop(ups_ecb_t *ecb);
 void ups_ecb__bind_tick(ups_ecb_t *ecb);
+/** The blob's binding section: written size (0 when @p cap is short), and taken back into the
+ *  empty tables (after ups_ecb__bind_init; 0, or UPS_ERR_ARGUMENT for a section that does not
+ *  fit or contradicts itself, the tables then partly filled: the caller empties them). */
 size_t ups_ecb__bind_save(const ups_ecb_t *ecb, uint8_t *out, size_t cap);
 int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size);
 
