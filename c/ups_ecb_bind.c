@@ -156,35 +156,29 @@ static void send_bind(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
  *  TX queue has room. */
 static int may_answer(const ups_ecb_t *ecb)
 {
-    int role = ups_ecb_role(ecb);
+    unsigned role = ecb->elect.role;
     return !ecb->recovering && (role == UPS_ECB_CANDIDATE || role == UPS_ECB_SERVING) &&
            ecb->tx_count + ROOM < UPS_ECB_TX_DEPTH;
 }
 
 /* ---- leases ---------------------------------------------------------------------------------- */
 
-/** Milliseconds of one age step: a sixteenth of the lease, rounded up (0: no lease). Leases
- *  beyond 397 days count as 397 days (an age step stays below 2^31 ms). */
+/** Milliseconds of one age step: a sixteenth of the lease, rounded up (lease_s is 1 to
+ *  LEASE_MAX_S, 10^6, as ups_ecb_init checks: no overflow, and a step is 63 ms at least). */
 static uint32_t age_unit(const ups_ecb_t *ecb)
 {
-    uint32_t lease = ecb->cfg.lease_s;
-    if (lease <= 4294967u) {
-        return (lease * 1000u + 15u) / 16u;
-    }
-    uint32_t unit = lease / 16u + 1u;
-    return unit < 2147483u ? unit * 1000u : 0x7FFFFFFFu;
+    return (ecb->cfg.lease_s * 1000u + 15u) / 16u;
 }
 
 /** The channel unused longest, past the lease, that no node uses: of size class @p c (or ANY),
  *  created by node entry @p creator - 1 (or by anyone: 0); -1 when there is none. */
 static int oldest_idle(const ups_ecb_t *ecb, unsigned c, unsigned creator)
 {
-    unsigned past = age_unit(ecb) == 0u ? 0u : AGE_PAST;
     int best = -1;
     unsigned oldest = 0u;
     for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
         const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-        if (ch->etag != 0u && !in_use(ch) && ch->age >= past &&
+        if (ch->etag != 0u && !in_use(ch) && ch->age >= AGE_PAST &&
             (c == ANY || size_class(ch->etag) == c) && (creator == 0u || ch->creator == creator) &&
             (best < 0 || ch->age > oldest)) {
             best = i;
@@ -240,14 +234,11 @@ static void age_channels(ups_ecb_t *ecb)
     ups_ecb_bind_t *b = &ecb->bind;
     uint32_t unit = age_unit(ecb);
     unsigned steps = 0u;
-    while (unit != 0u && ups_ecb__since(ecb->now, b->t_aged) >= unit) {
+    while (ups_ecb__since(ecb->now, b->t_aged) >= unit) {
         b->t_aged += unit;
         if (++steps > AGE_PAST) {
             b->t_aged = ecb->now;
         }
-    }
-    if (unit == 0u) {
-        b->t_aged = ecb->now;
     }
     for (unsigned i = 0u; steps > 0u && i < UPS_ECB_CHANNELS; i++) {
         ups_ecb_channel_t *ch = &b->channels[i];
@@ -264,15 +255,15 @@ static unsigned stream_key(const ups_ecb_stream_t *s)
     return ((unsigned)s->etag << 7) | s->txnode;
 }
 
-static int find_stream(const ups_ecb_t *ecb, unsigned etag, unsigned txnode)
+static ups_ecb_stream_t *find_stream(ups_ecb_t *ecb, unsigned etag, unsigned txnode)
 {
-    for (int k = 0; k < ecb->bind.stream_count; k++) {
-        const ups_ecb_stream_t *s = &ecb->bind.streams[k];
+    for (unsigned k = 0u; k < ecb->bind.stream_count; k++) {
+        ups_ecb_stream_t *s = &ecb->bind.streams[k];
         if (s->etag == etag && s->txnode == txnode) {
-            return k;
+            return s;
         }
     }
-    return -1;
+    return NULL;
 }
 
 /* A stream as the blob has it (STREAM bytes): ups_ecb_stream_t's fields in order (etag, TxNode,
@@ -350,10 +341,10 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
         ups_ecb__count(&ecb->counters.malformed); /* as the Python CAN-ECB counts it */
         return;
     }
-    int k = find_stream(ecb, s.etag, txnode);
-    if (k >= 0 && ups_ecb__same8((const uint8_t *)&b->streams[k], (const uint8_t *)&s) &&
-        b->streams[k].jitter == s.jitter) {
-        send_grant(ecb, &b->streams[k]); /* asked again: the same answer, no analysis */
+    const ups_ecb_stream_t *again = find_stream(ecb, s.etag, txnode);
+    if (again != NULL && ups_ecb__same8((const uint8_t *)again, (const uint8_t *)&s) &&
+        again->jitter == s.jitter) {
+        send_grant(ecb, again); /* asked again: the same answer, no analysis */
         return;
     }
     if (b->refused_valid && b->refuse[2] == txnode && ups_ecb__same8(b->refused_decl, data)) {
@@ -369,8 +360,8 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
     ups_ecb_stream_t work[UPS_ECB_STREAMS + 1];
     unsigned count = b->stream_count;
     ups_ecb__copy((uint8_t *)work, (const uint8_t *)b->streams, count * (unsigned)sizeof(s));
-    unsigned at = (unsigned)k;
-    if (k < 0) {
+    unsigned at = again != NULL ? (unsigned)(again - b->streams) : 0u;
+    if (again == NULL) {
         for (at = count++; at > 0u && stream_key(&work[at - 1u]) > stream_key(&s); at--) {
             copy_stream(&work[at], &work[at - 1u]);
         }
@@ -382,8 +373,8 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
         ups_ecb__count(&ecb->counters.streams_full);
     } else if (ups_ecb_rt_admit(work, count, ecb->cfg.bitrate, ecb->cfg.fd, &miss, &response)) {
         for (unsigned j = 0u; j < count; j++) {
-            int old = find_stream(ecb, work[j].etag, work[j].txnode);
-            if (j == at || old < 0 || b->streams[old].priority != work[j].priority) {
+            const ups_ecb_stream_t *old = find_stream(ecb, work[j].etag, work[j].txnode);
+            if (j == at || old == NULL || old->priority != work[j].priority) {
                 send_grant(ecb, &work[j]);
             }
         }
@@ -425,12 +416,10 @@ static int allowed(ups_ecb_t *ecb, unsigned slot, unsigned txnode, int i, const 
 {
     unsigned used = 0u;
     unsigned made = 0u;
-    for (unsigned j = 0u; j < UPS_ECB_CHANNELS; j++) {
+    for (unsigned j = 0u; j < UPS_ECB_CHANNELS; j++) { /* an unused entry: no user, nobody's */
         const ups_ecb_channel_t *ch = &ecb->bind.channels[j];
-        if (ch->etag != 0u) {
-            used += uses(ch, slot);
-            made += ch->creator == slot + 1u && size_class(ch->etag) == c;
-        }
+        used += uses(ch, slot);
+        made += ch->creator == slot + 1u && size_class(ch->etag) == c;
     }
     UPS_ECB_COUNTER_T *counter = &ecb->counters.limited;
     if (i >= 0 && uses(&ecb->bind.channels[i], slot)) {
@@ -595,13 +584,14 @@ static void unsubscribe(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const ui
 
 /* ---- the roster ------------------------------------------------------------------------------ */
 
-/** The channel in use with the lowest UID at or (@p after) above @p uid; -1 when none. */
+/** The channel in use (so bound) with the lowest UID at or (@p after) above @p uid; -1 when
+ *  none. */
 static int next_channel(const ups_ecb_t *ecb, const uint8_t *uid, int after)
 {
     int best = -1;
     for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
         const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-        if (ch->etag != 0u && in_use(ch) && uid_cmp(ch->uid, uid) >= after &&
+        if (in_use(ch) && uid_cmp(ch->uid, uid) >= after &&
             (best < 0 || uid_cmp(ch->uid, ecb->bind.channels[best].uid) < 0)) {
             best = i;
         }
@@ -799,14 +789,14 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
     }
     unsigned etag = get16(data);
     unsigned txnode = data[2];
-    int k = find_stream(ecb, etag, txnode);
+    const ups_ecb_stream_t *s = find_stream(ecb, etag, txnode);
     const uint8_t *r = ecb->bind.refuse;
     uint8_t own[8]; /* naming the stream itself, unbounded */
-    if (k >= 0) {
-        if (field == F_GRANT && data[3] == ecb->bind.streams[k].priority) {
+    if (s != NULL) {
+        if (field == F_GRANT && data[3] == s->priority) {
             return;
         }
-        send_grant(ecb, &ecb->bind.streams[k]);
+        send_grant(ecb, s);
     } else if (field == F_GRANT) { /* a stream it has not admitted */
         ups_ecb__copy(own, data, 3u);
         own[3] = data[2];
