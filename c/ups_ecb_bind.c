@@ -484,22 +484,22 @@ static void unhold(ups_ecb_bind_t *b, unsigned h)
     b->held[UPS_ECB_HELD - 1u].kind = 0u;
 }
 
-/** The tables' Binds of @p etag and of @p uid where they differ from (etag, uid); how many
+/** The tables' Binds of @p etag and of @p uid where they differ from (etag, uid), a conflict
  *  (none when the tables bind them to each other). */
-static unsigned correct(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
+static void correct(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
 {
     int j = find_etag(ecb, etag);
     int i = find_uid(ecb, uid);
-    unsigned sent = 0u;
-    if (j >= 0 && i != j) {
+    if (i == j) { /* bound to each other, or both unknown */
+        return;
+    }
+    ups_ecb__count(&ecb->counters.conflicts);
+    if (j >= 0) {
         send_bind(ecb, etag, ecb->bind.channels[j].uid);
-        sent++;
     }
-    if (i >= 0 && i != j) { /* etags are unique: its etag is not @p etag */
+    if (i >= 0) { /* etags are unique: its etag is not @p etag */
         send_bind(ecb, ecb->bind.channels[i].etag, uid);
-        sent++;
     }
-    return sent;
 }
 
 /** Node entry @p slot (TxNode @p txnode) uses the channel of @p uid: it asks for it (@p etag 0;
@@ -515,8 +515,7 @@ static void bind(ups_ecb_t *ecb, unsigned slot, unsigned txnode, unsigned kind,
     int fits = i >= 0 && (etag != 0u ? b->channels[i].etag == etag
                                      : size_class(b->channels[i].etag) >= c);
     if (etag != 0u && !fits && (i >= 0 || find_etag(ecb, etag) >= 0)) { /* contradicted */
-        ups_ecb__count(&ecb->counters.conflicts);
-        (void)correct(ecb, etag, uid);
+        correct(ecb, etag, uid);
         if (i >= 0 || ecb->recovering) {
             return;
         }
@@ -778,13 +777,11 @@ void ups_ecb__bind_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, uns
     unsigned priority = (unsigned)(id >> UPS_ECB__PRIO_SHIFT);
     unsigned field = (unsigned)id & UPS_ECB__ETAG_MASK;
     (void)len; /* 8: Bind, Grant and Refuse have 8 bytes (the dispatcher checked them) */
-    if (priority == BIND_PRIORITY && field >= UPS_ECB__FIRST_ETAG) { /* Bind */
-        if (correct(ecb, field, data) > 0u) {
-            ups_ecb__count(&ecb->counters.conflicts);
-        }
+    if (priority != 0u) { /* a Bind: the CAN-ECB's other frames are at priority 0 */
+        correct(ecb, field, data);
         return;
     }
-    if (priority != 0u || (field != F_GRANT && field != F_REFUSE)) {
+    if (field != F_GRANT && field != F_REFUSE) {
         return;
     }
     unsigned etag = get16(data);
