@@ -119,25 +119,27 @@ static int uid_cmp(const uint8_t *a, const uint8_t *b)
     return 0;
 }
 
-static int find_uid(const ups_ecb_t *ecb, const uint8_t *uid)
+/* the channel entries by UID or etag (0: a free entry); NULL when none */
+static ups_ecb_channel_t *find_uid(ups_ecb_t *ecb, const uint8_t *uid)
 {
-    for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
-        const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
+    for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
+        ups_ecb_channel_t *ch = &ecb->bind.channels[i];
         if (ch->etag != 0u && ups_ecb__same8(ch->uid, uid)) {
-            return i;
+            return ch;
         }
     }
-    return -1;
+    return NULL;
 }
 
-static int find_etag(const ups_ecb_t *ecb, unsigned etag)
+static ups_ecb_channel_t *find_etag(ups_ecb_t *ecb, unsigned etag)
 {
-    for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
-        if (ecb->bind.channels[i].etag == etag) {
-            return i;
+    for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
+        ups_ecb_channel_t *ch = &ecb->bind.channels[i];
+        if (ch->etag == etag) {
+            return ch;
         }
     }
-    return -1;
+    return NULL;
 }
 
 /** Queue a CAN-ECB frame (TxNode 0x7F) of 8 bytes: @p data, zeros when NULL. */
@@ -171,18 +173,16 @@ static uint32_t age_unit(const ups_ecb_t *ecb)
 }
 
 /** The channel unused longest, past the lease, that no node uses: of size class @p c (or ANY),
- *  created by node entry @p creator - 1 (or by anyone: 0); -1 when there is none. */
-static int oldest_idle(const ups_ecb_t *ecb, unsigned c, unsigned creator)
+ *  created by node entry @p creator - 1 (or by anyone: 0); NULL when there is none. */
+static ups_ecb_channel_t *oldest_idle(ups_ecb_t *ecb, unsigned c, unsigned creator)
 {
-    int best = -1;
-    unsigned oldest = 0u;
-    for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
-        const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
+    ups_ecb_channel_t *best = NULL;
+    for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
+        ups_ecb_channel_t *ch = &ecb->bind.channels[i];
         if (ch->etag != 0u && !in_use(ch) && ch->age >= AGE_PAST &&
             (c == ANY || size_class(ch->etag) == c) && (creator == 0u || ch->creator == creator) &&
-            (best < 0 || ch->age > oldest)) {
-            best = i;
-            oldest = ch->age;
+            (best == NULL || ch->age > best->age)) {
+            best = ch;
         }
     }
     return best;
@@ -190,10 +190,9 @@ static int oldest_idle(const ups_ecb_t *ecb, unsigned c, unsigned creator)
 
 static void drop_streams(ups_ecb_t *ecb, unsigned etag, unsigned txnode);
 
-/** Unbind the i-th channel, unused past the lease: its etag is free, its creator's quota too. */
-static void reclaim(ups_ecb_t *ecb, int i)
+/** Unbind channel @p ch, unused past the lease: its etag is free, its creator's quota too. */
+static void reclaim(ups_ecb_t *ecb, ups_ecb_channel_t *ch)
 {
-    ups_ecb_channel_t *ch = &ecb->bind.channels[i];
     drop_streams(ecb, ch->etag, NONE);
     ups_ecb__copy((uint8_t *)ch, NULL, (unsigned)sizeof(*ch));
     ups_ecb__count(&ecb->counters.reclaimed);
@@ -220,12 +219,12 @@ static unsigned free_etag(ups_ecb_t *ecb, unsigned c)
     if (etag < end) {
         return etag;
     }
-    int i = oldest_idle(ecb, c, 0u);
-    if (i < 0) {
+    ups_ecb_channel_t *old = oldest_idle(ecb, c, 0u);
+    if (old == NULL) {
         return 0u;
     }
-    etag = ecb->bind.channels[i].etag;
-    reclaim(ecb, i);
+    etag = old->etag;
+    reclaim(ecb, old);
     return etag;
 }
 
@@ -336,8 +335,9 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
     in[9] = 0u;
     ups_ecb_stream_t s;
     load_stream(&s, in);
-    int i = find_etag(ecb, s.etag); /* its fields are in range (the dispatcher checked them) */
-    if (i < 0 || !has(b->channels[i].use[1], slot)) {
+    const ups_ecb_channel_t *ch = find_etag(ecb, s.etag); /* the fields are in range (the
+                                                                dispatcher checked them) */
+    if (ch == NULL || !has(ch->use[1], slot)) {
         ups_ecb__count(&ecb->counters.malformed); /* as the Python CAN-ECB counts it */
         return;
     }
@@ -394,8 +394,7 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
      * DECLARE again, and to a forged Grant of the stream) */
     const ups_ecb_stream_t *m = response == 0u ? &s : &work[miss];
     uint8_t *r = b->refuse;
-    put16(r, s.etag);
-    r[2] = (uint8_t)txnode;
+    ups_ecb__copy(r, in, 3u); /* the stream: etag, TxNode */
     r[3] = m->txnode;
     put16(r + 4, m->etag);
     put16(r + 6, response);
@@ -407,12 +406,12 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
 
 /* ---- binding --------------------------------------------------------------------------------- */
 
-/** May node entry @p slot (TxNode @p txnode) use the channel of @p uid (entry @p i, or -1), and
+/** May node entry @p slot (TxNode @p txnode) use the channel of @p uid (@p known, or NULL), and
  *  when it creates it (@p c: its size class; else > 4), is it within its quota? Past its quota,
  *  the one it created that was unused longest is reclaimed, once past the lease. If not, Limit,
  *  counted. */
-static int allowed(ups_ecb_t *ecb, unsigned slot, unsigned txnode, int i, const uint8_t *uid,
-                   unsigned c)
+static int allowed(ups_ecb_t *ecb, unsigned slot, unsigned txnode,
+                   const ups_ecb_channel_t *known, const uint8_t *uid, unsigned c)
 {
     unsigned used = 0u;
     unsigned made = 0u;
@@ -422,15 +421,15 @@ static int allowed(ups_ecb_t *ecb, unsigned slot, unsigned txnode, int i, const 
         made += ch->creator == slot + 1u && size_class(ch->etag) == c;
     }
     UPS_ECB_COUNTER_T *counter = &ecb->counters.limited;
-    if (i >= 0 && uses(&ecb->bind.channels[i], slot)) {
+    if (known != NULL && uses(known, slot)) {
         used = 0u; /* it uses it already */
     }
     if (used < ecb->cfg.max_channels) {
         if (c > 4u || made < ecb->cfg.quota[c]) {
             return 1;
         }
-        int old = oldest_idle(ecb, c, slot + 1u);
-        if (old >= 0) {
+        ups_ecb_channel_t *old = oldest_idle(ecb, c, slot + 1u);
+        if (old != NULL) {
             reclaim(ecb, old);
             return 1;
         }
@@ -442,19 +441,19 @@ static int allowed(ups_ecb_t *ecb, unsigned slot, unsigned txnode, int i, const 
 }
 
 /** A free entry of the table, reclaiming the channel unused longest past the lease if need be;
- *  -1 when none (counted: channels_full). */
-static int free_entry(ups_ecb_t *ecb)
+ *  NULL when none (counted: channels_full). */
+static ups_ecb_channel_t *free_entry(ups_ecb_t *ecb)
 {
-    int i = find_etag(ecb, 0u);
-    if (i < 0) {
-        i = oldest_idle(ecb, ANY, 0u);
-        if (i < 0) {
+    ups_ecb_channel_t *ch = find_etag(ecb, 0u);
+    if (ch == NULL) {
+        ch = oldest_idle(ecb, ANY, 0u);
+        if (ch == NULL) {
             ups_ecb__count(&ecb->counters.channels_full);
         } else {
-            reclaim(ecb, i);
+            reclaim(ecb, ch);
         }
     }
-    return i;
+    return ch;
 }
 
 static void hold(ups_ecb_t *ecb, unsigned txnode, unsigned kind, const uint8_t *uid)
@@ -488,17 +487,17 @@ static void unhold(ups_ecb_bind_t *b, unsigned h)
  *  (none when the tables bind them to each other). */
 static void correct(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
 {
-    int j = find_etag(ecb, etag);
-    int i = find_uid(ecb, uid);
-    if (i == j) { /* bound to each other, or both unknown */
+    const ups_ecb_channel_t *of_etag = find_etag(ecb, etag);
+    const ups_ecb_channel_t *of_uid = find_uid(ecb, uid);
+    if (of_uid == of_etag) { /* bound to each other, or both unknown */
         return;
     }
     ups_ecb__count(&ecb->counters.conflicts);
-    if (j >= 0) {
-        send_bind(ecb, etag, ecb->bind.channels[j].uid);
+    if (of_etag != NULL) {
+        send_bind(ecb, etag, of_etag->uid);
     }
-    if (i >= 0) { /* etags are unique: its etag is not @p etag */
-        send_bind(ecb, ecb->bind.channels[i].etag, uid);
+    if (of_uid != NULL) { /* etags are unique: its etag is not @p etag */
+        send_bind(ecb, of_uid->etag, uid);
     }
 }
 
@@ -509,14 +508,12 @@ static void correct(ups_ecb_t *ecb, unsigned etag, const uint8_t *uid)
 static void bind(ups_ecb_t *ecb, unsigned slot, unsigned txnode, unsigned kind,
                  const uint8_t *uid, unsigned etag)
 {
-    ups_ecb_bind_t *b = &ecb->bind;
     unsigned c = etag != 0u ? size_class(etag) : kind > PUB_BIND_CLASS ? kind - PUB_BIND_CLASS : 0u;
-    int i = find_uid(ecb, uid);
-    int fits = i >= 0 && (etag != 0u ? b->channels[i].etag == etag
-                                     : size_class(b->channels[i].etag) >= c);
-    if (etag != 0u && !fits && (i >= 0 || find_etag(ecb, etag) >= 0)) { /* contradicted */
+    ups_ecb_channel_t *ch = find_uid(ecb, uid);
+    int fits = ch != NULL && (etag != 0u ? ch->etag == etag : size_class(ch->etag) >= c);
+    if (etag != 0u && !fits && (ch != NULL || find_etag(ecb, etag) != NULL)) { /* contradicted */
         correct(ecb, etag, uid);
-        if (i >= 0 || ecb->recovering) {
+        if (ch != NULL || ecb->recovering) {
             return;
         }
         etag = 0u; /* it will ask again: answered now, as its request (of size class 0) */
@@ -526,18 +523,18 @@ static void bind(ups_ecb_t *ecb, unsigned slot, unsigned txnode, unsigned kind,
         hold(ecb, txnode, kind, uid);
         return;
     }
-    if (!allowed(ecb, slot, txnode, i, uid, fits ? 5u : c)) {
+    if (!allowed(ecb, slot, txnode, ch, uid, fits ? 5u : c)) {
         return;
     }
     if (!fits) {
         unsigned to = etag;
-        if (i < 0) { /* a new channel: an entry first (one reclaimed frees its etag too) */
-            i = free_entry(ecb);
-            if (i < 0 && etag != 0u) {
+        if (ch == NULL) { /* a new channel: an entry first (one reclaimed frees its etag too) */
+            ch = free_entry(ecb);
+            if (ch == NULL && etag != 0u) {
                 return;
             }
         }
-        if (to == 0u && i >= 0) {
+        if (to == 0u && ch != NULL) {
             to = free_etag(ecb, c);
         }
         if (to == 0u) {
@@ -545,11 +542,10 @@ static void bind(ups_ecb_t *ecb, unsigned slot, unsigned txnode, unsigned kind,
             send_mgmt(ecb, 0u, F_ETAGS_FULL, uid);
             return;
         }
-        if (b->channels[i].etag != 0u) { /* a move to a larger size class */
+        if (ch->etag != 0u) { /* a move to a larger size class */
             ups_ecb__count(&ecb->counters.moved);
-            drop_streams(ecb, b->channels[i].etag, NONE);
+            drop_streams(ecb, ch->etag, NONE);
         }
-        ups_ecb_channel_t *ch = &b->channels[i];
         ups_ecb__copy(ch->uid, uid, 8u);
         ch->etag = (uint16_t)to;
         ch->creator = (uint8_t)(slot + 1u);
@@ -557,7 +553,6 @@ static void bind(ups_ecb_t *ecb, unsigned slot, unsigned txnode, unsigned kind,
         ups_ecb__count(etag != 0u ? &ecb->counters.adopted : &ecb->counters.bound);
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     }
-    ups_ecb_channel_t *ch = &b->channels[i];
     mark(ecb, ch->use[kind != SUB_BIND], slot, 1u);
     if (etag == 0u) {
         ch->age = 0u; /* just answered: not unused (no reclaim takes it now) */
@@ -575,24 +570,24 @@ static void unsubscribe(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const ui
             break;
         }
     }
-    int i = find_uid(ecb, uid);
-    if (i >= 0) {
-        mark(ecb, b->channels[i].use[0], slot, 0u);
+    ups_ecb_channel_t *ch = find_uid(ecb, uid);
+    if (ch != NULL) {
+        mark(ecb, ch->use[0], slot, 0u);
     }
 }
 
 /* ---- the roster ------------------------------------------------------------------------------ */
 
-/** The channel in use (so bound) with the lowest UID at or (@p after) above @p uid; -1 when
+/** The channel in use (so bound) with the lowest UID at or (@p after) above @p uid; NULL when
  *  none. */
-static int next_channel(const ups_ecb_t *ecb, const uint8_t *uid, int after)
+static const ups_ecb_channel_t *next_channel(const ups_ecb_t *ecb, const uint8_t *uid, int after)
 {
-    int best = -1;
-    for (int i = 0; i < UPS_ECB_CHANNELS; i++) {
+    const ups_ecb_channel_t *best = NULL;
+    for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
         const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
         if (in_use(ch) && uid_cmp(ch->uid, uid) >= after &&
-            (best < 0 || uid_cmp(ch->uid, ecb->bind.channels[best].uid) < 0)) {
-            best = i;
+            (best == NULL || uid_cmp(ch->uid, best->uid) < 0)) {
+            best = ch;
         }
     }
     return best;
@@ -617,11 +612,10 @@ static void roster_step(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
     for (;;) {
-        int i;
+        const ups_ecb_channel_t *ch;
         if (b->r_role <= R_PUBS) {
-            i = find_uid(ecb, b->r_uid);
-            if (i >= 0) {
-                const ups_ecb_channel_t *ch = &b->channels[i];
+            ch = find_uid(ecb, b->r_uid);
+            if (ch != NULL) {
                 unsigned t = next_user(ecb, ch->use[b->r_role], b->r_from);
                 if (t != NONE) {
                     send_mgmt(ecb, 0u, (F_USES_SUB + ((unsigned)b->r_role << 8)) | t, ch->uid);
@@ -630,19 +624,18 @@ static void roster_step(ups_ecb_t *ecb)
                     return;
                 }
             }
-            b->r_role = (uint8_t)(i >= 0 ? b->r_role + 1u : R_NEXT); /* gone: the next one */
+            b->r_role = (uint8_t)(ch != NULL ? b->r_role + 1u : R_NEXT); /* gone: the next */
             b->r_from = 0u;
             continue;
         }
-        i = next_channel(ecb, b->r_uid, b->r_role == R_NEXT);
-        if (i < 0 || b->r_count >= ROSTER_PAGE) {
-            unsigned done = i < 0;
-            send_mgmt(ecb, 0u, F_ROSTER_END | (done << 7) | b->r_asker,
-                      done ? NULL : b->channels[i].uid);
+        ch = next_channel(ecb, b->r_uid, b->r_role == R_NEXT);
+        if (ch == NULL || b->r_count >= ROSTER_PAGE) {
+            unsigned done = ch == NULL;
+            send_mgmt(ecb, 0u, F_ROSTER_END | (done << 7) | b->r_asker, done ? NULL : ch->uid);
             b->r_active = 0u;
             return;
         }
-        ups_ecb__copy(b->r_uid, b->channels[i].uid, 8u);
+        ups_ecb__copy(b->r_uid, ch->uid, 8u);
         b->r_role = R_SUBS;
     }
 }
@@ -716,9 +709,7 @@ void ups_ecb__bind_request(ups_ecb_t *ecb, int slot, uint32_t id, const uint8_t 
     unsigned txnode = (unsigned)(id >> UPS_ECB__TXNODE_SHIFT) & UPS_ECB__MGMT;
     unsigned field = (unsigned)id & UPS_ECB__ETAG_MASK;
     unsigned s = (unsigned)slot;
-    if (field >= UPS_ECB__FIRST_ETAG) {
-        bind(ecb, s, txnode, priority == BIND_PRIORITY ? PUB_BIND : SUB_BIND, data, field);
-    } else if (field == UNSUB) {
+    if (field == UNSUB) {
         unsubscribe(ecb, s, txnode, data);
     } else if (field == DECLARE) {
         declare(ecb, s, txnode, data);
@@ -731,16 +722,18 @@ void ups_ecb__bind_request(ups_ecb_t *ecb, int slot, uint32_t id, const uint8_t 
         ups_ecb__copy(b->r_cursor[s], data, 8u);
         b->r_queue[b->r_waiting++] = (uint8_t)s;
         roster_pump(ecb);
-    } else { /* PUB_BIND, SUB_BIND, PUB_BIND(c) */
+    } else if (field < UPS_ECB__FIRST_ETAG) { /* PUB_BIND, SUB_BIND, PUB_BIND(c) */
         bind(ecb, s, txnode, field, data, 0u);
+    } else { /* SUB_AT, PUB_AT (priority 1) of the etag in the field */
+        bind(ecb, s, txnode, priority == BIND_PRIORITY ? PUB_BIND : SUB_BIND, data, field);
     }
 }
 
 void ups_ecb__bind_event(ups_ecb_t *ecb, unsigned etag)
 {
-    int i = find_etag(ecb, etag); /* an event's etag: not 0 */
-    if (i >= 0) {
-        ecb->bind.channels[i].age = 0u;
+    ups_ecb_channel_t *ch = find_etag(ecb, etag); /* an event's etag: not 0 */
+    if (ch != NULL) {
+        ch->age = 0u;
     }
 }
 
@@ -814,9 +807,9 @@ static void replay(ups_ecb_t *ecb)
     for (unsigned done = 0u; b->held[0].kind != 0u && may_answer(ecb); done++) {
         ups_ecb_held_t held;
         copy_held(&held, &b->held[0]);
-        int i = find_uid(ecb, held.uid);
-        if (done > 0u && i >= 0 && held.kind > PUB_BIND_CLASS &&
-            size_class(b->channels[i].etag) < held.kind - PUB_BIND_CLASS) {
+        const ups_ecb_channel_t *ch = find_uid(ecb, held.uid);
+        if (done > 0u && ch != NULL && held.kind > PUB_BIND_CLASS &&
+            size_class(ch->etag) < held.kind - PUB_BIND_CLASS) {
             break; /* a move: in a call of its own, so that no Bind this call sent is stale
                       in the blob saved after it */
         }
@@ -925,8 +918,8 @@ int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
         unsigned etag = get16(at + 8);
         unsigned txnode = at[10];
         if (etag < UPS_ECB__FIRST_ETAG || etag > UPS_ECB__ETAG_MASK ||
-            (txnode >= UPS_ECB__MGMT && txnode != 0xFFu) || find_etag(ecb, etag) >= 0 ||
-            find_uid(ecb, at) >= 0) {
+            (txnode >= UPS_ECB__MGMT && txnode != 0xFFu) || find_etag(ecb, etag) != NULL ||
+            find_uid(ecb, at) != NULL) {
             return UPS_ERR_ARGUMENT;
         }
         ups_ecb_channel_t *ch = &b->channels[i];
@@ -939,7 +932,7 @@ int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
         ups_ecb_stream_t *s = &b->streams[k];
         load_stream(s, at);
         /* bound (so its etag is in range), in order, valid as DECLARE, a priority granted */
-        if (find_etag(ecb, s->etag) < 0 || s->txnode >= UPS_ECB__MGMT ||
+        if (find_etag(ecb, s->etag) == NULL || s->txnode >= UPS_ECB__MGMT ||
             (k > 0u && stream_key(s) <= stream_key(s - 1)) || s->period == 0u ||
             s->deadline == 0u || (s->etag < UPS_ECB__LARGE_ETAG ? s->size > 8u : s->size == 0u) ||
             s->priority < 2u || s->priority > 0x7Fu) {
