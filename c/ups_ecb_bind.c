@@ -96,14 +96,9 @@ static void put16(uint8_t *out, unsigned value)
     out[1] = (uint8_t)value;
 }
 
-/* struct copies through ups_ecb__copy, so that no compiler makes memcpy calls of them (no C
+/* a struct copy through ups_ecb__copy, so that no compiler makes a memcpy call of it (no C
  * library) */
 static void copy_stream(ups_ecb_stream_t *to, const ups_ecb_stream_t *from)
-{
-    ups_ecb__copy((uint8_t *)to, (const uint8_t *)from, (unsigned)sizeof(*to));
-}
-
-static void copy_held(ups_ecb_held_t *to, const ups_ecb_held_t *from)
 {
     ups_ecb__copy((uint8_t *)to, (const uint8_t *)from, (unsigned)sizeof(*to));
 }
@@ -805,19 +800,18 @@ static void replay(ups_ecb_t *ecb)
 {
     ups_ecb_bind_t *b = &ecb->bind;
     for (unsigned done = 0u; b->held[0].kind != 0u && may_answer(ecb); done++) {
-        ups_ecb_held_t held;
-        copy_held(&held, &b->held[0]);
-        const ups_ecb_channel_t *ch = find_uid(ecb, held.uid);
-        if (done > 0u && ch != NULL && held.kind > PUB_BIND_CLASS &&
-            size_class(ch->etag) < held.kind - PUB_BIND_CLASS) {
+        const ups_ecb_held_t *held = &b->held[0];
+        const ups_ecb_channel_t *ch = find_uid(ecb, held->uid);
+        if (done > 0u && ch != NULL && held->kind > PUB_BIND_CLASS &&
+            size_class(ch->etag) < held->kind - PUB_BIND_CLASS) {
             break; /* a move: in a call of its own, so that no Bind this call sent is stale
                       in the blob saved after it */
         }
-        unhold(b, 0u);
-        int slot = ups_ecb__holder(ecb, held.txnode);
-        if (slot >= 0) {
-            bind(ecb, (unsigned)slot, held.txnode, held.kind, held.uid, 0u);
+        int slot = ups_ecb__holder(ecb, held->txnode);
+        if (slot >= 0) { /* not in a recovery window: bind() holds nothing */
+            bind(ecb, (unsigned)slot, held->txnode, held->kind, held->uid, 0u);
         }
+        unhold(b, 0u);
     }
 }
 
