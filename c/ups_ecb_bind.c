@@ -200,8 +200,9 @@ static unsigned free_etag(ups_ecb_t *ecb, unsigned c)
 {
     unsigned end = UPS_ECB__LARGE_ETAG + (c << 10);
     unsigned etag = c == 0u ? UPS_ECB__FIRST_ETAG : end - 0x400u;
-    /* past every etag taken, until a pass over the table finds the candidate free (the
-     * entries are mostly in etag order: one pass, and the one that finds it free) */
+    /* past every etag taken, until a pass over the table finds the candidate free: at most
+     * UPS_ECB_CHANNELS + 1 passes (each but the last moves past an entry's etag), mostly two
+     * (the entries are mostly in etag order) */
     for (int moved = 1; moved && etag < end;) {
         moved = 0;
         for (unsigned i = 0u; i < UPS_ECB_CHANNELS; i++) {
