@@ -199,7 +199,9 @@ void ups_ecb_start(ups_ecb_t *ecb, uint32_t now_ms)
     hello(ecb);
 }
 
-void ups_ecb__unassigned(ups_ecb_t *ecb, unsigned txnode)
+/** A request from TxNode @p txnode, which no node holds: counted (unassigned), remembered as a
+ *  stray, and Hello again (at most once per Hello gap, not in a recovery window). */
+static void unassigned(ups_ecb_t *ecb, unsigned txnode)
 {
     ups_ecb__count(&ecb->counters.unassigned);
     ecb->strays[(txnode & 0x7Fu) / 8u] |= (uint8_t)(1u << (txnode % 8u));
@@ -207,11 +209,6 @@ void ups_ecb__unassigned(ups_ecb_t *ecb, unsigned txnode)
         ecb->t_unknown_hello = ecb->now;
         hello(ecb);
     }
-}
-
-int ups_ecb__stray(const ups_ecb_t *ecb, unsigned txnode)
-{
-    return ((unsigned)ecb->strays[(txnode & 0x7Fu) / 8u] >> (txnode % 8u)) & 1u;
 }
 
 /* ---- receiving ----------------------------------------------------------------------------- */
@@ -468,12 +465,14 @@ void ups_ecb_rx(ups_ecb_t *ecb, uint32_t now_ms, const ups_frame_t *frame)
         ups_ecb__count(&ecb->counters.requests);
     }
     if (kind != K_REQUEST) { /* Stage, Knock, CLAIM */
-        ups_ecb__join_rx(ecb, id, d, len);
+        if (ups_ecb__join_rx(ecb, id, d, len)) {
+            unassigned(ecb, txnode);
+        }
         return;
     }
     int slot = ups_ecb__holder(ecb, txnode);
     if (slot == UPS_ECB__NO_SLOT) {
-        ups_ecb__unassigned(ecb, txnode);
+        unassigned(ecb, txnode);
         return;
     }
     ups_ecb__bind_request(ecb, slot, id, d);

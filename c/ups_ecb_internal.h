@@ -7,7 +7,10 @@
  * who uses them, quotas, held requests, rosters, declarations; it asks ups_ecb_join.c who holds
  * a TxNode) and ups_ecb_elect.c (the election), then ups_ecb_rt.c (the admission analysis, a
  * pure function) and at the bottom ups_ecb_util.c (byte helpers, counters, the TX queue),
- * which calls none of them. Each section below says which source defines it.
+ * which calls none of them. No part calls the dispatcher: what it must do after a part's call
+ * (a CLAIM from a TxNode nobody holds) the part returns. ups_ecb_join.c and ups_ecb_bind.c call
+ * each other (the join tells the binding when a node entry changes hands; the binding asks the
+ * join who holds a TxNode). Each section below says which source defines it.
  */
 #ifndef UPS_ECB_INTERNAL_H
 #define UPS_ECB_INTERNAL_H
@@ -58,6 +61,12 @@ void ups_ecb__pop(ups_ecb_t *ecb);
 /** Queue a CAN-ECB frame of TxNode 0x7F at priority 0 with the etag field @p field and the 8
  *  data bytes @p data as they go on the wire, or none when @p data is NULL. */
 void ups_ecb__send8(ups_ecb_t *ecb, unsigned field, const uint8_t *data);
+/** Whether TxNode @p txnode asked while unknown since the last Hello (a stray: ecb->strays, which
+ *  the dispatcher keeps). */
+static inline unsigned ups_ecb__stray(const ups_ecb_t *ecb, unsigned txnode)
+{
+    return ((unsigned)ecb->strays[(txnode & 0x7Fu) / 8u] >> (txnode % 8u)) & 1u;
+}
 /** Milliseconds from @p then to @p now on the low 16 bits of the clock (valid up to 65 s). */
 static inline uint32_t ups_ecb__since16(uint32_t now, uint16_t then)
 {
@@ -71,14 +80,6 @@ static inline uint32_t ups_ecb__since16(uint32_t now, uint16_t then)
  *  lives longer (every tick does), it keeps each age exact up to that bound. */
 uint32_t ups_ecb__age(uint32_t now, uint32_t *then);
 
-/* ---- ups_ecb.c: what the parts ask of the dispatcher --------------------------------------- */
-
-/** A request from TxNode @p txnode, which no node holds: counted (unassigned), remembered as a
- *  stray, and Hello again (at most once per Hello gap, not in a recovery window). */
-void ups_ecb__unassigned(ups_ecb_t *ecb, unsigned txnode);
-/** Whether TxNode @p txnode asked while unknown since the last Hello (a stray). */
-int ups_ecb__stray(const ups_ecb_t *ecb, unsigned txnode);
-
 /* ---- ups_ecb_join.c ---------------------------------------------------------------------- */
 
 void ups_ecb__join_init(ups_ecb_t *ecb);
@@ -89,8 +90,10 @@ void ups_ecb__join_seen(ups_ecb_t *ecb, unsigned txnode);
 /** The node entry (index into ecb->join.nodes) that holds @p txnode, or UPS_ECB__NO_SLOT. */
 int ups_ecb__holder(const ups_ecb_t *ecb, unsigned txnode);
 /** A frame of TxNode 0x7F at priority 0 in the join's part of the table (Knock, Stage, Query,
- *  Offer, Assign, Census; op/arg as the etag field says), or CLAIM from @p txnode. */
-void ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
+ *  Offer, Assign, Census; op/arg as the etag field says), or CLAIM from @p txnode. Returns 1
+ *  for a CLAIM that is a request from a TxNode nobody holds (the dispatcher counts it and may
+ *  say Hello), else 0. */
+int ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len);
 void ups_ecb__join_tick(ups_ecb_t *ecb);
 /** A frame of the join's (Assign, TxNodesFull, Failed) that this CAN-ECB did not send, heard
  *  while serving: its correction where it contradicts the table (counted in conflicts). */

@@ -299,8 +299,9 @@ static void age_entries(ups_ecb_t *ecb, uint32_t s)
     }
 }
 
-/** A CLAIM of @p txnode by @p node_id (docs/protocol.md, *Joining* and *Restarts*). */
-static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
+/** A CLAIM of @p txnode by @p node_id (docs/protocol.md, *Joining* and *Restarts*). Returns 1
+ *  when it is a request from a TxNode nobody holds, which the dispatcher handles as such. */
+static int on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
 {
     int slot = entry_of(ecb, node_id);
     ups_ecb_node_t *node = slot != UPS_ECB__NO_SLOT ? &ecb->join.nodes[slot] : NULL;
@@ -312,7 +313,7 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
             if (node->flags != UPS_ECB__HELD) { /* a joiner takes the TxNode offered */
                 assign(ecb, slot);
             }
-            return;
+            return 0;
         } /* else given to another meanwhile: a TxNode of its own */
     } else {
         int known = (node != NULL && (node->flags & UPS_ECB__HELD)) ? (int)node->txnode : -1;
@@ -324,7 +325,7 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
                 slot = vacant_entry(ecb, 0);
                 if (slot == UPS_ECB__NO_SLOT) {
                     ups_ecb__count(&ecb->counters.nodes_full);
-                    return;
+                    return 0;
                 }
                 node = &ecb->join.nodes[slot];
             }
@@ -337,7 +338,7 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
             ups_ecb__count(&ecb->counters.adopted);
             set_entry(node, node_id, txnode, UPS_ECB__HELD);
             ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
-            return;
+            return 0;
         }
         ups_ecb__count(&ecb->counters.conflicts);
         if (!window) {
@@ -345,13 +346,14 @@ static void on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
                 if (known >= 0) { /* told to move: the truth */
                     send_assign(ecb, (unsigned)known, node_id, 0u);
                 } else {
-                    ups_ecb__unassigned(ecb, txnode);
+                    return 1;
                 }
             }
-            return;
+            return 0;
         } /* else another's TxNode: the holder keeps it */
     }
     move(ecb, slot, node_id);
+    return 0;
 }
 
 /* ==== the census ========================================================================== */
@@ -708,14 +710,15 @@ static void census_tick(ups_ecb_t *ecb, uint32_t s)
 
 /* ==== the join's frames =================================================================== */
 
-void ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len)
+int ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned len)
 {
     (void)len;
     unsigned txnode = (id >> UPS_ECB__TXNODE_SHIFT) & 0x7Fu;
     unsigned field = id & UPS_ECB__ETAG_MASK;
     if (txnode != UPS_ECB__MGMT) { /* CLAIM */
-        on_claim(ecb, txnode, data);
-    } else if (field >> 12 == 0u) { /* Stage */
+        return on_claim(ecb, txnode, data);
+    }
+    if (field >> 12 == 0u) { /* Stage */
         if (!ecb->recovering) {
             on_stage(ecb, (field >> 8) & 0xFu, (field >> 4) & 0xFu, field & 0xFu);
         }
@@ -724,6 +727,7 @@ void ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned
     } else {
         knock(ecb);
     }
+    return 0;
 }
 
 void ups_ecb__join_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data)
