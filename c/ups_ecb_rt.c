@@ -10,65 +10,63 @@
  * and Python's scaling by the lcm of the denominators gives the same integers up to a common
  * factor, so every comparison (r <= d, the least r - d) comes out the same.
  *
+ * The recurrences. w = base + sum_k ceil((w + J_k + a) / T_k) C_k (a = tau or 0) is solved
+ * with one division a round: as T_k = P_k S and J_k = j_k S, the count ceil((w + J_k + a) /
+ * T_k) is ceil((v + j_k) / P_k) with v = ceil((w + a) / S), w in 100 us; each stream k of the
+ * sum keeps the threshold n_k P_k - j_k that v must pass for its count n_k to grow. The counts
+ * start at 1 and only grow (from one instance of the stream analysed to the next too: its
+ * queuing times grow), each step justified by a w no larger than the least fixed point, so
+ * they stop exactly there. A response is only followed as far as its question needs: the
+ * verdict r <= d stops as soon as a queuing time passes the deadline; the busy period of a
+ * level (the same for every candidate of Audsley's search there) is found once.
+ *
  * Bounds (bitrate 1 .. 2^32 - 1, anything uint32_t holds; P <= 65535, jitter <= 255, frames
  * <= 255, a frame <= 736 bits: 64 bytes, 29-bit identifier, CAN FD, worst stuffing; at most
- * 255 streams):
- *   T (period), D < 2^16 * 2^32 = 2^48;  J < 2^8 * 2^32 = 2^40;  tau <= 10000 < 2^14;
- *   C (all frames of an event) <= 255 * 736 * 10000 < 2^31;  B (longest frame) < 2^23;
- *   sum of the C_k < 255 * 2^31 < 2^39.
- * The horizon H = 2^62: a busy period or queuing time whose iteration passes H counts as
- * unbounded. A step of a recurrence computes x' = base + sum_k ceil((x + J_k + a) / T_k) C_k,
- * always from x <= H (checked before the step; a = tau or 0), and only over a set whose
- * utilisation sum C_k / T_k is below 1 (checked first), so C_k < T_k: the dividend x + J_k + a
- * + T_k - 1 < 2^62 + 2^49, and each term is < x + J_k + a + T_k < 2^62 + 2^49. The sum stops
- * adding as soon as it passes H, so it is at most H + one term < 2^63 + 2^49. Davis's instance
- * q < ceil((t + J_m) / T_m) of a busy period t <= H has q C_m < t + J_m and q T_m < t + J_m,
- * so its base B + q C_m + (frames - 1) C_frame and start (+ the C_k above) are < 2^62 + 2^42;
- * a response (J_m + w + C_frame, w <= H) is < 2^62 + 2^41, so r + d (comparing r - d) < 2^63;
- * the rounding to 10 us takes r / N first. Nothing passes 2^64.
+ * 255 streams): T (period), D < 2^16 * 2^32 = 2^48;  J < 2^8 * 2^32 = 2^40;  tau <= 10000;
+ * C (all frames of an event) <= 255 * 736 * 10000 < 2^31;  B (longest frame) < 2^23.
+ * The horizon H = 2^30 S (2^30 x 100 us, 29.8 hours): a busy period, queuing time or response
+ * past H counts as unbounded. H < 2^62; w stops at a limit <= H (plus the C_k of one round,
+ * < 2^39), v <= 2^30 + 10000 and a threshold < v + 2^16 (both in 31 bits); an instance q of a
+ * busy period t <= H has q T_m < t + J_m: every sum stays below 2^63.
  *
- * Utilisation. sum C_k / T_k >= 1 exactly when sum 10000 n_k / P_k >= bitrate (n_k the bits
- * of all frames of stream k). That sum is taken as integer parts (10000 n_k < 2^31: with 255
- * streams < 2^39) plus fractions to 96 bits, in three 32-bit limbs (a remainder r_k < P_k <
- * 2^16, so r_k * 2^32 < 2^48; a limb's sum < 255 * 2^32 < 2^40), which bounds it within
- * 255 * 2^-96. When the bound does not decide, |bitrate - sum| < 255 * 2^-96: either the
- * utilisation is >= 1 (Python: None), or 1 - U < 255 * 2^-96 / bitrate and every fixed point
- * x >= B + U x is >= B / (1 - U) > 130 * 10000 / g * bitrate * 2^96 / 255 >= 5098 * 2^96 > H
- * (10000 * bitrate / g >= 10000, B >= 130 bit times): unbounded here too.
+ * Utilisation. sum C_k / T_k < 1 exactly when sum C_k / P_k < S. That sum is taken as integer
+ * parts plus fractions rounded up to 32 bits, which bounds it within 255 * 2^-32. When the bound
+ * does not decide, either the utilisation is >= 1 (Python: None), or 1 - U < 255 * 2^-32 / S
+ * and every fixed point x >= B + U x is >= B / (1 - U) > 130 S 2^32 / 255 > 2 H (B >= 130
+ * units): unbounded here too. A set below 1 has every subset below 1: the admission tests it
+ * once.
  *
- * So the one difference from Python: a finite response time whose busy period or queuing time
- * passes H is taken as unbounded. With N <= 8 * 10^7 units a ms (any bitrate up to 8 Mbit/s),
- * H is more than 5.7 * 10^10 ms (1.8 years; 5.7 * 10^14 ms at 8 Mbit/s, where a unit is the bit
- * time): beyond any deadline (6553.5 ms at most), and for Python to reach it, the busy period
- * alone holds more than 8.7 million instances of the stream (periods are at most 6553.5 ms),
- * each its own fixed-point iteration.
+ * So the one difference from Python: a finite response time past H is taken as unbounded. H
+ * is beyond any deadline (6553.5 ms at most), and for Python to reach it, the busy period alone
+ * holds more than 16384 instances of the stream (periods are at most 6553.5 ms), each its own
+ * fixed point: a utilisation within 10^-8 of 1.
  *
- * No heap, no library call, no floating point; the stack holds two bytes per stream
- * (UPS_ECB_RT_MAX each) and a few scalars.
+ * No heap, no library call, no floating point, no 64-bit multiplication; the stack holds 5
+ * bytes per stream (UPS_ECB_RT_MAX of them) and a few scalars.
  */
 #include "ups_ecb_rt.h"
 
 /* 11-bit identifiers: only ups_ecb_rt_response asks for them (0 without UPS_ECB_RT_ANALYZE) */
 #define RT_ID11(flags) (UPS_ECB_RT_ANALYZE && ((flags) & UPS_ECB_RT_ID11) != 0u)
 
-#define RT_HORIZON ((uint64_t)1 << 62)
-#define RT_UNBOUNDED UINT64_MAX
+#define RT_OVER INT64_MAX /* past the limit asked for (or the horizon) */
+#define RT_NONE 0xFFFFu   /* no stream (an index never used) */
 #define RT_FIRST 0x02u
 #define RT_LAST 0x7Fu
 
+/* One analysis: the streams, the bus, and the work arrays of the caller's stack. */
 typedef struct {
+    const ups_ecb_stream_t *s;
+    uint8_t *live;  /* the streams of the level analysed first, in Audsley's order */
+    int32_t *next;  /* by position in live: the threshold of v for the next count */
     uint32_t tau;   /* units a bit (<= 10000) */
-    uint32_t scale; /* units in 100 us (<= bitrate) */
+    uint32_t scale; /* S: units in 100 us (<= bitrate) */
     uint32_t block; /* B: the longest frame of the format (< 2^23) */
     unsigned flags;
-} rt_bus_t;
-
-typedef struct {
-    uint32_t c;  /* every frame of an event (< 2^31) */
-    uint32_t cf; /* one frame */
-    uint64_t t, j;
-    uint32_t bits; /* bits of every frame (c / tau) */
-} rt_msg_t;
+    int64_t horizon; /* H = 2^30 S */
+    int64_t level;   /* the sum of C over the level's streams */
+    int64_t busy;    /* the level's busy period: 0 not found yet, RT_OVER unbounded */
+} rt_t;
 
 /* A core that divides (any but an Arm one without a divide instruction, as Cortex-M0+ is);
  * UPS_ECB__SOFT_DIV takes the shifts and subtractions on any, to test them. */
@@ -101,48 +99,33 @@ uint32_t ups_ecb__div32(uint32_t n, uint32_t d, uint32_t *rem)
 #endif
 }
 
-/* n / d (d > 0) and n % d in @p rem. A machine of 32-bit words has no 64-bit division: the
- * compiler would call libgcc's (__aeabi_uldivmod, __udivmoddi4: about 600 bytes of Cortex-M0+
- * code), so it is done here by shifts and subtractions (32-bit division when both fit);
- * a 64-bit machine divides. Exact either way. */
-static uint64_t rt_div(uint64_t n, uint64_t d, uint64_t *rem)
+/* @p n (< 2^16) times @p s: two 32-bit products, where a 64-bit one would be a libgcc call on
+ * a 32-bit core. */
+static int64_t rt_times(uint32_t n, uint32_t s)
 {
-#if UINTPTR_MAX > 0xFFFFFFFFu && !defined(UPS_ECB__SOFT_DIV) /* (that: to test the other) */
-    *rem = n % d;
-    return n / d;
-#else
-    uint64_t q = 0u;
-    if ((n >> 32) == 0u && (d >> 32) == 0u) {
-        uint32_t r32;
-        q = ups_ecb__div32((uint32_t)n, (uint32_t)d, &r32);
-        n = r32;
+    return (int64_t)(n * (s & 0xFFFFu)) + ((int64_t)(n * (s >> 16)) << 16);
+}
+
+/* v = ceil(@p x / @p s) for 1 <= x and v < 2^31, with @p rem = v s - x: 32-bit division when
+ * x fits, else by shifts and subtractions (no 64-bit division: a libgcc call on a 32-bit core). */
+static int32_t rt_ceil(int64_t x, uint32_t s, uint32_t *rem)
+{
+    uint64_t n = (uint64_t)x - 1u;
+    uint32_t q = 0u;
+    if ((n >> 32) == 0u) {
+        q = ups_ecb__div32((uint32_t)n, s, rem);
     } else {
-        uint64_t bit = 1u;
-        while ((d >> 63) == 0u && (d << 1) <= n) {
-            d <<= 1;
-            bit <<= 1;
-        }
-        for (; bit != 0u; bit >>= 1, d >>= 1) {
+        uint64_t d = (uint64_t)s << 30;
+        for (uint32_t bit = 1u << 30; bit != 0u; bit >>= 1, d >>= 1) {
             if (n >= d) {
                 n -= d;
                 q |= bit;
             }
         }
+        *rem = (uint32_t)n;
     }
-    *rem = n;
-    return q;
-#endif
-}
-
-static uint32_t rt_gcd(uint32_t a, uint32_t b)
-{
-    while (b != 0u) {
-        uint32_t r;
-        (void)ups_ecb__div32(a, b, &r);
-        a = b;
-        b = r;
-    }
-    return a;
+    *rem = s - 1u - *rem;
+    return (int32_t)(q + 1u);
 }
 
 /* The length of one frame of @p size bytes in bits, interframe space included, as
@@ -177,185 +160,165 @@ static unsigned rt_frame_bits(unsigned size, unsigned flags)
     return stuffed + 13u + (stuffed - 1u) / 4u;
 }
 
-static int rt_bus(rt_bus_t *bus, uint32_t bitrate, unsigned flags)
-{
-    unsigned tindell_fd = UPS_ECB_RT_TINDELL1994 | UPS_ECB_RT_FD;
-    if (bitrate == 0u || (flags & tindell_fd) == tindell_fd) {
-        return 0;
-    }
-    uint32_t g = rt_gcd(bitrate, 10000u);
-    uint32_t r;
-    bus->tau = ups_ecb__div32(10000u, g, &r);
-    bus->scale = ups_ecb__div32(bitrate, g, &r);
-    bus->flags = flags;
-    bus->block = rt_frame_bits((flags & UPS_ECB_RT_FD) != 0u ? 64u : 8u, flags) * bus->tau;
-    return 1;
-}
-
-/* Stream @p s as the analysis sees it; 0 when Python would not take it. */
-static int rt_msg(const rt_bus_t *bus, const ups_ecb_stream_t *s, rt_msg_t *m)
+/* C of stream @p s, its one frame in @p frame; 0 when Python would not take the stream. */
+static uint32_t rt_cost(const rt_t *rt, const ups_ecb_stream_t *s, uint32_t *frame)
 {
     unsigned size = s->size;
     unsigned frames = 1u;
     if (s->etag >= UPS_ECB_RT_LARGE_ETAG) {
-        size = (bus->flags & UPS_ECB_RT_FD) != 0u ? 64u : 8u;
+        size = (rt->flags & UPS_ECB_RT_FD) != 0u ? 64u : 8u;
         frames = s->size;
     }
-    unsigned bits = rt_frame_bits(size, bus->flags);
-    if (bits == 0u || frames == 0u || s->period == 0u || s->deadline == 0u) {
+    *frame = rt_frame_bits(size, rt->flags) * rt->tau;
+    if (s->period == 0u || s->deadline == 0u) {
+        return 0u;
+    }
+    return *frame * frames;
+}
+
+/* The bus, and the sum of every stream's C; 0 for invalid input. */
+static int rt_setup(rt_t *rt, const ups_ecb_stream_t *s, unsigned count, uint32_t bitrate,
+                    unsigned flags)
+{
+    unsigned tindell_fd = UPS_ECB_RT_TINDELL1994 | UPS_ECB_RT_FD;
+    uint32_t g = bitrate;
+    uint32_t b = 10000u;
+    if (bitrate == 0u || (flags & tindell_fd) == tindell_fd) {
         return 0;
     }
-    m->cf = bits * bus->tau;
-    m->bits = bits * frames;
-    m->c = m->cf * frames;
-    m->t = (uint64_t)s->period * bus->scale;
-    m->j = (uint64_t)s->jitter * bus->scale;
+    while (b != 0u) { /* g = gcd(bitrate, 10000) */
+        uint32_t r;
+        (void)ups_ecb__div32(g, b, &r);
+        g = b;
+        b = r;
+    }
+    rt->s = s;
+    rt->tau = ups_ecb__div32(10000u, g, &b);
+    rt->scale = ups_ecb__div32(bitrate, g, &b);
+    rt->flags = flags;
+    rt->block = rt_frame_bits((flags & UPS_ECB_RT_FD) != 0u ? 64u : 8u, flags) * rt->tau;
+    rt->horizon = (int64_t)rt->scale << 30;
+    rt->level = 0;
+    for (unsigned k = 0u; k < count; k++) {
+        uint32_t c = rt_cost(rt, &s[k], &b);
+        if (c == 0u) {
+            return 0;
+        }
+        rt->level += c;
+    }
     return 1;
 }
 
-/* Is stream @p k above stream @p m? In the given order (placed NULL): the ones before it; in
- * Audsley's search: every unplaced one but m. */
-static int rt_above(unsigned k, unsigned m, const uint8_t *placed)
+/* Is the utilisation of the first @p n streams of live (but @p skip) below 1? Also 0 when the
+ * bound does not decide (see the head comment: the horizon is passed then). */
+static int rt_below_one(const rt_t *rt, unsigned n, unsigned skip)
 {
-    if (placed == 0) {
-        return k < m;
-    }
-    return k != m && placed[k] == 0u;
-}
-
-/* Is the utilisation of the streams above @p m (and of m too when @p with_m) below 1? Also 0
- * when the bound does not decide (see the head comment: the horizon is passed then). Adds the
- * C_k of the streams above m to @p hp_sum. */
-static int rt_below_one(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned n, unsigned m,
-                        const uint8_t *placed, int with_m, uint32_t bitrate, uint64_t *hp_sum)
-{
-    uint64_t whole = 0u;
-    uint64_t limb[3] = {0u, 0u, 0u}; /* the fractions' bits 1..32, 33..64, 65..96 */
-    uint64_t inexact = 0u;
-    for (unsigned k = 0u; k < n; k++) {
-        rt_msg_t x;
-        int above = rt_above(k, m, placed);
-        if (!(above || (with_m && k == m)) || !rt_msg(bus, &s[k], &x)) {
+    uint64_t sum = 0u; /* in units of 2^-32 */
+    for (unsigned p = 0u; p < n; p++) {
+        unsigned k = rt->live[p];
+        uint32_t period = rt->s[k].period; /* < 2^16 */
+        uint32_t r;
+        if (k == skip) {
             continue;
         }
-        if (above) {
-            *hp_sum += x.c; /* < 255 * 2^31 */
-        }
-        uint32_t a = 10000u * x.bits; /* < 2^31 */
-        uint32_t p = s[k].period;     /* < 2^16 */
-        uint32_t r;
-        whole += ups_ecb__div32(a, p, &r);
-        for (unsigned i = 0u; i < 3u; i++) { /* long division, 32 bits (two 16) at a time */
-            uint32_t high = ups_ecb__div32(r << 16, p, &r); /* r < p < 2^16: in 32 bits */
-            uint32_t low = ups_ecb__div32(r << 16, p, &r);
-            limb[i] += (high << 16) | low;
-        }
-        inexact += r != 0u ? 1u : 0u;
+        sum += (uint64_t)ups_ecb__div32(rt_cost(rt, &rt->s[k], &r), period, &r) << 32;
+        uint32_t high = ups_ecb__div32(r << 16, period, &r); /* r < period: in 32 bits */
+        uint32_t low = ups_ecb__div32(r << 16, period, &r);
+        sum += ((high << 16) | low) + (r != 0u ? 1u : 0u); /* the fraction, rounded up */
     }
-    /* the sum is at most whole + (limbs + inexact / 2^96), which is below the integer bitrate
-     * exactly when its integer part is; else U >= 1, or undecided (past the horizon) */
-    limb[2] += inexact;
-    limb[1] += limb[2] >> 32;
-    limb[0] += limb[1] >> 32;
-    return whole + (limb[0] >> 32) < bitrate;
+    return (sum >> 32) < rt->scale;
 }
 
-/* One step: base + sum over the streams above m (and m when @p with_m) of
- * ceil((x + J_k + add) / T_k) C_k; RT_UNBOUNDED once past the horizon. */
-static uint64_t rt_step(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned n, unsigned m,
-                        const uint8_t *placed, int with_m, uint64_t base, uint64_t x,
-                        uint64_t add)
+/* The counts of the first @p n streams of live but @p skip start at 1 (v >= 1 passes the
+ * threshold of count 0, -j_k); @p skip's never grows. */
+static void rt_start(rt_t *rt, unsigned n, unsigned skip)
 {
-    uint64_t sum = base;
-    for (unsigned k = 0u; k < n && sum <= RT_HORIZON; k++) {
-        rt_msg_t y;
-        if ((rt_above(k, m, placed) || (with_m && k == m)) && rt_msg(bus, &s[k], &y)) {
-            uint64_t r;
-            sum += rt_div(x + y.j + add + y.t - 1u, y.t, &r) * y.c;
-        }
+    for (unsigned p = 0u; p < n; p++) {
+        const ups_ecb_stream_t *s = &rt->s[rt->live[p]];
+        rt->next[p] = rt->live[p] == skip ? INT32_MAX : (int32_t)s->period - s->jitter;
     }
-    return sum <= RT_HORIZON ? sum : RT_UNBOUNDED;
 }
 
-/* Least fixed point from @p start of w = base + sum_{hp} ceil((w + J_k + tau) / T_k) C_k. */
-static uint64_t rt_queuing(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned n,
-                           unsigned m, const uint8_t *placed, uint64_t base, uint64_t start)
+/* From @p w = base + sum n_k C_k, the least fixed point of w = base + sum_k ceil((w + J_k +
+ * @p a) / T_k) C_k over the first @p n streams of live (their thresholds in next, as rt_start
+ * made them); RT_OVER when it passes @p limit (<= H). v follows w without a division of w:
+ * w + a = v S - rem, 0 <= rem < S, and each C_k added is q S + r. */
+static int64_t rt_fix(rt_t *rt, unsigned n, uint32_t a, int64_t w, int64_t limit)
 {
-    uint64_t w = start;
-    while (w <= RT_HORIZON) {
-        uint64_t next = rt_step(bus, s, n, m, placed, 0, base, w, bus->tau);
-        if (next == w) {
-            return w;
-        }
-        w = next;
+    uint32_t rem;
+    if (w > limit) {
+        return RT_OVER;
     }
-    return RT_UNBOUNDED;
+    int32_t v = rt_ceil(w + a, rt->scale, &rem); /* <= 2^30 + 10000 */
+    int moved = 1;
+    while (moved) {
+        moved = 0;
+        for (unsigned p = n; p-- > 0u;) { /* from the shortest deadline and period up */
+            while (v > rt->next[p]) {
+                const ups_ecb_stream_t *s = &rt->s[rt->live[p]];
+                uint32_t part;
+                uint32_t c = rt_cost(rt, s, &part);
+                rt->next[p] += s->period;
+                w += c;
+                if (w > limit) {
+                    return RT_OVER;
+                }
+                v += (int32_t)ups_ecb__div32(c, rt->scale, &part);
+                if (part > rem) {
+                    v++;
+                    rem += rt->scale;
+                }
+                rem -= part;
+                moved = 1;
+            }
+        }
+    }
+    return w;
 }
 
-/* Worst-case response of stream @p m below the streams above it (rt_above), in units;
- * RT_UNBOUNDED when unbounded (or past the horizon). As _analysis.py's _response_time. */
-static uint64_t rt_response(const rt_bus_t *bus, const ups_ecb_stream_t *s, unsigned n,
-                            unsigned m, const uint8_t *placed, uint32_t bitrate)
+/* Worst-case response of stream @p m below the others of the first @p n of live, in units, if
+ * it is at most @p cap (<= H); else RT_OVER. As _analysis.py's _response_time. */
+static int64_t rt_response(rt_t *rt, unsigned n, unsigned m, int64_t cap)
 {
-    int with_m = 1; /* davis2007: stream m's own utilisation counts */
+    const ups_ecb_stream_t *sm = &rt->s[m];
+    uint32_t frame;
+    int64_t cost = rt_cost(rt, sm, &frame);
+    if (rt->busy == RT_OVER) { /* a utilisation of 1 or more */
+        return RT_OVER;
+    }
 #if UPS_ECB_RT_ANALYZE
-    int tindell = (bus->flags & UPS_ECB_RT_TINDELL1994) != 0u;
-    with_m = !tindell;
-#endif
-    rt_msg_t me;
-    uint64_t hp_sum = 0u;
-    if (!rt_msg(bus, &s[m], &me) ||
-        !rt_below_one(bus, s, n, m, placed, with_m, bitrate, &hp_sum)) {
-        return RT_UNBOUNDED;
-    }
-    uint64_t before_last = me.c - me.cf;
-#if UPS_ECB_RT_ANALYZE
-    if (tindell) { /* paper 000 leaves out J_m */
-        uint64_t base = bus->block + before_last;
-        uint64_t w = rt_queuing(bus, s, n, m, placed, base, base + hp_sum);
-        return w == RT_UNBOUNDED ? w : w + me.cf;
+    if ((rt->flags & UPS_ECB_RT_TINDELL1994) != 0u) { /* paper 000: J_m left out, one instance */
+        rt_start(rt, n, m);
+        int64_t w = rt_fix(rt, n, rt->tau, rt->block + rt->level - frame, cap - frame);
+        return w == RT_OVER ? w : w + frame;
     }
 #endif
-    uint64_t t = bus->block + hp_sum + me.c;
-    for (;;) {
-        if (t > RT_HORIZON) {
-            return RT_UNBOUNDED;
-        }
-        uint64_t next = rt_step(bus, s, n, m, placed, 1, bus->block, t, 0u);
-        if (next == t) {
-            break;
-        }
-        t = next;
-    }
-    uint64_t r;
-    uint64_t instances = rt_div(t + me.j + me.t - 1u, me.t, &r);
-    uint64_t worst = 0u;
-    uint64_t w = 0u;
-    for (uint64_t q = 0u; q < instances; q++) {
-        uint64_t start = bus->block + q * me.c + before_last;
-        uint64_t from = start + hp_sum;
-        if (w > from) {
-            from = w;
-        }
-        w = rt_queuing(bus, s, n, m, placed, start, from);
-        if (w == RT_UNBOUNDED) {
-            return w;
-        }
-        uint64_t end = me.j + w + me.cf;
-        if (end > q * me.t && end - q * me.t > worst) {
-            worst = end - q * me.t;
+    int64_t period = rt_times(sm->period, rt->scale);
+    int64_t jitter = rt_times(sm->jitter, rt->scale);
+    int64_t w = rt->block + rt->level - frame; /* its other frames go first */
+    if (rt->busy == 0) { /* the level's busy period, once for all its candidates */
+        rt_start(rt, n, RT_NONE);
+        rt->busy = rt_fix(rt, n, 0u, rt->block + rt->level, rt->horizon);
+        if (rt->busy == RT_OVER) {
+            return RT_OVER;
         }
     }
-    return worst;
-}
-
-/* Does miss (r1, d1) come before (r2, d2) in Python's min((r is None, r - d))? */
-static int rt_less(uint64_t r1, uint64_t d1, uint64_t r2, uint64_t d2)
-{
-    if (r1 == RT_UNBOUNDED || r2 == RT_UNBOUNDED) {
-        return r1 != RT_UNBOUNDED && r2 == RT_UNBOUNDED;
+    rt_start(rt, n, m);
+    int64_t worst = 0;
+    int64_t within = cap - jitter - (int64_t)frame; /* the response within cap: w - q T_m */
+    for (int64_t at = 0;; at += period) {           /* at: q T_m */
+        w = rt_fix(rt, n, rt->tau, w, at < rt->horizon - within ? within + at : rt->horizon);
+        if (w == RT_OVER) {
+            return RT_OVER;
+        }
+        if (jitter + w - at + frame > worst) {
+            worst = jitter + w - at + frame;
+        }
+        if (at + period >= rt->busy + jitter) { /* instance q + 1 is not in it */
+            return worst;
+        }
+        w += cost;
     }
-    return r1 + d2 < r2 + d1;
 }
 
 static int rt_invalid(unsigned count, unsigned *miss, uint16_t *response_10us)
@@ -368,77 +331,83 @@ static int rt_invalid(unsigned count, unsigned *miss, uint16_t *response_10us)
 int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate, unsigned fd,
                      unsigned *miss, uint16_t *response_10us)
 {
-    rt_bus_t bus;
-    uint8_t order[UPS_ECB_RT_MAX]; /* Python's unplaced: (deadline, period, index) descending */
-    uint8_t placed[UPS_ECB_RT_MAX]; /* 0 unplaced, else its rank + 1 (rank 0 the highest) */
-    if (count == 0u || count > UPS_ECB_RT_MAX || !rt_bus(&bus, bitrate, fd ? UPS_ECB_RT_FD : 0u)) {
+    uint8_t live[UPS_ECB_RT_MAX]; /* [0, n): the level's candidates in Python's unplaced
+                                   * order ((deadline, period, index) descending); [n, count):
+                                   * the streams placed, the highest priority first */
+    int32_t next[UPS_ECB_RT_MAX];
+    rt_t rt;
+    rt.live = live;
+    rt.next = next;
+    if (count == 0u || count > UPS_ECB_RT_MAX ||
+        !rt_setup(&rt, streams, count, bitrate, fd ? UPS_ECB_RT_FD : 0u)) {
         return rt_invalid(count, miss, response_10us);
     }
     for (unsigned i = 0u; i < count; i++) {
-        rt_msg_t x;
-        if (!rt_msg(&bus, &streams[i], &x)) {
-            return rt_invalid(count, miss, response_10us);
-        }
         /* insertion: i goes after every one that sorts above it (ties keep the index order,
          * reversed: the higher index first) */
+        const ups_ecb_stream_t *me = &streams[i];
         unsigned at = i;
         while (at > 0u) {
-            const ups_ecb_stream_t *o = &streams[order[at - 1u]];
-            const ups_ecb_stream_t *me = &streams[i];
-            int before = me->deadline > o->deadline ||
-                         (me->deadline == o->deadline && me->period >= o->period);
-            if (!before) {
+            const ups_ecb_stream_t *o = &streams[live[at - 1u]];
+            if (me->deadline < o->deadline ||
+                (me->deadline == o->deadline && me->period < o->period)) {
                 break;
             }
-            order[at] = order[at - 1u];
+            live[at] = live[at - 1u];
             at--;
         }
-        order[at] = (uint8_t)i;
-        placed[i] = 0u;
+        live[at] = (uint8_t)i;
     }
-    for (unsigned level = count; level > 0u; level--) {
-        unsigned chosen = count;
-        unsigned worst = count;
-        uint64_t worst_r = 0u;
-        uint64_t worst_d = 0u;
-        for (unsigned o = 0u; o < count; o++) {
-            unsigned i = order[o];
-            if (placed[i] != 0u) {
-                continue;
-            }
-            uint64_t r = rt_response(&bus, streams, count, i, placed, bitrate);
-            uint64_t d = (uint64_t)streams[i].deadline * bus.scale;
-            if (r != RT_UNBOUNDED && r <= d) {
-                chosen = i;
-                break;
-            }
-            if (worst == count || rt_less(r, d, worst_r, worst_d)) {
-                worst = i;
-                worst_r = r;
-                worst_d = d;
-            }
+    /* a set below 1 has every subset below 1; one above has every candidate unbounded */
+    rt.busy = rt_below_one(&rt, count, RT_NONE) ? 0 : RT_OVER;
+    for (unsigned n = count; n > 0u; n--) { /* level n: live[n - 1] is to be placed */
+        unsigned p = 0u;
+        while (p < n && rt_response(&rt, n, live[p], rt_times(streams[live[p]].deadline,
+                                                              rt.scale)) == RT_OVER) {
+            p++;
         }
-        if (chosen == count) {
-            uint64_t per_ms = 10u * (uint64_t)bus.scale; /* N = 10 * bitrate / g units a ms */
-            *miss = worst;
-            *response_10us = 0xFFFFu;
-            uint64_t part;
-            uint64_t ms = rt_div(worst_r, per_ms, &part);
-            if (worst_r != RT_UNBOUNDED && ms < 656u) { /* else > 655.35 ms */
-                uint64_t tens = ms * 100u + rt_div(part * 100u + per_ms - 1u, per_ms, &part);
-                if (tens < 0xFFFFu) {
-                    *response_10us = (uint16_t)tens;
+        if (p == n) { /* none fits: Python names the one that misses by the least */
+            unsigned worst = live[0];
+            int64_t worst_r = RT_OVER;
+            int64_t margin = 0;
+            for (p = 0u; p < n; p++) {
+                int64_t d = rt_times(streams[live[p]].deadline, rt.scale);
+                int64_t cap = rt.horizon; /* the first bounded one: exactly */
+                if (worst_r != RT_OVER && d + margin - 1 < cap) {
+                    cap = d + margin - 1; /* then only one that misses by less */
                 }
+                int64_t r = rt_response(&rt, n, live[p], cap);
+                if (r != RT_OVER) {
+                    worst = live[p];
+                    worst_r = r;
+                    margin = r - d;
+                }
+            }
+            *miss = worst;
+            *response_10us = 0xFFFFu; /* past 655.34 ms, or unbounded */
+            if (worst_r < rt_times(6554u, rt.scale)) {
+                /* ceil(100 r / N) = ceil(10 r / S) = 10 v - floor(10 rem / S), r = v S - rem */
+                uint32_t rem;
+                int32_t tens = 10 * rt_ceil(worst_r, rt.scale, &rem);
+                tens -= rt_ceil(rt_times(10u, rem) + 1, rt.scale, &rem) - 1;
+                *response_10us = (uint16_t)(tens < 0xFFFF ? tens : 0xFFFF);
             }
             return 0;
         }
-        placed[chosen] = (uint8_t)level;
+        uint32_t frame;
+        rt.level -= rt_cost(&rt, &streams[live[p]], &frame);
+        for (; p + 1u < n; p++) { /* to live[n - 1]; the others keep their order */
+            uint8_t chosen = live[p];
+            live[p] = live[p + 1u];
+            live[p + 1u] = chosen;
+        }
+        rt.busy = 0; /* the next level's busy period: not found yet */
     }
     if (count > RT_LAST - RT_FIRST + 1u) { /* Audsley's ordering has no room: ValueError */
         return rt_invalid(count, miss, response_10us);
     }
-    for (unsigned i = 0u; i < count; i++) {
-        streams[i].priority = (uint8_t)(RT_FIRST + placed[i] - 1u);
+    for (unsigned p = 0u; p < count; p++) {
+        streams[live[p]].priority = (uint8_t)(RT_FIRST + p);
     }
     return 1;
 }
@@ -447,19 +416,27 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
 uint64_t ups_ecb_rt_response(const ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate,
                              unsigned flags, uint64_t *response)
 {
-    rt_bus_t bus;
-    if (count == 0u || count > 255u || !rt_bus(&bus, bitrate, flags)) {
+    uint8_t live[255];
+    int32_t next[255];
+    rt_t rt;
+    rt.live = live;
+    rt.next = next;
+    if (count == 0u || count > 255u || !rt_setup(&rt, streams, count, bitrate, flags)) {
         return 0u;
     }
     for (unsigned i = 0u; i < count; i++) {
-        rt_msg_t x;
-        if (!rt_msg(&bus, &streams[i], &x)) {
-            return 0u;
-        }
+        live[i] = (uint8_t)i; /* the given order: the ones before stream i are above it */
     }
-    for (unsigned i = 0u; i < count; i++) {
-        response[i] = rt_response(&bus, streams, count, i, 0, bitrate);
+    rt.level = 0;
+    for (unsigned m = 0u; m < count; m++) {
+        uint32_t frame;
+        rt.level += rt_cost(&rt, &streams[m], &frame);
+        /* davis2007 counts stream m's own utilisation, tindell1994 not */
+        int tindell = (flags & UPS_ECB_RT_TINDELL1994) != 0u;
+        rt.busy = rt_below_one(&rt, m + 1u, tindell ? m : RT_NONE) ? 0 : RT_OVER;
+        int64_t r = rt_response(&rt, m + 1u, m, rt.horizon);
+        response[m] = r == RT_OVER ? UINT64_MAX : (uint64_t)r;
     }
-    return 10u * (uint64_t)bus.scale;
+    return 10u * (uint64_t)rt.scale;
 }
 #endif

@@ -8,9 +8,9 @@
 
 #include <stdint.h>
 
-/** The most streams ups_ecb_rt_admit analyses (its two work arrays on the stack hold one byte
- *  per stream each): 127, one more than the priorities 0x02..0x7F, so that every count the
- *  Python CAN-ECB can be asked about gets its answer. 1..255; a board may set it to
+/** The most streams ups_ecb_rt_admit analyses (its work arrays on the stack hold 5 bytes per
+ *  stream): 127, one more than the priorities 0x02..0x7F, so that every count the Python
+ *  CAN-ECB can be asked about gets its answer. 1..255; a board may set it to
  *  UPS_ECB_STREAMS + 1 (the declared streams and the one being declared). */
 #ifndef UPS_ECB_RT_MAX
 #define UPS_ECB_RT_MAX 127
@@ -71,7 +71,7 @@ uint32_t ups_ecb__div32(uint32_t n, uint32_t d, uint32_t *rem);
  *  the longest frame of the format, as ups/rt's analyze(specs, bitrate, method, id_bits, fd=)
  *  does: @p response[i] is stream i's worst-case response time in units of 1/N ms, where N is
  *  the return value, or UINT64_MAX when unbounded (Python's None; also a response beyond the
- *  horizon of ups_ecb_rt.c, 2^62 units). Returns 0 (and writes nothing) for invalid input: as
+ *  horizon of ups_ecb_rt.c, 29.8 hours). Returns 0 (and writes nothing) for invalid input: as
  *  ups_ecb_rt_admit's, or tindell1994 with CAN FD or more than 8 bytes. The priority fields
  *  are not used. */
 #if UPS_ECB_RT_ANALYZE
