@@ -41,7 +41,7 @@
  * holds more than 16384 instances of the stream (periods are at most 6553.5 ms), each its own
  * fixed point: a utilisation within 10^-8 of 1.
  *
- * No heap, no library call, no floating point, no 64-bit multiplication; the stack holds 5
+ * No heap, no library call but libgcc's 64-bit product, no floating point; the stack holds 5
  * bytes per stream (UPS_ECB_RT_MAX of them) and a few scalars.
  */
 #include "ups_ecb_rt.h"
@@ -97,13 +97,6 @@ uint32_t ups_ecb__div32(uint32_t n, uint32_t d, uint32_t *rem)
     *rem = n;
     return q;
 #endif
-}
-
-/* @p n (< 2^16) times @p s: two 32-bit products, where a 64-bit one would be a libgcc call on
- * a 32-bit core. */
-static int64_t rt_times(uint32_t n, uint32_t s)
-{
-    return (int64_t)(n * (s & 0xFFFFu)) + ((int64_t)(n * (s >> 16)) << 16);
 }
 
 /* v = ceil(@p x / @p s) for 1 <= x and v < 2^31, with @p rem = v s - x: 32-bit division when
@@ -293,8 +286,8 @@ static int64_t rt_response(rt_t *rt, unsigned n, unsigned m, int64_t cap)
         return w == RT_OVER ? w : w + frame;
     }
 #endif
-    int64_t period = rt_times(sm->period, rt->scale);
-    int64_t jitter = rt_times(sm->jitter, rt->scale);
+    int64_t period = (int64_t)sm->period * rt->scale;
+    int64_t jitter = (int64_t)sm->jitter * rt->scale;
     int64_t w = rt->block + rt->level - frame; /* its other frames go first */
     if (rt->busy == 0) { /* the level's busy period, once for all its candidates */
         rt_start(rt, n, RT_NONE);
@@ -362,8 +355,7 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
     rt.busy = rt_below_one(&rt, count, RT_NONE) ? 0 : RT_OVER;
     for (unsigned n = count; n > 0u; n--) { /* level n: live[n - 1] is to be placed */
         unsigned p = 0u;
-        while (p < n && rt_response(&rt, n, live[p], rt_times(streams[live[p]].deadline,
-                                                              rt.scale)) == RT_OVER) {
+        while (p < n && rt_response(&rt, n, live[p], (int64_t)streams[live[p]].deadline * rt.scale) == RT_OVER) {
             p++;
         }
         if (p == n) { /* none fits: Python names the one that misses by the least */
@@ -371,7 +363,7 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
             int64_t worst_r = RT_OVER;
             int64_t margin = 0;
             for (p = 0u; p < n; p++) {
-                int64_t d = rt_times(streams[live[p]].deadline, rt.scale);
+                int64_t d = (int64_t)streams[live[p]].deadline * rt.scale;
                 int64_t cap = rt.horizon; /* the first bounded one: exactly */
                 if (worst_r != RT_OVER && d + margin - 1 < cap) {
                     cap = d + margin - 1; /* then only one that misses by less */
@@ -385,11 +377,11 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
             }
             *miss = worst;
             *response_10us = 0xFFFFu; /* past 655.34 ms, or unbounded */
-            if (worst_r < rt_times(6554u, rt.scale)) {
+            if (worst_r < (int64_t)6554 * rt.scale) {
                 /* ceil(100 r / N) = ceil(10 r / S) = 10 v - floor(10 rem / S), r = v S - rem */
                 uint32_t rem;
                 int32_t tens = 10 * rt_ceil(worst_r, rt.scale, &rem);
-                tens -= rt_ceil(rt_times(10u, rem) + 1, rt.scale, &rem) - 1;
+                tens -= rt_ceil((int64_t)10 * rem + 1, rt.scale, &rem) - 1;
                 *response_10us = (uint16_t)(tens < 0xFFFF ? tens : 0xFFFF);
             }
             return 0;

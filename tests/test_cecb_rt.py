@@ -268,6 +268,25 @@ def test_utilisation_at_and_near_one(rows: list[tuple[int, int, int, int]], bitr
     check_declarations(declared, bitrate, False)
 
 
+def _near_full(count: int, same_deadline: bool) -> list[p.Declare]:
+    """c/cycles.py's costliest stream sets for the admission (500 kbit/s, 95 % of the bus): every
+    deadline the same, or rising from 1/count of the period; refused at the lowest level, where
+    every candidate's response is then analysed to the end."""
+    period = count * 3 * 100 // 95
+    return [
+        p.Declare(k % 120, 0x10 + k, 8, period + 3 * k, period, 0) if same_deadline
+        else p.Declare(k % 120, 0x10 + k, 8, period + k, max(1, period * (k + 1) // count), k % 3)
+        for k in range(count)
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize("same_deadline", [False, True])
+def test_admission_of_the_costliest_sets(same_deadline: bool) -> None:
+    """The 32-stream sets that cost ups_ecb_rt_admit the most on Cortex-M0+ (c/cycles.py), one
+    declaration after the other: every verdict, miss and response as Python's."""
+    check_declarations(_near_full(32, same_deadline), 500_000, False)
+
+
 def test_more_streams_than_priorities() -> None:
     """126 streams get 0x02..0x7F as assign_priorities gives them; 127 that Audsley can order
     do not fit: Python's ValueError (the CAN-ECB's Refuse with response 0), in C response 0
