@@ -47,14 +47,27 @@
 #define PROBE_FIELD 0x3900u
 #define KNOCK_FIELD 0x3F00u
 
-/* ups_ecb_elect_t.known */
-#define KNOWN_ANSWERED 0x01u /* t_answered */
-#define KNOWN_ANSWER 0x02u   /* t_answer */
-#define KNOWN_LOWER 0x04u    /* t_lower */
+/* ups_ecb_elect_t.t_known[] (and their bits in known) */
+#define KNOWN_ANSWERED 0u /* the last Serving in answer */
+#define KNOWN_ANSWER 1u   /* the last answer of another to a node */
+#define KNOWN_LOWER 2u    /* the last Serving of a lower instance */
 
 /* what a frame answers (answers()) */
 #define KEY_KNOCK 0x01u /* the joiners' Knocks */
 #define KEY_UID 0x02u   /* the binding requests of the UID in its data */
+
+/** How long ago time @p i (KNOWN_...) was: the longest there is when none is known. */
+static uint32_t ago(const ups_ecb_t *ecb, unsigned i)
+{
+    const ups_ecb_elect_t *el = &ecb->elect;
+    return ((el->known >> i) & 1u) != 0u ? ups_ecb__since(ecb->now, el->t_known[i]) : 0xFFFFFFFFu;
+}
+
+static void mark(ups_ecb_t *ecb, unsigned i)
+{
+    ecb->elect.t_known[i] = ecb->now;
+    ecb->elect.known |= (uint8_t)(1u << i);
+}
 
 static void set_role(ups_ecb_t *ecb, uint8_t role)
 {
@@ -199,21 +212,13 @@ static void announce(ups_ecb_t *ecb)
 static unsigned serve(ups_ecb_t *ecb)
 {
     ups_ecb_elect_t *el = &ecb->elect;
-    if ((el->known & KNOWN_ANSWERED) == 0u ||
-        ups_ecb__since(ecb->now, el->t_answered) >= SERVING_GAP) {
-        el->t_answered = ecb->now;
-        el->known |= KNOWN_ANSWERED;
+    el->due = 1u;
+    if (ago(ecb, KNOWN_ANSWERED) >= SERVING_GAP) {
+        mark(ecb, KNOWN_ANSWERED);
         el->due = 0u;
         announce(ecb);
-    } else {
-        el->due = 1u;
     }
     return 0u;
-}
-
-static int recent(const ups_ecb_elect_t *el, unsigned bit, uint32_t now, uint32_t t)
-{
-    return (el->known & bit) != 0u && ups_ecb__since(now, t) <= BACKING;
 }
 
 /** Whether instance @p a (8 bytes, big-endian) is lower than @p b. */
@@ -245,8 +250,7 @@ unsigned ups_ecb__elect_heard(ups_ecb_t *ecb, unsigned status, const uint8_t *in
     }
     if (instance == NULL) { /* an answer to a node (another CAN-ECB's, or a forger's) */
         unsigned keys = answers(id);
-        el->t_answer = ecb->now;
-        el->known |= KNOWN_ANSWER;
+        mark(ecb, KNOWN_ANSWER);
         if (keys & KEY_KNOCK) {
             answered(ecb, 1u, NULL);
         }
@@ -276,11 +280,10 @@ unsigned ups_ecb__elect_heard(ups_ecb_t *ecb, unsigned status, const uint8_t *in
             return stand_by(ecb);
         }
         if (lower) {
-            el->t_lower = ecb->now;
-            el->known |= KNOWN_LOWER;
+            mark(ecb, KNOWN_LOWER);
         }
-        if (el->wary && !busy && recent(el, KNOWN_LOWER, ecb->now, el->t_lower) &&
-            recent(el, KNOWN_ANSWER, ecb->now, el->t_answer)) {
+        if (el->wary && !busy && ago(ecb, KNOWN_LOWER) <= BACKING &&
+            ago(ecb, KNOWN_ANSWER) <= BACKING) {
             return stand_by(ecb); /* a lower one serves too, and answers what this one does */
         }
         /* a lower claim with no answers behind it yet gets nothing; anything else a Serving */
@@ -335,8 +338,7 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
         }
         break;
     case UPS_ECB_SERVING:
-        if (el->due && ((el->known & KNOWN_ANSWERED) == 0u ||
-                        ups_ecb__since(now, el->t_answered) >= SERVING_GAP)) {
+        if (el->due && ago(ecb, KNOWN_ANSWERED) >= SERVING_GAP) {
             verdict = serve(ecb); /* the Serving owed */
         } else if (ups_ecb__since(now, el->t_serving) >= BEAT) {
             announce(ecb);
@@ -357,15 +359,11 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
     default: break;
     }
     /* times too old to matter are forgotten, so that the wrapping clock never brings them back */
-    if ((el->known & KNOWN_ANSWERED) != 0u && ups_ecb__since(now, el->t_answered) >= SERVING_GAP &&
-        !el->due) {
-        el->known &= (uint8_t)~KNOWN_ANSWERED;
-    }
-    if (!recent(el, KNOWN_ANSWER, now, el->t_answer)) {
-        el->known &= (uint8_t)~KNOWN_ANSWER;
-    }
-    if (!recent(el, KNOWN_LOWER, now, el->t_lower)) {
-        el->known &= (uint8_t)~KNOWN_LOWER;
+    for (unsigned i = 0u; i < 3u; i++) {
+        uint32_t keep = i == KNOWN_ANSWERED ? (el->due ? 0xFFFFFFFFu : SERVING_GAP - 1u) : BACKING;
+        if (ago(ecb, i) > keep) {
+            el->known &= (uint8_t)~(1u << i);
+        }
     }
     forget_early(ecb);
     return verdict;
@@ -391,8 +389,7 @@ uint32_t ups_ecb__elect_next(const ups_ecb_t *ecb)
     case UPS_ECB_CANDIDATE: return left(ups_ecb__since(now, el->t_role), el->candidacy);
     case UPS_ECB_SERVING:
         if (el->due) {
-            next = (el->known & KNOWN_ANSWERED) ? left(ups_ecb__since(now, el->t_answered), SERVING_GAP)
-                                                   : 0u;
+            next = left(ago(ecb, KNOWN_ANSWERED), SERVING_GAP);
         }
         return sooner(next, left(ups_ecb__since(now, el->t_serving), BEAT));
     case UPS_ECB_STANDBY:

@@ -25,7 +25,7 @@ typedef struct {
     uint8_t role;         /* UPS_ECB_STOPPED, ... */
     uint8_t wary;         /* it caught another not answering: claims alone move it no more */
     uint8_t due;          /* serving: a Serving in answer is owed (sent once the gap passed) */
-    uint8_t known;        /* which of t_answered, t_answer, t_lower hold a time (bits) */
+    uint8_t known;        /* which of t_known[] hold a time (bits, 1 << index) */
     uint16_t candidacy;   /* ms: the recovery time, at most 2 s */
     uint16_t n_asked;     /* entries in asked[] */
     uint16_t n_answered;  /* entries in answered[] */
@@ -34,9 +34,9 @@ typedef struct {
                              another */
     uint32_t t_probe;     /* standing by: the last Probe (or standing by) */
     uint32_t t_serving;   /* serving: the last Serving (the beat counts from it) */
-    uint32_t t_answered;  /* the last Serving in answer to another's frame */
-    uint32_t t_answer;    /* the last answer to a node that another sent */
-    uint32_t t_lower;     /* serving, wary: the last Serving of a lower instance */
+    uint32_t t_known[3];  /* the last Serving in answer to another's frame, the last answer to
+                             a node that another sent, serving and wary: the last Serving of a
+                             lower instance (ups_ecb_elect.c's KNOWN_...) */
     /* standing by: the requests heard and not answered yet, oldest first */
     ups_ecb_watch_t asked[UPS_ECB_WATCHED];
     /* the answers heard in the last second (EARLY), oldest first */
