@@ -358,24 +358,28 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
         while (p < n && rt_response(&rt, n, live[p], (int64_t)streams[live[p]].deadline * rt.scale) == RT_OVER) {
             p++;
         }
-        if (p == n) { /* none fits: Python names the one that misses by the least */
-            unsigned worst = live[0];
+        if (p == n) { /* none fits: Python names the one that misses by the least, the first
+                       * of equals. The last first (often it, or else the first), exactly; then
+                       * only one that misses by less (by as little, before the one found) */
+            unsigned worst = 0u; /* (all unbounded: the first) */
             int64_t worst_r = RT_OVER;
             int64_t margin = 0;
-            for (p = 0u; p < n; p++) {
+            for (unsigned i = 0u; i < n; i++) {
+                p = (i == 0u ? n : i) - 1u;
                 int64_t d = (int64_t)streams[live[p]].deadline * rt.scale;
-                int64_t cap = rt.horizon; /* the first bounded one: exactly */
-                if (worst_r != RT_OVER && d + margin - 1 < cap) {
-                    cap = d + margin - 1; /* then only one that misses by less */
+                int64_t cap = rt.horizon;
+                int64_t by = margin - (p > worst ? 1 : 0);
+                if (worst_r != RT_OVER && by < cap - d) {
+                    cap = d + by;
                 }
                 int64_t r = rt_response(&rt, n, live[p], cap);
                 if (r != RT_OVER) {
-                    worst = live[p];
+                    worst = p;
                     worst_r = r;
                     margin = r - d;
                 }
             }
-            *miss = worst;
+            *miss = live[worst];
             *response_10us = 0xFFFFu; /* past 655.34 ms, or unbounded */
             if (worst_r < (int64_t)6554 * rt.scale) {
                 /* ceil(100 r / N) = ceil(10 r / S) = 10 v - floor(10 rem / S), r = v S - rem */
