@@ -11,9 +11,10 @@
  * factor, so every comparison (r <= d, the least r - d) comes out the same.
  *
  * The recurrences. w = base + sum_k ceil((w + J_k + a) / T_k) C_k (a = tau or 0) is solved
- * with one division a round: as T_k = P_k S and J_k = j_k S, the count ceil((w + J_k + a) /
- * T_k) is ceil((v + j_k) / P_k) with v = ceil((w + a) / S), w in 100 us; each stream k of the
- * sum keeps the threshold n_k P_k - j_k that v must pass for its count n_k to grow. The counts
+ * without a division of w but the first: as T_k = P_k S and J_k = j_k S, the count ceil((w +
+ * J_k + a) / T_k) is ceil((v + j_k) / P_k) with v = ceil((w + a) / S) (w + a in 100 us, rounded
+ * up, kept as w grows by each C_k); each stream k of the sum keeps the threshold n_k P_k - j_k
+ * that v must pass for its count n_k to grow (4 bytes a stream, in 31 bits). The counts
  * start at 1 and only grow (from one instance of the stream analysed to the next too: its
  * queuing times grow), each step justified by a w no larger than the least fixed point, so
  * they stop exactly there. A response is only followed as far as its question needs: the
@@ -25,8 +26,8 @@
  * 255 streams): T (period), D < 2^16 * 2^32 = 2^48;  J < 2^8 * 2^32 = 2^40;  tau <= 10000;
  * C (all frames of an event) <= 255 * 736 * 10000 < 2^31;  B (longest frame) < 2^23.
  * The horizon H = 2^30 S (2^30 x 100 us, 29.8 hours): a busy period, queuing time or response
- * past H counts as unbounded. H < 2^62; w stops at a limit <= H (plus the C_k of one round,
- * < 2^39), v <= 2^30 + 10000 and a threshold < v + 2^16 (both in 31 bits); an instance q of a
+ * past H counts as unbounded. H < 2^62; w stops as soon as it passes a limit <= H (by one
+ * C_k), v <= 2^30 + 10000 and a threshold < v + 2^16 (both in 31 bits); an instance q of a
  * busy period t <= H has q T_m < t + J_m: every sum stays below 2^63.
  *
  * Utilisation. sum C_k / T_k < 1 exactly when sum C_k / P_k < S. That sum is taken as integer
@@ -39,7 +40,7 @@
  * So the one difference from Python: a finite response time past H is taken as unbounded. H
  * is beyond any deadline (6553.5 ms at most), and for Python to reach it, the busy period alone
  * holds more than 16384 instances of the stream (periods are at most 6553.5 ms), each its own
- * fixed point: a utilisation within 10^-8 of 1.
+ * fixed point.
  *
  * No heap, no library call but libgcc's 64-bit product, no floating point; the stack holds 5
  * bytes per stream (UPS_ECB_RT_MAX of them) and a few scalars.
@@ -206,7 +207,8 @@ static int rt_setup(rt_t *rt, const ups_ecb_stream_t *s, unsigned count, uint32_
  * bound does not decide (see the head comment: the horizon is passed then). */
 static int rt_below_one(const rt_t *rt, unsigned n, unsigned skip)
 {
-    uint64_t sum = 0u; /* in units of 2^-32 */
+    uint32_t whole = 0u;    /* the integer parts so far: below S */
+    uint32_t fraction = 0u; /* in units of 2^-32 */
     for (unsigned p = 0u; p < n; p++) {
         unsigned k = rt->live[p];
         uint32_t period = rt->s[k].period; /* < 2^16 */
@@ -214,12 +216,18 @@ static int rt_below_one(const rt_t *rt, unsigned n, unsigned skip)
         if (k == skip) {
             continue;
         }
-        sum += (uint64_t)ups_ecb__div32(rt_cost(rt, &rt->s[k], &r), period, &r) << 32;
+        uint32_t q = ups_ecb__div32(rt_cost(rt, &rt->s[k], &r), period, &r);
         uint32_t high = ups_ecb__div32(r << 16, period, &r); /* r < period: in 32 bits */
         uint32_t low = ups_ecb__div32(r << 16, period, &r);
-        sum += ((high << 16) | low) + (r != 0u ? 1u : 0u); /* the fraction, rounded up */
+        uint32_t f = ((high << 16) | low) + (r != 0u ? 1u : 0u); /* rounded up: < 2^32 - 2^15 */
+        fraction += f;
+        q += fraction < f ? 1u : 0u; /* the carry (q < 2^31) */
+        if (q >= rt->scale - whole) {
+            return 0;
+        }
+        whole += q;
     }
-    return (sum >> 32) < rt->scale;
+    return 1;
 }
 
 /* The counts of the first @p n streams of live but @p skip start at 1 (v >= 1 passes the
