@@ -367,13 +367,14 @@ int ups_ecb_rt_admit(ups_ecb_stream_t *streams, unsigned count, uint32_t bitrate
             p++;
         }
         if (p == n) { /* none fits: Python names the one that misses by the least, the first
-                       * of equals. The last first (often it, or else the first), exactly; then
-                       * only one that misses by less (by as little, before the one found) */
+                       * of equals. The first and the last first (often it is one of them): the
+                       * first bounded one exactly, then only one that misses by less (by as
+                       * little, before the one found) */
             unsigned worst = 0u; /* (all unbounded: the first) */
             int64_t worst_r = RT_OVER;
             int64_t margin = 0;
             for (unsigned i = 0u; i < n; i++) {
-                p = (i == 0u ? n : i) - 1u;
+                p = i == 1u ? n - 1u : (i == 0u ? 0u : i - 1u);
                 int64_t d = (int64_t)streams[live[p]].deadline * rt.scale;
                 int64_t cap = rt.horizon;
                 int64_t by = margin - (p > worst ? 1 : 0);
