@@ -187,6 +187,12 @@ typedef struct {
 #include "ups_ecb_bind.h"  /* ups_ecb_bind_t */
 #include "ups_ecb_elect.h" /* ups_ecb_elect_t */
 
+/* the admission analyses at most UPS_ECB_STREAMS streams at once (ups_ecb_rt.h's arrays, on the
+ * stack of ups_ecb_rx, have UPS_ECB_RT_MAX entries: a small bus sets it to UPS_ECB_STREAMS) */
+#if UPS_ECB_STREAMS > UPS_ECB_RT_MAX
+#error "UPS_ECB_RT_MAX must be at least UPS_ECB_STREAMS"
+#endif
+
 /** A frame waiting to be sent: the CAN-ECB sends classic frames only, so its queue keeps 8
  *  data bytes a frame whatever UPS_MTU an image that also holds a CAN FD node has (its length:
  *  ups_ecb_t.tx_len, 13 bytes a frame in all). */
