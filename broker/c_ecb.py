@@ -40,32 +40,24 @@ from ups._cnode import now_ms
 from ups._errors import ConfigError
 
 from ._cecb_lib import (
-    CONFIG,
     COUNTERS,
     FRAME_BRS,
     FRAME_ERR,
     FRAME_EXT,
     FRAME_FD,
     FRAME_RTR,
-    NOTE_CHANNELS,
     NOTE_ROLE,
     NOTE_STATE,
     ROLES,
-    SOURCES,
     VARIANTS,
     Config,
     HostEcb,
-    Library,
-    default_config,
     load,
-)
+)  # fmt: skip
 from ._quota import QUOTA
 
 __all__ = [
-    "CONFIG", "COUNTERS", "FRAME_BRS", "FRAME_ERR", "FRAME_EXT", "FRAME_FD", "FRAME_RTR",
-    "NOTE_CHANNELS", "NOTE_ROLE", "NOTE_STATE", "ROLES", "SOURCES", "TARGETS", "VARIANTS",
-    "Backend", "CEcb", "Config", "Library", "backend", "default_config", "load", "prepare",
-    "serve", "write_atomically",
+    "TARGETS", "Backend", "CEcb", "Config", "backend", "prepare", "serve", "write_atomically",
 ]  # fmt: skip
 
 log = logging.getLogger("ups.c_ecb")

@@ -14,7 +14,7 @@ from collections import Counter, deque
 from ups import _canproto as p
 from ups import _cantransfer as t
 from ups._errors import DecodeError
-from ups.broker.c_ecb import Config
+from ups.broker._cecb_lib import Config
 
 from .cecb_driver import (
     CANDIDATE,

@@ -8,7 +8,7 @@ import ctypes
 from typing import Any
 
 from tests.conformance._frames import decode_id, encode
-from ups.broker.c_ecb import COUNTERS, default_config, load
+from ups.broker._cecb_lib import COUNTERS, default_config, load
 
 
 class Driver:

@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ups.broker.c_ecb import COUNTERS, Config, Library, load
+from ups.broker._cecb_lib import COUNTERS, Config, Library, load
 
 STOPPED, CANDIDATE, SERVING, STANDBY = range(4)
 NOTE_STATE = 0x01

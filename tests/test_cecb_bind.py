@@ -44,7 +44,8 @@ from tests.conformance._wire import RawNode, Wire
 from tests.procs import sanitizer_env
 from ups._canlink import CanLink
 from ups._cnode import build
-from ups.broker.c_ecb import SOURCES, VARIANTS, CEcb
+from ups.broker._cecb_lib import SOURCES, VARIANTS
+from ups.broker.c_ecb import CEcb
 
 ROOT = Path(__file__).resolve().parent.parent
 CLASS_FIRST = (0x0010, 0x3000, 0x3400, 0x3800, 0x3C00)  #: the first etag of each size class

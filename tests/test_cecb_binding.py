@@ -1,4 +1,4 @@
-"""The ctypes binding of libups-ecb (broker/c_ecb.py) and ``ups c-ecb``: the binding agrees with
+"""The ctypes binding of libups-ecb (broker/_cecb_lib.py) and ``ups c-ecb``: the binding agrees with
 the headers and the Makefile it is built by, names its build errors, keeps a refused blob aside,
 writes the state file before it sends what the state announces; the command's help and errors.
 What the C CAN-ECB does on the wire is the conformance suite's (tests/conformance, [c])."""
@@ -16,7 +16,7 @@ from ups import Node
 from ups._canlink import CanLink
 from ups._cnode import build
 from ups._errors import ConfigError
-from ups.broker import c_ecb
+from ups.broker import _cecb_lib
 from ups.broker._quota import QUOTA
 from ups.broker.c_ecb import CEcb
 
@@ -50,28 +50,28 @@ def _define(header: str, name: str) -> int:
 
 def test_sources_are_the_makefiles() -> None:
     built = {*_makefile("ECB_SRC"), *_makefile("ECB_HDR"), "host/ups_ecb_host.c", "Makefile"}
-    assert set(c_ecb.SOURCES) == built
+    assert set(_cecb_lib.SOURCES) == built
 
 
 def test_counters_are_ups_ecb_counters_t_in_order() -> None:
-    assert list(c_ecb.COUNTERS) == _struct_fields("ups_ecb.h", "ups_ecb_counters_t")
+    assert list(_cecb_lib.COUNTERS) == _struct_fields("ups_ecb.h", "ups_ecb_counters_t")
 
 
 def test_constants_are_the_headers() -> None:
     for name in ("EXT", "FD", "BRS", "RTR", "ERR"):
-        assert getattr(c_ecb, f"FRAME_{name}") == _define("ups.h", f"UPS_FRAME_{name}")
+        assert getattr(_cecb_lib, f"FRAME_{name}") == _define("ups.h", f"UPS_FRAME_{name}")
     for name in ("STATE", "ROLE", "CHANNELS"):
-        assert getattr(c_ecb, f"NOTE_{name}") == _define("ups_ecb.h", f"UPS_ECB_NOTE_{name}")
-    for i, role in enumerate(c_ecb.ROLES):
+        assert getattr(_cecb_lib, f"NOTE_{name}") == _define("ups_ecb.h", f"UPS_ECB_NOTE_{name}")
+    for i, role in enumerate(_cecb_lib.ROLES):
         assert _define("ups_ecb.h", f"UPS_ECB_{role.upper()}") == i
-    fields = [f for f, _ in c_ecb.Config._fields_]
+    fields = [f for f, _ in _cecb_lib.Config._fields_]
     assert fields == _struct_fields("ups_ecb.h", "ups_ecb_config_t")
 
 
 def test_the_full_build_has_the_tables_of_a_full_bus() -> None:
     """With room for the default quota of a node id (1024 channels of size class 0), which
     the conformance suite fills."""
-    lib = c_ecb.load("full")
+    lib = _cecb_lib.load("full")
     macros = dict(m[2:].split("=") for m in _makefile("ECB_HOST"))
     names = {"nodes": "NODES", "channels": "CHANNELS", "streams": "STREAMS",
              "queries": "QUERIES", "tx_depth": "TX_DEPTH", "held": "HELD",
@@ -83,20 +83,20 @@ def test_the_full_build_has_the_tables_of_a_full_bus() -> None:
     assert cfg["blob_max"] >= 12 * (cfg["nodes"] + cfg["channels"] + cfg["streams"])
     assert cfg["counter_bytes"] == 4 and cfg["mtu"] == 8
     assert lib.size > cfg["tx_depth"] * 12  # its TX queue of ups_frame_t alone
-    assert c_ecb.default_config().recovery_ms == 2000
+    assert _cecb_lib.default_config().recovery_ms == 2000
 
 
 def test_an_unknown_variant_and_a_failed_build_are_named(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"no variant 'tiny' .*full, asan"):
-        c_ecb.load("tiny")
+        _cecb_lib.load("tiny")
     with pytest.raises(ConfigError, match="LD_PRELOAD"):  # not an ASan abort of the process
-        c_ecb.load("asan")
+        _cecb_lib.load("asan")
     copy = tmp_path / "c"
     shutil.copytree(C, copy, ignore=shutil.ignore_patterns("build"))
     with (copy / "ups_ecb_elect.c").open("a") as source:
         source.write("\n#error this source is broken on purpose\n")
     with pytest.raises(ConfigError) as failed:
-        build("full", targets=c_ecb.VARIANTS, sources=c_ecb.SOURCES, c_dir=copy)
+        build("full", targets=_cecb_lib.VARIANTS, sources=_cecb_lib.SOURCES, c_dir=copy)
     assert "libups-ecb.so" in str(failed.value)
     assert "broken on purpose" in str(failed.value)
 

@@ -342,7 +342,7 @@ def test_machine_under_sanitizers() -> None:
     if VARIANT:
         pytest.skip("this is the child")
     from ups._cnode import build
-    from ups.broker.c_ecb import SOURCES, VARIANTS
+    from ups.broker._cecb_lib import SOURCES, VARIANTS
 
     build("asan", targets=VARIANTS, sources=SOURCES)  # built (not loaded: ASan must come first)
     env = {**os.environ, "UPS_CECB_FUZZ": "asan", **sanitizer_env()}

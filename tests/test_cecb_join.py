@@ -46,7 +46,8 @@ from tests.conformance._wire import RawNode, Wire
 from tests.procs import sanitizer_env
 from ups._canlink import CanLink
 from ups._cnode import build
-from ups.broker.c_ecb import SOURCES, VARIANTS, CEcb
+from ups.broker._cecb_lib import SOURCES, VARIANTS
+from ups.broker.c_ecb import CEcb
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEED = 0xBBCCB9C002D5ED59  #: the worked example's channel UID
