@@ -20,10 +20,11 @@ console listens only, and joins the bus the first time someone publishes from th
 Bounds, each counted and logged when it bites (``_webguard``): requests whose Host is not
 this console's (DNS rebinding: ``wrong_host``, 421) or posts from another site's page
 (``cross_site``, 403); a connection that does not deliver a whole request within
-``HEADER_TIMEOUT`` s (``slow_requests``); live streams beyond ``MAX_PAGES_PER_CLIENT`` per
-client address or ``MAX_PAGES`` in all (``pages_refused``, 429 or 503), and streams whose
-reader fell ``PAGE_BACKLOG`` snapshots behind or let a write wait ``WRITE_TIMEOUT`` s
-(``pages_dropped``). The page itself holds no stream: nothing a client holds shuts it out.
+``--header-timeout`` s (``HEADER_TIMEOUT`` by default; ``slow_requests``); live streams beyond
+``MAX_PAGES_PER_CLIENT`` per client address or ``MAX_PAGES`` in all (``pages_refused``, 429
+or 503), and streams whose reader fell ``PAGE_BACKLOG`` snapshots behind or let a write wait
+``WRITE_TIMEOUT`` s (``pages_dropped``). The page itself holds no stream: nothing a client
+holds shuts it out.
 """
 
 from __future__ import annotations
@@ -121,6 +122,10 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
         help="CAN: the bus's bit rate, for its load (default 500000)",
     )  # fmt: skip
     cmd.add_argument("--timeout", type=positive_float, default=5.0, help="seconds to wait")
+    cmd.add_argument(
+        "--header-timeout", type=positive_float, default=HEADER_TIMEOUT, metavar="S",
+        help=f"seconds a connection has to deliver a whole request (default {HEADER_TIMEOUT:g})",
+    )  # fmt: skip
     add_tls(cmd, node=True)
     add_metrics(cmd)
 
@@ -174,7 +179,8 @@ async def _serve(
     app["names"] = allowed_names(host, args.allow_host)  # Host names served (and addresses)
     app["counters"] = dict.fromkeys(GUARD_COUNTERS, 0)
     app["notes"] = notes = Notes(app["counters"])
-    app["clock"] = clock = RequestClock(HEADER_TIMEOUT, notes)
+    app["header_timeout"] = args.header_timeout
+    app["clock"] = clock = RequestClock(args.header_timeout, notes)
     app.add_routes([
         web.get("/", _page), web.get("/events", _events), web.get("/snapshot", _snapshot),
         web.get("/history", _history), web.post("/publish", _publish),
@@ -351,7 +357,7 @@ async def _publish(request: Any) -> Any:
             {"error": "send JSON (Content-Type: application/json)"}, status=415
         )
     try:
-        async with asyncio.timeout(HEADER_TIMEOUT):  # a body trickled in holds nothing long
+        async with asyncio.timeout(request.app["header_timeout"]):  # a body trickled in: let go
             body = await request.json()
         if not isinstance(body, dict):
             raise ConfigError("the body must be a JSON object with channel and data")
@@ -361,7 +367,7 @@ async def _publish(request: Any) -> Any:
         await node.publish(channel, data)
     except TimeoutError:
         request.app["notes"]("slow_requests", "post from %s: its body did not arrive within %g s",
-                             request.remote, HEADER_TIMEOUT)  # fmt: skip
+                             request.remote, request.app["header_timeout"])  # fmt: skip
         return web.json_response({"error": "the body came too slowly"}, status=408)
     except AccessDenied as exc:
         return web.json_response({"error": str(exc)}, status=403)
