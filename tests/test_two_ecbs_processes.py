@@ -31,7 +31,7 @@ from .procs import Proc, private_multicast_bus
 pytestmark = pytest.mark.netns
 
 RUNS = 60 if os.environ.get("UPS_DEEP") == "1" else 20
-AT_ONCE = 10  #: the runs mostly wait (their drawn delays, the takeover): half of them at once
+AT_ONCE = 20  #: the runs mostly wait (their drawn delays, the takeover): 20 at once
 JOIN = 5.0  #: a node joins within this long, with two CAN-ECBs on the bus
 RECOVERIES = (0.2, 0.5, 2.0)  #: a recovery under a second makes a hasty newcomer (protocol.md)
 SETTLE = 15.0  #: exactly one serves by then (docs/protocol.md, "one serving": 14 s)
