@@ -27,12 +27,17 @@ Why two never stay serving: each sends a Serving at least every ``BEAT`` s, and 
 instance stands by on hearing the lower one's.
 
 A Serving is only a claim, and anyone can send one. So a standing-by CAN-ECB also watches the
-requests it hears (``asked``: a Knock; a SUB_BIND or PUB_BIND of a UID) for their answers (a
+requests it hears (``asked``: a Knock; a SUB_BIND or PUB_BIND of a UID from a TxNode that is
+*held*: in its own table, given by an Assign it heard from another, or claimed within
+``MAX_CANDIDACY`` s of a Hello, as in a recovery) for their answers (a
 census frame; a Bind, EtagsFull, Failed or Limit of that UID; one heard up to ``EARLY`` s
 before the request counts: frames of two senders may cross), and when one has had none for
 ``ANSWER`` s it takes over, whatever Servings say. ``ANSWER`` is longer than the 2 s a serving
 CAN-ECB may hold a request (its recovery), and short enough that the request's node, which asks
-for 5 s, has its answer after the takeover's own recovery: ``ANSWER`` + 2 s.
+for 5 s, has its answer after the takeover's own recovery: ``ANSWER`` + 2 s. A binding
+request of a TxNode that is not held is not watched: the one that serves owes it no answer
+(a request from a TxNode no node holds is ignored), so a forger's, now and then, would make the
+CAN-ECBs swap roles on and on, each swap a recovery window for the bus.
 
 From then on it is *wary*, for the rest of its run: as a candidate it stands by for nothing,
 and serving it stands by for a lower Serving only with an answer it did not send heard within
@@ -94,6 +99,10 @@ class Election:
         self._answer = -math.inf  # the last answer to a node that another sent
         self._answered: dict[int, float] = {}  # request key -> when an answer to it was heard
         self._lower = -math.inf  # serving, wary: the last Serving of a lower instance
+        #: the TxNodes of the Assigns of others, and of the CLAIMs that answered a Hello, heard
+        #: since its own last Hello (at most 127)
+        self._assigned: set[int] = set()
+        self._hello = -math.inf  # the last Hello, its own or another's
 
     @property
     def active(self) -> bool:
@@ -117,14 +126,26 @@ class Election:
         """The CAN-ECB starts: Hello, and a candidacy."""
         return self._candidate(now)
 
-    def asked(self, msg: Management, now: float) -> list[Frame]:
+    def asked(self, msg: Management, now: float, held: bool = False) -> list[Frame]:
         """A node's frame heard while this CAN-ECB stands by: a request that the one serving
         must answer is watched until its answer comes (``tick`` takes over ``ANSWER`` s after
-        it if none has)."""
+        it if none has). ``held``: this CAN-ECB's own table holds the frame's TxNode; a
+        binding request is watched only from a TxNode so held, given by an Assign heard, or
+        claimed within ``MAX_CANDIDACY`` of a Hello."""
         key = _request(msg)
         watched = self._asked
-        if self.role is not Role.STANDBY or key is None or len(watched) >= WATCHED:
+        if self.role is not Role.STANDBY:
             return []
+        if (
+            isinstance(msg, p.Request)
+            and msg.kind == p.CLAIM
+            and now - self._hello <= MAX_CANDIDACY
+        ):
+            self._assigned.add(msg.txnode)  # it answers a Hello: a recovery adopts it
+        if key is None or len(watched) >= WATCHED:
+            return []
+        if isinstance(msg, p.Request) and not held and msg.txnode not in self._assigned:
+            return []  # nobody holds it, as far as it knows: the one serving owes no answer
         if now - self._answered.get(key, -math.inf) > EARLY:  # its answer may come first
             watched.setdefault(key, now)  # since when it is asked: its first time
         return []
@@ -136,8 +157,12 @@ class Election:
         other = msg.instance if isinstance(msg, Hello | Serving | Probe) else None
         if other == self.instance:  # its own instance: an echo or a forger, not a rival
             return []
+        if isinstance(msg, Hello):
+            self._hello = now  # the nodes claim: the CLAIMs that follow are held
         if other is None:  # an answer to a node (another CAN-ECB's, or a forger's)
             self._answer = now
+            if isinstance(msg, p.Assign):
+                self._assigned.add(msg.txnode)  # its binding requests are owed answers
             answered = self._answered  # oldest first
             for key in _answers(msg):
                 self._asked.pop(key, None)
@@ -207,6 +232,8 @@ class Election:
 
     def _candidate(self, now: float) -> list[Frame]:
         self._asked.clear()
+        self._assigned.clear()  # its recovery learns the TxNodes in use (their claims)
+        self._hello = now
         self.role = Role.CANDIDATE
         self._until = now + self.candidacy
         return [Hello(self.instance)]

@@ -293,7 +293,8 @@ class CanEcb:
         if isinstance(msg, p.ECB_FRAMES):
             self._on_foreign_ecb(msg)
         elif self.standby:  # answers nothing, but watches that the one serving does
-            self._elect(self._election.asked(msg, asyncio.get_running_loop().time()))
+            held = isinstance(msg, p.Request) and msg.txnode in self._txnodes.node_at
+            self._elect(self._election.asked(msg, asyncio.get_running_loop().time(), held))
         elif isinstance(msg, p.Stage):
             if not self.recovering:
                 self._census.on_stage(msg)

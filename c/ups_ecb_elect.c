@@ -9,10 +9,12 @@
  * one stands by only on a lower Serving, and answers every other CAN-ECB frame with its
  * Serving (at most one per second, the Serving gap; one due sooner waits), and beats every
  * 10 s. Standing by it probes every 2 s, and takes over (Hello) after 4 s without a Hello or
- * Serving of another, or when a request it watched (Knock, SUB_BIND, PUB_BIND, PUB_BIND(c))
- * has had no answer for 2.5 s: then it is wary for the rest of its run (as a candidate it
- * stands by for nothing; serving, for a lower Serving only with another's answer heard within
- * 2 s of it, and not while busy).
+ * Serving of another, or when a request it watched (Knock, SUB_BIND, PUB_BIND, PUB_BIND(c);
+ * a binding request only from a TxNode its table holds, an Assign of another gave or a CLAIM
+ * within 2 s of a Hello: the one serving owes the others no answer) has had no answer for
+ * 2.5 s: then it is wary for the rest
+ * of its run (as a candidate it stands by for nothing; serving, for a lower Serving only with
+ * another's answer heard within 2 s of it, and not while busy).
  *
  * Who calls what: the dispatcher (ups_ecb.c) sets ecb->now, calls ups_ecb__elect_heard() for
  * every CAN-ECB frame it did not send, ups_ecb__elect_asked() for a node's frame while standing
@@ -51,6 +53,7 @@
 #define KNOWN_ANSWERED 0u /* the last Serving in answer */
 #define KNOWN_ANSWER 1u   /* the last answer of another to a node */
 #define KNOWN_LOWER 2u    /* the last Serving of a lower instance */
+#define KNOWN_HELLO 3u    /* the last Hello, its own or another's (the CLAIMs answer it) */
 
 /* what a frame answers (answers()) */
 #define KEY_KNOCK 0x01u /* the joiners' Knocks */
@@ -183,6 +186,8 @@ static unsigned candidate(ups_ecb_t *ecb)
         ecb->started_up = 0u; /* it heard nothing while standing by: learn the bus anew */
     }
     el->n_asked = 0u;
+    ups_ecb__copy(el->assigned, NULL, 16u); /* its recovery learns the TxNodes in use */
+    mark(ecb, KNOWN_HELLO);
     el->t_role = ecb->now;
     set_role(ecb, UPS_ECB_CANDIDATE);
     return UPS_ECB__SAY_HELLO;
@@ -250,7 +255,11 @@ unsigned ups_ecb__elect_heard(ups_ecb_t *ecb, unsigned status, const uint8_t *in
     }
     if (instance == NULL) { /* an answer to a node (another CAN-ECB's, or a forger's) */
         unsigned keys = answers(id);
+        uint32_t field = id & UPS_ECB__ETAG_MASK;
         mark(ecb, KNOWN_ANSWER);
+        if ((keys & KEY_KNOCK) != 0u && (field & 0xF080u) == 0x2000u) { /* an Assign (no Offer) */
+            el->assigned[(field >> 3) & 0xFu] |= (uint8_t)(1u << (field & 7u)); /* owed answers */
+        }
         if (keys & KEY_KNOCK) {
             answered(ecb, 1u, NULL);
         }
@@ -262,6 +271,9 @@ unsigned ups_ecb__elect_heard(ups_ecb_t *ecb, unsigned status, const uint8_t *in
     }
     int hello = instance != NULL && status == ST_HELLO;
     int serving = instance != NULL && status == ST_SERVING;
+    if (hello) {
+        mark(ecb, KNOWN_HELLO); /* the nodes claim: the CLAIMs that follow are held */
+    }
     int lower = (hello || serving) && below(instance, ecb->instance);
     switch (el->role) {
     case UPS_ECB_STANDBY:
@@ -301,11 +313,19 @@ unsigned ups_ecb__elect_asked(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, 
     if (el->role != UPS_ECB_STANDBY || (id >> UPS_ECB__PRIO_SHIFT) != 0u) {
         return 0u;
     }
+    if (txnode != UPS_ECB__MGMT && field == 0x0004u && len == 8u &&
+        ago(ecb, KNOWN_HELLO) <= MAX_CANDIDACY) { /* a CLAIM answers a Hello: one adopts it */
+        el->assigned[txnode >> 3] |= (uint8_t)(1u << (txnode & 7u));
+    }
     if (txnode == UPS_ECB__MGMT && field == KNOCK_FIELD && len == 0u) {
         knock = 1u;
     } else if (txnode != UPS_ECB__MGMT && len == 8u && data != NULL &&
                (field == 0x0001u || field == 0x0002u || (field >= 0x0009u && field <= 0x000Cu))) {
         knock = 0u; /* PUB_BIND, SUB_BIND, PUB_BIND(c) of the UID in data */
+        if (ups_ecb__holder(ecb, txnode) == UPS_ECB__NO_SLOT &&
+            (el->assigned[txnode >> 3] & (1u << (txnode & 7u))) == 0u) {
+            return 0u; /* nobody holds it, as far as it knows: the one serving owes no answer */
+        }
     } else {
         return 0u;
     }
@@ -359,8 +379,10 @@ unsigned ups_ecb__elect_tick(ups_ecb_t *ecb)
     default: break;
     }
     /* times too old to matter are forgotten, so that the wrapping clock never brings them back */
-    for (unsigned i = 0u; i < 3u; i++) {
-        uint32_t keep = i == KNOWN_ANSWERED ? (el->due ? 0xFFFFFFFFu : SERVING_GAP - 1u) : BACKING;
+    for (unsigned i = 0u; i < 4u; i++) {
+        uint32_t keep = i == KNOWN_ANSWERED ? (el->due ? 0xFFFFFFFFu : SERVING_GAP - 1u)
+                        : i == KNOWN_HELLO  ? MAX_CANDIDACY
+                                            : BACKING;
         if (ago(ecb, i) > keep) {
             el->known &= (uint8_t)~(1u << i);
         }

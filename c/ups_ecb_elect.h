@@ -34,9 +34,12 @@ typedef struct {
                              another */
     uint32_t t_probe;     /* standing by: the last Probe (or standing by) */
     uint32_t t_serving;   /* serving: the last Serving (the beat counts from it) */
-    uint32_t t_known[3];  /* the last Serving in answer to another's frame, the last answer to
+    uint32_t t_known[4];  /* the last Serving in answer to another's frame, the last answer to
                              a node that another sent, serving and wary: the last Serving of a
-                             lower instance (ups_ecb_elect.c's KNOWN_...) */
+                             lower instance, the last Hello (ups_ecb_elect.c's KNOWN_...) */
+    uint8_t assigned[16]; /* the TxNodes of the Assigns of others, and of the CLAIMs that
+                             answered a Hello, heard since its own last Hello (bit t % 8 of byte
+                             t / 8): their binding requests are watched */
     /* standing by: the requests heard and not answered yet, oldest first */
     ups_ecb_watch_t asked[UPS_ECB_WATCHED];
     /* the answers heard in the last second (EARLY), oldest first */

@@ -34,8 +34,8 @@ from tests.procs import sanitizer_env
 from ups import _canproto as p
 from ups._cnode import build
 from ups.broker import _election as e
+from ups.broker._cecb_lib import SOURCES, VARIANTS
 from ups.broker._election import Election, Role
-from ups.broker.c_ecb import SOURCES, VARIANTS
 
 ROOT = Path(__file__).resolve().parent.parent
 C_DIR = ROOT / "c"
@@ -265,6 +265,8 @@ def run(
 
 UIDS = [*range(1, 20), (1 << 64) - 1]  # more than the full build watches (16)
 uids = st.one_of(st.sampled_from(UIDS[:3]), st.sampled_from(UIDS))  # answers meet requests
+#: TxNodes: Assigns meet binding requests (only those of TxNodes heard assigned are watched)
+txnodes = st.one_of(st.sampled_from([3, 4]), st.integers(0, 0x7E))
 claims = st.builds(
     lambda kind, instance: kind(instance),
     st.sampled_from([p.Hello, p.Serving, p.Serving, p.Probe]), st.sampled_from(OTHERS),
@@ -273,7 +275,8 @@ answers = st.one_of(
     st.builds(p.Census, st.integers(0, 15)),
     st.builds(lambda uid: p.Query(1, (uid & 0xF,)), uids),
     st.builds(p.Offer, st.integers(0, 0x7E), uids),
-    st.builds(p.Assign, st.integers(0, 0x7E), uids),
+    st.builds(p.Assign, txnodes, uids),
+    st.builds(p.Assign, txnodes, uids),
     st.builds(p.TxNodesFull, uids),
     st.builds(p.Failed, uids),
     st.builds(p.EtagsFull, uids),
@@ -285,14 +288,14 @@ answers = st.one_of(
 )
 requests = st.one_of(
     st.just(p.Knock()),
-    st.builds(p.Request, st.sampled_from([p.SUB_BIND, p.PUB_BIND]), st.integers(0, 0x7E), uids),
+    st.builds(p.Request, st.sampled_from([p.SUB_BIND, p.PUB_BIND]), txnodes, uids),
     st.builds(
         lambda t, uid, c: p.Request(p.PUB_BIND, t, uid, c),
-        st.integers(0, 0x7E),
+        txnodes,
         uids,
         st.integers(1, 4),
     ),
-    st.builds(p.Request, st.sampled_from([p.UNSUB, p.CLAIM]), st.integers(0, 0x7E), uids),
+    st.builds(p.Request, st.sampled_from([p.UNSUB, p.CLAIM, p.CLAIM]), txnodes, uids),
     st.builds(p.Roster, st.integers(0, 0x7E), uids),
     st.builds(p.Stage, st.integers(0, 15), st.integers(0, 15), st.integers(0, 15)),
 )
@@ -348,6 +351,7 @@ def asked(at: int, msg: p.Management) -> Step:
 
 
 LOWER, HIGHER = 0x1, (1 << 64) - 1
+HELD = Step(50, HEARD, p.Assign(3, 7))  #: TxNode 3 is held: its binding requests are watched
 SERVE_AT = 2000  #: the candidacy's end with the default recovery
 
 
@@ -381,6 +385,7 @@ def test_a_serving_one_answers_paced_and_stands_by_only_for_a_lower_serving(
 
 def test_an_unanswered_request_makes_it_take_over_and_wary(lib: ctypes.CDLL) -> None:
     steps = [
+        HELD,
         heard(100, p.Serving(LOWER)),  # stands by
         asked(1000, p.Request(p.SUB_BIND, 3, 42)),
         heard(1500, p.Serving(LOWER)),
@@ -408,6 +413,7 @@ def test_an_unanswered_request_makes_it_take_over_and_wary(lib: ctypes.CDLL) -> 
 
 def test_an_answer_just_before_its_request_counts(lib: ctypes.CDLL) -> None:
     steps = [
+        HELD,
         heard(100, p.Serving(LOWER)),
         heard(1000, p.EtagsFull(42)),
         asked(2000, p.Request(p.PUB_BIND, 3, 42, 2)),  # 1 s after its answer: answered
@@ -420,13 +426,13 @@ def test_an_answer_just_before_its_request_counts(lib: ctypes.CDLL) -> None:
     pair = run(lib, steps, after=0)
     assert pair.c.role is Role.STANDBY
     assert pair.c.counter("unanswered_takeovers") == 0
-    steps[1] = heard(999, p.EtagsFull(42))  # 1.001 s before: watched, and never answered
+    steps[2] = heard(999, p.EtagsFull(42))  # 1.001 s before: watched, and never answered
     assert run(lib, steps, after=0).c.counter("unanswered_takeovers") == 1
 
 
 def test_watched_requests_are_bounded_and_counted(lib: ctypes.CDLL) -> None:
     bound = lib.ups_ecb_host_config(6)
-    steps = [heard(100, p.Serving(LOWER))]
+    steps = [HELD, heard(100, p.Serving(LOWER))]
     steps += [asked(200 + i, p.Request(p.SUB_BIND, 3, 1000 + i)) for i in range(bound + 3)]
     pair = run(lib, steps, after=2800)
     assert pair.c.counter("watched_full") == 3
@@ -435,7 +441,7 @@ def test_watched_requests_are_bounded_and_counted(lib: ctypes.CDLL) -> None:
 
 def test_an_answer_counts_for_a_second_to_the_millisecond(lib: ctypes.CDLL) -> None:
     for gap, watched in ((999, False), (1000, False), (1001, True)):
-        steps = [heard(100, p.Serving(LOWER)), heard(1000, p.Bind(0x20, 42))]
+        steps = [HELD, heard(100, p.Serving(LOWER)), heard(1000, p.Bind(0x20, 42))]
         steps += [Step(1000 + gap, TICK), asked(1000 + gap, p.Request(p.SUB_BIND, 3, 42))]
         steps += [heard(at, p.Serving(LOWER)) for at in (3000, 5000, 7000)]
         pair = run(lib, steps, after=0)
@@ -444,7 +450,7 @@ def test_an_answer_counts_for_a_second_to_the_millisecond(lib: ctypes.CDLL) -> N
 
 def test_the_answers_of_the_last_second_are_bounded(lib: ctypes.CDLL) -> None:
     bound = lib.ups_ecb_host_config(6)
-    steps = [heard(100, p.Serving(LOWER))]
+    steps = [HELD, heard(100, p.Serving(LOWER))]
     steps += [heard(200 + i, p.Bind(0x20 + i, 1000 + i)) for i in range(bound + 1)]
     for uid, watched in ((1000 + bound, False), (1001, False), (1000, True)):  # 1000 went first
         more = [asked(300, p.Request(p.SUB_BIND, 3, uid))]
@@ -477,7 +483,9 @@ def test_a_wary_one_stands_by_with_an_answer_within_the_backing_time(lib: ctypes
 def test_what_answers_what(
     lib: ctypes.CDLL, requests: list[p.Management], answer: p.Management, unanswered: int
 ) -> None:
-    steps = [heard(100, p.Serving(LOWER))]
+    binding = any(isinstance(msg, p.Request) for msg in requests)  # (an Assign answers Knocks)
+    steps = [HELD, heard(50, p.Assign(4, 8))] if binding else []
+    steps += [heard(100, p.Serving(LOWER))]
     steps += [asked(1000 + 100 * i, msg) for i, msg in enumerate(requests)]
     steps += [heard(1900, answer)] + [heard(at, p.Serving(LOWER)) for at in (3000, 5000, 7000)]
     assert run(lib, steps, after=0).c.counter("unanswered_takeovers") == unanswered
@@ -498,3 +506,29 @@ def test_the_same_under_asan_with_the_smallest_tables() -> None:
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=50)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_binding_requests_are_watched_only_from_txnodes_heard_assigned(lib: ctypes.CDLL) -> None:
+    """A SUB_BIND of a TxNode nobody holds (as far as it knows) is owed no answer: not watched.
+    One of a TxNode an Assign of another gave, or claimed within 2 s of a Hello, is, until its
+    own next Hello."""
+    stand_by = [heard(100, p.Serving(LOWER))]
+    servings = [heard(at, p.Serving(LOWER)) for at in (3000, 5000, 7000)]
+    unheld = [*stand_by, asked(1000, p.Request(p.SUB_BIND, 5, 42)), *servings]
+    assert run(lib, unheld, after=0).c.counter("unanswered_takeovers") == 0
+    assigned = [*stand_by, heard(500, p.Assign(5, 9)), *unheld[1:]]
+    assert run(lib, assigned, after=0).c.counter("unanswered_takeovers") == 1
+    offered = [*stand_by, heard(500, p.Offer(5, 9)), *unheld[1:]]  # an Offer is not held
+    assert run(lib, offered, after=0).c.counter("unanswered_takeovers") == 0
+    again = [*assigned[:3], Step(3500, TICK), Step(5500, TICK), heard(5600, p.Serving(LOWER))]
+    again += [heard(5700, p.Uses(True, 3, 7)), heard(5800, p.Serving(LOWER))]  # stands by
+    again += [asked(6000, p.Request(p.SUB_BIND, 5, 43))]  # after its Hello: not held any more
+    again += [heard(at, p.Serving(LOWER)) for at in (8000, 10_000, 12_000)]
+    pair = run(lib, again, after=0)
+    assert pair.c.counter("unanswered_takeovers") == 1
+    assert pair.c.role is Role.STANDBY
+    for at, watched in ((2200, True), (2201, False)):  # a CLAIM within 2 s of a Hello
+        claimed = [*stand_by, heard(200, p.Hello(HIGHER)), asked(at, p.Request(p.CLAIM, 5, 9))]
+        claimed += [asked(2300, p.Request(p.SUB_BIND, 5, 42))]
+        claimed += [heard(t, p.Serving(LOWER)) for t in (3000, 5000, 7000)]
+        assert run(lib, claimed, after=0).c.counter("unanswered_takeovers") == watched

@@ -411,7 +411,7 @@ class AnsweringMachine(ElectionMachine):
             assert isinstance(ecb, Election)
             self._note(f"{slot} ({ecb.role.value}) heard {frame}")
             if ecb.role is Role.STANDBY:
-                ecb.asked(frame, self.now)
+                ecb.asked(frame, self.now, held=True)
             elif ecb.role is Role.SERVING:
                 self._broadcast(slot, [Bind(0x20, frame.value)])
             else:
@@ -546,8 +546,8 @@ def _tick_until(ecb: Election, until: float) -> list[Frame]:
 
 def test_a_request_unanswered_for_the_answer_time_makes_it_serve_whatever_servings_say() -> None:
     ecb = _standing_by()
-    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5)
-    ecb.asked(Request(SUB_BIND, 0x12, UID), 2.5)  # asked again: the first time counts
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5, held=True)
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 2.5, held=True)  # asked again: the first time counts
     for t in (2.0, 3.0, 3.9):  # a Serving every second keeps nobody standing by any more
         ecb.heard(Serving(0), t)
     assert Hello(5) not in _tick_until(ecb, 1.5 + e.ANSWER - 0.01)
@@ -574,7 +574,7 @@ def test_a_request_unanswered_for_the_answer_time_makes_it_serve_whatever_servin
 )
 def test_an_answer_heard_stops_the_watch(request_: Management, answer: Management) -> None:
     ecb = _standing_by()
-    ecb.asked(request_, 1.5)
+    ecb.asked(request_, 1.5, held=True)
     ecb.heard(answer, 3.5)
     for t in (2.0, 3.0, 4.0, 5.0):
         ecb.heard(Serving(0), t)
@@ -584,9 +584,9 @@ def test_an_answer_heard_stops_the_watch(request_: Management, answer: Managemen
 
 def test_an_answer_to_another_request_or_a_frame_that_asks_nothing_does_not() -> None:
     ecb = _standing_by()
-    ecb.asked(Request(UNSUB, 0x12, UID + 1), 1.2)  # no answer due: not watched
-    ecb.asked(Request(CLAIM, 0x12, 0xAB), 1.2)
-    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5)
+    ecb.asked(Request(UNSUB, 0x12, UID + 1), 1.2, held=True)  # no answer due: not watched
+    ecb.asked(Request(CLAIM, 0x12, 0xAB), 1.2, held=True)
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5, held=True)
     ecb.heard(Bind(0x20, UID + 1), 2.0)  # another channel's
     ecb.heard(Grant(0x20, 0x12, 0x02), 2.1)
     ecb.heard(Serving(0), 3.0)
@@ -596,7 +596,7 @@ def test_an_answer_to_another_request_or_a_frame_that_asks_nothing_does_not() ->
 def test_an_answer_heard_just_before_its_request_counts_frames_may_cross() -> None:
     ecb = _standing_by()
     ecb.heard(Bind(0x20, UID), 1.5)
-    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5 + e.EARLY)  # the answer came first
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 1.5 + e.EARLY, held=True)  # the answer came first
     ecb.heard(Census(1), 1.5)
     ecb.asked(Knock(), 1.5 + e.EARLY + 0.01)  # a later Knock: its own answer is due
     ecb.heard(Serving(0), 3.0)
@@ -608,7 +608,7 @@ def test_an_answer_heard_just_before_its_request_counts_frames_may_cross() -> No
 
 def test_only_requests_heard_while_standing_by_are_watched() -> None:
     ecb = _serving()
-    ecb.asked(Request(SUB_BIND, 0x12, UID), 0.5)  # it answers these itself
+    ecb.asked(Request(SUB_BIND, 0x12, UID), 0.5, held=True)  # it answers these itself
     ecb.heard(Serving(0), 1.0)
     ecb.heard(Serving(0), 3.0)
     assert Hello(5) not in _tick_until(ecb, 4.9)
@@ -617,7 +617,7 @@ def test_only_requests_heard_while_standing_by_are_watched() -> None:
 def test_at_most_watched_requests_are_watched_the_oldest_first() -> None:
     ecb = _standing_by()
     for n in range(e.WATCHED + 10):
-        ecb.asked(Request(SUB_BIND, 0x12, n), 1.5 + n * 1e-4)
+        ecb.asked(Request(SUB_BIND, 0x12, n), 1.5 + n * 1e-4, held=True)
     for n in range(1, e.WATCHED + 10):
         ecb.heard(Bind(0x20, n), 2.0)
     ecb.heard(Serving(0), 3.0)
@@ -681,7 +681,7 @@ def test_a_wary_one_standing_by_catches_again() -> None:
     ecb.heard(Bind(0x20, UID), now + 0.5)
     ecb.heard(Serving(0), now + 1.0)
     assert ecb.role is Role.STANDBY
-    ecb.asked(Request(PUB_BIND, 0x12, UID + 2), now + 1.5)
+    ecb.asked(Request(PUB_BIND, 0x12, UID + 2), now + 1.5, held=True)
     ecb.heard(Serving(0), now + 2.5)
     assert _tick_until(ecb, now + 1.5 + e.ANSWER)[-1:] == [Hello(5)]
     assert ecb.role is Role.CANDIDATE and ecb.wary
