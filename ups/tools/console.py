@@ -6,7 +6,7 @@ chosen channel's decoded fields, and a form that publishes on a channel (hex, or
 ``field=value,...`` that the catalog encodes). Routes:
 
 - ``GET /``: the page, which asks for ``GET /snapshot`` (one ``snapshot``, see ``_live``, as
-  JSON) every ``SNAPSHOT_EVERY`` s; ``GET /events``: one per ``SNAPSHOT_EVERY`` s as
+  JSON) every ``SNAPSHOT_EVERY`` s; ``GET /events``: one per ``--snapshot-every`` s as
   server-sent events, for scripts;
 - ``GET /history?key=0x...``: the channel's recent (time, values) points;
 - ``POST /publish`` (JSON ``{"channel", "data"}``): ``{"ok": true}`` or ``{"error": "..."}``
@@ -126,6 +126,11 @@ def add_arguments(cmd: argparse.ArgumentParser) -> None:
         "--header-timeout", type=positive_float, default=HEADER_TIMEOUT, metavar="S",
         help=f"seconds a connection has to deliver a whole request (default {HEADER_TIMEOUT:g})",
     )  # fmt: skip
+    cmd.add_argument(
+        "--snapshot-every", type=positive_float, default=SNAPSHOT_EVERY, metavar="S",
+        help=f"seconds between two snapshots of a live stream, GET /events (default "
+        f"{SNAPSHOT_EVERY:g})",
+    )  # fmt: skip
     add_tls(cmd, node=True)
     add_metrics(cmd)
 
@@ -179,7 +184,7 @@ async def _serve(
     app["names"] = allowed_names(host, args.allow_host)  # Host names served (and addresses)
     app["counters"] = dict.fromkeys(GUARD_COUNTERS, 0)
     app["notes"] = notes = Notes(app["counters"])
-    app["header_timeout"] = args.header_timeout
+    app["header_timeout"], app["snapshot_every"] = args.header_timeout, args.snapshot_every
     app["clock"] = clock = RequestClock(args.header_timeout, notes)
     app.add_routes([
         web.get("/", _page), web.get("/events", _events), web.get("/snapshot", _snapshot),
@@ -321,7 +326,7 @@ async def _events(request: Any) -> Any:
                              "over %d snapshots", client, behind, PAGE_BACKLOG)  # fmt: skip
                 abort(request.transport)
                 return response
-            await asyncio.sleep(SNAPSHOT_EVERY)
+            await asyncio.sleep(app["snapshot_every"])
     except TimeoutError:
         app["notes"]("pages_dropped", "live stream of %s dropped: a write waited %g s",
                      client, WRITE_TIMEOUT)  # fmt: skip
