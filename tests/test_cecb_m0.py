@@ -9,6 +9,8 @@ the blob it last wrote.
 from __future__ import annotations
 
 import asyncio
+import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,7 @@ from hypothesis import strategies as st
 from ups import _canproto as p
 from ups._armecb import BUDGET
 from ups._canlink import CanLink
+from ups._cnode import C_DIR
 from ups.broker.c_ecb import Backend, CEcb, Config, backend
 
 from .conformance._frames import SUB_BIND, Bind, Census, Knock, nibbles
@@ -160,3 +163,28 @@ async def test_the_small_bus_image_serves_a_node(tmp_path: Path) -> None:
         ecb.close()
         link.close()
         await wire.close()
+
+
+MARGIN = 1.10  #: a function's scenario may cost this much more than c/cycles.json says
+
+
+@pytest.mark.parametrize(  # the full image fills 512 channels: some 30 s in the emulator
+    "build", ["small", pytest.param("full", marks=pytest.mark.timeout(300))]
+)
+def test_no_ecb_function_costs_more_than_the_cycles_table_says(build: str) -> None:
+    """c/cycles.py's CAN-ECB workload (tables filled to their bounds), then the frame sequences
+    its search found dearest, replayed from c/cycles.json (no new search): each public
+    ups_ecb_ function's worst case within MARGIN of the figure the table gives."""
+    sys.path.insert(0, str(C_DIR))
+    try:
+        import cycles
+    finally:
+        sys.path.remove(str(C_DIR))
+    data = json.loads((C_DIR / "cycles.json").read_text())
+    image = f"ecb-{build}"
+    table = data["ecb_scenario"][image]
+    recorded = cycles.recorded_frames(data["ecb_recorded"][image])
+    now = {n: c.cycles for n, c in cycles.ecb_scenario(build, recorded).items()}
+    assert set(now) == set(table), f"{image}: functions measured changed"
+    grown = {n: (table[n]["cycles"], c) for n, c in now.items() if c > table[n]["cycles"] * MARGIN}
+    assert not grown, f"{image}: worst cases grew past the table (run make -C c cycles): {grown}"

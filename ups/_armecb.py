@@ -87,8 +87,16 @@ class ArmEcb:
 
     errors = (Stopped,)  #: what a call raises when the image stopped
 
-    def __init__(self, build: str = "full", *, budget: int = BUDGET, elf: Path | None = None):
-        """``elf``: an image of ``build_image``'s to run instead of ``build``'s."""
+    def __init__(
+        self,
+        build: str = "full",
+        *,
+        budget: int = BUDGET,
+        elf: Path | None = None,
+        count: bool = False,
+    ) -> None:
+        """``elf``: an image of ``build_image``'s to run instead of ``build``'s; ``count``: the
+        emulator counts each call's cycles (``Mcu``: c/cycles.py's measure)."""
         self.elf = elf or build_image(BUILDS[build])
         self.name = f"{BUILDS[build] if elf is None else elf} on an emulated {CPU}"
         self.budget = budget
@@ -100,7 +108,7 @@ class ArmEcb:
         self._counter = {2: "H", 4: "I", 8: "Q"}[sizes["counter_bytes"]]
         ecb = state_size(self.elf, "ecb")
         self.mcu = mcu = Mcu(self.elf, ecb + sizes["frame"] + sizes["cfg"] + sizes["blob_max"]
-                             + 64)  # fmt: skip
+                             + 64, count=count)  # fmt: skip
         self._at_ecb = mcu.alloc(ecb)
         self._at_frame = mcu.alloc(sizes["frame"], 4)
         self._at_cfg = mcu.alloc(sizes["cfg"], 4)
