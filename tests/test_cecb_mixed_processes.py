@@ -31,7 +31,7 @@ from .test_two_ecbs_processes import _one_serves, _roles, _started
 pytestmark = pytest.mark.netns
 
 RUNS = 60 if os.environ.get("UPS_DEEP") == "1" else 20
-AT_ONCE = 10  #: the runs mostly wait (their drawn delays, the takeover)
+AT_ONCE = 20  #: the runs mostly wait (their drawn delays, the takeover): 20 at once
 JOIN = 5.0  #: a node joins within this long, with two CAN-ECBs on the bus
 RECOVERIES = (0.2, 0.5, 2.0)  #: a recovery under a second makes a hasty newcomer (protocol.md)
 TAKEOVER = 4.0  #: docs/protocol.md, Timers: a standing-by CAN-ECB takes over after this
