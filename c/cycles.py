@@ -16,7 +16,9 @@ bus can ask of it, worst first:
   whole answer to it, contradicting Binds on every channel and the re-binding, refusals and
   verdicts, a full bus of management frames of every row;
 - then Hypothesis searches (``target``) for the frames that make ``ups_rx`` and ``ups_tick``
-  costliest, from random and semi-valid frames around the node's state.
+  costliest, from random and semi-valid frames (and ticks between them) around the node's
+  state, each input from the same state (``Bound``): its cost is its own, and the dearest input
+  of each function is recorded and played again by every later run before it searches.
 
 Then the same for libups-ecb, the CAN-ECB in C, on the ecb-small and ecb-full images
 (ups/_armecb.py): every public ups_ecb_ function through tables filled to their bounds
@@ -28,7 +30,9 @@ Not covered: flash wait states (at 48 MHz most parts add 1 wait state per flash 
 accelerator or cache hides it), interrupts and their latency, and the application's own work.
 Writes cycles.json ({"worst": {config: {function: {cycles, instructions}}}, "scenario": the
 same for the deterministic workload alone, which tests/test_cnode_m0.py runs again and compares
-with a margin; "ecb", "ecb_scenario": the same per CAN-ECB image, "ecb_recorded": the frame
+with a margin; "recorded": {config: {function: {cycles, instructions, steps}}}, the input the
+search found dearest for each function, which later runs and tests/test_cnode_m0.py play
+again; "ecb", "ecb_scenario": the same per CAN-ECB image, "ecb_recorded": the frame
 sequences the search found dearest, which tests/test_cecb_m0.py replays after the workload)
 and, with --readme, the tables in README.md between its markers.
 """
@@ -221,39 +225,71 @@ class Drive:
         self.run(20)
 
 
-def search(config: str, examples: int) -> dict[str, Counts]:
-    """A Hypothesis search for the frames that make ups_rx and ups_tick costliest."""
+Step = int | tuple[int, bytes, int]  #: a step of an input: ms ticked, or a frame (id, data, flags)
+
+
+class Bound:
+    """A node joined and its channels bound (``Drive.join``, ``Drive.channels``): where every
+    input of the search starts, and every recorded one when it is played again. An input's
+    figures are its own: its steps alone from this state (the RAM as it was, the same clock)."""
+
+    def __init__(self, config: str) -> None:
+        self.drive = Drive(config)
+        self.drive.join()
+        self.used = self.drive.channels()
+        mcu = self.drive.node.mcu
+        self._ram, self._now = mcu.read(RAM, mcu.ram_size), self.drive.now
+
+    def play(self, steps: list[Step]) -> dict[str, Counts]:
+        """Each function's costliest call while ``steps`` run from the bound state."""
+        drive, mcu = self.drive, self.drive.node.mcu
+        mcu.write(RAM, self._ram)
+        drive.now, mcu.worst = self._now, {}
+        for step in steps:
+            if isinstance(step, int):
+                drive.run(step)
+            else:
+                drive.raw(*step)
+        return dict(mcu.worst)
+
+
+Dearest = dict[str, tuple[Counts, list[Step]]]  #: function -> its costliest input so far
+
+
+def _keep(dearest: Dearest, worst: dict[str, Counts], steps: list[Step]) -> None:
+    for name, counts in worst.items():
+        if counts.cycles > dearest.get(name, (Counts(), []))[0].cycles:
+            dearest[name] = (counts, steps)
+
+
+def search(bound: Bound, examples: int, dearest: Dearest) -> None:
+    """A Hypothesis search for the frames (and ticks between them) that make ups_rx and
+    ups_tick costliest, each input from the bound state: each function's dearest input into
+    ``dearest``."""
     from hypothesis import HealthCheck, given, settings, target
     from hypothesis import strategies as st
 
-    drive = Drive(config)
-    drive.join()
-    used = drive.channels()
-    worst = drive.node.mcu.worst
-    etags = [e for _, _, e, _ in used]
-    uids = [u for _, u, _, _ in used]
-
+    etags = [e for _, _, e, _ in bound.used]
+    uids = [u for _, u, _, _ in bound.used]
     field = st.one_of(st.sampled_from(etags), st.integers(0, 0x3FFF))
     ident = st.builds(lambda pr, tx, e: (pr << 21) | (tx << 14) | e,
-                      st.sampled_from([0, 1, 0x80]), st.sampled_from([ECB, 0x21, drive.txnode]),
-                      field)  # fmt: skip
+                      st.sampled_from([0, 1, 0x80]),
+                      st.sampled_from([ECB, 0x21, bound.drive.txnode]), field)  # fmt: skip
     payload = st.one_of(st.sampled_from([u.to_bytes(8, "big") for u in uids]),
                         st.binary(min_size=0, max_size=8))  # fmt: skip
+    frame = st.builds(lambda i, d: (i, d, 1), ident, payload)
 
     @settings(max_examples=examples, deadline=None, database=None, derandomize=True,
               suppress_health_check=list(HealthCheck))  # fmt: skip
-    @given(st.lists(st.tuples(ident, payload), min_size=1, max_size=8))
-    def frames(batch: list[tuple[int, bytes]]) -> None:
-        most = 0
-        for can_id, data in batch:
-            drive.raw(can_id, data)
-            most = max(most, drive.node.mcu.counts.cycles)
-        target(float(most), label="ups_rx")
-        drive.run(1)
-        target(float(drive.node.mcu.counts.cycles), label="ups_tick")
+    @given(st.lists(st.one_of(frame, frame, frame, st.integers(1, 20)), min_size=1, max_size=10))
+    def inputs(steps: list[Step]) -> None:
+        steps = [*steps, 1]
+        worst = bound.play(steps)
+        for label in ("ups_rx", "ups_tick"):
+            target(float(worst.get(label, Counts()).cycles), label=label)
+        _keep(dearest, worst, steps)
 
-    frames()
-    return worst
+    inputs()
 
 
 def scenario(config: str) -> dict[str, Counts]:
@@ -270,18 +306,43 @@ def scenario(config: str) -> dict[str, Counts]:
 
 
 def measure(
-    config: str, runs: tuple[int, ...] = (100, 400)
-) -> tuple[dict[str, Counts], dict[str, Counts]]:
-    """(the worst case of each function, the scenario's own figures). The search runs with
-    each number of examples in ``runs``: Hypothesis explores differently with each, and what
-    one run finds another may miss."""
+    config: str, recorded: dict[str, list[Step]], runs: tuple[int, ...] = (100, 400)
+) -> tuple[dict[str, Counts], dict[str, Counts], Dearest]:
+    """(the worst case of each function, the scenario's own figures, each function's dearest
+    input). The inputs ``recorded`` by earlier runs (function -> its input) are played first,
+    so a worst once found stays in the table unless the code got cheaper for its input (the
+    search depends on the constants Hypothesis collects from the project's modules: a change
+    anywhere can make it miss what it found before). The search runs with each number of
+    examples in ``runs``: Hypothesis explores differently with each, and what one run finds
+    another may miss."""
     fixed = scenario(config)
-    worst = dict(fixed)
+    bound = Bound(config)
+    played = {name: bound.play(steps) for name, steps in recorded.items()}
+    dearest: Dearest = {n: (w[n], recorded[n]) for n, w in played.items() if n in w}
+    for name, worst in played.items():  # a function's own input stays unless another costs more
+        _keep(dearest, worst, recorded[name])
     for examples in runs:
-        for name, counts in search(config, examples).items():
-            if counts.cycles > worst.get(name, Counts()).cycles:
-                worst[name] = counts
-    return worst, fixed
+        search(bound, examples, dearest)
+    worst = dict(fixed)
+    for name, (counts, _) in dearest.items():
+        if counts.cycles > worst.get(name, Counts()).cycles:
+            worst[name] = counts
+    return worst, fixed, dearest
+
+
+def steps_json(dearest: Dearest) -> dict[str, dict[str, object]]:
+    """Each function's dearest input as cycles.json keeps it: its figures and its steps."""
+    return {n: {"cycles": c.cycles, "instructions": c.instructions,
+                "steps": [s if isinstance(s, int) else [s[0], s[1].hex(), s[2]] for s in steps]}
+            for n, (c, steps) in sorted(dearest.items())}  # fmt: skip
+
+
+def recorded_steps(data: dict[str, dict[str, list[object]]]) -> dict[str, list[Step]]:
+    """A configuration's entry of cycles.json's "recorded": each function's dearest input, as
+    Bound.play takes it."""
+    return {n: [s if isinstance(s, int) else (int(s[0]), bytes.fromhex(s[1]), int(s[2]))  # type: ignore[index]
+                for s in entry["steps"]]
+            for n, entry in data.items()}  # fmt: skip
 
 
 def figures(worst: dict[str, Counts]) -> dict[str, dict[str, int]]:
@@ -752,20 +813,23 @@ def recorded_frames(data: list[list[list[object]]]) -> list[list[Frame]]:
 
 
 def main() -> int:
+    out = HERE / "cycles.json"
+    before = json.loads(out.read_text()).get("recorded", {}) if out.exists() else {}
     results, scenarios = {}, {}
+    recorded: dict[str, dict[str, dict[str, object]]] = {}
     for config in CONFIGS:
-        worst, fixed = measure(config)
+        worst, fixed, dearest = measure(config, recorded_steps(before.get(config, {})))
         results[config], scenarios[config] = figures(worst), figures(fixed)
+        recorded[config] = steps_json(dearest)
     ecb: dict[str, dict[str, dict[str, int]]] = {}
     ecb_fixed, ecb_recorded = {}, {}
     for build, image, counts in (("small", "ecb-small", (4,)), ("full", "ecb-full", (4, 16, 32))):
-        worst, fixed, recorded = ecb_measure(build)
+        worst, fixed, frames = ecb_measure(build)
         ecb[image] = {**figures(worst), **admission_worst(image, counts)}
-        ecb_fixed[image], ecb_recorded[image] = figures(fixed), _frames_json(recorded)
-    out = HERE / "cycles.json"
-    out.write_text(json.dumps({"worst": results, "scenario": scenarios, "ecb": ecb,
-                               "ecb_scenario": ecb_fixed, "ecb_recorded": ecb_recorded},
-                              indent=1) + "\n")  # fmt: skip
+        ecb_fixed[image], ecb_recorded[image] = figures(fixed), _frames_json(frames)
+    out.write_text(json.dumps({"worst": results, "scenario": scenarios, "recorded": recorded,
+                               "ecb": ecb, "ecb_scenario": ecb_fixed,
+                               "ecb_recorded": ecb_recorded}, indent=1) + "\n")  # fmt: skip
     text = table(results) + "\n\n" + ecb_table(ecb)
     print(text)
     print(f"written: {out}")

@@ -5,7 +5,8 @@ of ``make -C c size``) in the emulator of ``ups._armnode`` (its ``Mcu``).
 each method one call of ``c/ups_ecb.h`` executed as the board executes it, the ``ups_ecb_t``,
 the frame, the configuration and the blob in the emulated RAM. A call that faults (an
 unaligned access, one outside the image's flash and RAM, a write to flash: ``Fault``, with the
-address and the instruction) or runs past ``budget`` instructions (``OverBudget``) raises
+address and the instruction) or runs past its budget of instructions (``OverBudget``: ``budget``,
+or ``tables_budget`` for the calls over the whole tables, init, save and restore) raises
 ``Stopped``, which names the call: the one error of ``errors``, what the daemon stops on.
 
 The sizes of the image's tables (and of ``ups_ecb_t``, its frame, its counters, its blob) are
@@ -38,6 +39,10 @@ BUILDS = {"full": "ecb-full", "small": "ecb-small"}  #: ``--build`` -> c/size.py
 BUDGET = 20_000_000  #: instructions one call may run (0.4 s and more at 48 MHz: a board's
 #: watchdog would have reset it long before); a DECLARE's admission test over the 32 streams
 #: of ecb-full can run past it (c/README.md's cycles table): it is stopped, not waited for
+TABLES_BUDGET = 256  #: instructions per pair of table entries, (channels + nodes)², that the
+#: calls over the whole tables (ups_ecb_init, _save, _restore) may run, and at least BUDGET:
+#: restore checks each entry of a blob against those taken before, about 36 (ecb-full) to 47
+#: (ecb-small) per pair for a full blob; 256 leaves a factor of 5 (ecb-full: 104 million)
 
 #: what the image's sizes are read as: name -> the C expression of its size in bytes (plus
 #: one, so that a table of none is still an array)
@@ -101,6 +106,7 @@ class ArmEcb:
         self.name = f"{BUILDS[build] if elf is None else elf} on an emulated {CPU}"
         self.budget = budget
         sizes = limits(self.elf)
+        self.tables_budget = max(budget, TABLES_BUDGET * (sizes["channels"] + sizes["nodes"]) ** 2)
         self.config = {k: sizes[k] for k in ("nodes", "channels", "streams", "queries",
                                              "tx_depth", "held", "watched", "counter_bytes",
                                              "blob_max", "mtu")}  # fmt: skip
@@ -116,9 +122,11 @@ class ArmEcb:
         self._at_blob = mcu.alloc(sizes["blob_max"], 4)
         self._cfg_size = sizes["cfg"]
 
-    def _call(self, name: str, *args: int, wide: tuple[int, ...] = ()) -> int:
+    def _call(self, name: str, *args: int, wide: tuple[int, ...] = (), tables: bool = False) -> int:
+        """``tables``: a call over the whole tables, which runs within ``tables_budget``."""
         try:
-            value = self.mcu.call(name, *args, wide=wide, budget=self.budget)
+            budget = self.tables_budget if tables else self.budget
+            value = self.mcu.call(name, *args, wide=wide, budget=budget)
         except (Fault, OverBudget) as exc:
             raise Stopped(name, exc) from exc
         return value - (1 << 32) if value & 0x8000_0000 else value
@@ -129,13 +137,15 @@ class ArmEcb:
 
     def init(self, cfg: bytes, instance: int) -> int:
         self.mcu.write(self._at_cfg, cfg)
-        return self._call("ups_ecb_init", self._at_ecb, self._at_cfg, instance, wide=(2,))
+        return self._call(
+            "ups_ecb_init", self._at_ecb, self._at_cfg, instance, wide=(2,), tables=True
+        )
 
     def restore(self, blob: bytes) -> int:
         if len(blob) > self.config["blob_max"]:
             return -1  # larger than the tables: what ups_ecb_restore refuses too
         self.mcu.write(self._at_blob, blob)
-        return self._call("ups_ecb_restore", self._at_ecb, self._at_blob, len(blob))
+        return self._call("ups_ecb_restore", self._at_ecb, self._at_blob, len(blob), tables=True)
 
     def start(self, now: int) -> None:
         self._call("ups_ecb_start", self._at_ecb, now)
@@ -160,7 +170,9 @@ class ArmEcb:
         return can_id, flags, data
 
     def save(self) -> bytes:
-        n = self._call("ups_ecb_save", self._at_ecb, self._at_blob, self.config["blob_max"])
+        n = self._call(
+            "ups_ecb_save", self._at_ecb, self._at_blob, self.config["blob_max"], tables=True
+        )
         return self.mcu.read(self._at_blob, n) if n > 0 else b""
 
     def role(self) -> int:
