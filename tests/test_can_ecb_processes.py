@@ -42,9 +42,22 @@ def ecb_on_tmpfs(bus: str, disk: Path, size: str = "1m") -> Iterator[Proc]:
         yield ecb
 
 
-def in_its_mounts(ecb: Proc, *command: str) -> None:
+def in_its_mounts(ecb: Proc, *command: str) -> subprocess.CompletedProcess[str]:
     """Run ``command`` in the CAN-ECB's mount namespace (where its tmpfs is)."""
-    subprocess.run(["nsenter", "-t", str(ecb.popen.pid), "-m", *command], check=False)
+    cmd = ["nsenter", "-t", str(ecb.popen.pid), "-m", *command]
+    return subprocess.run(cmd, check=False, capture_output=True, text=True)
+
+
+async def remount(ecb: Proc, disk: Path, mode: str) -> None:
+    """Remount the CAN-ECB's disk ``mode`` (ro, rw). The kernel refuses ro while a file is open
+    for writing ("mount point is busy"), as the store's writer thread holds the database for a
+    moment after each request: tried again until it takes, at most 200 times (about 4 s)."""
+    for _ in range(200):
+        done = in_its_mounts(ecb, "mount", "-o", f"remount,{mode}", str(disk))
+        if done.returncode == 0:
+            return
+        await asyncio.sleep(0.02)
+    raise AssertionError(f"remount,{mode} of {disk} never took: {done.stderr.strip()}")
 
 
 async def test_a_read_only_disk_fails_requests_clearly_and_service_resumes(tmp_path: Path) -> None:
@@ -52,14 +65,14 @@ async def test_a_read_only_disk_fails_requests_clearly_and_service_resumes(tmp_p
     with ecb_on_tmpfs(bus, disk) as ecb:
         async with Node(can=bus, node_id=0x51, join_timeout=20) as node:
             sub = await node.subscribe("before")
-            in_its_mounts(ecb, "mount", "-o", "remount,ro", str(disk))
+            await remount(ecb, disk, "ro")
             with pytest.raises(BrokerUnavailable, match="database fails"):
                 await node.subscribe("while/read-only")
             with pytest.raises(BrokerUnavailable, match="database fails"):  # joins too
                 await Node(can=bus, node_id=0x52, join_timeout=10).start()
             await node.publish("before", b"1")  # what is bound works on
             assert (await sub.get_msg(timeout=5)).data == b"1"
-            in_its_mounts(ecb, "mount", "-o", "remount,rw", str(disk))
+            await remount(ecb, disk, "rw")
             late = await node.subscribe("while/read-only")  # the disk is back: so is the service
             async with Node(can=bus, node_id=0x52, join_timeout=20) as other:
                 await other.publish("while/read-only", b"2")
