@@ -102,9 +102,9 @@ def backend(target: str = "host", variant: str = "full", image: Path | None = No
         builds = ", ".join(TARGETS.get(target, ())) or "none"
         raise ConfigError(f"the C CAN-ECB's builds on {target!r} are {builds}, not {variant!r}")
     if target == "m0":
-        from ups._armecb import ArmEcb
+        from ups._armecb import arm_ecb
 
-        return ArmEcb(variant, elf=image)
+        return arm_ecb(variant, image)
     if image is not None:
         raise ConfigError("an image is for the m0 target")
     return HostEcb(variant)
@@ -114,10 +114,12 @@ def prepare(target: str = "host", variant: str = "full", image: Path | None = No
     """Build what ``backend(target, variant)`` runs (or say why it cannot be), before a bus is
     opened."""
     if target == "m0":
-        from ups._armecb import BUILDS
+        from ups._armecb import BUILDS, arm_ecb
         from ups._armnode import build_image
 
-        if image is None and variant in BUILDS:
+        if image is not None:
+            arm_ecb(variant, image)  # loaded once here: a bad image fails before the bus opens
+        elif variant in BUILDS:
             build_image(BUILDS[variant])
         return
     if variant in VARIANTS:

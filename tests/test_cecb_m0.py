@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -18,7 +20,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ups import _canproto as p
-from ups._armecb import BUDGET
+from ups._armecb import BUDGET, BUILDS
+from ups._armnode import build_image
 from ups._canlink import CanLink
 from ups._cnode import C_DIR
 from ups.broker.c_ecb import Backend, CEcb, Config, backend
@@ -188,3 +191,21 @@ def test_no_ecb_function_costs_more_than_the_cycles_table_says(build: str) -> No
     assert set(now) == set(table), f"{image}: functions measured changed"
     grown = {n: (table[n]["cycles"], c) for n, c in now.items() if c > table[n]["cycles"] * MARGIN}
     assert not grown, f"{image}: worst cases grew past the table (run make -C c cycles): {grown}"
+
+
+@pytest.mark.parametrize("what", ["not an ELF", "a node's image"])
+def test_an_image_that_is_no_can_ecb_is_refused_in_one_line(tmp_path: Path, what: str) -> None:
+    """``ups c-ecb --target m0 --image`` with a file that is no CAN-ECB image (another file in
+    its place, the image of a node): exit 2 and one line that names it, before any bus opens."""
+    config = BUILDS["small"] if what == "not an ELF" else "minimal"
+    image = tmp_path / "image" / "lib.elf"
+    shutil.copytree(build_image(config).parent, image.parent)
+    if what == "not an ELF":
+        image.write_bytes(b"root:x:0:0:root:/root:/bin/sh\n")
+    ups = Path(sys.executable).with_name("ups")
+    cmd = [str(ups), "c-ecb", "--can", "virtual:never-opened", "--target", "m0", "--build",
+           "small", "--image", str(image)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("ups c-ecb: "), done.stderr
+    assert "Traceback" not in done.stderr

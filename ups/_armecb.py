@@ -194,3 +194,18 @@ class ArmEcb:
 
     def channel_use(self, i: int, txnode: int) -> int:
         return self._call("ups_ecb_channel_use", self._at_ecb, i, txnode)
+
+
+def arm_ecb(build: str, image: Path | None = None) -> ArmEcb:
+    """``ArmEcb(build, elf=image)``; an ``image`` that is no CAN-ECB image of ``build_image``'s
+    (not an ELF, cut short, a node's image, unreadable) is a ConfigError that says so, not a
+    traceback."""
+    try:
+        return ArmEcb(build, elf=image)
+    except ConfigError:
+        raise
+    except Exception as exc:  # pyelftools' ELFError and ELFParseError, OSError, a missing symbol
+        if image is None:
+            raise
+        raise ConfigError(f"{image} is not a CAN-ECB image linked by ups._armnode.build_image "
+                          f"({type(exc).__name__}: {exc})") from exc  # fmt: skip
