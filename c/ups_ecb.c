@@ -486,6 +486,14 @@ void ups_ecb_tick(ups_ecb_t *ecb, uint32_t now_ms)
         return;
     }
     (void)ups_ecb__age(now_ms, &ecb->t_unknown_hello);
+#if UPS_ECB_ECHOES > 0
+    for (unsigned i = 0; i < UPS_ECB_ECHOES; i++) { /* past its window an echo is none (its */
+        ups_ecb_echo_t *e = &ecb->echo[i];           /* 16-bit time would look fresh again */
+        if (ups_ecb__since16(now_ms, e->t) >= ECHO_WINDOW) { /* 65.5 s later) */
+            e->key = 0u;
+        }
+    }
+#endif
     /* the election first: a candidacy that ends with the recovery window serves (Serving)
        before it answers what the window held (the Python CAN-ECB's timers fire in that
        order); the queue sends the lowest identifier first, so the window ends a tick later */

@@ -165,7 +165,8 @@ typedef struct {
     UPS_ECB_COUNTER_T census_cut;
     UPS_ECB_COUNTER_T census_retries;
     /* this library's bounds */
-    UPS_ECB_COUNTER_T tx_dropped;    /**< frames that did not fit the TX queue */
+    UPS_ECB_COUNTER_T tx_dropped;    /**< frames that did not fit the TX queue (and admissions
+                                          whose Grants did not: the DECLARE asked again is) */
     UPS_ECB_COUNTER_T nodes_full;    /**< TxNodesFull sent: the node table is full */
     UPS_ECB_COUNTER_T channels_full; /**< EtagsFull sent because UPS_ECB_CHANNELS is reached */
     UPS_ECB_COUNTER_T streams_full;  /**< declarations refused: UPS_ECB_STREAMS reached */
@@ -189,6 +190,10 @@ typedef struct {
 
 /* the admission analyses at most UPS_ECB_STREAMS streams at once (ups_ecb_rt.h's arrays, on the
  * stack of ups_ecb_rx, have UPS_ECB_RT_MAX entries: a small bus sets it to UPS_ECB_STREAMS) */
+/* an admission queues a Grant for every stream whose priority moves, all or none */
+#if UPS_ECB_TX_DEPTH < UPS_ECB_STREAMS
+#error "UPS_ECB_TX_DEPTH must be at least UPS_ECB_STREAMS"
+#endif
 #if UPS_ECB_STREAMS > UPS_ECB_RT_MAX
 #error "UPS_ECB_RT_MAX must be at least UPS_ECB_STREAMS"
 #endif

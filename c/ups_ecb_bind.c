@@ -368,10 +368,24 @@ static void declare(ups_ecb_t *ecb, unsigned slot, unsigned txnode, const uint8_
     if (count > (unsigned)UPS_ECB_STREAMS) {
         ups_ecb__count(&ecb->counters.streams_full);
     } else if (ups_ecb_rt_admit(work, count, ecb->cfg.bitrate, ecb->cfg.fd, &miss, &response)) {
-        for (unsigned j = 0u; j < count; j++) {
-            const ups_ecb_stream_t *old = find_stream(ecb, work[j].etag, work[j].txnode);
-            if (j == at || old == NULL || old->priority != work[j].priority) {
-                send_grant(ecb, &work[j]);
+        /* a Grant for the stream and for every stream whose priority moves: all of them are
+         * queued, or none and nothing changes (a node never hears its new priority otherwise);
+         * the node asks again (docs/protocol.md, Bounds) */
+        unsigned grants = 0u;
+        for (int pass = 0; pass < 2; pass++) {
+            for (unsigned j = 0u; j < count; j++) {
+                const ups_ecb_stream_t *old = find_stream(ecb, work[j].etag, work[j].txnode);
+                if (j == at || old == NULL || old->priority != work[j].priority) {
+                    if (pass == 0) {
+                        grants++;
+                    } else {
+                        send_grant(ecb, &work[j]);
+                    }
+                }
+            }
+            if (pass == 0 && grants > UPS_ECB_TX_DEPTH - (unsigned)ecb->tx_count) {
+                ups_ecb__count(&ecb->counters.tx_dropped);
+                return;
             }
         }
         ups_ecb__copy((uint8_t *)b->streams, (const uint8_t *)work, count * (unsigned)sizeof(s));

@@ -732,6 +732,9 @@ int ups_ecb__join_rx(ups_ecb_t *ecb, uint32_t id, const uint8_t *data, unsigned 
 
 void ups_ecb__join_correct(ups_ecb_t *ecb, uint32_t id, const uint8_t *data)
 {
+    if ((id >> UPS_ECB__PRIO_SHIFT) != 0u) { /* a Bind (priority 1): the binding's to correct */
+        return;
+    }
     unsigned field = id & UPS_ECB__ETAG_MASK;
     unsigned row = field >> 8; /* op and status (an Assign's: 0) */
     int slot = entry_of(ecb, data);

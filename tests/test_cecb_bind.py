@@ -39,6 +39,7 @@ from tests.conformance._frames import (
     RosterEnd,
     SubAt,
     Uses,
+    encode,
 )
 from tests.conformance._wire import RawNode, Wire
 from tests.procs import sanitizer_env
@@ -308,3 +309,38 @@ def test_a_full_table_and_the_lease_under_asan() -> None:
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=50)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_an_admission_whose_grants_do_not_fit_the_tx_queue_waits_for_the_declare_again() -> None:
+    """A DECLARE whose admission moves the priorities of other streams needs a Grant for each:
+    with fewer free places in the TX queue than that, nothing is admitted or changed (counted in
+    tx_dropped) and the node's DECLARE again gets them all (found in review: the Grants that did
+    not fit were dropped and the priorities changed anyway, so a node never heard its new one)."""
+    ecb = Driver("full", recovery_ms=100)
+    ecb.start(0)
+    ecb.rx(Request(0x04, 1, 0xD01))  # a node claims TxNode 1 in the recovery window: adopted
+    ecb.tick(200)
+    etags = [f.etag for uid in (0xA1, 0xA2, 0xA3) for f in ecb.rx(Request(PUB_BIND, 1, uid))
+             if isinstance(f, Bind)]  # fmt: skip
+    # two streams, then one due sooner than both: it goes on top and moves the two
+    for etag, deadline in zip(etags[:2], (90, 80), strict=True):
+        assert [f for f in ecb.rx(Declare(1, etag, 1, 1000, deadline, 0)) if isinstance(f, Grant)]
+    urgent = Declare(1, etags[2], 1, 1000, 10, 0)
+
+    def queue_only(frame: Any) -> None:  # ups_ecb_rx with nothing taken from the queue
+        can_id, data = encode(frame)
+        ecb.frame.id, ecb.frame.flags, ecb.frame.len = can_id, 0x01, len(data)
+        ctypes.memmove(ecb.frame.data, data, len(data))
+        ecb.c.ups_ecb_rx(ecb.state, ecb.now, ctypes.byref(ecb.frame))
+
+    for i in range(ecb.config["tx_depth"] - 2):  # the queue full but for two places
+        queue_only(Request(SUB_BIND, 1, 0xB000 + i))
+    dropped = ecb.counters()["tx_dropped"]
+    queue_only(urgent)
+    assert ecb.counters()["tx_dropped"] == dropped + 1
+    assert not [f for f in ecb.take() if isinstance(f, Grant)]  # none sent, none half-sent
+    grants = [f for f in ecb.rx(urgent) if isinstance(f, Grant)]  # asked again: all three
+    assert sorted(g.etag for g in grants) == sorted(etags)
+    assert next(g for g in grants if g.etag == etags[2]).priority < min(
+        g.priority for g in grants if g.etag != etags[2]
+    )

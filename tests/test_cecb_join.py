@@ -392,6 +392,32 @@ def test_its_own_frames_heard_again_are_its_own() -> None:
     assert ecb.rx(Assign(9, 0xE1)) != []  # another's, heard: corrected
 
 
+def test_a_bind_is_not_corrected_as_a_join_frame() -> None:
+    """A Bind (priority 1) whose etag field reads as an Assign's, TxNodesFull's or Failed's
+    (0x20tt, 0x31tt, 0x37tt) and whose UID is a node id the table holds is a Bind: no Assign
+    in answer, no conflict of the join's (found in review: the C CAN-ECB read the field alone)."""
+    node = 0xAA01020304050607
+    ecb = Driver("full", recovery_ms=100)
+    ecb.start(0)
+    assert ecb.rx(claim(5, node)) == []  # adopted in the recovery window
+    ecb.tick(200)
+    for etag in (0x2003, 0x3105, 0x3712):
+        assert not [f for f in ecb.rx(Bind(etag, node)) if isinstance(f, Assign)], hex(etag)
+
+
+def test_an_echo_is_its_own_only_within_its_window() -> None:
+    """A frame it sent and hears again within a second is an echo; the same frame from another
+    CAN-ECB 65.7 s later is another's, answered (its 16-bit time made it look fresh again)."""
+    ecb = Driver("full", recovery_ms=100, lease_s=100_000)
+    ecb.start(0)
+    ecb.tick(200)
+    sent = ecb.census(0xE1) + ecb.rx(claim(0, 0xE1))
+    assign = next(f for f in sent if isinstance(f, Assign))
+    ecb.tick(65_700)
+    assert ecb.rx(assign) != []  # another's Assign, heard: Serving in answer
+    assert ecb.counters()["foreign_ecb_frames"] == 1
+
+
 def test_a_full_table_the_lease_and_the_blob_call_by_call() -> None:
     scenario_full_table("full")
 
