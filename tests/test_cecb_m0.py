@@ -175,19 +175,19 @@ MARGIN = 1.10  #: a function's scenario may cost this much more than c/cycles.js
     "build", ["small", pytest.param("full", marks=pytest.mark.timeout(300))]
 )
 def test_no_ecb_function_costs_more_than_the_cycles_table_says(build: str) -> None:
-    """c/cycles.py's CAN-ECB workload (tables filled to their bounds), then the frame sequences
-    its search found dearest, replayed from c/cycles.json (no new search): each public
+    """c/cycles_ecb.py's CAN-ECB workload (tables filled to their bounds), then the frame
+    sequences its search found dearest, replayed from c/cycles.json (no new search): each public
     ups_ecb_ function's worst case within MARGIN of the figure the table gives."""
     sys.path.insert(0, str(C_DIR))
     try:
-        import cycles
+        import cycles_ecb
     finally:
         sys.path.remove(str(C_DIR))
     data = json.loads((C_DIR / "cycles.json").read_text())
     image = f"ecb-{build}"
     table = data["ecb_scenario"][image]
-    recorded = cycles.recorded_frames(data["ecb_recorded"][image])
-    now = {n: c.cycles for n, c in cycles.ecb_scenario(build, recorded).items()}
+    recorded = cycles_ecb.recorded_frames(data["ecb_recorded"][image])
+    now = {n: c.cycles for n, c in cycles_ecb.ecb_scenario(build, recorded).items()}
     assert set(now) == set(table), f"{image}: functions measured changed"
     grown = {n: (table[n]["cycles"], c) for n, c in now.items() if c > table[n]["cycles"] * MARGIN}
     assert not grown, f"{image}: worst cases grew past the table (run make -C c cycles): {grown}"

@@ -269,9 +269,9 @@ def test_utilisation_at_and_near_one(rows: list[tuple[int, int, int, int]], bitr
 
 
 def _near_full(count: int, same_deadline: bool) -> list[p.Declare]:
-    """c/cycles.py's costliest stream sets for the admission (500 kbit/s, 95 % of the bus): every
-    deadline the same, or rising from 1/count of the period; refused at the lowest level, where
-    every candidate's response is then analysed to the end."""
+    """c/cycles_ecb.py's costliest stream sets for the admission (500 kbit/s, 95 % of the bus):
+    every deadline the same, or rising from 1/count of the period; refused at the lowest level,
+    where every candidate's response is then analysed to the end."""
     period = count * 3 * 100 // 95
     return [
         p.Declare(k % 120, 0x10 + k, 8, period + 3 * k, period, 0) if same_deadline
@@ -280,7 +280,7 @@ def _near_full(count: int, same_deadline: bool) -> list[p.Declare]:
     ]  # fmt: skip
 
 
-#: the costliest set a longer search of c/cycles.py's (400 examples) found for 32 streams, as
+#: the costliest set a longer search of c/cycles_ecb.py's (400 examples) found for 32 streams, as
 #: (etag, TxNode, size, period, deadline, jitter): refused at the lowest level, where each of
 #: the 32 candidates has a busy period of many instances (6.8 million cycles on Cortex-M0+)
 COSTLIEST_32 = [
@@ -321,7 +321,7 @@ COSTLIEST_32 = [
 
 @pytest.mark.parametrize("which", ["rising deadlines", "same deadline", "searched"])
 def test_admission_of_the_costliest_sets(which: str) -> None:
-    """The 32-stream sets that cost ups_ecb_rt_admit the most on Cortex-M0+ (c/cycles.py), one
+    """The 32-stream sets that cost ups_ecb_rt_admit the most on Cortex-M0+ (c/cycles_ecb.py), one
     declaration after the other: every verdict, miss and response as Python's."""
     if which == "searched":
         declared = [p.Declare(t, e, size, period, deadline, jitter)
