@@ -7,8 +7,9 @@ from __future__ import annotations
 import ctypes
 from typing import Any
 
+from tests.cecb_driver import config
 from tests.conformance._frames import decode_id, encode
-from ups.broker._cecb_lib import COUNTERS, default_config, load
+from ups.broker._cecb_lib import COUNTERS, load
 
 
 class Driver:
@@ -22,13 +23,7 @@ class Driver:
         self.state = ctypes.create_string_buffer(self.lib.size)
         self.frame = self.lib.Frame()
         self.step = step
-        conf = default_config(variant)
-        for name, value in cfg.items():
-            if name == "quota":
-                for c, q in enumerate(value):
-                    conf.quota[c] = q
-            else:
-                setattr(conf, name, value)
+        conf = config(variant, **cfg)
         assert self.c.ups_ecb_init(self.state, ctypes.byref(conf), 0x1D) == 0
         self.now = 0
 

@@ -26,6 +26,7 @@ from ups._armnode import build_image
 from . import test_can_ecb_processes, test_cnode_processes, test_ls, test_multiprocess
 from .can_ecbs import M0, READY, can_ecb_proc
 from .procs import Proc, private_multicast_bus
+from .test_cnode_m0_processes import m0_c_node
 
 pytest.importorskip("unicorn")
 
@@ -70,14 +71,8 @@ def test_a_bus_of_cortex_m0_images_only_with_python_tools(
 ) -> None:
     """The node's image (``ups c-node --target m0``, as test_cnode_m0_processes runs it) and
     the CAN-ECB's image, both emulated, beside ``ups sub`` and ``ups pub``."""
-    started = []
-
-    def c_node(bus: str, node_id: int, *args: str) -> Proc:
-        started.append(node_id)
-        return Proc("c-node", "--target", "m0", "--build", "min", "--can", bus, "--node-id",
-                    hex(node_id), *args)  # fmt: skip
-
-    monkeypatch.setattr(test_cnode_processes, "c_node", c_node)
+    started: list[int] = []
+    monkeypatch.setattr(test_cnode_processes, "c_node", m0_c_node(started))
     test_cnode_processes.test_c_node_and_python_tools_on_can(tmp_path, M0)
     assert len(started) == 2
 

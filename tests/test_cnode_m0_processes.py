@@ -9,7 +9,7 @@ Each test is the one of ``test_cnode_processes``, run with every ``ups c-node`` 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -22,17 +22,23 @@ pytest.importorskip("unicorn")
 pytestmark = pytest.mark.netns
 
 
-@pytest.fixture(autouse=True)
-def m0(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """Every ``ups c-node`` of the host tests runs the emulated Cortex-M0+ image (minimal)."""
-    started = []
+def m0_c_node(started: list[int]) -> Callable[..., Proc]:
+    """``test_cnode_processes.c_node`` on the emulated Cortex-M0+ image (minimal): each node id
+    it starts is added to ``started``."""
 
     def c_node(bus: str, node_id: int, *args: str) -> Proc:
         started.append(node_id)
         return Proc("c-node", "--target", "m0", "--build", "min", "--can", bus, "--node-id",
                     hex(node_id), *args)  # fmt: skip
 
-    monkeypatch.setattr(host, "c_node", c_node)
+    return c_node
+
+
+@pytest.fixture(autouse=True)
+def m0(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Every ``ups c-node`` of the host tests runs the emulated Cortex-M0+ image (minimal)."""
+    started: list[int] = []
+    monkeypatch.setattr(host, "c_node", m0_c_node(started))
     yield
     assert started, "the test started no ups c-node"
 
