@@ -73,6 +73,32 @@ def test_a_port_in_use_is_one_line() -> None:
             ["gateway", "--can", "virtual:x", "--zenoh", "tcp/127.0.0.1:1", "--listen", ":0"],
             "--listen is for a",
         ),
+        (
+            [
+                "gateway",
+                "--can",
+                "virtual:x",
+                "--broker",
+                "127.0.0.1:1",
+                "--external-can-ecb",
+                "--recovery",
+                "0.5",
+            ],
+            "--recovery is for the CAN-ECB the gateway hosts",
+        ),
+        (
+            [
+                "gateway",
+                "--can",
+                "virtual:x",
+                "--broker",
+                "127.0.0.1:1",
+                "--external-can-ecb",
+                "--db",
+                "x.db",
+            ],
+            "--db is for the CAN-ECB the gateway hosts",
+        ),
     ],
 )
 def test_bad_input_is_one_line(args: list[str], message: str) -> None:

@@ -18,6 +18,7 @@ a test's build with sources of its own among them.
 
 from __future__ import annotations
 
+import fcntl
 import struct
 from pathlib import Path
 
@@ -70,14 +71,16 @@ def limits(elf: Path) -> dict[str, int]:
     obj = out / "limits.o"
     if not (out / "state.o").exists():
         raise ConfigError(f"{elf} was not linked by ups._armnode.build_image (no state.o beside)")
-    if not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime:
-        size = _size_py()
-        defines = [f"-D{name}={value}" for name, value in _defines(elf).items()]
-        (out / "limits.c").write_text('#include "ups_ecb.h"\n' + "".join(
-            f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items()))  # fmt: skip
-        _run("arm-none-eabi-gcc", *size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}",
-             "-fno-common", "-c", "limits.c", "-o", "limits.o.tmp", cwd=out)  # fmt: skip
-        (out / "limits.o.tmp").replace(obj)
+    with open(out / ".lock", "w") as lock:  # build_image's: one process writes at a time
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime:
+            size = _size_py()
+            defines = [f"-D{name}={value}" for name, value in _defines(elf).items()]
+            (out / "limits.c").write_text('#include "ups_ecb.h"\n' + "".join(
+                f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items()))  # fmt: skip
+            _run("arm-none-eabi-gcc", *size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}",
+                 "-fno-common", "-c", "limits.c", "-o", "limits.o.tmp", cwd=out)  # fmt: skip
+            (out / "limits.o.tmp").replace(obj)
     found = {}
     for line in _run("arm-none-eabi-nm", "-S", obj.name, cwd=out).splitlines():
         fields = line.split()

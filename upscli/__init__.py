@@ -168,7 +168,7 @@ def _parser(only: str | None = None) -> argparse.ArgumentParser:
         help="do not host the bus's CAN-ECB: one already runs ('ups can-broker')",
     )  # fmt: skip
     cmd.add_argument(
-        "--recovery", type=nonnegative_float, default=2.0,
+        "--recovery", type=nonnegative_float, default=None,
         help="seconds the hosted CAN-ECB spends relearning the bus after start, as can-broker's "
         "(default 2)",
     )  # fmt: skip
@@ -382,6 +382,11 @@ def _run_gateway(args: argparse.Namespace) -> int:
                               "(or set UPS_BROKER or UPS_ZENOH)")  # fmt: skip
     if args.listen is not None and broker is None:
         raise ConfigError("--listen is for a gateway to TCP/IP (with --broker)")
+    if args.external_can_ecb:  # the options of the hosted CAN-ECB: none is hosted
+        for option, value in (("--db", args.db), ("--recovery", args.recovery)):
+            if value is not None:
+                raise ConfigError(f"{option} is for the CAN-ECB the gateway hosts: not with "
+                                  "--external-can-ecb")  # fmt: skip
     check_metrics(args.metrics)
     gateway = Gateway(
         args.can,
@@ -390,7 +395,7 @@ def _run_gateway(args: argparse.Namespace) -> int:
         zenoh_config=args.zenoh_config,
         db=args.db,
         host_can_ecb=not args.external_can_ecb,
-        recovery=args.recovery,
+        **({} if args.recovery is None else {"recovery": args.recovery}),
         bitrate=args.bitrate,
         node_id=args.node_id,
         listen=args.listen,
