@@ -17,17 +17,22 @@ import pytest
 
 from .procs import ROOT
 
+#: seconds a make of the C library may take: -fanalyzer, cppcheck and the sanitizer builds are
+#: CPU-bound and take minutes on a machine other work keeps busy (pytest's 60 s would stop them)
+MAKE_TIMEOUT = 300
+
 
 def make(*targets: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         ["make", "-C", str(ROOT / "c"), *targets],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=MAKE_TIMEOUT,
         check=False,
     )
 
 
+@pytest.mark.timeout(MAKE_TIMEOUT + 30)
 def test_make_check_is_clean() -> None:
     if shutil.which("cppcheck") is None:
         pytest.fail("cppcheck is missing: scripts/setup --test installs it")
@@ -36,6 +41,7 @@ def test_make_check_is_clean() -> None:
     assert "warning" not in done.stderr.lower()
 
 
+@pytest.mark.timeout(MAKE_TIMEOUT + 30)
 def test_examples_build() -> None:
     done = make("examples")
     assert done.returncode == 0, done.stderr[-3000:]
@@ -44,6 +50,7 @@ def test_examples_build() -> None:
     assert (ROOT / "c" / "build" / "ups-broker").exists()  # libups and libups-ecb in one image
 
 
+@pytest.mark.timeout(MAKE_TIMEOUT + 30)
 def test_sizes_are_measured_and_the_minimal_node_fits_the_target() -> None:
     if shutil.which("arm-none-eabi-gcc") is None:
         pytest.fail("arm-none-eabi-gcc is missing: scripts/setup --test installs it")

@@ -538,6 +538,7 @@ CNodeMachine.TestCase.settings = settings(
 TestCNodeMachine = CNodeMachine.TestCase
 
 
+@pytest.mark.timeout(240 + 30)  # its child's own bound below: a busy machine takes minutes
 def test_machine_under_sanitizers() -> None:
     """The same machine in a child process on the library built with ASan and UBSan."""
     if VARIANT == "asan":
