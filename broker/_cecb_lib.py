@@ -37,11 +37,12 @@ COUNTERS = (
     "census_knocks", "census_censuses", "census_stages", "census_late_stages", "census_queries",
     "census_reopened", "census_incomplete", "census_cut", "census_retries",
     "tx_dropped", "nodes_full", "channels_full", "streams_full", "held_dropped", "watched_full",
-    "queries_waiting", "blob_refused", "rosters", "roster_frames", "roster_replaced",
+    "queries_waiting", "blob_refused", "rosters_full", "rosters", "roster_frames",
+    "roster_replaced",
 )  # fmt: skip
 #: ups_ecb_host_config's answers, in order
 CONFIG = ("nodes", "channels", "streams", "queries", "tx_depth", "held", "watched",
-          "counter_bytes", "blob_max", "mtu")  # fmt: skip
+          "counter_bytes", "blob_max", "mtu", "rosters")  # fmt: skip
 
 
 class Config(ctypes.Structure):

@@ -74,6 +74,13 @@ extern "C" {
 #define UPS_ECB_WATCHED 4
 #endif
 
+/** Rosters waiting to be answered at once (one per asking node: only gateways ask, and a bus
+ *  has few), 1..127. Past it, the Roster of a node that has none waiting is not kept (counted:
+ *  rosters_full); the node asks again. */
+#ifndef UPS_ECB_ROSTERS
+#define UPS_ECB_ROSTERS 4
+#endif
+
 /** CAN-ECB frames remembered after they were sent (12 bytes each: identifier and data, so
  *  that no other frame passes for one), so that one heard again within a second (an echo: a
  *  controller or a bus that hands a sender its own frames, or an application that feeds what it
@@ -98,6 +105,9 @@ extern "C" {
 #endif
 #if UPS_ECB_ECHOES < 0 || UPS_ECB_ECHOES > 1024
 #error "UPS_ECB_ECHOES must be 0..1024"
+#endif
+#if UPS_ECB_ROSTERS < 1 || UPS_ECB_ROSTERS > 127
+#error "UPS_ECB_ROSTERS must be 1..127"
 #endif
 #if UPS_ECB_QUERIES < 1 || UPS_ECB_QUERIES > 16 || UPS_ECB_TX_DEPTH < 4 || UPS_ECB_TX_DEPTH > 255
 #error "UPS_ECB_QUERIES must be 1..16 and UPS_ECB_TX_DEPTH 4..255"
@@ -174,6 +184,8 @@ typedef struct {
     UPS_ECB_COUNTER_T watched_full;  /**< requests not watched: UPS_ECB_WATCHED reached */
     UPS_ECB_COUNTER_T queries_waiting; /**< census branches that waited for a free epoch */
     UPS_ECB_COUNTER_T blob_refused;  /**< ups_ecb_restore() of a corrupt or truncated blob */
+    UPS_ECB_COUNTER_T rosters_full;  /**< Rosters not kept: UPS_ECB_ROSTERS of other nodes
+                                          wait (the node asks again) */
     /* the Roster's answers (the Python CAN-ECB's names) */
     UPS_ECB_COUNTER_T rosters;         /**< Rosters answered */
     UPS_ECB_COUNTER_T roster_frames;   /**< Uses and RosterEnd frames sent in answer */

@@ -655,8 +655,9 @@ static int roster_unqueue(ups_ecb_bind_t *b, unsigned slot)
 {
     unsigned to = 0u;
     for (unsigned q = 0u; q < b->r_waiting; q++) {
-        if (b->r_queue[q] != slot) {
-            b->r_queue[to++] = b->r_queue[q];
+        if (b->rosters[q].slot != slot) {
+            ups_ecb__copy((uint8_t *)&b->rosters[to++], (const uint8_t *)&b->rosters[q],
+                          (unsigned)sizeof b->rosters[q]);
         }
     }
     int dropped = to != b->r_waiting;
@@ -684,13 +685,13 @@ static void roster_pump(ups_ecb_t *ecb)
             if (b->r_waiting == 0u) {
                 return;
             }
-            unsigned slot = b->r_queue[0];
+            unsigned slot = b->rosters[0].slot;
+            ups_ecb__copy(b->r_uid, b->rosters[0].cursor, 8u);
             (void)roster_unqueue(b, slot);
             b->r_asker = ecb->join.nodes[slot].txnode;
             if (b->r_asker == 0xFFu) {
                 continue;
             }
-            ups_ecb__copy(b->r_uid, b->r_cursor[slot], 8u);
             b->r_role = R_FIRST;
             b->r_count = 0u;
             b->r_active = 1u;
@@ -726,11 +727,15 @@ void ups_ecb__bind_request(ups_ecb_t *ecb, int slot, uint32_t id, const uint8_t 
     } else if (field == ROSTER) {
         ups_ecb_bind_t *b = &ecb->bind;
         ups_ecb__count(&ecb->counters.rosters);
-        if (roster_unqueue(b, s)) { /* a newer one replaces the one waiting */
+        if (roster_unqueue(b, s)) { /* a newer one replaces the one waiting, at the back */
             ups_ecb__count(&ecb->counters.roster_replaced);
+        } else if (b->r_waiting >= UPS_ECB_ROSTERS) { /* not kept: the node asks again */
+            ups_ecb__count(&ecb->counters.rosters_full);
+            return;
         }
-        ups_ecb__copy(b->r_cursor[s], data, 8u);
-        b->r_queue[b->r_waiting++] = (uint8_t)s;
+        ups_ecb_roster_t *r = &b->rosters[b->r_waiting++];
+        r->slot = (uint8_t)s;
+        ups_ecb__copy(r->cursor, data, 8u);
         roster_pump(ecb);
     } else if (field < UPS_ECB__FIRST_ETAG) { /* PUB_BIND, SUB_BIND, PUB_BIND(c) */
         bind(ecb, s, txnode, field, data, 0u);

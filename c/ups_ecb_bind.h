@@ -6,8 +6,9 @@
  * ups_ecb_join_t.nodes), not per TxNode: a bitmap of node entries for the subscribers and one
  * for the publishers. A channel's age counts sixteenths of the lease since its last event
  * (ups_ecb__bind_tick ages every channel), so leases need no timestamps and survive the clock's
- * wraps. With the small bus's tables (16 nodes, 64 channels, 4 streams, 8 held requests) this
- * state is 1352 bytes (Cortex-M0+ and host alike), of which the channels take 1024.
+ * wraps. With the small bus's tables (16 nodes, 64 channels, 4 streams, 8 held requests, 4
+ * waiting Rosters) this state is 1244 bytes (Cortex-M0+ and host alike), of which the channels
+ * take 1024.
  */
 #ifndef UPS_ECB_BIND_H
 #define UPS_ECB_BIND_H
@@ -27,6 +28,12 @@ typedef struct {
     uint8_t use[2][UPS_ECB_NODE_BYTES]; /* node entries that subscribe to it [0], publish [1] */
 } ups_ecb_channel_t;
 
+/** A Roster waiting to be answered (UPS_ECB_ROSTERS of them at once). */
+typedef struct {
+    uint8_t slot;      /* the asker's node entry */
+    uint8_t cursor[8]; /* the UID it asked from, big-endian */
+} ups_ecb_roster_t;
+
 /** A binding request held in a recovery window. */
 typedef struct {
     uint8_t uid[8];
@@ -43,7 +50,7 @@ typedef struct {
     uint8_t timed;           /* the three times above are set (the first tick) */
     uint8_t stream_count;
     uint8_t refused_valid;   /* the refusal below answers its declaration again */
-    uint8_t r_waiting;       /* entries of r_queue */
+    uint8_t r_waiting;       /* entries of rosters[] */
     uint8_t r_active;        /* an answer is being sent */
     uint8_t r_asker;         /* its TxNode */
     uint8_t r_role;          /* what it lists next (R_... in ups_ecb_bind.c) */
@@ -57,9 +64,7 @@ typedef struct {
     uint8_t refused_decl[8]; /* the DECLARE data last refused (its TxNode: refuse[2]) */
     uint8_t refuse[8];       /* the Refuse data last sent; refuse[0..1] == 0: none */
     uint8_t spent[UPS_ECB_NODES]; /* DECLARE analyses each node entry asked lately (<= 20) */
-    /* the roster: Rosters waiting (one per node entry, oldest first) and the answer sent */
-    uint8_t r_cursor[UPS_ECB_NODES][8];
-    uint8_t r_queue[UPS_ECB_NODES]; /* node entries, oldest first */
+    ups_ecb_roster_t rosters[UPS_ECB_ROSTERS]; /* waiting, one per node entry, oldest first */
 } ups_ecb_bind_t;
 
 #endif /* UPS_ECB_BIND_H */

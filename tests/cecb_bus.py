@@ -116,7 +116,9 @@ class Bus:
         before = self.last
         tables = self.tables
         self.reclaims = before["reclaimed"]
+        waiting = ecb.rosters()
         fn()  # type: ignore[operator]
+        self.check_rosters(what, waiting)
         if ecb.notes() & NOTE_STATE:
             self.persist()
             self.tables = ecb.nodes(), ecb.channels()
@@ -158,6 +160,16 @@ class Bus:
             self.sent_at.append(self.sent)
             self.sent += 1
         return msgs
+
+    def check_rosters(self, what: str, before: list[int]) -> None:
+        """At most UPS_ECB_ROSTERS Rosters wait, one per node entry; one is turned away
+        (rosters_full) only when that many of other nodes waited."""
+        assert self.ecb is not None
+        bound, waiting = self.ecb.config["rosters"], self.ecb.rosters()
+        assert len(waiting) <= bound, f"{what}: {len(waiting)} Rosters wait, past {bound}"
+        assert len(set(waiting)) == len(waiting), f"{what}: two Rosters of a node: {waiting}"
+        if self.ecb.counters()["rosters_full"] > self.last["rosters_full"]:
+            assert len(before) == bound, f"{what}: rosters_full with {before} waiting"
 
     def stall(self, stalled: bool) -> None:
         """The controller stalls (nothing is sent: frames wait in the CAN-ECB's queue, which

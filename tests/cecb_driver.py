@@ -79,6 +79,8 @@ class Ecb:
         self.lib = library(variant)
         self.c = self.lib.lib
         self.config = self.lib.config
+        rosters = self.c.ups_ecb_host_rosters  # c/host/ups_ecb_host.c's, for the tests
+        rosters.restype, rosters.argtypes = ctypes.c_uint, [ctypes.c_void_p, ctypes.c_char_p]
         self.state = _Block(self.lib.size)
         self.frame = _Block(ctypes.sizeof(self.lib.Frame))
         self._frame = ctypes.cast(self.frame.addr, ctypes.POINTER(self.lib.Frame))
@@ -196,6 +198,12 @@ class Ecb:
     def use(self, index: int, txnode: int) -> int:
         """ups_ecb_channel_use: bit 0 subscribes, bit 1 publishes."""
         return int(self.c.ups_ecb_channel_use(self.state.addr, index, txnode))
+
+    def rosters(self) -> list[int]:
+        """The node entries whose Rosters wait, oldest first (ups_ecb_host_rosters)."""
+        slots = ctypes.create_string_buffer(128)
+        n = int(self.c.ups_ecb_host_rosters(self.state.addr, slots))
+        return list(slots.raw[:n])
 
 
 def tables_of(variant: str, cfg: Config, blob: bytes) -> tuple[dict[int, int], dict[int, int]]:

@@ -1,12 +1,13 @@
 """libups-ecb's binding half (c/ups_ecb_bind.c): etags in every size class and moves, Limit and
 the quota, UNSUB, requests held in the recovery window, SUB_AT/PUB_AT adopted or contradicted,
-the Roster's answers, DECLARE, and the blob's section across a restart.
+the Roster's answers and the bound on those waiting, DECLARE, and the blob's section across a
+restart.
 
 Most tests run the compiled library as a CAN-ECB on a python-can virtual bus
 (``broker/c_ecb.py``'s CEcb), against frames built from docs/protocol.md
 (``tests/conformance/_frames``). The lease and a full table are driven call by call with the
 time given explicitly (``Driver``), also in a child process under AddressSanitizer on the small
-tables of the asan build (8 channels)."""
+tables of the asan build (8 channels, 2 waiting Rosters)."""
 
 from __future__ import annotations
 
@@ -305,6 +306,44 @@ def test_a_full_table_and_the_lease_call_by_call() -> None:
 def test_a_full_table_and_the_lease_under_asan() -> None:
     build("asan", targets=VARIANTS, sources=SOURCES)  # built here; loaded by the child only
     code = "from tests.test_cecb_bind import *; scenario_full_table_and_the_lease('asan')"
+    env = {**os.environ, **sanitizer_env(), "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=50)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+def scenario_rosters_past_their_bound(variant: str) -> None:
+    """UPS_ECB_ROSTERS Rosters wait at once, one per node: in a recovery window (nothing is
+    answered) one more node than that asks; its Roster is not kept (rosters_full), a newer one
+    of a node that waits replaces it at the back (roster_replaced), and when the window ends
+    each kept one is answered, oldest first, the refused one not; asked again, it is."""
+    ecb = Driver(variant, recovery_ms=300)
+    bound = ecb.config["rosters"]
+    askers = list(range(1, bound + 2))
+    ecb.start(0)
+    for t in askers:  # nodes claim in the recovery window after the Hello at start: adopted
+        ecb.rx(Request(0x04, t, 0xD00 + t))
+    for t in askers:
+        assert ecb.rx(Request(ROSTER, t, 0)) == []  # answered when the window ends
+    assert ecb.counters()["rosters_full"] == 1  # the last: as many of other nodes wait
+    assert ecb.rx(Request(ROSTER, askers[0], 0)) == []  # waits: replaced, not refused
+    assert (ecb.counters()["roster_replaced"], ecb.counters()["rosters_full"]) == (1, 1)
+    ends = [f for f in ecb.tick(500) if isinstance(f, RosterEnd)]
+    assert ends == [RosterEnd(t, 0, True) for t in askers[1:bound] + askers[:1]]
+    again = ecb.rx(Request(ROSTER, askers[-1], 0)) + ecb.tick(50)  # its 2 s have passed
+    assert [f for f in again if isinstance(f, RosterEnd)] == [RosterEnd(askers[-1], 0, True)]
+    assert ecb.counters()["rosters_full"] == 1
+
+
+def test_rosters_past_their_bound_call_by_call() -> None:
+    scenario_rosters_past_their_bound("full")
+
+
+def test_rosters_past_their_bound_under_asan() -> None:
+    """On the asan build's tables (UPS_ECB_ROSTERS 2), where a Roster kept past the table
+    would write out of it."""
+    build("asan", targets=VARIANTS, sources=SOURCES)  # built here; loaded by the child only
+    code = "from tests.test_cecb_bind import *; scenario_rosters_past_their_bound('asan')"
     env = {**os.environ, **sanitizer_env(), "PYTHONPATH": str(ROOT)}
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=50)  # fmt: skip

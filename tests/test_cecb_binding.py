@@ -78,6 +78,7 @@ def test_the_full_build_has_the_tables_of_a_full_bus() -> None:
              "watched": "WATCHED"}  # fmt: skip
     for key, macro in names.items():
         assert lib.config[key] == int(macros[f"UPS_ECB_{macro}"]), key
+    assert lib.config["rosters"] == _define("ups_ecb.h", "UPS_ECB_ROSTERS")  # its default
     cfg = lib.config
     assert cfg["channels"] > QUOTA[0] and cfg["nodes"] == 127
     assert cfg["blob_max"] >= 12 * (cfg["nodes"] + cfg["channels"] + cfg["streams"])

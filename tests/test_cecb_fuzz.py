@@ -1,18 +1,18 @@
 """libups-ecb, the CAN-ECB in C, under a Hypothesis state machine (issue 40).
 
 The machine is a bus: the C CAN-ECB (``libups-ecb-asan.so``: AddressSanitizer and
-UndefinedBehaviorSanitizer, small tables: 6 nodes, 8 channels, 3 streams, 2 queries, TX depth 8,
-so that every table fills), honest nodes (``tests/cecb_nodes.Honest``: they knock, answer the
-census, claim, bind, unsubscribe, declare, ask for the roster and answer Hello, so that the
-CAN-ECB reaches deep states: a full node table, a full channel table, quotas, refusals, recovery
+UndefinedBehaviorSanitizer, small tables: 6 nodes, 8 channels, 3 streams, 2 queries, TX depth 8, 2
+waiting Rosters, so that every table fills), honest nodes (``tests/cecb_nodes.Honest``: they knock,
+answer the census, claim, bind, unsubscribe, declare, ask for the roster and answer Hello, so that
+the CAN-ECB reaches deep states: a full node table, a full channel table, quotas, refusals, recovery
 windows) and a forger, whose frames only the CAN-ECB hears: forged Assign, Offer, Bind and every
-other CAN-ECB frame, Serving and Hello of other instances (the CAN-ECB stands by, then takes
-over), requests and reports from unknown TxNodes, CLAIMs in recovery windows, malformed rows,
-FD management frames, remote, error and 11-bit frames, random frames and floods of them. Time
-starts near the 32-bit clock's wrap and jumps (up to 2^31 - 2 s at once). The CAN-ECB is reset,
-restoring its latest blob, none, or a corrupt or truncated one. Its controller may stall (frames
-wait in its TX queue, which drops what does not fit), and may hand it its own frames back (an
-echo). The configuration varies: recovery, lease, channels per node, quotas, bit rate and FD.
+other CAN-ECB frame, Serving and Hello of other instances (the CAN-ECB stands by, then takes over),
+requests and reports from unknown TxNodes, CLAIMs in recovery windows, malformed rows, FD management
+frames, remote, error and 11-bit frames, random frames and floods of them. Time starts near the
+32-bit clock's wrap and jumps (up to 2^31 - 2 s at once). The CAN-ECB is reset, restoring its latest
+blob, none, or a corrupt or truncated one. Its controller may stall (frames wait in its TX queue,
+which drops what does not fit), and may hand it its own frames back (an echo). The configuration
+varies: recovery, lease, channels per node, quotas, bit rate and FD.
 
 After every call it checks:
 
@@ -32,6 +32,8 @@ After every call it checks:
   (``blob_refused``), the tables empty;
 - a table's bound is counted when hit: TxNodesFull with ``nodes_full``, EtagsFull with
   ``channels_full``, Limit with ``limited`` or ``quota_hit``;
+- at most UPS_ECB_ROSTERS Rosters wait (``ups_ecb_host_rosters``), one per node, and one is
+  turned away (``rosters_full``) only when that many of other nodes wait;
 - foreign and malformed frames change nothing and send nothing, and are counted; its own frames
   heard again are neither answered nor counted as another CAN-ECB's (within UPS_ECB_ECHOES);
 - an Offer names a TxNode nobody else holds; Uses and Grant say what its tables hold;
@@ -70,7 +72,8 @@ EXAMPLES = int(os.environ.get("UPS_CECB_FUZZ_EXAMPLES", "100"))
 #: counters that tell the machine reached a deep state (the statistics count them)
 DEEP = ("nodes_full", "channels_full", "streams_full", "held_dropped", "watched_full",
         "queries_waiting", "quota_hit", "limited", "reclaimed", "adopted", "conflicts", "moved",
-        "unanswered_takeovers", "admitted", "refused", "tx_dropped", "blob_refused")  # fmt: skip
+        "unanswered_takeovers", "admitted", "refused", "tx_dropped", "blob_refused",
+        "rosters_full")  # fmt: skip
 
 u64 = st.integers(0, 2**64 - 1)
 txnodes = st.integers(0, 0x7E)
@@ -225,6 +228,17 @@ class CEcbMachine(RuleBasedStateMachine):
     @rule(i=st.integers(0, len(IDS) - 1))
     def roster(self, i: int) -> None:
         self.b.node_says(i, self.b.honest[i].roster())
+
+    @rule(asks=st.lists(st.integers(0, len(IDS) - 1), min_size=1, max_size=len(IDS)))
+    def rosters(self, asks: list[int]) -> None:
+        """Nodes ask for the roster while the controller stalls: the first answer's frame waits
+        in the TX queue, so the others wait (UPS_ECB_ROSTERS of them, one per node, then
+        rosters_full); then it sends again and the answers go."""
+        b = self.b
+        b.stall(True)
+        for i in asks:
+            b.node_says(i, b.honest[i].roster())
+        b.stall(False)
 
     @rule(i=st.integers(0, len(IDS) - 1), data=st.binary(max_size=8))
     def publish(self, i: int, data: bytes) -> None:

@@ -51,7 +51,8 @@ _LIMITS = {
     "nodes": "UPS_ECB_NODES", "channels": "UPS_ECB_CHANNELS", "streams": "UPS_ECB_STREAMS",
     "queries": "UPS_ECB_QUERIES", "tx_depth": "UPS_ECB_TX_DEPTH", "held": "UPS_ECB_HELD",
     "watched": "UPS_ECB_WATCHED", "counter_bytes": "sizeof(UPS_ECB_COUNTER_T)",
-    "blob_max": "UPS_ECB_BLOB_MAX", "mtu": "UPS_MTU", "frame": "sizeof(ups_frame_t)",
+    "blob_max": "UPS_ECB_BLOB_MAX", "mtu": "UPS_MTU", "rosters": "UPS_ECB_ROSTERS",
+    "frame": "sizeof(ups_frame_t)",
     "counters": "sizeof(ups_ecb_counters_t)", "cfg": "sizeof(ups_ecb_config_t)",
 }  # fmt: skip
 
@@ -73,11 +74,14 @@ def limits(elf: Path) -> dict[str, int]:
         raise ConfigError(f"{elf} was not linked by ups._armnode.build_image (no state.o beside)")
     with open(out / ".lock", "w") as lock:  # build_image's: one process writes at a time
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime:
+        source = '#include "ups_ecb.h"\n' + "".join(
+            f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items())  # fmt: skip
+        written = out / "limits.c"
+        stale = not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime
+        if stale or written.read_text() != source:  # older than the image, or other _LIMITS
             size = _size_py()
             defines = [f"-D{name}={value}" for name, value in _defines(elf).items()]
-            (out / "limits.c").write_text('#include "ups_ecb.h"\n' + "".join(
-                f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items()))  # fmt: skip
+            written.write_text(source)
             _run("arm-none-eabi-gcc", *size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}",
                  "-fno-common", "-c", "limits.c", "-o", "limits.o.tmp", cwd=out)  # fmt: skip
             (out / "limits.o.tmp").replace(obj)
@@ -112,7 +116,7 @@ class ArmEcb:
         self.tables_budget = max(budget, TABLES_BUDGET * (sizes["channels"] + sizes["nodes"]) ** 2)
         self.config = {k: sizes[k] for k in ("nodes", "channels", "streams", "queries",
                                              "tx_depth", "held", "watched", "counter_bytes",
-                                             "blob_max", "mtu")}  # fmt: skip
+                                             "blob_max", "mtu", "rosters")}  # fmt: skip
         self._count = sizes["counters"] // sizes["counter_bytes"]
         self._counter = {2: "H", 4: "I", 8: "Q"}[sizes["counter_bytes"]]
         ecb = state_size(self.elf, "ecb")

@@ -8,8 +8,11 @@
 size_t ups_ecb_host_size(void);
 /** The configuration: 0 nodes, 1 channels, 2 streams, 3 queries, 4 TX depth, 5 held requests,
  *  6 watched requests, 7 bytes per counter, 8 UPS_ECB_BLOB_MAX, 9 UPS_MTU (the data bytes of
- *  ups_frame_t); else -1. */
+ *  ups_frame_t), 10 waiting Rosters; else -1. */
 long ups_ecb_host_config(int what);
+/** For tests only (tests/test_cecb_fuzz.py): the Rosters waiting, their node entries in
+ *  @p slots (UPS_ECB_ROSTERS bytes), oldest first. */
+unsigned ups_ecb_host_rosters(const ups_ecb_t *ecb, uint8_t *slots);
 /** For tests only (tests/test_cecb_elect.py): the election alone, at @p now_ms. @p what: 0 its
  *  tick, 1 a CAN-ECB frame heard (Hello, Serving or Probe pass their data as the instance),
  *  2 a frame asked while standing by, 3 its start: the verdict (UPS_ECB__SAY_HELLO); 4: the
@@ -35,8 +38,17 @@ long ups_ecb_host_config(int what)
     case 7: return (long)sizeof(UPS_ECB_COUNTER_T);
     case 8: return (long)UPS_ECB_BLOB_MAX;
     case 9: return UPS_MTU;
+    case 10: return UPS_ECB_ROSTERS;
     default: return -1;
     }
+}
+
+unsigned ups_ecb_host_rosters(const ups_ecb_t *ecb, uint8_t *slots)
+{
+    for (unsigned q = 0u; q < ecb->bind.r_waiting; q++) {
+        slots[q] = ecb->bind.rosters[q].slot;
+    }
+    return ecb->bind.r_waiting;
 }
 
 unsigned ups_ecb_host_elect(ups_ecb_t *ecb, uint32_t now_ms, int what, uint32_t id,
