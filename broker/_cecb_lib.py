@@ -89,7 +89,7 @@ class Library:
             "ups_ecb_counters": (p, [p]),
             "ups_ecb_node": (i, [p, i, u64p]),
             "ups_ecb_channel": (i, [p, i, u64p]),
-            "ups_ecb_channel_use": (i, [p, i, ctypes.c_uint]),
+            "ups_ecb_channel_users": (i, [p, i, p, p]),
         }
         for name, (restype, argtypes) in signatures.items():
             fn = getattr(lib, name)
@@ -140,6 +140,7 @@ class HostEcb:
         self._frame = self._lib.Frame()
         self._blob = ctypes.create_string_buffer(self.config["blob_max"])
         self._word = ctypes.c_uint64()
+        self._users = (ctypes.c_uint8 * 32)()  # subscribers, then publishers
 
     def default_config(self) -> bytes:
         cfg = Config()
@@ -196,5 +197,8 @@ class HostEcb:
         etag = int(self._c.ups_ecb_channel(self._ecb, i, ctypes.byref(self._word)))
         return etag, self._word.value
 
-    def channel_use(self, i: int, txnode: int) -> int:
-        return int(self._c.ups_ecb_channel_use(self._ecb, i, txnode))
+    def channel_users(self, i: int) -> tuple[int, int, int]:
+        users = self._users
+        etag = int(self._c.ups_ecb_channel_users(self._ecb, i, users, ctypes.byref(users, 16)))
+        raw = bytes(users)
+        return etag, int.from_bytes(raw[:16], "little"), int.from_bytes(raw[16:], "little")

@@ -92,7 +92,9 @@ class Backend(Protocol):
     def counters(self) -> tuple[int, ...]: ...
     def node(self, i: int) -> tuple[int, int]: ...
     def channel(self, i: int) -> tuple[int, int]: ...
-    def channel_use(self, i: int, txnode: int) -> int: ...
+    def channel_users(self, i: int) -> tuple[int, int, int]:
+        """The i-th channel's etag (-1: an unused entry), and the TxNodes that subscribe to it
+        and those that publish on it (bit t: TxNode t)."""
 
 
 def backend(target: str = "host", variant: str = "full", image: Path | None = None) -> Backend:
@@ -437,15 +439,13 @@ class CEcb:
     def status(self) -> dict[str, Any]:
         """The tables as ``ups status`` and ``ups ls`` show them (CanEcb.status()'s shape)."""
         txnodes = self.txnodes
-        held = sorted(set(txnodes.values()))
-        use = self._c.channel_use
         channels = []
         for i, uid, etag in sorted(self._channels(), key=lambda c: c[2]):
-            uses = {t: use(i, t) for t in held}
+            _, subscribers, publishers = self._c.channel_users(i)  # one call a channel
             channels.append({
                 "uid": f"0x{uid:016x}", "etag": f"0x{etag:04x}",
-                "publishers": [f"0x{t:02x}" for t in held if uses[t] & 2],
-                "subscribers": [f"0x{t:02x}" for t in held if uses[t] & 1],
+                "publishers": [f"0x{t:02x}" for t in range(0x7F) if publishers >> t & 1],
+                "subscribers": [f"0x{t:02x}" for t in range(0x7F) if subscribers >> t & 1],
             })  # fmt: skip
         return {
             "nodes": [{"node_id": f"0x{n:016x}", "txnode": f"0x{t:02x}"}

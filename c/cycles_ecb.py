@@ -323,7 +323,7 @@ def _ecb_fill(build: str) -> EcbBus:
         ecb.node(i)
     for i in range(channels):
         ecb.channel(i)
-        ecb.channel_use(i, txnodes[i % len(txnodes)])
+        ecb.channel_users(i)
     # a full blob, saved and taken back; the Hello's answers in the recovery window
     blob = ecb.save()
     bus.init(recovery_ms=2000)

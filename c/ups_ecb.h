@@ -322,8 +322,12 @@ int ups_ecb_node(const ups_ecb_t *ecb, int i, uint64_t *node_id);
  *  unused entry. */
 int ups_ecb_channel(const ups_ecb_t *ecb, int i, uint64_t *uid);
 
-/** How TxNode @p txnode uses the i-th channel: bit 0 subscribes, bit 1 publishes. */
-int ups_ecb_channel_use(const ups_ecb_t *ecb, int i, unsigned txnode);
+/** Who uses the i-th channel: the TxNodes that subscribe to it in @p subscribers and those
+ *  that publish on it in @p publishers (TxNode t: bit t % 8 of byte t / 8), of the node
+ *  entries that hold a TxNode. Returns its etag, or -1 (both zero) for an unused entry or an
+ *  @p i out of range. One call a channel, for a status display. */
+int ups_ecb_channel_users(const ups_ecb_t *ecb, int i, uint8_t subscribers[16],
+                          uint8_t publishers[16]);
 
 #ifdef __cplusplus
 }

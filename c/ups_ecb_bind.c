@@ -964,12 +964,22 @@ int ups_ecb__bind_restore(ups_ecb_t *ecb, const uint8_t *in, size_t size)
     return UPS_OK;
 }
 
-int ups_ecb_channel_use(const ups_ecb_t *ecb, int i, unsigned txnode)
+int ups_ecb_channel_users(const ups_ecb_t *ecb, int i, uint8_t subscribers[16],
+                          uint8_t publishers[16])
 {
-    int slot = ups_ecb__holder(ecb, txnode);
-    if (i < 0 || i >= UPS_ECB_CHANNELS || slot < 0 || ecb->bind.channels[i].etag == 0u) {
-        return 0;
+    ups_ecb__copy(subscribers, NULL, 16u);
+    ups_ecb__copy(publishers, NULL, 16u);
+    if ((unsigned)i >= UPS_ECB_CHANNELS || ecb->bind.channels[i].etag == 0u) {
+        return -1;
     }
     const ups_ecb_channel_t *ch = &ecb->bind.channels[i];
-    return (int)(has(ch->use[0], (unsigned)slot) | (has(ch->use[1], (unsigned)slot) << 1));
+    for (unsigned j = 0u; j < UPS_ECB_NODES; j++) { /* users are node entries: their TxNodes */
+        const ups_ecb_node_t *node = &ecb->join.nodes[j];
+        if (node->flags & UPS_ECB__HELD) {
+            unsigned t = node->txnode & 0x7Fu;
+            subscribers[t >> 3] |= (uint8_t)(has(ch->use[0], j) << (t & 7u));
+            publishers[t >> 3] |= (uint8_t)(has(ch->use[1], j) << (t & 7u));
+        }
+    }
+    return ch->etag;
 }

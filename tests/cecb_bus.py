@@ -192,8 +192,9 @@ class Bus:
             elif isinstance(m, p.Uses) and m.txnode not in given:
                 entry = [i for e, (u, i) in chans.items() if u == m.uid]
                 assert entry and m.txnode in nodes, f"{what}: {m} of no binding or TxNode"
-                bit = 2 if m.publish else 1
-                assert self.ecb.use(entry[0], m.txnode) & bit, f"{what}: {m}, not in its table"
+                _, subscribers, publishers = self.ecb.users(entry[0])
+                users = publishers if m.publish else subscribers
+                assert users >> m.txnode & 1, f"{what}: {m}, not in its table"
             elif isinstance(m, p.Grant):
                 assert 0x02 <= m.priority <= 0x7F, f"{what}: {m}"
                 assert m.etag in chans, f"{what}: {m} of an etag not bound"

@@ -174,15 +174,20 @@ class Ecb:
         return out
 
     def channels(self) -> dict[int, tuple[int, int]]:
-        """etag -> (uid, entry index); asserts that no etag and no UID is in two entries."""
+        """etag -> (uid, entry index); asserts that no etag and no UID is in two entries, and
+        that ups_ecb_channel_users agrees (the etag, users only of TxNodes held)."""
         out: dict[int, tuple[int, int]] = {}
         value = ctypes.c_uint64()
         n = self.config["channels"]
         for i in (-1, n, n + 1):
             assert self.c.ups_ecb_channel(self.state.addr, i, ctypes.byref(value)) == -1
+            assert self.users(i) == (-1, 0, 0), f"ups_ecb_channel_users({i})"
+        held = sum(1 << t for t in self.nodes())  # users are TxNodes held, of this etag
         uids = set()
         for i in range(n):
             etag = int(self.c.ups_ecb_channel(self.state.addr, i, ctypes.byref(value)))
+            users = self.users(i)
+            assert users[0] == etag and (users[1] | users[2]) & ~held == 0, f"entry {i}: {users}"
             if etag < 0:
                 assert etag == -1, f"ups_ecb_channel({i}) = {etag}"
                 continue
@@ -195,9 +200,20 @@ class Ecb:
             out[etag] = (value.value, i)
         return out
 
-    def use(self, index: int, txnode: int) -> int:
-        """ups_ecb_channel_use: bit 0 subscribes, bit 1 publishes."""
-        return int(self.c.ups_ecb_channel_use(self.state.addr, index, txnode))
+    def users(self, index: int) -> tuple[int, int, int]:
+        """ups_ecb_channel_users: the etag (-1: an unused entry), then the TxNodes that
+        subscribe and those that publish (bit t: TxNode t); each map its own 16 bytes (red
+        zones around them), zero for an unused entry."""
+        maps = _Block(16), _Block(16)
+        try:
+            etag = int(self.c.ups_ecb_channel_users(self.state.addr, index, maps[0].addr,
+                                                    maps[1].addr))  # fmt: skip
+            subs, pubs = (int.from_bytes(m.read(16), "little") for m in maps)
+        finally:
+            for m in maps:
+                m.free()
+        assert etag >= 0 or subs == pubs == 0, f"ups_ecb_channel_users({index}) = {etag}: users"
+        return etag, subs, pubs
 
     def rosters(self) -> list[int]:
         """The node entries whose Rosters wait, oldest first (ups_ecb_host_rosters)."""

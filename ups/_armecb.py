@@ -121,11 +121,12 @@ class ArmEcb:
         self._counter = {2: "H", 4: "I", 8: "Q"}[sizes["counter_bytes"]]
         ecb = state_size(self.elf, "ecb")
         self.mcu = mcu = Mcu(self.elf, ecb + sizes["frame"] + sizes["cfg"] + sizes["blob_max"]
-                             + 64, count=count)  # fmt: skip
+                             + 32 + 64, count=count)  # fmt: skip
         self._at_ecb = mcu.alloc(ecb)
         self._at_frame = mcu.alloc(sizes["frame"], 4)
         self._at_cfg = mcu.alloc(sizes["cfg"], 4)
         self._at_word = mcu.alloc(8, 8)  # a uint64_t the table's readers write
+        self._at_users = mcu.alloc(32, 4)  # ups_ecb_channel_users' subscribers, publishers
         self._at_blob = mcu.alloc(sizes["blob_max"], 4)
         self._cfg_size = sizes["cfg"]
 
@@ -199,8 +200,11 @@ class ArmEcb:
         etag = self._call("ups_ecb_channel", self._at_ecb, i, self._at_word)
         return etag, struct.unpack("<Q", self.mcu.read(self._at_word, 8))[0]
 
-    def channel_use(self, i: int, txnode: int) -> int:
-        return self._call("ups_ecb_channel_use", self._at_ecb, i, txnode)
+    def channel_users(self, i: int) -> tuple[int, int, int]:
+        at = self._at_users
+        etag = self._call("ups_ecb_channel_users", self._at_ecb, i, at, at + 16)
+        users = self.mcu.read(at, 32)
+        return etag, int.from_bytes(users[:16], "little"), int.from_bytes(users[16:], "little")
 
 
 def arm_ecb(build: str, image: Path | None = None) -> ArmEcb:
