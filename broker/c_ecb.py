@@ -423,11 +423,14 @@ class CEcb:
         return dict(zip(COUNTERS, self._c.counters(), strict=True))
 
     def stats(self) -> dict[str, object]:
+        return self._stats(len(self.txnodes), len(self.etags))
+
+    def _stats(self, txnodes: int, etags: int) -> dict[str, object]:  # the tables' sizes given
         return {
             **self.counters(),
             "storage_errors": self.storage_errors,
-            "txnodes": len(self.txnodes),
-            "etags": len(self.etags),
+            "txnodes": txnodes,
+            "etags": etags,
             "storage_error": self.storage_error,
             "state": str(self.state_path),
             "healthy": self.healthy,
@@ -439,8 +442,9 @@ class CEcb:
     def status(self) -> dict[str, Any]:
         """The tables as ``ups status`` and ``ups ls`` show them (CanEcb.status()'s shape)."""
         txnodes = self.txnodes
+        bound = self._channels()
         channels = []
-        for i, uid, etag in sorted(self._channels(), key=lambda c: c[2]):
+        for i, uid, etag in sorted(bound, key=lambda c: c[2]):
             _, subscribers, publishers = self._c.channel_users(i)  # one call a channel
             channels.append({
                 "uid": f"0x{uid:016x}", "etag": f"0x{etag:04x}",
@@ -451,7 +455,7 @@ class CEcb:
             "nodes": [{"node_id": f"0x{n:016x}", "txnode": f"0x{t:02x}"}
                       for n, t in sorted(txnodes.items(), key=lambda i: i[1])],
             "channels": channels,
-            "stats": self.stats(),
+            "stats": self._stats(len(txnodes), len(bound)),
         }  # fmt: skip
 
 
