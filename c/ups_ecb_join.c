@@ -194,7 +194,17 @@ static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
         ups_ecb__count(&ecb->counters.reclaimed);
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     } else { /* the lowest TxNode no other entry uses: entries <= 127 TxNodes, one is free */
-        for (txnode = 0u; txnode < TXNODES && with_txnode(ecb, txnode, slot, 0u) >= 0; txnode++) {
+        uint8_t used[UPS_ECB_NODES]; /* in one pass, not one per TxNode (a census storm on a
+                                        full bus finds several ids in a tick): the others use
+                                        fewer TxNodes than UPS_ECB_NODES, one below is free */
+        ups_ecb__copy(used, NULL, UPS_ECB_NODES);
+        for (int i = 0; i < UPS_ECB_NODES; i++) {
+            unsigned t = ecb->join.nodes[i].txnode; /* 0xFF in an unused entry */
+            if (i != slot && t < UPS_ECB_NODES) {
+                used[t] = 1u;
+            }
+        }
+        for (txnode = 0u; txnode < UPS_ECB_NODES && used[txnode]; txnode++) {
         }
     }
     set_entry(node, node_id, txnode, 0u);

@@ -18,11 +18,12 @@ void ups_ecb__note(ups_ecb_t *ecb, unsigned bits)
 
 int ups_ecb__same8(const uint8_t *a, const uint8_t *b)
 {
-    unsigned diff = 0;
-    for (unsigned i = 0; i < 8u; i++) {
-        diff |= (unsigned)(a[i] ^ b[i]);
+    for (unsigned i = 8u; i-- > 0u;) { /* the last byte first: ids and UIDs of one bus */
+        if (a[i] != b[i]) {            /* mostly share their first ones */
+            return 0;
+        }
     }
-    return diff == 0u;
+    return 1;
 }
 
 void ups_ecb__copy(uint8_t *to, const uint8_t *from, unsigned n)
