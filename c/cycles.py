@@ -30,8 +30,8 @@ Writes cycles.json ({"worst": {config: {function: {cycles, instructions}}}, "sce
 same for the deterministic workload alone, which tests/test_cnode_m0.py runs again and compares
 with a margin; "recorded": {config: {function: {cycles, instructions, steps}}}, the input the
 search found dearest for each function, which later runs and tests/test_cnode_m0.py play
-again; "ecb", "ecb_scenario": the same per CAN-ECB image, "ecb_recorded": the frame
-sequences the search found dearest, which tests/test_cecb_m0.py replays after the workload)
+again; "ecb", "ecb_scenario", "ecb_recorded": the same per CAN-ECB image, each recorded input
+played from the tables filled to their bounds, by later runs and tests/test_cecb_m0.py)
 and, with --readme, the tables in README.md between its markers.
 """
 
@@ -44,7 +44,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from cycles_ecb import ECB, admission_worst, ecb_measure, frames_json  # noqa: E402
+from cycles_ecb import ECB, Dearest, Step, admission_worst, ecb_measure, keep  # noqa: E402
 
 from ups import _canproto as p  # noqa: E402
 from ups._armnode import RAM, ArmNode, Counts  # noqa: E402
@@ -223,9 +223,6 @@ class Drive:
         self.run(20)
 
 
-Step = int | tuple[int, bytes, int]  #: a step of an input: ms ticked, or a frame (id, data, flags)
-
-
 class Bound:
     """A node joined and its channels bound (``Drive.join``, ``Drive.channels``): where every
     input of the search starts, and every recorded one when it is played again. An input's
@@ -249,15 +246,6 @@ class Bound:
             else:
                 drive.raw(*step)
         return dict(mcu.worst)
-
-
-Dearest = dict[str, tuple[Counts, list[Step]]]  #: function -> its costliest input so far
-
-
-def _keep(dearest: Dearest, worst: dict[str, Counts], steps: list[Step]) -> None:
-    for name, counts in worst.items():
-        if counts.cycles > dearest.get(name, (Counts(), []))[0].cycles:
-            dearest[name] = (counts, steps)
 
 
 def search(bound: Bound, examples: int, dearest: Dearest) -> None:
@@ -285,7 +273,7 @@ def search(bound: Bound, examples: int, dearest: Dearest) -> None:
         worst = bound.play(steps)
         for label in ("ups_rx", "ups_tick"):
             target(float(worst.get(label, Counts()).cycles), label=label)
-        _keep(dearest, worst, steps)
+        keep(dearest, worst, steps)
 
     inputs()
 
@@ -318,7 +306,7 @@ def measure(
     played = {name: bound.play(steps) for name, steps in recorded.items()}
     dearest: Dearest = {n: (w[n], recorded[n]) for n, w in played.items() if n in w}
     for name, worst in played.items():  # a function's own input stays unless another costs more
-        _keep(dearest, worst, recorded[name])
+        keep(dearest, worst, recorded[name])
     for examples in runs:
         search(bound, examples, dearest)
     worst = dict(fixed)
@@ -381,7 +369,8 @@ def ecb_table(results: dict[str, dict[str, dict[str, int]]]) -> str:
 
 def main() -> int:
     out = HERE / "cycles.json"
-    before = json.loads(out.read_text()).get("recorded", {}) if out.exists() else {}
+    old = json.loads(out.read_text()) if out.exists() else {}
+    before, ecb_before = old.get("recorded", {}), old.get("ecb_recorded", {})
     results, scenarios = {}, {}
     recorded: dict[str, dict[str, dict[str, object]]] = {}
     for config in CONFIGS:
@@ -391,9 +380,9 @@ def main() -> int:
     ecb: dict[str, dict[str, dict[str, int]]] = {}
     ecb_fixed, ecb_recorded = {}, {}
     for build, image, counts in (("small", "ecb-small", (4,)), ("full", "ecb-full", (4, 16, 32))):
-        worst, fixed, frames = ecb_measure(build)
+        worst, fixed, dearest = ecb_measure(build, recorded_steps(ecb_before.get(image, {})))
         ecb[image] = {**figures(worst), **admission_worst(image, counts)}
-        ecb_fixed[image], ecb_recorded[image] = figures(fixed), frames_json(frames)
+        ecb_fixed[image], ecb_recorded[image] = figures(fixed), steps_json(dearest)
     out.write_text(json.dumps({"worst": results, "scenario": scenarios, "recorded": recorded,
                                "ecb": ecb, "ecb_scenario": ecb_fixed,
                                "ecb_recorded": ecb_recorded}, indent=1) + "\n")  # fmt: skip

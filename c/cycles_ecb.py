@@ -1,12 +1,13 @@
 #!/usr/bin/env python3
 """Worst-case cycles of libups-ecb, the CAN-ECB in C, on Cortex-M0+ (``make -C c cycles``, whose
 c/cycles.py runs this beside the node's part): every public ups_ecb_ function on the ecb-small
-and ecb-full images (ups/_armecb.py) through tables filled to their bounds (``ecb_scenario``;
-ups_ecb_rx split into a DECLARE, which runs the admission, and any other frame), a Hypothesis
-search over frame sequences on the full tables whose dearest sequences are recorded and
-replayed (``ecb_measure``, ``recorded_frames``), and ups_ecb_rt_admit (and ups_ecb_rt_response
-where linked) alone over the stream sets that make them dearest (``admission_worst``). The
-cycles are counted as c/cycles.py says.
+and ecb-full images (ups/_armecb.py) through tables filled to their bounds and their leases run
+out (``EcbBound``; ups_ecb_rx split into a DECLARE, which runs the admission, and any other
+frame), a Hypothesis search over frame sequences, each from the filled tables, whose dearest
+input of each function is recorded and played again by every later run before it searches
+(``ecb_measure``), and ups_ecb_rt_admit (and ups_ecb_rt_response where linked) alone over the
+stream sets that make them dearest (``admission_worst``). The cycles are counted as
+c/cycles.py says.
 """
 
 from __future__ import annotations
@@ -243,12 +244,6 @@ def _ids(count: int, seed: int) -> list[int]:
     return [0x0123_4567_89AB_0000 ^ (seed << 40) ^ (k * 0x1111) for k in range(count)]
 
 
-def ecb_scenario(build: str, recorded: list[list[Frame]] | None = None) -> dict[str, Counts]:
-    """Every public ups_ecb_ function driven through tables filled to their bounds on the
-    ``build`` image, then the frame sequences the search found dearest (``recorded``) again."""
-    return _ecb_finish(_ecb_fill(build), recorded or [])
-
-
 def _ecb_fill(build: str) -> EcbBus:
     bus = EcbBus(build)
     ecb, size = bus.ecb, bus.size
@@ -337,12 +332,9 @@ def _ecb_fill(build: str) -> EcbBus:
     return bus
 
 
-def _ecb_finish(bus: EcbBus, recorded: list[list[Frame]]) -> dict[str, Counts]:
-    """The search's dearest sequences again, then the leases run out (ticks an eighth of a
-    lease apart age every entry of the full tables); each function's worst."""
-    for batch in recorded:
-        bus.rx(batch)
-        bus.run(1)
+def _ecb_finish(bus: EcbBus) -> dict[str, Counts]:
+    """The leases run out (ticks an eighth of a lease apart age every entry of the full
+    tables); each function's worst."""
     for _ in range(12):
         bus.now = (bus.now + 86_400_000 // 8) & 0xFFFF_FFFF
         bus.run(1)
@@ -355,46 +347,105 @@ def _rows(bus: EcbBus) -> dict[str, Counts]:
     return rows
 
 
+Step = int | Frame  #: a step of an input: ms ticked (the queue sent after each), or a frame
+Dearest = dict[str, tuple[Counts, list[Step]]]  #: function -> its costliest input so far
+
+
+def keep(dearest: Dearest, worst: dict[str, Counts], steps: list[Step]) -> None:
+    """Each function of ``worst`` whose call cost more than its dearest input so far: ``steps``
+    in its place."""
+    for name, counts in worst.items():
+        if counts.cycles > dearest.get(name, (Counts(), []))[0].cycles:
+            dearest[name] = (counts, steps)
+
+
+class EcbBound:
+    """The tables of the ``build`` image filled to their bounds (``_ecb_fill``): where every
+    input of the search starts, and every recorded one when it is played again. An input's
+    figures are its own: its steps alone from this state (the RAM as it was, the same clock and
+    the same nodes around it)."""
+
+    def __init__(self, build: str) -> None:
+        self.bus = bus = _ecb_fill(build)
+        self._ram = bus.mcu.read(RAM, bus.mcu.ram_size)
+        self._kept = (bus.now, dict(bus.rows), dict(bus.mcu.worst), dict(bus.nodes),
+                      set(bus.joiners), list(bus.pubs), list(bus.subs))  # fmt: skip
+
+    def reset(self) -> None:
+        """The filled tables again."""
+        bus = self.bus
+        bus.mcu.write(RAM, self._ram)
+        now, rows, worst, nodes, joiners, pubs, subs = self._kept
+        bus.now, bus.rows, bus.mcu.worst = now, dict(rows), dict(worst)
+        bus.nodes, bus.joiners = dict(nodes), set(joiners)
+        bus.pubs, bus.subs = list(pubs), list(subs)
+
+    def play(self, steps: list[Step]) -> dict[str, Counts]:
+        """Each function's costliest call while ``steps`` run from the filled tables: frames
+        received as they come, a number of ms ticked (the queue sent before and after each)."""
+        self.reset()
+        bus = self.bus
+        bus.rows, bus.mcu.worst = {}, {}
+        for step in steps:
+            if isinstance(step, int):
+                bus.drain()
+                bus.run(step)
+            else:
+                can_id, data, flags = step
+                bus.ecb.rx(bus.now, can_id, flags, data)
+                bus._keep(bus.declare if _is_declare(can_id) else OTHER_ROW)
+        return _rows(bus)
+
+    def finish(self) -> dict[str, Counts]:
+        """The workload's own figures: from the filled tables the leases run out."""
+        self.reset()
+        return _ecb_finish(self.bus)
+
+
 ECB_EXAMPLES = {"small": 250, "full": 40}  #: the search's examples (some 10 to 20 s each: an
 #: example on the full tables costs about 0.5 s in the emulator)
 
 
 def ecb_measure(
-    build: str, seconds: float = 60.0
-) -> tuple[dict[str, Counts], dict[str, Counts], list[list[Frame]]]:
-    """(the worst case of each function, the scenario's own figures, the search's dearest
-    sequences). The search runs on the filled tables of the scenario, whose RAM is then put
-    back as it was, so that the scenario goes on as ecb_scenario(build, recorded) runs it; it
-    stops at ECB_EXAMPLES[build] examples (the same every run) or, on a machine too busy, after
-    ``seconds``."""
-    examples = ECB_EXAMPLES[build]
-    bus = _ecb_fill(build)
-    ram = bus.mcu.read(RAM, bus.mcu.ram_size)
-    kept = (bus.now, dict(bus.rows), dict(bus.mcu.worst), dict(bus.nodes), set(bus.joiners),
-            list(bus.pubs), list(bus.subs))  # fmt: skip
-    found, recorded = _ecb_search(bus, examples, seconds)
-    bus.mcu.write(RAM, ram)
-    bus.now, bus.rows, bus.mcu.worst, bus.nodes, bus.joiners, bus.pubs, bus.subs = kept
-    fixed = _ecb_finish(bus, recorded)
+    build: str,
+    recorded: dict[str, list[Step]],
+    seconds: float = 60.0,
+    examples: int | None = None,
+) -> tuple[dict[str, Counts], dict[str, Counts], Dearest]:
+    """(the worst case of each function, the workload's own figures, each function's dearest
+    input). The inputs ``recorded`` by earlier runs (function -> its input) are played first,
+    each from the filled tables as the search plays its own, so that a worst once found stays
+    in the table unless the code got cheaper for its input (the search stops after
+    ``seconds`` on a busy machine, and what it finds depends on the constants Hypothesis
+    collects from the project's modules). The search then runs ``examples``
+    (ECB_EXAMPLES[build] unless given; 0: none) from the same tables."""
+    bound = EcbBound(build)
+    played = {name: bound.play(steps) for name, steps in recorded.items()}
+    dearest: Dearest = {n: (w[n], recorded[n]) for n, w in played.items() if n in w}
+    for name, worst in played.items():  # a function's own input stays unless another costs more
+        keep(dearest, worst, recorded[name])
+    examples = ECB_EXAMPLES[build] if examples is None else examples
+    if examples > 0:
+        _ecb_search(bound, examples, seconds, dearest)
+    fixed = bound.finish()
     worst = dict(fixed)
-    for name, counts in found.items():
+    for name, (counts, _) in dearest.items():
         if counts.cycles > worst.get(name, Counts()).cycles:
             worst[name] = counts
-    return worst, fixed, recorded
+    return worst, fixed, dearest
 
 
-def _ecb_search(
-    bus: EcbBus, examples: int, seconds: float
-) -> tuple[dict[str, Counts], list[list[Frame]]]:
-    """A Hypothesis search (``target``) for the frame sequences that make ups_ecb_rx and
-    ups_ecb_tick costliest on full tables, stopped after ``seconds``: (the worst of each row,
-    the sequences that were dearest for ups_ecb_rx, for a DECLARE and for ups_ecb_tick)."""
+def _ecb_search(bound: EcbBound, examples: int, seconds: float, dearest: Dearest) -> None:
+    """A Hypothesis search (``target``) for the frame sequences (and the ms ticked after them)
+    that make ups_ecb_rx and ups_ecb_tick costliest on the filled tables, each from those
+    tables, stopped after ``seconds``: each function's dearest input into ``dearest``."""
     import time
 
     from hypothesis import HealthCheck, given, settings, target
     from hypothesis import strategies as st
 
-    bus.rows, bus.mcu.worst = {}, {}
+    bound.reset()  # the frames name the nodes and channels of the filled tables
+    bus = bound.bus
     txnodes = sorted(bus.nodes.values())
     uses = bus.pubs + bus.subs
     valid = [(*p.encode(m), 1) for m in (
@@ -412,7 +463,6 @@ def _ecb_search(
         st.builds(lambda pr, tx, e: (pr << 21) | (tx << 14) | e, st.sampled_from([0, 1, 0x80]),
                   st.sampled_from([ECB, *txnodes[:3]]), st.integers(0, 0x3FFF)),
         st.binary(max_size=8), st.sampled_from([1, 1, 0])))  # fmt: skip
-    dearest: dict[str, tuple[int, list[Frame]]] = {}
     stop = time.monotonic() + seconds
 
     @settings(max_examples=examples, deadline=None, database=None, derandomize=True,
@@ -421,33 +471,10 @@ def _ecb_search(
     def search(batch: list[Frame], ms: int) -> None:
         if time.monotonic() > stop:
             return
-        most: dict[str, int] = {}
-        for can_id, data, flags in batch:
-            bus.ecb.rx(bus.now, can_id, flags, data)
-            name = bus.declare if _is_declare(can_id) else OTHER_ROW
-            bus._keep(name)
-            most[name] = max(most.get(name, 0), bus.mcu.counts.cycles)
-        bus.drain()
-        most["ups_ecb_tick"] = 0
-        for _ in range(ms):
-            bus.now = (bus.now + 1) & 0xFFFF_FFFF
-            bus.ecb.tick(bus.now)
-            most["ups_ecb_tick"] = max(most["ups_ecb_tick"], bus.mcu.counts.cycles)
-            bus.drain()
-        for label, cycles in most.items():
-            target(float(cycles), label=label)
-            if cycles > dearest.get(label, (0, []))[0]:
-                dearest[label] = (cycles, batch)
+        steps: list[Step] = [*batch, ms]
+        worst = bound.play(steps)
+        for label in (DECLARE_ROW, OTHER_ROW, "ups_ecb_tick"):
+            target(float(worst.get(label, Counts()).cycles), label=label)
+        keep(dearest, worst, steps)
 
     search()
-    return _rows(bus), [batch for _, batch in dearest.values()]
-
-
-def frames_json(recorded: list[list[Frame]]) -> list[list[list[object]]]:
-    return [[[i, d.hex(), f] for i, d, f in batch] for batch in recorded]
-
-
-def recorded_frames(data: list[list[list[object]]]) -> list[list[Frame]]:
-    """cycles.json's dearest sequences of the search, as ecb_scenario takes them."""
-    return [[(int(i), bytes.fromhex(str(d)), int(f)) for i, d, f in batch]  # type: ignore[call-overload]
-            for batch in data]  # fmt: skip
