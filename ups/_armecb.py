@@ -42,8 +42,8 @@ BUDGET = 20_000_000  #: instructions one call may run (0.4 s and more at 48 MHz:
 #: of ecb-full can run past it (c/README.md's cycles table): it is stopped, not waited for
 TABLES_BUDGET = 256  #: instructions per pair of table entries, (channels + nodes)², that the
 #: calls over the whole tables (ups_ecb_init, _save, _restore) may run, and at least BUDGET:
-#: restore checks each entry of a blob against those taken before, about 36 (ecb-full) to 47
-#: (ecb-small) per pair for a full blob; 256 leaves a factor of 5 (ecb-full: 104 million)
+#: restore checks each entry of a blob against those taken before, about 19 (ecb-full) to 30
+#: (ecb-small) per pair for a full blob; 256 leaves a factor of 8 (ecb-full: 104 million)
 
 #: what the image's sizes are read as: name -> the C expression of its size in bytes (plus
 #: one, so that a table of none is still an array)
