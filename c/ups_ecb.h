@@ -187,7 +187,7 @@ typedef struct {
     UPS_ECB_COUNTER_T rosters_full;  /**< Rosters not kept: UPS_ECB_ROSTERS of other nodes
                                           wait (the node asks again) */
     /* the Roster's answers (the Python CAN-ECB's names) */
-    UPS_ECB_COUNTER_T rosters;         /**< Rosters answered */
+    UPS_ECB_COUNTER_T rosters;         /**< Rosters asked (answered, replaced or not kept) */
     UPS_ECB_COUNTER_T roster_frames;   /**< Uses and RosterEnd frames sent in answer */
     UPS_ECB_COUNTER_T roster_replaced; /**< Rosters replaced by a newer one of the same node
                                             while waiting */

@@ -303,6 +303,7 @@ def test_a_full_table_and_the_lease_call_by_call() -> None:
     scenario_full_table_and_the_lease("full")
 
 
+@pytest.mark.timeout(240)  # the asan build made here, then its child: minutes on a busy machine
 def test_a_full_table_and_the_lease_under_asan() -> None:
     build("asan", targets=VARIANTS, sources=SOURCES)  # built here; loaded by the child only
     code = "from tests.test_cecb_bind import *; scenario_full_table_and_the_lease('asan')"
@@ -339,6 +340,7 @@ def test_rosters_past_their_bound_call_by_call() -> None:
     scenario_rosters_past_their_bound("full")
 
 
+@pytest.mark.timeout(240)  # the asan build made here, then its child: minutes on a busy machine
 def test_rosters_past_their_bound_under_asan() -> None:
     """On the asan build's tables (UPS_ECB_ROSTERS 2), where a Roster kept past the table
     would write out of it."""

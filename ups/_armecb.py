@@ -72,25 +72,35 @@ def limits(elf: Path) -> dict[str, int]:
     obj = out / "limits.o"
     if not (out / "state.o").exists():
         raise ConfigError(f"{elf} was not linked by ups._armnode.build_image (no state.o beside)")
-    with open(out / ".lock", "w") as lock:  # build_image's: one process writes at a time
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        source = '#include "ups_ecb.h"\n' + "".join(
-            f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items())  # fmt: skip
-        written = out / "limits.c"
-        stale = not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime
-        if stale or written.read_text() != source:  # older than the image, or other _LIMITS
-            size = _size_py()
-            defines = [f"-D{name}={value}" for name, value in _defines(elf).items()]
-            written.write_text(source)
-            _run("arm-none-eabi-gcc", *size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}",
-                 "-fno-common", "-c", "limits.c", "-o", "limits.o.tmp", cwd=out)  # fmt: skip
-            (out / "limits.o.tmp").replace(obj)
+    source = '#include "ups_ecb.h"\n' + "".join(
+        f"char ups_limit_{n}[({e}) + 1];\n" for n, e in _LIMITS.items())  # fmt: skip
+    written = out / "limits.c"
+
+    def stale() -> bool:  # older than the image, or of other _LIMITS
+        return (not obj.exists() or obj.stat().st_mtime < elf.stat().st_mtime
+                or not written.exists() or written.read_text() != source)  # fmt: skip
+
+    if stale():  # (a fresh one is only read: an image's folder may be read-only)
+        with open(out / ".lock", "w") as lock:  # build_image's: one process writes at a time
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if stale():
+                _build_limits(elf, out, written, source)
     found = {}
     for line in _run("arm-none-eabi-nm", "-S", obj.name, cwd=out).splitlines():
         fields = line.split()
         if len(fields) == 4 and fields[3].startswith("ups_limit_"):
             found[fields[3].removeprefix("ups_limit_")] = int(fields[1], 16) - 1
     return found
+
+
+def _build_limits(elf: Path, out: Path, written: Path, source: str) -> None:
+    """Compile ``source`` (written to ``written``) with the image's flags into out/limits.o."""
+    size = _size_py()
+    defines = [f"-D{name}={value}" for name, value in _defines(elf).items()]
+    written.write_text(source)
+    _run("arm-none-eabi-gcc", *size.CPUS[CPU], *size.FLAGS, *defines, f"-I{C_DIR}",
+         "-fno-common", "-c", written.name, "-o", "limits.o.tmp", cwd=out)  # fmt: skip
+    (out / "limits.o.tmp").replace(out / "limits.o")
 
 
 class ArmEcb:
