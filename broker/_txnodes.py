@@ -3,9 +3,11 @@
 The census (``_census``) finds the ids of joining nodes; each is offered a TxNode
 (``OFFER_TIMEOUT`` s to claim it), stored, then announced (Assign). A node already known gets its
 own TxNode back. Claims answer the CAN-ECB's Hello: in a recovery window the TxNodes they name
-are adopted when nobody else holds them, and a node that claims another's TxNode is moved. When
-none is free, the TxNode silent longest is reclaimed once past the lease. See docs/protocol.md,
-*Joining* and *Restarts, recovery and the answer to Hello*.
+are adopted when nobody else holds them, and a node that claims another's TxNode is moved. A
+TxNode adopted in a later window (from a stray) is on probation until any frame of it comes:
+when none is free, the lowest TxNode on probation is reclaimed, else the one silent longest once
+past the lease. See docs/protocol.md, *Joining* and *Restarts, recovery and the answer to
+Hello*.
 """
 
 from __future__ import annotations
@@ -77,6 +79,15 @@ class TxNodes:
         self._offers: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
         self._lapsed: dict[int, int] = {}  # node id -> TxNode of an offer it did not claim in time
         self.seen = dict.fromkeys(range(p.TXNODE_COUNT), time.monotonic())
+        #: TxNodes adopted from a stray's CLAIM and not heard since: reclaimed first when none is
+        #: free (a forger's made-up ids go silent; a real node asks again). Soft state: not stored
+        self.probation: set[int] = set()
+
+    def heard(self, txnode: int, now: float) -> None:
+        """A frame of ``txnode`` came (before it is handled): its lease starts again, and its
+        probation is over."""
+        self.seen[txnode] = now
+        self.probation.discard(txnode)
 
     def close(self) -> None:
         for _, timer in self._offers.values():
@@ -178,21 +189,29 @@ class TxNodes:
                 return txnode
         now = time.monotonic()
         idle = [t for t in self.node_at if t not in offered]  # offered: a node's own, in use
+        stray = min((t for t in idle if t in self.probation), default=None)
+        if stray is not None:  # adopted from a stray's CLAIM, silent since: past its lease
+            return self._reclaim(stray, writes, "on probation")
         oldest = min(idle, key=lambda t: self.seen[t], default=None)
         if oldest is None or now - self.seen[oldest] < self._lease:
             return None
-        old_id = self.node_at.pop(oldest)
+        return self._reclaim(oldest, writes, f"silent for {now - self.seen[oldest]:.0f} s")
+
+    def _reclaim(self, txnode: int, writes: list[Write], why: str) -> int:
+        """Take ``txnode`` from its node, which is forgotten for good (``writes``)."""
+        old_id = self.node_at.pop(txnode)
         del self._store.txnodes[old_id]
-        self._forget(oldest)
+        self.probation.discard(txnode)
+        self._forget(txnode)
         writes.append(("txnodes", old_id, None))
         self._counters["reclaimed"] += 1
-        log.warning("reclaimed TxNode 0x%02x of node %016x, silent for %.0f s", oldest, old_id,
-                    now - self.seen[oldest])  # fmt: skip
-        return oldest
+        log.warning("reclaimed TxNode 0x%02x of node %016x, %s", txnode, old_id, why)
+        return txnode
 
     def _hold(self, node_id: int, txnode: int) -> None:
         self._store.txnodes[node_id] = txnode
         self.node_at[txnode] = node_id
+        self.probation.discard(txnode)  # a new holder
 
     def txnode_of(self, node_id: int) -> int | None:
         """The TxNode the table gives ``node_id``."""
@@ -250,6 +269,8 @@ class TxNodes:
             self._counters["adopted"] += 1
             log.info("adopting TxNode 0x%02x of node %016x", txnode, node_id)
             self._hold(node_id, txnode)
+            if phase.started_up:  # a stray's: on probation until it speaks again (after this)
+                self.probation.add(txnode)
             self._store.submit(
                 [("txnodes", node_id, txnode)], self._log_failure(f"adopted TxNode 0x{txnode:02x}")
             )

@@ -272,8 +272,8 @@ class CanEcb:
             return
         txnode = (can_id >> p.TXNODE_SHIFT) & p.TXNODE_MASK
         now = time.monotonic()
-        if txnode != p.MGMT_TXNODE:
-            self._txnodes.seen[txnode] = now
+        if txnode != p.MGMT_TXNODE:  # before it is handled: an adopting CLAIM stays on probation
+            self._txnodes.heard(txnode, now)
         if not p.is_management(can_id):
             self._etags.seen[can_id & p.ETAG_MASK] = now
             return

@@ -5,10 +5,13 @@
  *
  * The node table holds every node id the CAN-ECB knows: held (durable), offered, or lapsed
  * (an Offer nobody claimed in time, kept for a late claim). A new node id takes an unused
- * entry, else the one of the oldest lapsed Offer, else the entry of the TxNode silent longest
- * past the lease (reclaimed); else TxNodesFull. Its TxNode is the lowest no entry uses (the
- * reclaimed one's when reclaimed). The Python CAN-ECB keeps up to 127 lapsed Offers beside
- * 127 TxNodes; here they share the UPS_ECB_NODES entries and give way first.
+ * entry, else the one of the oldest lapsed Offer, else the entry of the lowest TxNode on
+ * probation (adopted from a stray's CLAIM, silent since), else that of the TxNode silent
+ * longest past the lease (both reclaimed); else TxNodesFull. Its TxNode is the lowest no
+ * entry uses (the reclaimed one's when reclaimed). The Python CAN-ECB keeps up to 127 lapsed
+ * Offers beside 127 TxNodes; here they share the UPS_ECB_NODES entries and give way first. The
+ * entries keep no adoption time: of those on probation the lowest TxNode goes first (as in
+ * Python), not the one adopted earliest.
  *
  * The census walks the joiners' ids by queries, each in one of 16 epochs (used round robin,
  * as the Python CAN-ECB does), at most UPS_ECB_QUERIES open at once; a closed query stays in
@@ -146,12 +149,14 @@ void ups_ecb__join_seen(ups_ecb_t *ecb, unsigned txnode)
     int slot = ups_ecb__holder(ecb, txnode);
     if (slot != UPS_ECB__NO_SLOT) {
         ecb->join.nodes[slot].age = 0u;
+        ecb->join.nodes[slot].flags &= (uint8_t)~UPS_ECB__PROBATION; /* it speaks: a node's */
     }
 }
 
 /** The entry a node id without one takes: an unused one, else a lapsed Offer's (the oldest when
- *  @p reclaim, else the first), else (when @p reclaim) the one whose TxNode is silent longest
- *  past the lease; UPS_ECB__NO_SLOT when none. */
+ *  @p reclaim, else the first), else (when @p reclaim) the one of the lowest TxNode on
+ *  probation, else the one whose TxNode is silent longest past the lease; UPS_ECB__NO_SLOT
+ *  when none. */
 static int vacant_entry(const ups_ecb_t *ecb, int reclaim)
 {
     int slot = UPS_ECB__NO_SLOT;
@@ -161,9 +166,11 @@ static int vacant_entry(const ups_ecb_t *ecb, int reclaim)
         unsigned age = reclaim ? node->age : 0u;
         unsigned rank = 0u; /* the first of the highest rank wins */
         if (node->txnode == 0xFFu) {
-            rank = 0x300u;
+            rank = 0x400u;
         } else if (node->flags == UPS_ECB__LAPSED) {
-            rank = 0x200u + age;
+            rank = 0x300u + age;
+        } else if (reclaim && node->flags == (UPS_ECB__HELD | UPS_ECB__PROBATION)) {
+            rank = 0x2FFu - node->txnode; /* the lowest TxNode: as if adopted earliest */
         } else if (node->flags == UPS_ECB__HELD && age >= UPS_ECB__LEASE_AGE) {
             rank = 0x100u + age; /* offered: a node's own, in use */
         }
@@ -176,8 +183,8 @@ static int vacant_entry(const ups_ecb_t *ecb, int reclaim)
 }
 
 /** An entry for @p node_id, which has none, with a TxNode of its own: an unused one, the
- *  oldest lapsed Offer's, or the one silent longest past the lease (reclaimed). Else
- *  UPS_ECB__NO_SLOT and TxNodesFull. */
+ *  oldest lapsed Offer's, the lowest on probation's or the one silent longest past the lease
+ *  (reclaimed). Else UPS_ECB__NO_SLOT and TxNodesFull. */
 static int new_entry(ups_ecb_t *ecb, const uint8_t *node_id)
 {
     int slot = vacant_entry(ecb, 1);
@@ -300,7 +307,7 @@ static void age_entries(ups_ecb_t *ecb, uint32_t s)
             ups_ecb__since16(ecb->now, join->t_offer[i]) >= wait) {
             ups_ecb__count(&ecb->counters.offers_withdrawn);
             if (node->flags & UPS_ECB__HELD) {
-                node->flags = UPS_ECB__HELD;
+                node->flags &= (uint8_t)~UPS_ECB__OFFERED; /* on probation still, if it was */
             } else {
                 node->flags = UPS_ECB__LAPSED;
                 node->age = 0u;
@@ -346,7 +353,10 @@ static int on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
                 }
             }
             ups_ecb__count(&ecb->counters.adopted);
-            set_entry(node, node_id, txnode, UPS_ECB__HELD);
+            /* a stray's (a later window): on probation until a frame of its TxNode comes after
+               this CLAIM (ups_ecb__join_seen ran before it: it does not clear this) */
+            set_entry(node, node_id, txnode,
+                      ecb->started_up ? UPS_ECB__HELD | UPS_ECB__PROBATION : UPS_ECB__HELD);
             ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
             return 0;
         }
