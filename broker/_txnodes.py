@@ -4,10 +4,10 @@ The census (``_census``) finds the ids of joining nodes; each is offered a TxNod
 (``OFFER_TIMEOUT`` s to claim it), stored, then announced (Assign). A node already known gets its
 own TxNode back. Claims answer the CAN-ECB's Hello: in a recovery window the TxNodes they name
 are adopted when nobody else holds them, and a node that claims another's TxNode is moved. A
-TxNode adopted in a later window (from a stray) is on probation until any frame of it comes:
-when none is free, the lowest TxNode on probation is reclaimed, else the one silent longest once
-past the lease. See docs/protocol.md, *Joining* and *Restarts, recovery and the answer to
-Hello*.
+TxNode adopted in a later window (from a stray), or given in one to a moved id that held none,
+is on probation until any frame of it comes: when none is free, the lowest TxNode on probation
+is reclaimed, else the one silent longest once past the lease. See docs/protocol.md, *Joining*
+and *Restarts, recovery and the answer to Hello*.
 """
 
 from __future__ import annotations
@@ -79,8 +79,9 @@ class TxNodes:
         self._offers: dict[int, tuple[int, asyncio.TimerHandle]] = {}  # node id -> TxNode
         self._lapsed: dict[int, int] = {}  # node id -> TxNode of an offer it did not claim in time
         self.seen = dict.fromkeys(range(p.TXNODE_COUNT), time.monotonic())
-        #: TxNodes adopted from a stray's CLAIM and not heard since: reclaimed first when none is
-        #: free (a forger's made-up ids go silent; a real node asks again). Soft state: not stored
+        #: TxNodes adopted from a stray's CLAIM (or given to a stray's id moved) and not heard
+        #: since: reclaimed first when none is free (a forger's made-up ids go silent; a real
+        #: node asks again). Soft state: not stored
         self.probation: set[int] = set()
 
     def heard(self, txnode: int, now: float) -> None:
@@ -112,11 +113,12 @@ class TxNodes:
             self._offers[node_id] = (txnode, timer)
             self._send(p.Offer(txnode, node_id))
 
-    def move(self, node_id: int) -> None:
-        """Give a joined node whose TxNode another holds a TxNode of its own (Assign)."""
+    def move(self, node_id: int, *, probation: bool = False) -> None:
+        """Give a joined node whose TxNode another holds a TxNode of its own (Assign); a new one
+        is on ``probation`` (a stray's id that held none, moved in a later window)."""
         txnode = self._txnode_for(node_id)
         if txnode is not None:
-            self._assign(node_id, txnode)
+            self._assign(node_id, txnode, probation=probation)
 
     def _txnode_for(self, node_id: int) -> int | None:
         """The TxNode ``node_id`` holds, else a free one (reclaiming the one silent longest,
@@ -152,8 +154,9 @@ class TxNodes:
             return False
         return all(t != txnode or n == node_id for n, (t, _) in self._offers.items())
 
-    def _assign(self, node_id: int, txnode: int) -> None:
-        """The node claimed the TxNode offered to it: store the assignment, then announce it."""
+    def _assign(self, node_id: int, txnode: int, *, probation: bool = False) -> None:
+        """The node claimed the TxNode offered to it (or is moved to it): store the assignment,
+        then announce it. A TxNode it holds already keeps its probation."""
         if self._phase.standby or node_id in self._pending:
             return
         if self._store.txnodes.get(node_id) == txnode:
@@ -165,6 +168,8 @@ class TxNodes:
             del self._pending[node_id]
             if self._stored(error, f"TxNode {txnode} of node {node_id:016x}", node_id):
                 self._hold(node_id, txnode)
+                if probation:  # until its node speaks from it: a real one does at once
+                    self.probation.add(txnode)
                 self._assigned(node_id, txnode)
 
         self._store.submit([("txnodes", node_id, txnode)], done)
@@ -278,4 +283,7 @@ class TxNodes:
         self._counters["conflicts"] += 1
         log.warning("node %016x claims TxNode 0x%02x held by another node: moving it",
                     node_id, txnode)  # fmt: skip
-        self.move(node_id)  # the holder of ``txnode`` keeps it and its channels
+        # the holder of ``txnode`` keeps it and its channels. An id that held nothing is a
+        # stray's in a later window: its new TxNode is on probation, as an adopted one is (a
+        # flood of CLAIMs of one TxNode by made-up ids would take every TxNode otherwise)
+        self.move(node_id, probation=phase.started_up and known is None)

@@ -6,12 +6,12 @@
  * The node table holds every node id the CAN-ECB knows: held (durable), offered, or lapsed
  * (an Offer nobody claimed in time, kept for a late claim). A new node id takes an unused
  * entry, else the one of the oldest lapsed Offer, else the entry of the lowest TxNode on
- * probation (adopted from a stray's CLAIM, silent since), else that of the TxNode silent
- * longest past the lease (both reclaimed); else TxNodesFull. Its TxNode is the lowest no
- * entry uses (the reclaimed one's when reclaimed). The Python CAN-ECB keeps up to 127 lapsed
- * Offers beside 127 TxNodes; here they share the UPS_ECB_NODES entries and give way first. The
- * entries keep no adoption time: of those on probation the lowest TxNode goes first (as in
- * Python), not the one adopted earliest.
+ * probation (adopted from a stray's CLAIM, or given to a stray's id moved in a later window;
+ * silent since), else that of the TxNode silent longest past the lease (both reclaimed); else
+ * TxNodesFull. Its TxNode is the lowest no entry uses (the reclaimed one's when reclaimed).
+ * The Python CAN-ECB keeps up to 127 lapsed Offers beside 127 TxNodes; here they share the
+ * UPS_ECB_NODES entries and give way first. The entries keep no adoption time: of those on
+ * probation the lowest TxNode goes first (as in Python), not the one adopted earliest.
  *
  * The census walks the joiners' ids by queries, each in one of 16 epochs (used round robin,
  * as the Python CAN-ECB does), at most UPS_ECB_QUERIES open at once; a closed query stays in
@@ -231,8 +231,8 @@ static void send_assign(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id,
 }
 
 /** Entry @p slot's node claimed (or is moved to) its TxNode: hold it (durable: noted, so that
- *  the application saves before it sends the Assign), then Assign. */
-static void assign(ups_ecb_t *ecb, int slot)
+ *  the application saves before it sends the Assign), with @p flags more (move), then Assign. */
+static void assign(ups_ecb_t *ecb, int slot, unsigned flags)
 {
     ups_ecb_node_t *node = &ecb->join.nodes[slot];
     if (node->flags & UPS_ECB__HELD) {
@@ -240,15 +240,16 @@ static void assign(ups_ecb_t *ecb, int slot)
     } else {
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     }
-    node->flags = UPS_ECB__HELD;
+    node->flags = (uint8_t)(UPS_ECB__HELD | flags);
     node->age = 0u;
     ups_ecb__count(&ecb->counters.joined);
     send_assign(ecb, node->txnode, node->node_id, 0u);
 }
 
 /** Give the node of @p node_id and entry @p slot (UPS_ECB__NO_SLOT: none) whose TxNode another
- *  holds (or that was told to move) one of its own: the one it holds, else a new one. */
-static void move(ups_ecb_t *ecb, int slot, const uint8_t *node_id)
+ *  holds (or that was told to move) one of its own: the one it holds, else a new one, with
+ *  @p flags (UPS_ECB__PROBATION: a stray's id that held none, in a later window). */
+static void move(ups_ecb_t *ecb, int slot, const uint8_t *node_id, unsigned flags)
 {
     if (slot == UPS_ECB__NO_SLOT || !(ecb->join.nodes[slot].flags & UPS_ECB__HELD)) {
         if (slot != UPS_ECB__NO_SLOT) {
@@ -257,7 +258,7 @@ static void move(ups_ecb_t *ecb, int slot, const uint8_t *node_id)
         slot = new_entry(ecb, node_id);
     }
     if (slot != UPS_ECB__NO_SLOT) {
-        assign(ecb, slot);
+        assign(ecb, slot, flags);
     }
 }
 
@@ -320,6 +321,7 @@ static void age_entries(ups_ecb_t *ecb, uint32_t s)
  *  when it is a request from a TxNode nobody holds, which the dispatcher handles as such. */
 static int on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
 {
+    unsigned flags = 0u; /* of the TxNode it is moved to */
     int slot = entry_of(ecb, node_id);
     ups_ecb_node_t *node = slot != UPS_ECB__NO_SLOT ? &ecb->join.nodes[slot] : NULL;
     if (node != NULL && node->txnode == txnode) {
@@ -328,7 +330,7 @@ static int on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
         }
         if (node->flags != UPS_ECB__LAPSED || free_for(ecb, txnode, slot)) {
             if (node->flags != UPS_ECB__HELD) { /* a joiner takes the TxNode offered */
-                assign(ecb, slot);
+                assign(ecb, slot, 0u);
             }
             return 0;
         } /* else given to another meanwhile: a TxNode of its own */
@@ -370,9 +372,14 @@ static int on_claim(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id)
                 }
             }
             return 0;
-        } /* else another's TxNode: the holder keeps it */
+        } /* else another's TxNode: the holder keeps it. An id that held none is a stray's in a
+             later window: its new TxNode is on probation, as an adopted one is (a flood of
+             CLAIMs of one TxNode by made-up ids would take every entry otherwise) */
+        if (ecb->started_up && known < 0) {
+            flags = UPS_ECB__PROBATION;
+        }
     }
-    move(ecb, slot, node_id);
+    move(ecb, slot, node_id, flags);
     return 0;
 }
 

@@ -18,8 +18,9 @@
 #define UPS_ECB__OFFERED 0x02u /* txnode is offered to it, since t_offer */
 #define UPS_ECB__LAPSED 0x04u  /* an Offer of txnode lapsed unclaimed (not held): a late claim
                                   still gets it; the entry is given up first when none is free */
-#define UPS_ECB__PROBATION 0x08u /* held, adopted from a stray's CLAIM and silent since (soft:
-                                    not in the blob): reclaimed first when none is free */
+#define UPS_ECB__PROBATION 0x08u /* held, adopted from a stray's CLAIM (or a stray's id moved
+                                    there) and silent since (soft: not in the blob): reclaimed
+                                    first when none is free */
 
 /** One node id the CAN-ECB knows: it holds a TxNode, is offered one, or let an Offer lapse.
  *  txnode is 0xFF in an unused entry (whose flags are 0). age counts 64ths of the lease since

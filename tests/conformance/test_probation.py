@@ -3,7 +3,9 @@ the answer to Hello": probation; *Bounds*, TxNodes). A forger sends a request fr
 nobody holds (the CAN-ECB says Hello and recovers: a later window, for strays only) and then a
 CLAIM of each with a made-up node id: every TxNode is taken. Those TxNodes are on probation
 until a frame of theirs comes after the CLAIM, and a join that finds none free reclaims the
-lowest of them instead of answering TxNodesFull."""
+lowest of them instead of answering TxNodesFull. A CLAIM of a held TxNode by another id in such
+a window moves that id to a TxNode of its own: when it held none before, that TxNode is on
+probation too."""
 
 from __future__ import annotations
 
@@ -84,3 +86,24 @@ async def test_a_stray_that_speaks_again_is_off_probation(raw: Wire, instance: i
         assert not raw.find(lambda f: isinstance(f, Assign) and f.txnode == strays[0])
     finally:
         spoke.close()
+
+
+async def test_a_flood_of_moves_cannot_lock_a_new_node_out(raw: Wire, instance: int) -> None:
+    """One request from a TxNode nobody holds, then CLAIMs of it by as many made-up ids as
+    there are TxNodes: the first is adopted, each other is moved to a TxNode of its own, on
+    probation as it held none before. A new node joins."""
+    real = RawNode(raw, 0x5EA1)
+    await real.join()
+    stray = 0 if real.txnode != 0 else 1
+    since = raw.send(sub_bind(stray, UID))
+    await raw.expect(Hello(instance), since=since, timeout=3.0)  # a window for the stray
+    forged = [FORGED_ID + k for k in range(MAX_TXNODE + 1)]
+    raw.send(*(claim(stray, node_id) for node_id in forged))
+    await raw.expect(  # the last CLAIM was heard in the window: moved (or none was free yet)
+        lambda f: isinstance(f, Assign | TxNodesFull) and f.node_id == forged[-1],
+        since=since, timeout=5.0,
+    )  # fmt: skip
+    assert await _joins(raw, 0xA11CE) != real.txnode
+    await real.ask(SUB_BIND, UID)  # the real node keeps its TxNode
+    assert not raw.find(lambda f: isinstance(f, Assign) and f.txnode == real.txnode
+                        and f.node_id != real.node_id)  # fmt: skip
