@@ -231,7 +231,9 @@ static void send_assign(ups_ecb_t *ecb, unsigned txnode, const uint8_t *node_id,
 }
 
 /** Entry @p slot's node claimed (or is moved to) its TxNode: hold it (durable: noted, so that
- *  the application saves before it sends the Assign), with @p flags more (move), then Assign. */
+ *  the application saves before it sends the Assign), with @p flags more (move), then Assign.
+ *  One held already keeps its probation (a joiner's own was cleared by its CLAIM, in
+ *  ups_ecb__join_seen). */
 static void assign(ups_ecb_t *ecb, int slot, unsigned flags)
 {
     ups_ecb_node_t *node = &ecb->join.nodes[slot];
@@ -240,7 +242,7 @@ static void assign(ups_ecb_t *ecb, int slot, unsigned flags)
     } else {
         ups_ecb__note(ecb, UPS_ECB_NOTE_STATE);
     }
-    node->flags = (uint8_t)(UPS_ECB__HELD | flags);
+    node->flags = (uint8_t)(UPS_ECB__HELD | (node->flags & UPS_ECB__PROBATION) | flags);
     node->age = 0u;
     ups_ecb__count(&ecb->counters.joined);
     send_assign(ecb, node->txnode, node->node_id, 0u);

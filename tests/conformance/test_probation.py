@@ -20,6 +20,7 @@ from ._frames import MAX_TXNODE, SUB_BIND, Assign, Hello, TxNodesFull, claim, su
 from ._wire import Ecb, RawNode, Wire, serving_ecb
 
 UID = name_to_uid("conformance/probation")
+HELD_UID = name_to_uid("conformance/probation/held")  #: asked only by ``_held``'s node
 FORGED_ID = 0xF00D_0000  #: + TxNode: the forger's made-up node ids
 #: the recovery windows: long enough for the CAN-ECB to handle 126 CLAIMs in one on a busy
 #: machine (each adoption is stored before the next frame: the C one's blob is written anew)
@@ -47,6 +48,17 @@ async def _flood(raw: Wire, instance: int) -> tuple[RawNode, list[int]]:
     await raw.expect(Hello(instance), since=since, timeout=3.0)  # a window for strays
     raw.send(*(claim(t, FORGED_ID + t) for t in strays))  # heard in that window: adopted
     return real, strays
+
+
+async def _held(raw: Wire, txnode: int) -> None:
+    """The CLAIM of ``txnode`` by ``FORGED_ID + txnode`` was heard in the window (adopted): a
+    request from it is answered, which takes it off probation. (A CLAIM heard after the window
+    is ignored: a test would then pass without probation.)"""
+    node = RawNode(raw, FORGED_ID + txnode, txnode=txnode)
+    try:
+        await node.ask(SUB_BIND, HELD_UID, timeout=3.0)  # answered after the window
+    finally:
+        node.close()
 
 
 async def _joins(raw: Wire, node_id: int) -> int:
@@ -107,3 +119,22 @@ async def test_a_flood_of_moves_cannot_lock_a_new_node_out(raw: Wire, instance: 
     await real.ask(SUB_BIND, UID)  # the real node keeps its TxNode
     assert not raw.find(lambda f: isinstance(f, Assign) and f.txnode == real.txnode
                         and f.node_id != real.node_id)  # fmt: skip
+
+
+async def test_a_node_on_probation_moved_back_to_its_own_txnode_stays_on_probation(
+    raw: Wire, instance: int
+) -> None:
+    """A stray's CLAIM is adopted, then its id claims another TxNode: it is moved back to its
+    own (Assign), but no frame of that TxNode came after the adopting CLAIM: it is still on
+    probation, the lowest, and a new node takes it."""
+    real = RawNode(raw, 0x5EA1)
+    await real.join()
+    strays = [t for t in range(MAX_TXNODE + 1) if t != real.txnode]
+    since = raw.send(*(sub_bind(t, UID) for t in strays))
+    await raw.expect(Hello(instance), since=since, timeout=3.0)
+    moved = FORGED_ID + strays[0]
+    raw.send(claim(strays[0], moved), claim(strays[1], moved))  # adopted, then moved back
+    raw.send(*(claim(t, FORGED_ID + t) for t in strays[1:]))
+    await raw.expect(Assign(strays[0], moved), since=since, timeout=3.0)
+    await _held(raw, strays[-1])
+    assert await _joins(raw, 0xA11CE) == strays[0]
