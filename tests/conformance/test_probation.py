@@ -47,6 +47,7 @@ async def _flood(raw: Wire, instance: int) -> tuple[RawNode, list[int]]:
     since = raw.send(*(sub_bind(t, UID) for t in strays))
     await raw.expect(Hello(instance), since=since, timeout=3.0)  # a window for strays
     raw.send(*(claim(t, FORGED_ID + t) for t in strays))  # heard in that window: adopted
+    await _held(raw, strays[-1])
     return real, strays
 
 
@@ -76,8 +77,9 @@ async def _joins(raw: Wire, node_id: int) -> int:
 async def test_a_flood_of_strays_claims_cannot_lock_a_new_node_out(
     raw: Wire, instance: int
 ) -> None:
-    """Every TxNode is taken by forged ids that went silent after their CLAIM: a new node
-    joins, on the lowest of them (reclaimed), and the next one on the next."""
+    """Every TxNode is taken by forged ids that went silent after their CLAIM (the highest
+    spoke: ``_flood``): a new node joins, on the lowest of them (reclaimed), and the next one on
+    the next."""
     real, strays = await _flood(raw, instance)
     assert await _joins(raw, 0xA11CE) == strays[0]
     assert await _joins(raw, 0xB0B) == strays[1]
