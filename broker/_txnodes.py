@@ -206,6 +206,7 @@ class TxNodes:
         """Take ``txnode`` from its node, which is forgotten for good (``writes``)."""
         old_id = self.node_at.pop(txnode)
         del self._store.txnodes[old_id]
+        self._lapsed.pop(old_id, None)  # a late CLAIM of it is a stranger's (as in libups-ecb)
         self.probation.discard(txnode)
         self._forget(txnode)
         writes.append(("txnodes", old_id, None))
