@@ -35,6 +35,8 @@ M0 = {
     "test_serving_of_a_lower_instance_makes_it_stand_by",
     "test_a_request_unanswered_while_it_stands_by_makes_it_serve_whatever_servings_say",
     "test_a_flood_of_strays_claims_cannot_lock_a_new_node_out",
+    "test_a_flood_of_moves_cannot_lock_a_new_node_out",
+    "test_a_node_on_probation_moved_back_to_its_own_txnode_stays_on_probation",
 }
 M0_UNFIT = {  # test -> why the ecb-full image cannot pass it
     "test_ecb_refuses_bindings_past_a_node_ids_quota_and_binds_what_exists": "the ecb-full "
