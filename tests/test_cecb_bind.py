@@ -303,14 +303,20 @@ def test_a_full_table_and_the_lease_call_by_call() -> None:
     scenario_full_table_and_the_lease("full")
 
 
-@pytest.mark.timeout(240)  # the asan build made here, then its child: minutes on a busy machine
-def test_a_full_table_and_the_lease_under_asan() -> None:
-    build("asan", targets=VARIANTS, sources=SOURCES)  # built here; loaded by the child only
-    code = "from tests.test_cecb_bind import *; scenario_full_table_and_the_lease('asan')"
+def in_asan_child(scenario: str) -> None:
+    """Run ``scenario('asan')`` of this file in a child process on the asan build (built here,
+    loaded by the child only: ASan must be the first library it loads)."""
+    build("asan", targets=VARIANTS, sources=SOURCES)
+    code = f"from tests.test_cecb_bind import *; {scenario}('asan')"
     env = {**os.environ, **sanitizer_env(), "PYTHONPATH": str(ROOT)}
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=50)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+@pytest.mark.timeout(240)  # the asan build made here, then its child: minutes on a busy machine
+def test_a_full_table_and_the_lease_under_asan() -> None:
+    in_asan_child("scenario_full_table_and_the_lease")
 
 
 def scenario_rosters_past_their_bound(variant: str) -> None:
@@ -344,12 +350,7 @@ def test_rosters_past_their_bound_call_by_call() -> None:
 def test_rosters_past_their_bound_under_asan() -> None:
     """On the asan build's tables (UPS_ECB_ROSTERS 2), where a Roster kept past the table
     would write out of it."""
-    build("asan", targets=VARIANTS, sources=SOURCES)  # built here; loaded by the child only
-    code = "from tests.test_cecb_bind import *; scenario_rosters_past_their_bound('asan')"
-    env = {**os.environ, **sanitizer_env(), "PYTHONPATH": str(ROOT)}
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=50)  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
+    in_asan_child("scenario_rosters_past_their_bound")
 
 
 def test_an_admission_whose_grants_do_not_fit_the_tx_queue_waits_for_the_declare_again() -> None:

@@ -45,6 +45,17 @@ def test_a_port_in_use_is_one_line() -> None:
         assert "address already in use" in text
 
 
+#: a gateway that hosts no CAN-ECB: the hosted CAN-ECB's options are refused
+EXTERNAL_CAN_ECB = [
+    "gateway",
+    "--can",
+    "virtual:x",
+    "--broker",
+    "127.0.0.1:1",
+    "--external-can-ecb",
+]
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -73,32 +84,10 @@ def test_a_port_in_use_is_one_line() -> None:
             ["gateway", "--can", "virtual:x", "--zenoh", "tcp/127.0.0.1:1", "--listen", ":0"],
             "--listen is for a",
         ),
-        (
-            [
-                "gateway",
-                "--can",
-                "virtual:x",
-                "--broker",
-                "127.0.0.1:1",
-                "--external-can-ecb",
-                "--recovery",
-                "0.5",
-            ],
-            "--recovery is for the CAN-ECB the gateway hosts",
-        ),
-        (
-            [
-                "gateway",
-                "--can",
-                "virtual:x",
-                "--broker",
-                "127.0.0.1:1",
-                "--external-can-ecb",
-                "--db",
-                "x.db",
-            ],
-            "--db is for the CAN-ECB the gateway hosts",
-        ),
+        *[
+            ([*EXTERNAL_CAN_ECB, option, value], f"{option} is for the CAN-ECB the gateway hosts")
+            for option, value in (("--recovery", "0.5"), ("--db", "x.db"))
+        ],
     ],
 )
 def test_bad_input_is_one_line(args: list[str], message: str) -> None:
